@@ -1,0 +1,33 @@
+# Two commands on a fresh machine: `make demo` and `make test`. Both create .venv and install
+# omnigen with every extra, under constraints.txt (the versions the tests ran with).
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+SHARED ?= ../shared
+DEMO   ?= demo
+
+.PHONY: demo test venv chromium clean bench
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml constraints.txt
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[all,test]"
+	@touch $(STAMP)
+
+# The main job on its embedded default: convert the real KITTI sample frames when ../shared is
+# beside the checkout, else a small KITTI-format tree the project generates; then validate the
+# result and export it to COCO.
+demo: $(STAMP)
+	$(BIN)/python benchmarks/demo.py --shared $(SHARED) --out $(DEMO)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/bench_load.py
+
+clean:
+	rm -rf $(VENV) $(DEMO) .pytest_cache

@@ -1,0 +1,1 @@
+"""The bundled keypoint detector and its heads, which validate the data."""

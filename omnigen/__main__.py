@@ -1,0 +1,5 @@
+import sys
+
+from omnigen.cli import main
+
+sys.exit(main())

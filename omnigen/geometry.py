@@ -1,0 +1,419 @@
+"""Cuboids, cameras and projections in the contract's frames (numpy only, plus shapely for 2D).
+
+Frames: the camera is OpenCV's (x right, y down, z forward); an object's frame has x forward
+(length l), y left (width w), z up (height h) with its origin at the cuboid's centre. Pixels
+follow OpenCV/KITTI: the centre of the top-left pixel is (0, 0), so an image W wide spans
+x in [-0.5, W - 0.5].
+
+Why one module: every source (Blender, KITTI, DAIR-V2X) meets every consumer here, so the
+conversions between their frames sit side by side and are tested together.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from shapely.geometry import MultiPoint, Polygon, box as shapely_box
+
+from omnigen.conventions import CORNER_SIGNS, NEAR_PLANE, SKELETON
+
+# ---------------------------------------------------------------------------------------------
+# Rotations
+# ---------------------------------------------------------------------------------------------
+
+
+def rot_x(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=np.float64)
+
+
+def rot_y(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=np.float64)
+
+
+def rot_z(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
+
+
+def is_rotation(r: np.ndarray, tol: float = 1e-6) -> bool:
+    """True for a proper rotation (orthonormal, determinant +1)."""
+    r = np.asarray(r, dtype=np.float64)
+    return r.shape == (3, 3) and np.allclose(r.T @ r, np.eye(3), atol=tol) and abs(np.linalg.det(r) - 1) < tol
+
+
+# ---------------------------------------------------------------------------------------------
+# The cuboid
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Box3D:
+    """A cuboid in a camera frame.
+
+    center: (3,) metres; dims: (3,) = [l, w, h]; rotation: (3, 3) mapping object-frame vectors
+    into the camera frame (columns: forward, left, up). A full rotation, not a yaw, because pole
+    and drone cameras are pitched and an object's up is then not the camera's -y.
+    """
+
+    center: np.ndarray
+    dims: np.ndarray
+    rotation: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center", np.asarray(self.center, dtype=np.float64).reshape(3))
+        object.__setattr__(self, "dims", np.asarray(self.dims, dtype=np.float64).reshape(3))
+        object.__setattr__(self, "rotation", np.asarray(self.rotation, dtype=np.float64).reshape(3, 3))
+
+    @property
+    def forward(self) -> np.ndarray:
+        return self.rotation[:, 0]
+
+    @property
+    def left(self) -> np.ndarray:
+        return self.rotation[:, 1]
+
+    @property
+    def up(self) -> np.ndarray:
+        return self.rotation[:, 2]
+
+    def corners(self) -> np.ndarray:
+        """(8, 3) corners in the camera frame, in the contract's order (0-3 top, 4-7 bottom)."""
+        local = CORNER_SIGNS * (self.dims / 2.0)
+        return local @ self.rotation.T + self.center
+
+    def transformed(self, rotation: np.ndarray, translation: np.ndarray) -> "Box3D":
+        """The same cuboid expressed in another frame: X' = rotation @ X + translation."""
+        rotation = np.asarray(rotation, dtype=np.float64)
+        return Box3D(rotation @ self.center + np.asarray(translation, dtype=np.float64), self.dims, rotation @ self.rotation)
+
+    def bottom_center(self) -> np.ndarray:
+        """Centre of the ground-contact face."""
+        return self.center - self.up * self.dims[2] / 2.0
+
+
+def box_corners(center: np.ndarray, dims: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """Vectorised corners: center (N, 3), dims (N, 3), rotation (N, 3, 3) -> (N, 8, 3)."""
+    local = CORNER_SIGNS[None] * (np.asarray(dims)[:, None, :] / 2.0)
+    return np.einsum("nij,nkj->nki", rotation, local) + np.asarray(center)[:, None, :]
+
+
+# ---------------------------------------------------------------------------------------------
+# Projection
+# ---------------------------------------------------------------------------------------------
+
+
+def project_points(K: np.ndarray, points: np.ndarray, near: float = NEAR_PLANE) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection u = K X.
+
+    Returns (uv, behind): uv is (N, 2) with NaN wherever the point is closer than `near` along
+    the optical axis, so a point behind the camera is never mirrored into the image.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    z = points[:, 2]
+    behind = z < near
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = points @ np.asarray(K, dtype=np.float64).T
+        uv = proj[:, :2] / proj[:, 2:3]
+    uv[behind] = np.nan
+    return uv, behind
+
+
+def image_rect(width: int, height: int) -> Polygon:
+    """The image's area in the contract's pixel convention: [-0.5, W - 0.5] x [-0.5, H - 0.5]."""
+    return shapely_box(-0.5, -0.5, width - 0.5, height - 0.5)
+
+
+def in_image(uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    """True where a finite pixel coordinate lies inside the image rectangle."""
+    uv = np.asarray(uv, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return (
+            np.isfinite(uv).all(axis=-1)
+            & (uv[..., 0] >= -0.5)
+            & (uv[..., 0] <= width - 0.5)
+            & (uv[..., 1] >= -0.5)
+            & (uv[..., 1] <= height - 0.5)
+        )
+
+
+def clip_corners_at_near_plane(corners: np.ndarray, near: float = NEAR_PLANE) -> np.ndarray:
+    """Vertices of the cuboid cut by the plane z = near, keeping the part in front.
+
+    The cut of a convex polyhedron by a plane is convex and its vertices are the original
+    vertices in front plus the points where edges cross the plane, so its silhouette is the
+    convex hull of their projections.
+    """
+    corners = np.asarray(corners, dtype=np.float64)
+    z = corners[:, 2]
+    keep = [corners[z >= near]]
+    for a, b in SKELETON:
+        za, zb = z[a], z[b]
+        if (za < near) != (zb < near):
+            t = (near - za) / (zb - za)
+            keep.append((corners[a] + t * (corners[b] - corners[a]))[None])
+    return np.concatenate(keep, axis=0)
+
+
+def silhouette(corners: np.ndarray, K: np.ndarray, near: float = NEAR_PLANE) -> Polygon:
+    """The projected cuboid as a polygon (empty when it lies wholly behind the near plane)."""
+    clipped = clip_corners_at_near_plane(corners, near)
+    if len(clipped) == 0:
+        return Polygon()
+    uv, _ = project_points(K, clipped, near=near - 1e-9)
+    hull = MultiPoint([tuple(p) for p in uv]).convex_hull
+    return hull if isinstance(hull, Polygon) else Polygon()
+
+
+def self_occluded_corners(box: Box3D) -> np.ndarray:
+    """(8,) True where the cuboid hides its own corner from a camera at the origin.
+
+    A vertex of a convex solid is visible exactly when at least one face touching it faces the
+    camera; a face faces the camera when its outward normal points back towards the origin.
+    """
+    facing = np.empty((3, 2), dtype=bool)  # axis, side (0: +, 1: -)
+    for axis in range(3):
+        normal = box.rotation[:, axis]
+        half = box.dims[axis] / 2.0
+        for side, sign in enumerate((1.0, -1.0)):
+            point_on_face = box.center + sign * normal * half
+            facing[axis, side] = np.dot(sign * normal, point_on_face) < 0
+    hidden = np.ones(8, dtype=bool)
+    for k, signs in enumerate(CORNER_SIGNS):
+        sides = [0 if s > 0 else 1 for s in signs]
+        hidden[k] = not any(facing[axis, sides[axis]] for axis in range(3))
+    return hidden
+
+
+@dataclass(frozen=True)
+class BoxProjection:
+    """What the contract derives from a cuboid, K and an image size.
+
+    keypoints: (8, 2), NaN for corners behind the camera (outside-image corners keep raw x, y).
+    bbox: [x1, y1, x2, y2] of the in-image part of the near-clipped silhouette, or None when
+    none of it is in the image. truncation: fraction of the silhouette's area outside the image.
+    """
+
+    keypoints: np.ndarray
+    in_image: np.ndarray
+    behind_camera: np.ndarray
+    bbox: np.ndarray | None
+    truncation: float
+
+
+def project_box(box: Box3D, K: np.ndarray, width: int, height: int, near: float = NEAR_PLANE) -> BoxProjection:
+    """Project a cuboid and compute its keypoints, flags, bbox and truncation."""
+    corners = box.corners()
+    uv, behind = project_points(K, corners, near)
+    inside = in_image(uv, width, height)
+    shape = silhouette(corners, K, near)
+    bbox = None
+    truncation = 1.0
+    if not shape.is_empty and shape.area > 0:
+        visible = shapely.intersection(shape, image_rect(width, height))
+        if not visible.is_empty and visible.area > 0:
+            bbox = np.asarray(visible.bounds, dtype=np.float64)
+            truncation = float(np.clip(1.0 - visible.area / shape.area, 0.0, 1.0))
+    return BoxProjection(uv, inside, behind, bbox, truncation)
+
+
+# ---------------------------------------------------------------------------------------------
+# Ground plane and camera pose relative to it
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Plane:
+    """n . X + d = 0 in the camera frame, n a unit normal pointing up (away from the ground).
+
+    For a camera above the ground, d is its height above the plane.
+    """
+
+    normal: np.ndarray
+    offset: float
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=np.float64).reshape(3)
+        norm = np.linalg.norm(n)
+        if not np.isfinite(norm) or norm == 0:
+            raise ValueError("plane normal must be a finite non-zero vector")
+        object.__setattr__(self, "normal", n / norm)
+        object.__setattr__(self, "offset", float(self.offset) / norm)
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Signed height of points above the plane."""
+        return np.asarray(points, dtype=np.float64) @ self.normal + self.offset
+
+    @property
+    def camera_height(self) -> float:
+        """Height of the camera centre (the origin) above the plane."""
+        return self.offset
+
+    @property
+    def camera_pitch(self) -> float:
+        """Angle of the optical axis below the horizon (radians, positive looking down)."""
+        return float(math.asin(np.clip(-self.normal[2], -1.0, 1.0)))
+
+
+def fit_plane(points: np.ndarray, up_hint: np.ndarray = np.array([0.0, -1.0, 0.0]), iterations: int = 3) -> Plane:
+    """Least-squares plane through points, re-fitted with inverse-residual weights (IRLS).
+
+    The normal is oriented along `up_hint`. Needs at least three non-collinear points.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) < 3:
+        raise ValueError("a plane needs at least three points")
+    weights = np.ones(len(pts))
+    for _ in range(max(1, iterations)):
+        w = weights / weights.sum()
+        mean = (pts * w[:, None]).sum(axis=0)
+        centred = (pts - mean) * np.sqrt(w)[:, None]
+        _, sing, vt = np.linalg.svd(centred, full_matrices=False)
+        normal = vt[-1]
+        if sing[1] < 1e-9:
+            raise ValueError("points are collinear: no unique plane")
+        residual = np.abs((pts - mean) @ normal)
+        weights = 1.0 / np.maximum(residual, 0.02)
+    if np.dot(normal, up_hint) < 0:
+        normal = -normal
+    return Plane(normal, -float(np.dot(normal, mean)))
+
+
+def plane_from_height_pitch(height: float, pitch: float, roll: float = 0.0) -> Plane:
+    """Ground plane seen by a camera `height` metres up, pitched down by `pitch`, rolled by `roll`."""
+    up_world_in_cam = rot_z(roll) @ rot_x(pitch) @ np.array([0.0, -1.0, 0.0])
+    # Pitch down tilts "up" towards the camera's -z: rot_x(pitch) maps (0,-1,0) -> (0,-cos,-sin).
+    return Plane(up_world_in_cam, height)
+
+
+# ---------------------------------------------------------------------------------------------
+# KITTI
+# ---------------------------------------------------------------------------------------------
+
+
+def kitti_rotation(ry: float) -> np.ndarray:
+    """Object-to-camera rotation of a KITTI box with rotation_y = ry (about the camera's y)."""
+    c, s = math.cos(ry), math.sin(ry)
+    forward = [c, 0.0, -s]
+    left = [s, 0.0, c]
+    up = [0.0, -1.0, 0.0]
+    return np.array([forward, left, up], dtype=np.float64).T
+
+
+def camera_offset_from_projection(P: np.ndarray) -> np.ndarray:
+    """Translation t from the rectified camera-0 frame to the camera of P = K [I | t].
+
+    KITTI's P2 carries camera 2's offset in its last column (K t), about 45.76 px / fx in x.
+    """
+    P = np.asarray(P, dtype=np.float64).reshape(3, 4)
+    return np.linalg.solve(P[:, :3], P[:, 3])
+
+
+def box_from_kitti(h: float, w: float, l: float, x: float, y: float, z: float, ry: float,
+                   camera_offset: np.ndarray | None = None) -> Box3D:
+    """A KITTI label (dims h w l, bottom-centre location in camera 0, rotation_y) as a Box3D.
+
+    `camera_offset` moves it into the image's camera (camera_offset_from_projection(P2)).
+    """
+    center = np.array([x, y - h / 2.0, z], dtype=np.float64)
+    if camera_offset is not None:
+        center = center + np.asarray(camera_offset, dtype=np.float64)
+    return Box3D(center, [l, w, h], kitti_rotation(ry))
+
+
+def box_to_kitti(box: Box3D, camera_offset: np.ndarray | None = None) -> tuple[float, float, float, float, float, float, float]:
+    """A Box3D as KITTI (h, w, l, x, y, z, ry) in camera 0.
+
+    KITTI assumes upright objects in a level camera. For a pitched camera we keep what KITTI
+    tools reconstruct exact: location = centre + (0, h/2, 0), so `location - (0, h/2, 0)` gives
+    back the true centre, and ry is the heading of the forward axis projected onto the camera's
+    x-z plane. The tilt itself is lost, as it must be in KITTI's format.
+    """
+    l, w, h = (float(v) for v in box.dims)
+    center = box.center - (np.asarray(camera_offset, dtype=np.float64) if camera_offset is not None else 0.0)
+    f = box.forward
+    ry = math.atan2(-f[2], f[0])
+    return h, w, l, float(center[0]), float(center[1] + h / 2.0), float(center[2]), ry
+
+
+def kitti_alpha(ry: float, x: float, z: float) -> float:
+    """KITTI's observation angle alpha = ry - atan2(x, z), wrapped to [-pi, pi)."""
+    return wrap_angle(ry - math.atan2(x, z))
+
+
+def wrap_angle(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+# ---------------------------------------------------------------------------------------------
+# DAIR-V2X
+# ---------------------------------------------------------------------------------------------
+
+
+def box_from_dair(center_lidar: np.ndarray, lwh: np.ndarray, yaw: float,
+                  lidar_to_camera_rotation: np.ndarray, lidar_to_camera_translation: np.ndarray) -> Box3D:
+    """A DAIR-V2X box (virtual-LiDAR centre, [l, w, h], yaw about +z, 0 along +x) in the camera.
+
+    The object frame's axes coincide with the virtual LiDAR's (x forward, y left, z up) rotated by
+    the yaw, so the object-to-LiDAR rotation is rot_z(yaw); X_cam = R X_lidar + t then carries
+    the camera's pitch into the box's rotation.
+    """
+    in_lidar = Box3D(center_lidar, lwh, rot_z(yaw))
+    return in_lidar.transformed(lidar_to_camera_rotation, np.asarray(lidar_to_camera_translation).reshape(3))
+
+
+# ---------------------------------------------------------------------------------------------
+# Blender cameras
+# ---------------------------------------------------------------------------------------------
+
+BLENDER_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
+"""Blender's camera looks along -Z with +Y up; OpenCV's along +Z with +Y down."""
+
+
+def intrinsics_from_blender(lens: float, sensor_width: float, width: int, height: int,
+                            shift_x: float = 0.0, shift_y: float = 0.0) -> np.ndarray:
+    """K for a Blender camera with sensor_fit 'AUTO', in the contract's pixel convention.
+
+    f = lens / sensor_width * max(W, H); the principal point sits at the image centre in
+    continuous coordinates, which is W/2 - 0.5 when pixel centres are integers.
+    """
+    size = max(width, height)
+    f = lens / sensor_width * size
+    cx = width / 2.0 - 0.5 - shift_x * size
+    cy = height / 2.0 - 0.5 + shift_y * size
+    return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+
+
+def blender_from_intrinsics(K: np.ndarray, width: int, height: int, sensor_width: float = 36.0) -> dict[str, float]:
+    """Blender camera settings (lens, sensor_width, shift_x, shift_y) that reproduce K.
+
+    Blender has one focal length, so fx must equal fy.
+    """
+    K = np.asarray(K, dtype=np.float64)
+    if not math.isclose(K[0, 0], K[1, 1], rel_tol=1e-9):
+        raise ValueError(f"Blender cameras need square pixels, got fx={K[0, 0]} fy={K[1, 1]}")
+    size = max(width, height)
+    return {
+        "lens": K[0, 0] * sensor_width / size,
+        "sensor_width": sensor_width,
+        "shift_x": (width / 2.0 - 0.5 - K[0, 2]) / size,
+        "shift_y": (K[1, 2] - height / 2.0 + 0.5) / size,
+    }
+
+
+def world_to_opencv_camera(camera_to_world_blender: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) with X_cam = R X_world + t, from a Blender camera's 4x4 matrix_world."""
+    m = np.asarray(camera_to_world_blender, dtype=np.float64)
+    r_wc, c = m[:3, :3], m[:3, 3]
+    r = BLENDER_TO_OPENCV @ r_wc.T
+    return r, -r @ c
+
+
+def intrinsics_from_fov(hfov: float, width: int, height: int) -> np.ndarray:
+    """K of a centred pinhole with horizontal field of view `hfov` (radians), square pixels."""
+    f = (width / 2.0) / math.tan(hfov / 2.0)
+    return np.array([[f, 0.0, width / 2.0 - 0.5], [0.0, f, height / 2.0 - 0.5], [0.0, 0.0, 1.0]])

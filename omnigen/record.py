@@ -1,0 +1,393 @@
+"""The UrbanOmniView record: one frame, its objects and its ignore regions.
+
+A record is plain data (dataclasses holding numpy arrays). On disk it is one JSON document per
+frame; `FrameRecord.from_dict` is the only way in and validates every field, so a bad file is
+rejected with the frame and the field named instead of failing somewhere downstream.
+
+Keypoints behind the camera are NaN in memory and null in JSON; a NaN anywhere in a JSON
+record is an error.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from omnigen.conventions import (
+    CLASS_INDEX,
+    DIFFICULTIES,
+    NUM_KEYPOINTS,
+    OCCLUSION_UNKNOWN,
+    SCHEMA_VERSION,
+    SOURCES,
+    VIEWS,
+    coco_visibility,
+)
+from omnigen.geometry import Box3D, Plane, is_rotation, project_box, self_occluded_corners
+
+DIFFICULTY_NAMES = tuple(d[0] for d in DIFFICULTIES)
+FRAME_ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+
+
+class RecordError(ValueError):
+    """A record that breaks the contract; names the frame, the field and, when known, the file."""
+
+    def __init__(self, frame_id: str | None, field_path: str, message: str, file: str | None = None):
+        self.frame_id = frame_id
+        self.field = field_path
+        self.message = message
+        self.file = file
+        where = f"{file}: " if file else ""
+        super().__init__(f"{where}frame {frame_id or '?'}: field '{field_path}': {message}")
+
+
+@dataclass
+class ObjectRecord:
+    """One annotated object. See docs/conventions.md for every field's meaning."""
+
+    category: str
+    instance_id: int
+    box: Box3D
+    keypoints: np.ndarray  # (8, 2) float64, NaN where behind_camera
+    in_image: np.ndarray  # (8,) bool
+    behind_camera: np.ndarray  # (8,) bool
+    occluded: np.ndarray  # (8,) bool
+    bbox: np.ndarray  # (4,) x1 y1 x2 y2
+    truncation: float
+    occlusion: float | None = None  # fraction of the in-image silhouette hidden by others
+    occlusion_level: int = OCCLUSION_UNKNOWN
+    bbox_source: np.ndarray | None = None
+    bbox_visible: np.ndarray | None = None
+    difficulty: str | None = None  # KITTI's easy / moderate / hard, where the source defines it
+    source_attributes: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_box(cls, category: str, instance_id: int, box: Box3D, K: np.ndarray, width: int, height: int,
+                 occluded: np.ndarray | None = None, **fields: Any) -> "ObjectRecord | None":
+        """Derive keypoints, flags, bbox and truncation from a cuboid; None if none of it is in the image.
+
+        `occluded` defaults to the cuboid's self-occlusion, which every source can tell.
+        """
+        proj = project_box(box, K, width, height)
+        if proj.bbox is None:
+            return None
+        if occluded is None:
+            occluded = self_occluded_corners(box)
+        return cls(category=category, instance_id=instance_id, box=box, keypoints=proj.keypoints,
+                   in_image=proj.in_image, behind_camera=proj.behind_camera,
+                   occluded=np.asarray(occluded, bool), bbox=proj.bbox, truncation=proj.truncation, **fields)
+
+    @property
+    def visibility(self) -> np.ndarray:
+        """COCO v per corner (2 visible, 1 occluded, 0 outside the image or behind the camera)."""
+        return coco_visibility(self.in_image, self.behind_camera, self.occluded)
+
+    def to_dict(self) -> dict[str, Any]:
+        kp = [None if b else [float(x), float(y)] for (x, y), b in zip(self.keypoints, self.behind_camera)]
+        return {
+            "category": self.category,
+            "instance_id": int(self.instance_id),
+            "box3d": {
+                "center": self.box.center.tolist(),
+                "dims": self.box.dims.tolist(),
+                "rotation": self.box.rotation.tolist(),
+            },
+            "keypoints": kp,
+            "in_image": [bool(v) for v in self.in_image],
+            "behind_camera": [bool(v) for v in self.behind_camera],
+            "occluded": [bool(v) for v in self.occluded],
+            "bbox": [float(v) for v in self.bbox],
+            "truncation": float(self.truncation),
+            "occlusion": None if self.occlusion is None else float(self.occlusion),
+            "occlusion_level": int(self.occlusion_level),
+            "bbox_source": None if self.bbox_source is None else [float(v) for v in self.bbox_source],
+            "bbox_visible": None if self.bbox_visible is None else [float(v) for v in self.bbox_visible],
+            "difficulty": self.difficulty,
+            "source_attributes": self.source_attributes,
+        }
+
+
+@dataclass
+class IgnoreRegion:
+    """A 2D box the detector must neither be rewarded nor punished for (KITTI DontCare, ...)."""
+
+    bbox: np.ndarray  # (4,) x1 y1 x2 y2
+    label: str  # the source's own class name
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"bbox": [float(v) for v in self.bbox], "label": self.label}
+
+
+@dataclass
+class SyntheticInfo:
+    """What produced a rendered frame; enough to render it again."""
+
+    seed: int
+    scene: str
+    rig: str
+    weather: dict[str, Any]
+    lighting: dict[str, Any]
+    depth: str  # path of the depth EXR, relative to the dataset root
+    instance: str  # path of the 16-bit instance PNG, relative to the dataset root
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"seed": int(self.seed), "scene": self.scene, "rig": self.rig, "weather": self.weather,
+                "lighting": self.lighting, "depth": self.depth, "instance": self.instance}
+
+
+@dataclass
+class FrameRecord:
+    """One image and everything annotated in it, in that image's camera frame."""
+
+    frame_id: str
+    source: str
+    view: str
+    image: str  # relative to the dataset root
+    width: int
+    height: int
+    K: np.ndarray  # (3, 3)
+    objects: list[ObjectRecord] = field(default_factory=list)
+    ignore_regions: list[IgnoreRegion] = field(default_factory=list)
+    ground_plane: Plane | None = None
+    camera_height: float | None = None
+    camera_pitch: float | None = None
+    group: str | None = None  # frames that must stay on one side of a split
+    synthetic: SyntheticInfo | None = None
+    schema_version: int = SCHEMA_VERSION
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "schema_version": self.schema_version,
+            "frame_id": self.frame_id,
+            "source": self.source,
+            "view": self.view,
+            "image": self.image,
+            "width": int(self.width),
+            "height": int(self.height),
+            "K": np.asarray(self.K, dtype=np.float64).tolist(),
+            "ground_plane": None if self.ground_plane is None else {
+                "normal": self.ground_plane.normal.tolist(), "offset": float(self.ground_plane.offset)},
+            "camera_height": _opt_float(self.camera_height),
+            "camera_pitch": _opt_float(self.camera_pitch),
+            "group": self.group,
+            "synthetic": None if self.synthetic is None else self.synthetic.to_dict(),
+            "objects": [o.to_dict() for o in self.objects],
+            "ignore_regions": [r.to_dict() for r in self.ignore_regions],
+        }
+
+    @classmethod
+    def from_dict(cls, d: Any, file: str | None = None) -> "FrameRecord":
+        """Parse and validate; raises RecordError naming the frame and the field."""
+        return _FrameParser(d, file).parse()
+
+
+def _opt_float(v: float | None) -> float | None:
+    return None if v is None else float(v)
+
+
+# ---------------------------------------------------------------------------------------------
+# Validation
+# ---------------------------------------------------------------------------------------------
+
+_MISSING = object()
+
+
+class _FrameParser:
+    """Reads a frame dict field by field, so every error carries its path."""
+
+    def __init__(self, d: Any, file: str | None):
+        self.d = d
+        self.file = file
+        self.frame_id: str | None = d.get("frame_id") if isinstance(d, dict) and isinstance(d.get("frame_id"), str) else None
+
+    def fail(self, path: str, message: str) -> RecordError:
+        return RecordError(self.frame_id, path, message, self.file)
+
+    def get(self, d: dict, key: str, path: str) -> Any:
+        value = d.get(key, _MISSING)
+        if value is _MISSING:
+            raise self.fail(path, "missing")
+        return value
+
+    def number(self, value: Any, path: str, lo: float = -math.inf, hi: float = math.inf) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(path, f"expected a number, got {type(value).__name__} {value!r}")
+        if not math.isfinite(value):
+            raise self.fail(path, f"not finite: {value!r}")
+        if not lo <= value <= hi:
+            raise self.fail(path, f"{value!r} outside [{lo}, {hi}]")
+        return float(value)
+
+    def opt_number(self, value: Any, path: str, lo: float = -math.inf, hi: float = math.inf) -> float | None:
+        return None if value is None else self.number(value, path, lo, hi)
+
+    def integer(self, value: Any, path: str, lo: int = -(2**31), hi: int = 2**31 - 1) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(path, f"expected an integer, got {value!r}")
+        if not lo <= value <= hi:
+            raise self.fail(path, f"{value!r} outside [{lo}, {hi}]")
+        return value
+
+    def string(self, value: Any, path: str, choices: tuple[str, ...] | None = None) -> str:
+        if not isinstance(value, str) or not value:
+            raise self.fail(path, f"expected a non-empty string, got {value!r}")
+        if choices is not None and value not in choices:
+            raise self.fail(path, f"{value!r} is not one of {', '.join(choices)}")
+        return value
+
+    def array(self, value: Any, path: str, shape: tuple[int, ...]) -> np.ndarray:
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise self.fail(path, f"expected numbers of shape {shape}") from None
+        if arr.shape != shape:
+            raise self.fail(path, f"expected shape {shape}, got {arr.shape}")
+        if not np.isfinite(arr).all():
+            raise self.fail(path, "contains NaN or infinity")
+        return arr
+
+    def flags(self, value: Any, path: str) -> np.ndarray:
+        if not isinstance(value, list) or len(value) != NUM_KEYPOINTS or not all(isinstance(v, bool) for v in value):
+            raise self.fail(path, f"expected {NUM_KEYPOINTS} booleans, got {value!r}")
+        return np.array(value, dtype=bool)
+
+    def box2d(self, value: Any, path: str) -> np.ndarray:
+        arr = self.array(value, path, (4,))
+        if arr[2] < arr[0] or arr[3] < arr[1]:
+            raise self.fail(path, f"x2 < x1 or y2 < y1 in {arr.tolist()}")
+        return arr
+
+    def parse(self) -> FrameRecord:
+        d = self.d
+        if not isinstance(d, dict):
+            raise self.fail("<record>", f"expected a JSON object, got {type(d).__name__}")
+        version = self.integer(self.get(d, "schema_version", "schema_version"), "schema_version")
+        if version != SCHEMA_VERSION:
+            raise self.fail("schema_version", f"this omnigen reads schema {SCHEMA_VERSION}, file has {version}")
+        frame_id = self.string(self.get(d, "frame_id", "frame_id"), "frame_id")
+        if not FRAME_ID_PATTERN.match(frame_id):
+            raise self.fail("frame_id", f"{frame_id!r} must be letters, digits, '.', '_' or '-'")
+        source = self.string(self.get(d, "source", "source"), "source", SOURCES)
+        view = self.string(self.get(d, "view", "view"), "view", VIEWS)
+        image = self.string(self.get(d, "image", "image"), "image")
+        width = self.integer(self.get(d, "width", "width"), "width", 1, 65535)
+        height = self.integer(self.get(d, "height", "height"), "height", 1, 65535)
+        K = self.array(self.get(d, "K", "K"), "K", (3, 3))
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
+            raise self.fail("K", f"not a pinhole intrinsic matrix: {K.tolist()}")
+        plane = None
+        gp = self.get(d, "ground_plane", "ground_plane")
+        if gp is not None:
+            if not isinstance(gp, dict):
+                raise self.fail("ground_plane", "expected an object with normal and offset")
+            normal = self.array(self.get(gp, "normal", "ground_plane.normal"), "ground_plane.normal", (3,))
+            if abs(np.linalg.norm(normal) - 1) > 1e-3:
+                raise self.fail("ground_plane.normal", "not a unit vector")
+            plane = Plane(normal, self.number(self.get(gp, "offset", "ground_plane.offset"), "ground_plane.offset"))
+        camera_height = self.opt_number(self.get(d, "camera_height", "camera_height"), "camera_height")
+        camera_pitch = self.opt_number(self.get(d, "camera_pitch", "camera_pitch"), "camera_pitch", -math.pi, math.pi)
+        group = d.get("group")
+        if group is not None:
+            group = self.string(group, "group")
+        synthetic = self.synthetic(self.get(d, "synthetic", "synthetic"), source)
+        objects_raw = self.get(d, "objects", "objects")
+        if not isinstance(objects_raw, list):
+            raise self.fail("objects", "expected a list")
+        objects = [self.object(o, f"objects[{i}]") for i, o in enumerate(objects_raw)]
+        seen: set[int] = set()
+        for i, o in enumerate(objects):
+            if o.instance_id in seen:
+                raise self.fail(f"objects[{i}].instance_id", f"duplicate instance_id {o.instance_id}")
+            seen.add(o.instance_id)
+        ignore_raw = self.get(d, "ignore_regions", "ignore_regions")
+        if not isinstance(ignore_raw, list):
+            raise self.fail("ignore_regions", "expected a list")
+        ignore = []
+        for i, r in enumerate(ignore_raw):
+            path = f"ignore_regions[{i}]"
+            if not isinstance(r, dict):
+                raise self.fail(path, "expected an object")
+            ignore.append(IgnoreRegion(self.box2d(self.get(r, "bbox", path + ".bbox"), path + ".bbox"),
+                                       self.string(self.get(r, "label", path + ".label"), path + ".label")))
+        return FrameRecord(frame_id, source, view, image, width, height, K, objects, ignore, plane,
+                           camera_height, camera_pitch, group, synthetic, version)
+
+    def synthetic(self, s: Any, source: str) -> SyntheticInfo | None:
+        if s is None:
+            if source == "synthetic":
+                raise self.fail("synthetic", "rendered frames must record seed, scene, rig, weather and lighting")
+            return None
+        if not isinstance(s, dict):
+            raise self.fail("synthetic", "expected an object")
+        p = "synthetic."
+        weather, lighting = self.get(s, "weather", p + "weather"), self.get(s, "lighting", p + "lighting")
+        if not isinstance(weather, dict) or not isinstance(lighting, dict):
+            raise self.fail(p + "weather", "weather and lighting must be objects")
+        return SyntheticInfo(
+            seed=self.integer(self.get(s, "seed", p + "seed"), p + "seed", 0, 2**63 - 1),
+            scene=self.string(self.get(s, "scene", p + "scene"), p + "scene"),
+            rig=self.string(self.get(s, "rig", p + "rig"), p + "rig"),
+            weather=weather, lighting=lighting,
+            depth=self.string(self.get(s, "depth", p + "depth"), p + "depth"),
+            instance=self.string(self.get(s, "instance", p + "instance"), p + "instance"),
+        )
+
+    def object(self, o: Any, path: str) -> ObjectRecord:
+        if not isinstance(o, dict):
+            raise self.fail(path, "expected an object")
+        p = path + "."
+        category = self.string(self.get(o, "category", p + "category"), p + "category", tuple(CLASS_INDEX))
+        instance_id = self.integer(self.get(o, "instance_id", p + "instance_id"), p + "instance_id", 1, 65535)
+        b = self.get(o, "box3d", p + "box3d")
+        if not isinstance(b, dict):
+            raise self.fail(p + "box3d", "expected an object with center, dims, rotation")
+        center = self.array(self.get(b, "center", p + "box3d.center"), p + "box3d.center", (3,))
+        dims = self.array(self.get(b, "dims", p + "box3d.dims"), p + "box3d.dims", (3,))
+        if (dims <= 0).any():
+            raise self.fail(p + "box3d.dims", f"dimensions must be positive, got {dims.tolist()}")
+        rotation = self.array(self.get(b, "rotation", p + "box3d.rotation"), p + "box3d.rotation", (3, 3))
+        if not is_rotation(rotation, 1e-4):
+            raise self.fail(p + "box3d.rotation", "not a proper rotation matrix")
+        behind = self.flags(self.get(o, "behind_camera", p + "behind_camera"), p + "behind_camera")
+        kp_raw = self.get(o, "keypoints", p + "keypoints")
+        if not isinstance(kp_raw, list) or len(kp_raw) != NUM_KEYPOINTS:
+            n = len(kp_raw) if isinstance(kp_raw, list) else type(kp_raw).__name__
+            raise self.fail(p + "keypoints", f"expected {NUM_KEYPOINTS} keypoints, got {n}")
+        keypoints = np.full((NUM_KEYPOINTS, 2), np.nan)
+        for j, k in enumerate(kp_raw):
+            kp_path = f"{p}keypoints[{j}]"
+            if k is None:
+                if not behind[j]:
+                    raise self.fail(kp_path, "null, but the corner is not behind the camera")
+                continue
+            if behind[j]:
+                raise self.fail(kp_path, "behind the camera, so it must be null")
+            keypoints[j] = self.array(k, kp_path, (2,))
+        in_image = self.flags(self.get(o, "in_image", p + "in_image"), p + "in_image")
+        if (in_image & behind).any():
+            raise self.fail(p + "in_image", "a corner behind the camera cannot be in the image")
+        occluded = self.flags(self.get(o, "occluded", p + "occluded"), p + "occluded")
+        bbox = self.box2d(self.get(o, "bbox", p + "bbox"), p + "bbox")
+        truncation = self.number(self.get(o, "truncation", p + "truncation"), p + "truncation", 0.0, 1.0)
+        occlusion = self.opt_number(o.get("occlusion"), p + "occlusion", 0.0, 1.0)
+        level = self.integer(self.get(o, "occlusion_level", p + "occlusion_level"), p + "occlusion_level", 0, 3)
+        bbox_source = o.get("bbox_source")
+        bbox_visible = o.get("bbox_visible")
+        difficulty = o.get("difficulty")
+        if difficulty is not None:
+            difficulty = self.string(difficulty, p + "difficulty", DIFFICULTY_NAMES)
+        attrs = o.get("source_attributes", {})
+        if not isinstance(attrs, dict):
+            raise self.fail(p + "source_attributes", "expected an object")
+        return ObjectRecord(
+            category=category, instance_id=instance_id, box=Box3D(center, dims, rotation),
+            keypoints=keypoints, in_image=in_image, behind_camera=behind, occluded=occluded, bbox=bbox,
+            truncation=truncation, occlusion=occlusion, occlusion_level=level,
+            bbox_source=None if bbox_source is None else self.box2d(bbox_source, p + "bbox_source"),
+            bbox_visible=None if bbox_visible is None else self.box2d(bbox_visible, p + "bbox_visible"),
+            difficulty=difficulty, source_attributes=attrs,
+        )
