@@ -19,9 +19,16 @@ $(STAMP): pyproject.toml constraints.txt
 
 # The main job on its embedded default: convert the real KITTI sample frames when ../shared is
 # beside the checkout, else a small KITTI-format tree the project generates; then validate the
-# result and export it to COCO.
+# result and export it to COCO. Grows with the project (render, merge, stats).
 demo: $(STAMP)
-	$(BIN)/python benchmarks/demo.py --shared $(SHARED) --out $(DEMO)
+	@set -e; \
+	if [ -d "$(SHARED)/realdata/kitti/training" ]; then src="$(SHARED)/realdata/kitti"; \
+	else echo "$(SHARED)/realdata not found: generating a KITTI-format sample"; \
+	     $(BIN)/python -m converters.kitti_fixture "$(DEMO)/kitti-source" --frames 8; src="$(DEMO)/kitti-source"; fi; \
+	$(BIN)/omnigen convert kitti "$$src" --out "$(DEMO)/kitti"; \
+	$(BIN)/omnigen validate "$(DEMO)/kitti"; \
+	$(BIN)/omnigen export coco "$(DEMO)/kitti" --out "$(DEMO)/kitti-coco.json"; \
+	echo "demo: dataset in $(DEMO)/kitti, COCO keypoints in $(DEMO)/kitti-coco.json"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

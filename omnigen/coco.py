@@ -47,15 +47,17 @@ def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = N
     vis = coco_visibility(t.in_image, t.behind_camera, t.occluded)
     class_ids = np.array([(taxonomy.class_id(c) if taxonomy.class_id(c) is not None else -1) for c in FINE_CLASSES])
     images, annotations = [], []
-    for i, f in enumerate(ds.frames):
-        if keep is not None and f["frame_id"] not in keep:
+    ft = ds.table
+    for i, frame_id in enumerate(ft.frame_id):
+        if keep is not None and frame_id not in keep:
             continue
-        image = {"id": i + 1, "file_name": f["image"], "width": f["width"], "height": f["height"],
-                 "frame_id": f["frame_id"], "source": f["source"], "view": f["view"], "K": f["K"],
-                 "ignore_regions": [xyxy_to_xywh(np.asarray(r["bbox"])) for r in f["ignore_regions"]]}
-        if f["synthetic"] is not None:
-            image["depth_file"] = f["synthetic"]["depth"]
-            image["instance_file"] = f["synthetic"]["instance"]
+        extras = ft.extras[i]
+        image = {"id": i + 1, "file_name": ft.image[i], "width": int(ft.width[i]), "height": int(ft.height[i]),
+                 "frame_id": frame_id, "source": ft.source[i], "view": ft.view[i], "K": ft.K[i].tolist(),
+                 "ignore_regions": [xyxy_to_xywh(np.asarray(r["bbox"])) for r in extras["ignore_regions"]]}
+        if extras["synthetic"] is not None:
+            image["depth_file"] = extras["synthetic"]["depth"]
+            image["instance_file"] = extras["synthetic"]["instance"]
         images.append(image)
         for j in range(int(ds.offsets[i]), int(ds.offsets[i + 1])):
             cid = class_ids[t.category[j]]

@@ -38,7 +38,7 @@ from omnigen.record import DIFFICULTY_NAMES, FrameRecord, IgnoreRegion, ObjectRe
 MANIFEST = "manifest.json"
 RECORDS_DIR = "records"
 INDEX_FILE = ".index.npz"
-INDEX_VERSION = 1
+INDEX_VERSION = 2
 FORMAT_NAME = "UrbanOmniView"
 
 
@@ -182,23 +182,114 @@ def read_record(path: str | os.PathLike) -> FrameRecord:
     return FrameRecord.from_dict(data, file=path)
 
 
-class Dataset:
-    """A dataset opened for reading: frame-level fields, the object table, the manifest.
+_FRAME_STRINGS = ("frame_id", "source", "view", "image", "group")
 
-    `ds[i]` builds the i-th FrameRecord on demand from the index; `ds.objects` is the
-    ObjectTable for vectorised work over every object at once.
+
+@dataclass
+class FrameTable:
+    """Every frame's own fields as columns: strings as lists, numbers as arrays.
+
+    Absent ground planes, camera heights and pitches are NaN. The nested, rarely needed fields
+    (synthetic info, ignore regions) stay a JSON blob until first asked for.
     """
 
-    def __init__(self, root: Path, frames: list[dict[str, Any]], offsets: np.ndarray, objects: ObjectTable,
+    frame_id: list[str]
+    source: list[str]
+    view: list[str]
+    image: list[str]
+    group: list[str | None]
+    width: np.ndarray
+    height: np.ndarray
+    K: np.ndarray  # (F, 3, 3)
+    ground_plane: np.ndarray  # (F, 4): normal, offset
+    camera_height: np.ndarray
+    camera_pitch: np.ndarray
+    schema_version: np.ndarray
+    extras_blob: bytes = b"[]"
+    _extras: list[dict[str, Any]] | None = None
+
+    def __len__(self) -> int:
+        return len(self.frame_id)
+
+    @property
+    def extras(self) -> list[dict[str, Any]]:
+        """Per frame {"synthetic": ..., "ignore_regions": [...]}, parsed on first use."""
+        if self._extras is None:
+            self._extras = json.loads(self.extras_blob)
+        return self._extras
+
+    @classmethod
+    def from_records(cls, records: list[FrameRecord]) -> "FrameTable":
+        n = len(records)
+        plane = np.full((n, 4), np.nan)
+        for i, r in enumerate(records):
+            if r.ground_plane is not None:
+                plane[i] = [*r.ground_plane.normal, r.ground_plane.offset]
+        extras = [{"synthetic": None if r.synthetic is None else r.synthetic.to_dict(),
+                   "ignore_regions": [g.to_dict() for g in r.ignore_regions]} for r in records]
+        return cls(
+            frame_id=[r.frame_id for r in records], source=[r.source for r in records],
+            view=[r.view for r in records], image=[r.image for r in records], group=[r.group for r in records],
+            width=np.array([r.width for r in records], dtype=np.int32),
+            height=np.array([r.height for r in records], dtype=np.int32),
+            K=np.array([r.K for r in records], dtype=np.float64).reshape(n, 3, 3), ground_plane=plane,
+            camera_height=np.array([np.nan if r.camera_height is None else r.camera_height for r in records], dtype=np.float64),
+            camera_pitch=np.array([np.nan if r.camera_pitch is None else r.camera_pitch for r in records], dtype=np.float64),
+            schema_version=np.array([r.schema_version for r in records], dtype=np.int16),
+            extras_blob=json.dumps(extras).encode(),
+        )
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        strings = {name: getattr(self, name) for name in _FRAME_STRINGS}
+        return {
+            "frm_strings": np.frombuffer(json.dumps(strings).encode(), dtype=np.uint8),
+            "frm_extras": np.frombuffer(self.extras_blob, dtype=np.uint8),
+            **{f"frm_{k}": getattr(self, k) for k in
+               ("width", "height", "K", "ground_plane", "camera_height", "camera_pitch", "schema_version")},
+        }
+
+    @classmethod
+    def from_arrays(cls, z: Any) -> "FrameTable":
+        strings = json.loads(z["frm_strings"].tobytes())
+        return cls(**strings, **{k: z[f"frm_{k}"] for k in
+                                 ("width", "height", "K", "ground_plane", "camera_height", "camera_pitch", "schema_version")},
+                   extras_blob=z["frm_extras"].tobytes())
+
+    def row(self, i: int) -> dict[str, Any]:
+        """Frame i's fields as in its record (without objects)."""
+        gp = self.ground_plane[i]
+        return {
+            "schema_version": int(self.schema_version[i]), "frame_id": self.frame_id[i], "source": self.source[i],
+            "view": self.view[i], "image": self.image[i], "width": int(self.width[i]), "height": int(self.height[i]),
+            "K": self.K[i].tolist(),
+            "ground_plane": None if np.isnan(gp).any() else {"normal": gp[:3].tolist(), "offset": float(gp[3])},
+            "camera_height": _nan_to_none(self.camera_height[i]), "camera_pitch": _nan_to_none(self.camera_pitch[i]),
+            "group": self.group[i], **self.extras[i],
+        }
+
+
+def _nan_to_none(v: float) -> float | None:
+    return None if np.isnan(v) else float(v)
+
+
+class Dataset:
+    """A dataset opened for reading: the frame table, the object table, the manifest.
+
+    `ds[i]` builds the i-th FrameRecord on demand from the index; `ds.table` (frames) and
+    `ds.objects` (objects) are columns for vectorised work over a whole dataset at once.
+    """
+
+    def __init__(self, root: Path, table: FrameTable, offsets: np.ndarray, objects: ObjectTable,
                  attributes_blob: bytes | None, manifest: dict[str, Any]):
         self.root = Path(root)
-        self.frames = frames
+        self.table = table
         self.offsets = offsets
         self.objects = objects
         self._attributes_blob = attributes_blob
         self._attributes: list[dict[str, Any]] | None = None
         self.manifest = manifest
         self._by_id: dict[str, int] | None = None
+        self._frames: list[dict[str, Any]] | None = None
 
     # -- opening ------------------------------------------------------------------------------
     @classmethod
@@ -219,24 +310,30 @@ class Dataset:
 
     # -- access -------------------------------------------------------------------------------
     def __len__(self) -> int:
-        return len(self.frames)
+        return len(self.table)
 
     def __iter__(self) -> Iterator[FrameRecord]:
         for i in range(len(self)):
             yield self[i]
 
     def __getitem__(self, i: int) -> FrameRecord:
-        f = self.frames[i]
         lo, hi = int(self.offsets[i]), int(self.offsets[i + 1])
-        return _frame_from_index(f, [self._object(j) for j in range(lo, hi)])
+        return _frame_from_row(self.table.row(i), [self._object(j) for j in range(lo, hi)])
+
+    @property
+    def frames(self) -> list[dict[str, Any]]:
+        """Every frame's fields as dicts (built on first use; prefer `table` in hot loops)."""
+        if self._frames is None:
+            self._frames = [self.table.row(i) for i in range(len(self))]
+        return self._frames
 
     @property
     def frame_ids(self) -> list[str]:
-        return [f["frame_id"] for f in self.frames]
+        return self.table.frame_id
 
     def index_of(self, frame_id: str) -> int:
         if self._by_id is None:
-            self._by_id = {f["frame_id"]: i for i, f in enumerate(self.frames)}
+            self._by_id = {f: i for i, f in enumerate(self.table.frame_id)}
         try:
             return self._by_id[frame_id]
         except KeyError:
@@ -256,9 +353,6 @@ class Dataset:
             self._attributes = json.loads(self._attributes_blob) if self._attributes_blob else []
         return self._attributes
 
-    def frame_column(self, name: str) -> list[Any]:
-        return [f[name] for f in self.frames]
-
     def _object(self, j: int) -> ObjectRecord:
         t = self.objects
         src, vis = t.bbox_source[j], t.bbox_visible[j]
@@ -277,7 +371,7 @@ class Dataset:
         )
 
 
-def _frame_from_index(f: dict[str, Any], objects: list[ObjectRecord]) -> FrameRecord:
+def _frame_from_row(f: dict[str, Any], objects: list[ObjectRecord]) -> FrameRecord:
     gp = f["ground_plane"]
     syn = f["synthetic"]
     return FrameRecord(
@@ -309,13 +403,13 @@ def _load_index(root: Path, key: str, manifest: dict[str, Any]) -> Dataset | Non
             header = json.loads(z["header"].tobytes())
             if header.get("version") != INDEX_VERSION or header.get("key") != key:
                 return None
-            frames = json.loads(z["frames"].tobytes())
+            table = FrameTable.from_arrays(z)
             offsets = z["offsets"]
             objects = ObjectTable(**{name: z[f"obj_{name}"] for name in _OBJECT_COLUMNS})
             attributes = z["attributes"].tobytes() if "attributes" in z.files else None
     except (OSError, ValueError, KeyError):
         return None  # unreadable or foreign cache: rebuild it
-    return Dataset(root, frames, offsets, objects, attributes, manifest)
+    return Dataset(root, table, offsets, objects, attributes, manifest)
 
 
 def build_index(root: Path, records: list[FrameRecord], key: str | None = None,
@@ -325,31 +419,21 @@ def build_index(root: Path, records: list[FrameRecord], key: str | None = None,
     records = sorted(records, key=lambda r: r.frame_id)
     if key is None:
         key = records_fingerprint(record_files(root))
-    frames = []
-    counts = [0]
-    attributes = []
-    any_attributes = False
-    for r in records:
-        d = r.to_dict()
-        del d["objects"]
-        frames.append(d)
-        counts.append(len(r.objects))
-        for o in r.objects:
-            attributes.append(o.source_attributes)
-            any_attributes = any_attributes or bool(o.source_attributes)
-    offsets = np.cumsum(counts).astype(np.int64)
+    table = FrameTable.from_records(records)
+    offsets = np.cumsum([0] + [len(r.objects) for r in records]).astype(np.int64)
+    attributes = [o.source_attributes for r in records for o in r.objects]
+    attributes_blob = json.dumps(attributes).encode() if any(attributes) else None
     objects = ObjectTable.from_records(records)
-    attributes_blob = json.dumps(attributes).encode() if any_attributes else None
     arrays = {f"obj_{k}": v for k, v in objects.columns().items()}
+    arrays.update(table.to_arrays())
     arrays["header"] = np.frombuffer(json.dumps({"version": INDEX_VERSION, "key": key}).encode(), dtype=np.uint8)
-    arrays["frames"] = np.frombuffer(json.dumps(frames).encode(), dtype=np.uint8)
     arrays["offsets"] = offsets
     if attributes_blob is not None:
         arrays["attributes"] = np.frombuffer(attributes_blob, dtype=np.uint8)
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     atomic_write_bytes(root / INDEX_FILE, buf.getvalue())
-    return Dataset(root, frames, offsets, objects, attributes_blob, manifest if manifest is not None else _read_manifest(root))
+    return Dataset(root, table, offsets, objects, attributes_blob, manifest if manifest is not None else _read_manifest(root))
 
 
 # ---------------------------------------------------------------------------------------------

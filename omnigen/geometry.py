@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import shapely
-from shapely.geometry import MultiPoint, Polygon, box as shapely_box
+from shapely.geometry import Polygon, box as shapely_box
 
 from omnigen.conventions import CORNER_SIGNS, NEAR_PLANE, SKELETON
 
@@ -43,7 +43,7 @@ def rot_z(angle: float) -> np.ndarray:
 def is_rotation(r: np.ndarray, tol: float = 1e-6) -> bool:
     """True for a proper rotation (orthonormal, determinant +1)."""
     r = np.asarray(r, dtype=np.float64)
-    return r.shape == (3, 3) and np.allclose(r.T @ r, np.eye(3), atol=tol) and abs(np.linalg.det(r) - 1) < tol
+    return r.shape == (3, 3) and float(np.abs(r.T @ r - np.eye(3)).max()) <= tol and abs(np.linalg.det(r) - 1) < tol
 
 
 # ---------------------------------------------------------------------------------------------
@@ -165,7 +165,7 @@ def silhouette(corners: np.ndarray, K: np.ndarray, near: float = NEAR_PLANE) -> 
     if len(clipped) == 0:
         return Polygon()
     uv, _ = project_points(K, clipped, near=near - 1e-9)
-    hull = MultiPoint([tuple(p) for p in uv]).convex_hull
+    hull = shapely.convex_hull(shapely.multipoints(uv))
     return hull if isinstance(hull, Polygon) else Polygon()
 
 
@@ -175,18 +175,12 @@ def self_occluded_corners(box: Box3D) -> np.ndarray:
     A vertex of a convex solid is visible exactly when at least one face touching it faces the
     camera; a face faces the camera when its outward normal points back towards the origin.
     """
-    facing = np.empty((3, 2), dtype=bool)  # axis, side (0: +, 1: -)
-    for axis in range(3):
-        normal = box.rotation[:, axis]
-        half = box.dims[axis] / 2.0
-        for side, sign in enumerate((1.0, -1.0)):
-            point_on_face = box.center + sign * normal * half
-            facing[axis, side] = np.dot(sign * normal, point_on_face) < 0
-    hidden = np.ones(8, dtype=bool)
-    for k, signs in enumerate(CORNER_SIGNS):
-        sides = [0 if s > 0 else 1 for s in signs]
-        hidden[k] = not any(facing[axis, sides[axis]] for axis in range(3))
-    return hidden
+    along = box.rotation.T @ box.center  # centre's coordinate along each object axis
+    half = box.dims / 2.0
+    facing_plus = along + half < 0  # face at +half along the axis, outward normal +axis
+    facing_minus = -along + half < 0
+    facing = np.where(CORNER_SIGNS > 0, facing_plus, facing_minus)  # (8, 3): the faces at each corner
+    return ~facing.any(axis=1)
 
 
 @dataclass(frozen=True)

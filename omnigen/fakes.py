@@ -1,0 +1,99 @@
+"""Plausible random datasets for tests and benchmarks (never for training).
+
+Frames are built with the real geometry (ObjectRecord.from_box), so every derived field obeys the
+contract; only the scene is random. One numpy Generator per frame, seeded from (seed, index), so
+any frame can be regenerated alone and a dataset is the same however it is produced.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from omnigen.conventions import FINE_CLASSES, SOURCES, VIEWS
+from omnigen.dataset import Dataset, DatasetWriter
+from omnigen.geometry import Box3D, intrinsics_from_fov, plane_from_height_pitch, rot_x, rot_z
+from omnigen.progress import progress
+from omnigen.record import FrameRecord, IgnoreRegion, ObjectRecord, SyntheticInfo
+
+TYPICAL_DIMS = {  # l, w, h in metres: rough means, enough for plausible fakes
+    "car": (4.2, 1.8, 1.5), "van": (5.0, 2.0, 2.1), "truck": (8.0, 2.5, 3.2), "bus": (11.0, 2.6, 3.2),
+    "tram": (25.0, 2.6, 3.4), "pedestrian": (0.6, 0.6, 1.75), "cyclist": (1.8, 0.6, 1.7),
+    "motorcyclist": (2.0, 0.8, 1.6), "tricyclist": (2.6, 1.2, 1.7), "barrow": (1.2, 0.6, 1.0),
+    "traffic_cone": (0.4, 0.4, 0.7), "misc": (2.0, 1.5, 1.5),
+}
+
+VIEW_CAMERAS = {  # view: (height range m, pitch range degrees)
+    "ego": ((1.4, 1.9), (-3.0, 5.0)),
+    "infrastructure": ((5.0, 12.0), (10.0, 45.0)),
+    "aerial": ((20.0, 120.0), (30.0, 89.0)),
+}
+
+
+def random_frame(seed: int, index: int, source: str = "synthetic", view: str = "ego", n_objects: int = 8,
+                 width: int = 320, height: int = 192) -> FrameRecord:
+    """One frame of upright objects on a flat ground seen by a pitched camera."""
+    rng = np.random.default_rng([seed, index])
+    (h_lo, h_hi), (p_lo, p_hi) = VIEW_CAMERAS[view]
+    cam_height = rng.uniform(h_lo, h_hi)
+    pitch = math.radians(rng.uniform(p_lo, p_hi))
+    K = intrinsics_from_fov(math.radians(rng.uniform(40, 100)), width, height)
+    plane = plane_from_height_pitch(cam_height, pitch)
+    # World (x right, y forward, z up) -> camera: level camera first, then pitched down.
+    level = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    world_to_cam = rot_x(pitch) @ level
+    objects: list[ObjectRecord] = []
+    tries = 0
+    while len(objects) < n_objects and tries < n_objects * 20:
+        tries += 1
+        category = FINE_CLASSES[int(rng.integers(len(FINE_CLASSES)))]
+        dims = np.array(TYPICAL_DIMS[category]) * rng.uniform(0.85, 1.15, 3)
+        reach = max(cam_height / math.tan(max(pitch, math.radians(10))), 8.0)
+        ground = np.array([rng.uniform(-0.6, 0.6) * reach, rng.uniform(0.3, 2.5) * reach, -cam_height + dims[2] / 2])
+        box = Box3D(world_to_cam @ ground, dims, world_to_cam @ rot_z(rng.uniform(-math.pi, math.pi)))
+        occlusion = float(rng.uniform(0, 1))
+        obj = ObjectRecord.from_box(
+            category, len(objects) + 1, box, K, width, height,
+            occlusion=occlusion if source == "synthetic" else None,
+            occlusion_level=min(int(occlusion * 3), 2) if source == "synthetic" else int(rng.integers(0, 4)),
+            bbox_source=None, source_attributes={} if source == "synthetic" else {"fake": True},
+        )
+        if obj is not None:
+            objects.append(obj)
+    frame_id = f"{source}-{index:06d}"
+    synthetic = None
+    if source == "synthetic":
+        synthetic = SyntheticInfo(seed=seed, scene="fake", rig=view, weather={"fog": 0.0},
+                                  lighting={"sun_elevation": 0.6}, depth=f"depth/{frame_id}.exr",
+                                  instance=f"instance/{frame_id}.png")
+    ignore = [IgnoreRegion(np.array([1.0, 2.0, 30.0, 40.0]), "DontCare")] if index % 5 == 0 else []
+    return FrameRecord(frame_id=frame_id, source=source, view=view, image=f"images/{frame_id}.png", width=width,
+                       height=height, K=K, objects=objects, ignore_regions=ignore, ground_plane=plane,
+                       camera_height=plane.camera_height, camera_pitch=plane.camera_pitch,
+                       group=f"{source}-g{index // 10}", synthetic=synthetic)
+
+
+def write_fake_dataset(root: str | Path, n_frames: int, objects_per_frame: int = 8, seed: int = 0,
+                       source: str = "synthetic", images: bool = True, show_progress: bool = False) -> Dataset:
+    """A finalized fake dataset; images (and depth/instance placeholders) are tiny but real files."""
+    assert source in SOURCES
+    root = Path(root)
+    writer = DatasetWriter(root)
+    blank = None
+    for i in progress(range(n_frames), desc="fake frames", disable=not show_progress):
+        view = VIEWS[i % len(VIEWS)] if source == "synthetic" else ("ego" if source == "kitti" else "infrastructure")
+        rec = random_frame(seed, i, source, view, objects_per_frame)
+        if images:
+            if blank is None:
+                blank = Image.new("RGB", (rec.width, rec.height), (90, 90, 90))
+            (root / "images").mkdir(exist_ok=True)
+            blank.save(root / rec.image)
+            if rec.synthetic is not None:
+                for rel in (rec.synthetic.depth, rec.synthetic.instance):
+                    (root / rel).parent.mkdir(exist_ok=True)
+                    (root / rel).write_bytes(b"placeholder")
+        writer.write(rec)
+    return writer.finalize({"name": f"fake-{source}"}, show_progress=show_progress)

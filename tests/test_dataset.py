@@ -1,0 +1,158 @@
+"""Dataset folders: write, index, reopen, atomicity, determinism, validation, COCO export."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pycocotools.coco import COCO
+
+from omnigen.checks import check_dataset
+from omnigen.cli import main as cli
+from omnigen.coco import export_coco, to_coco
+from omnigen.conventions import FLIP_IDX, SKELETON
+from omnigen.dataset import INDEX_FILE, MANIFEST, Dataset, DatasetWriter, record_path, write_split
+from omnigen.fakes import random_frame, write_fake_dataset
+from omnigen.files import TMP_PREFIX, atomic_write_bytes
+from omnigen.record import RecordError
+from omnigen.taxonomy import load_taxonomy
+
+
+@pytest.fixture()
+def dataset(tmp_path: Path) -> Dataset:
+    return write_fake_dataset(tmp_path / "ds", n_frames=24, objects_per_frame=5, seed=1)
+
+
+def test_reopened_dataset_equals_what_was_written(dataset: Dataset):
+    again = Dataset.open(dataset.root)
+    assert len(again) == 24
+    for i in range(len(again)):
+        written = json.loads(record_path(dataset.root, again.frames[i]["frame_id"]).read_text())
+        assert again[i].to_dict() == written
+    assert len(again.objects) == sum(len(r.objects) for r in again)
+    assert again.manifest["counts"]["objects"] == len(again.objects)
+
+
+def test_index_is_rebuilt_when_records_change(dataset: Dataset):
+    root = dataset.root
+    rec = random_frame(seed=99, index=500, n_objects=3)
+    DatasetWriter(root).write(rec)
+    again = Dataset.open(root)
+    assert len(again) == 25 and again.frame(rec.frame_id).to_dict() == rec.to_dict()
+    record_path(root, rec.frame_id).unlink()
+    assert len(Dataset.open(root)) == 24
+
+
+def test_a_corrupt_index_is_ignored(dataset: Dataset):
+    (dataset.root / INDEX_FILE).write_bytes(b"not an npz")
+    assert len(Dataset.open(dataset.root)) == 24
+
+
+def test_interrupted_writes_leave_no_file_a_reader_accepts(tmp_path: Path, monkeypatch):
+    target = tmp_path / "records" / "synthetic-000001.json"
+
+    def boom(fd):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "fsync", boom)
+    with pytest.raises(KeyboardInterrupt):
+        atomic_write_bytes(target, b'{"half": ')
+    monkeypatch.undo()
+    assert not target.exists()
+    assert not [p for p in target.parent.iterdir()]  # the temporary file is cleaned up too
+    # A temporary file left by a killed process is skipped by readers.
+    ds_root = tmp_path / "ds"
+    write_fake_dataset(ds_root, n_frames=3, objects_per_frame=2)
+    (ds_root / "records" / f"{TMP_PREFIX}junk").write_text('{"half": ')
+    assert len(Dataset.open(ds_root)) == 3
+
+
+def test_bad_record_file_is_named(dataset: Dataset):
+    path = record_path(dataset.root, dataset.frames[0]["frame_id"])
+    d = json.loads(path.read_text())
+    d["objects"][0]["keypoints"] = d["objects"][0]["keypoints"][:7]
+    path.write_text(json.dumps(d))
+    with pytest.raises(RecordError) as err:
+        Dataset.open(dataset.root)
+    assert str(path) in str(err.value) and "objects[0].keypoints" in str(err.value)
+
+
+def test_writing_twice_is_byte_identical(tmp_path: Path):
+    a = write_fake_dataset(tmp_path / "a", n_frames=10, objects_per_frame=4, seed=5)
+    b = write_fake_dataset(tmp_path / "b", n_frames=10, objects_per_frame=4, seed=5)
+    for f in sorted((a.root / "records").iterdir()):
+        assert f.read_bytes() == (b.root / "records" / f.name).read_bytes()
+    assert (a.root / MANIFEST).read_bytes() == (b.root / MANIFEST).read_bytes()
+
+
+def test_validate_lists_every_problem(dataset: Dataset, capsys):
+    assert cli(["validate", str(dataset.root)]) == 0
+    root = dataset.root
+    ids = dataset.frame_ids
+    (root / dataset.frame(ids[0]).image).unlink()  # missing image
+    p = record_path(root, ids[1])
+    d = json.loads(p.read_text())
+    d["objects"][0]["keypoints"][0] = [float("nan"), 1.0]
+    p.write_text(json.dumps(d))  # json.dumps writes NaN
+    p = record_path(root, ids[2])
+    d = json.loads(p.read_text())
+    p.rename(p.with_name("synthetic-999999.json"))  # file name no longer matches the frame id
+    n, problems = check_dataset(root, show_progress=False)
+    assert n == 24
+    text = "\n".join(map(str, problems))
+    assert f"{dataset.frame(ids[0]).image} not found" in text
+    assert "objects[0].keypoints[0]" in text
+    assert "does not match the file name" in text
+    assert len(problems) == 3
+    assert cli(["validate", str(root)]) == 1
+    assert "INVALID (3 problems)" in capsys.readouterr().out
+
+
+def test_coco_export_loads_in_pycocotools(dataset: Dataset, tmp_path: Path):
+    out = tmp_path / "coco.json"
+    assert cli(["export", "coco", str(dataset.root), "--out", str(out)]) == 0
+    coco = COCO(str(out))
+    assert len(coco.getImgIds()) == len(dataset)
+    assert len(coco.getAnnIds()) == len(dataset.objects)
+    cat = coco.loadCats(coco.getCatIds())[0]
+    assert len(cat["keypoints"]) == 8 and len(cat["skeleton"]) == 12
+    assert sorted(map(tuple, cat["skeleton"])) == sorted((a + 1, b + 1) for a, b in SKELETON)
+    for img in coco.loadImgs(coco.getImgIds()):
+        rec = dataset.frame(img["frame_id"])
+        assert img["file_name"] == rec.image and np.allclose(img["K"], rec.K)
+        assert img["depth_file"] == rec.synthetic.depth and img["instance_file"] == rec.synthetic.instance
+        anns = coco.loadAnns(coco.getAnnIds(imgIds=img["id"]))
+        assert len(anns) == len(rec.objects)
+        for ann, obj in zip(anns, rec.objects):
+            x1, y1, x2, y2 = obj.bbox
+            assert ann["bbox"] == pytest.approx([x1, y1, x2 - x1, y2 - y1])
+            assert ann["area"] == pytest.approx((x2 - x1) * (y2 - y1))
+            kp = np.array(ann["keypoints"]).reshape(8, 3)
+            v = obj.visibility
+            assert (kp[:, 2] == v).all()
+            assert (kp[v == 0] == 0).all()
+            assert np.allclose(kp[v > 0, :2], obj.keypoints[v > 0])
+            assert ann["num_keypoints"] == int((v > 0).sum())
+            assert np.allclose(ann["box3d"]["rotation"], obj.box.rotation)
+            assert ann["instance_id"] == obj.instance_id
+
+
+def test_coco_split_and_taxonomy(dataset: Dataset, tmp_path: Path):
+    ids = dataset.frame_ids
+    write_split(dataset.root, "test", ids[:5])
+    coarse = load_taxonomy("coarse")
+    coco = to_coco(Dataset.open(dataset.root), split="test", taxonomy=coarse)
+    assert {im["frame_id"] for im in coco["images"]} == set(ids[:5])
+    assert [c["name"] for c in coco["categories"]] == ["vehicle", "person", "bike"]
+    fine = {a["fine_category"] for a in coco["annotations"]}
+    assert not fine & {"barrow", "traffic_cone", "misc"}
+    with pytest.raises(Exception, match="no split 'val'"):
+        export_coco(dataset, tmp_path / "x.json", split="val")
+
+
+def test_flip_idx_is_an_involution_that_swaps_left_and_right():
+    assert [FLIP_IDX[i] for i in FLIP_IDX] == list(range(8))
+    assert all(FLIP_IDX[i] != i for i in range(8))

@@ -1,0 +1,259 @@
+"""Geometry: corner order, flips, projection, KITTI and DAIR-V2X frames, Blender cameras."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+from omnigen.conventions import BOTTOM_CORNERS, FLIP_IDX, NEAR_PLANE, TOP_CORNERS
+from omnigen.geometry import (
+    Box3D,
+    box_from_dair,
+    box_from_kitti,
+    box_to_kitti,
+    blender_from_intrinsics,
+    camera_offset_from_projection,
+    fit_plane,
+    intrinsics_from_blender,
+    kitti_rotation,
+    plane_from_height_pitch,
+    project_box,
+    project_points,
+    rot_x,
+    rot_y,
+    rot_z,
+    self_occluded_corners,
+    world_to_opencv_camera,
+)
+
+REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def random_box(rng: np.random.Generator) -> Box3D:
+    center = np.array([rng.uniform(-5, 5), rng.uniform(-2, 2), rng.uniform(8, 40)])
+    dims = rng.uniform(0.5, 5.0, size=3)
+    return Box3D(center, dims, random_rotation(rng))
+
+
+K = np.array([[720.0, 0, 619.5], [0, 720.0, 187.5], [0, 0, 1]])
+
+
+def test_corner_order_follows_object_axes():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        box = random_box(rng)
+        c = box.corners()
+        along_up = (c - box.center) @ box.up
+        along_fwd = (c - box.center) @ box.forward
+        along_left = (c - box.center) @ box.left
+        assert (along_up[list(TOP_CORNERS)] > 0).all() and (along_up[list(BOTTOM_CORNERS)] < 0).all()
+        assert (along_fwd[[0, 1, 4, 5]] > 0).all() and (along_fwd[[2, 3, 6, 7]] < 0).all()
+        assert (along_left[[0, 3, 4, 7]] > 0).all() and (along_left[[1, 2, 5, 6]] < 0).all()
+        # 4-7 sit exactly under 0-3 along the object's up.
+        np.testing.assert_allclose(c[:4] - c[4:], np.tile(box.up * box.dims[2], (4, 1)), atol=1e-12)
+
+
+def test_horizontal_flip_permutes_corners_by_flip_idx():
+    rng = np.random.default_rng(1)
+    width = 1242
+    for _ in range(50):
+        box = random_box(rng)
+        # Mirror the world in x (camera frame); keep the object a proper rotation by negating its
+        # left axis, which is exactly what swaps left and right corners.
+        mirror = np.diag([-1.0, 1.0, 1.0])
+        mirrored_rot = mirror @ box.rotation @ np.diag([1.0, -1.0, 1.0])
+        mirrored = Box3D(mirror @ box.center, box.dims, mirrored_rot)
+        kflip = K.copy()
+        kflip[0, 2] = (width - 1) - K[0, 2]  # flipping the image maps x -> W - 1 - x
+        uv, _ = project_points(K, box.corners())
+        uv_m, _ = project_points(kflip, mirrored.corners())
+        flipped = uv.copy()
+        flipped[:, 0] = (width - 1) - flipped[:, 0]
+        np.testing.assert_allclose(uv_m, flipped[list(FLIP_IDX)], atol=1e-9)
+
+
+def test_projection_agrees_with_opencv():
+    rng = np.random.default_rng(2)
+    pts = np.column_stack([rng.uniform(-10, 10, 200), rng.uniform(-3, 3, 200), rng.uniform(1, 80, 200)])
+    uv, behind = project_points(K, pts)
+    ref, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, None)
+    assert not behind.any()
+    np.testing.assert_allclose(uv, ref.reshape(-1, 2), atol=1e-9)
+
+
+def test_points_behind_camera_are_never_mirrored_into_the_image():
+    pts = np.array([[1.0, 0.5, -5.0], [0.0, 0.0, 0.0], [0.0, 0.0, NEAR_PLANE / 2], [0.2, 0.1, 5.0]])
+    uv, behind = project_points(K, pts)
+    assert behind.tolist() == [True, True, True, False]
+    assert np.isnan(uv[:3]).all() and np.isfinite(uv[3]).all()
+
+
+def test_box_straddling_the_camera_is_clipped_not_mirrored():
+    box = Box3D([0.0, 1.0, 1.0], [6.0, 2.0, 1.5], rot_y(0.0) @ np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]]).T)
+    proj = project_box(box, K, 1240, 375)
+    assert proj.behind_camera.any() and not proj.behind_camera.all()
+    assert np.isnan(proj.keypoints[proj.behind_camera]).all()
+    assert proj.bbox is not None
+    # The in-front part fills the lower image: the box cannot come from a mirrored corner above it.
+    assert proj.bbox[3] == pytest.approx(374.5)
+    assert 0.0 <= proj.truncation <= 1.0
+
+
+def test_bbox_and_truncation():
+    # Fully inside: truncation 0 and bbox = corner extents.
+    box = Box3D([0.0, 0.0, 20.0], [4.0, 1.8, 1.5], kitti_rotation(0.3))
+    proj = project_box(box, K, 1240, 375)
+    assert proj.truncation == pytest.approx(0.0)
+    np.testing.assert_allclose(proj.bbox, [*proj.keypoints.min(0), *proj.keypoints.max(0)], atol=1e-9)
+    # Half outside on the left: a square facing the camera centred on the image edge.
+    edge_x = (-0.5 - K[0, 2]) * 20.0 / K[0, 0]
+    box = Box3D([edge_x, 0.0, 20.0], [0.01, 2.0, 2.0], kitti_rotation(math.pi / 2))
+    proj = project_box(box, K, 1240, 375)
+    assert proj.truncation == pytest.approx(0.5, abs=1e-3)
+    assert proj.bbox[0] == pytest.approx(-0.5)
+    # Wholly outside: no bbox.
+    box = Box3D([100.0, 0.0, 10.0], [4.0, 1.8, 1.5], kitti_rotation(0.0))
+    assert project_box(box, K, 1240, 375).bbox is None
+
+
+def test_self_occlusion_hides_corners_facing_away():
+    # A box straight ahead, below the camera: top face and near face visible, far bottom hidden.
+    box = Box3D([0.0, 2.0, 15.0], [4.0, 2.0, 1.5], kitti_rotation(-math.pi / 2))  # forward = +z (away)
+    hidden = self_occluded_corners(box)
+    # forward points away, so the rear face (corners 2, 3, 6, 7) faces the camera.
+    assert not hidden[[0, 1, 2, 3]].any()  # top face seen from above
+    assert not hidden[[6, 7]].any()  # rear-bottom corners on the near face
+    assert hidden[[4, 5]].all()  # front-bottom corners behind the box
+
+
+def test_kitti_rotation_matches_the_conventions():
+    for ry in np.linspace(-math.pi, math.pi, 13):
+        r = kitti_rotation(ry)
+        np.testing.assert_allclose(r[:, 0], [math.cos(ry), 0, -math.sin(ry)], atol=1e-12)
+        np.testing.assert_allclose(r[:, 1], [math.sin(ry), 0, math.cos(ry)], atol=1e-12)
+        np.testing.assert_allclose(r[:, 2], [0, -1, 0], atol=1e-12)
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(r) == pytest.approx(1.0)
+        # It is the rotation about the camera's y by ry applied to the object axes laid out in a
+        # camera with ry = 0 (forward +x, left +z, up -y).
+        base = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]).T
+        np.testing.assert_allclose(r, rot_y(ry) @ base, atol=1e-12)
+
+
+def test_kitti_label_round_trip_is_exact():
+    rng = np.random.default_rng(3)
+    offset = np.array([0.06, -0.0003, 0.0027])
+    for _ in range(200):
+        h, w, l = rng.uniform(0.5, 4, 3)
+        x, y, z = rng.uniform(-20, 20), rng.uniform(0.5, 3), rng.uniform(2, 70)
+        ry = rng.uniform(-math.pi, math.pi)
+        back = box_to_kitti(box_from_kitti(h, w, l, x, y, z, ry, offset), offset)
+        np.testing.assert_allclose(back[:6], (h, w, l, x, y, z), atol=1e-6)
+        assert abs(math.remainder(back[6] - ry, 2 * math.pi)) < 1e-6
+
+
+def _kitti_frames():
+    root = REALDATA / "kitti" / "training"
+    if not root.is_dir():
+        pytest.skip(f"real KITTI frames not found at {root} (../shared/realdata is absent)")
+    for label in sorted((root / "label_2").glob("*.txt")):
+        calib = {}
+        for line in (root / "calib" / label.name).read_text().splitlines():
+            if ":" in line:
+                key, values = line.split(":", 1)
+                calib[key] = np.array(values.split(), dtype=np.float64)
+        width, height = Image.open(root / "image_2" / f"{label.stem}.png").size
+        yield label, calib["P2"].reshape(3, 4), width, height
+
+
+def test_real_kitti_cars_project_onto_their_2d_boxes():
+    checked = 0
+    for label, P2, width, height in _kitti_frames():
+        offset = camera_offset_from_projection(P2)
+        np.testing.assert_allclose(P2[:, :3] @ offset, P2[:, 3], atol=1e-9)  # the 45.76 px column is K t
+        assert offset[0] > 0.05  # camera 2 sits about 6 cm right of camera 0
+        for line in label.read_text().splitlines():
+            f = line.split()
+            if f[0] != "Car":
+                continue
+            h, w, l, x, y, z, ry = map(float, f[8:15])
+            box = box_from_kitti(h, w, l, x, y, z, ry, offset)
+            proj = project_box(box, P2[:, :3], width, height)
+            # The P2-matrix projection of the camera-0 corners and ours of the camera-2 box agree.
+            corners0 = box_from_kitti(h, w, l, x, y, z, ry).corners()
+            uv_p2 = (np.c_[corners0, np.ones(8)] @ P2.T)
+            np.testing.assert_allclose(proj.keypoints, uv_p2[:, :2] / uv_p2[:, 2:], atol=1e-6)
+            np.testing.assert_allclose(proj.bbox, np.array(f[4:8], dtype=float), atol=2.0)
+            checked += 1
+    assert checked >= 2
+
+
+def test_dair_box_keeps_the_camera_pitch_and_the_heading():
+    pitch = math.radians(20)
+    # Virtual LiDAR (x forward, y left, z up) into a camera 7 m up, pitched down.
+    lidar_to_level_cam = np.array([[0.0, -1, 0], [0, 0, -1], [1, 0, 0]])
+    r = rot_x(-pitch) @ lidar_to_level_cam
+    r = np.linalg.qr(r)[0] * np.sign(np.diag(np.linalg.qr(r)[1]))
+    t = r @ np.array([0.0, 0.0, -7.0])
+    box = box_from_dair([30.0, 2.0, -6.2], [4.5, 1.9, 1.6], 0.0, r, t)
+    up_lidar = r.T @ box.up
+    np.testing.assert_allclose(up_lidar, [0, 0, 1], atol=1e-12)  # up stays the LiDAR's z
+    fwd_lidar = r.T @ box.forward
+    np.testing.assert_allclose(fwd_lidar, [1, 0, 0], atol=1e-12)  # yaw 0 heads along +x
+    assert abs(box.up @ np.array([0, -1, 0])) < 0.99  # not the camera's -y: the pitch is kept
+
+
+def test_plane_helpers():
+    plane = plane_from_height_pitch(6.0, math.radians(25))
+    assert plane.camera_height == pytest.approx(6.0)
+    assert plane.camera_pitch == pytest.approx(math.radians(25))
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(40, 3)) * [5, 0, 5] + [0, 0, 20]
+    pts = pts - np.outer(plane.distance(pts), plane.normal)
+    pts[:3] += plane.normal * 2.0  # outliers the reweighting should resist
+    fitted = fit_plane(pts)
+    assert fitted.camera_height == pytest.approx(6.0, abs=0.05)
+    assert fitted.camera_pitch == pytest.approx(math.radians(25), abs=0.01)
+
+
+def test_blender_camera_conversions():
+    K_b = intrinsics_from_blender(35.0, 36.0, 640, 480, shift_x=0.01, shift_y=-0.02)
+    assert K_b[0, 0] == pytest.approx(35 / 36 * 640)
+    assert K_b[0, 2] == pytest.approx(320 - 0.5 - 0.01 * 640)
+    assert K_b[1, 2] == pytest.approx(240 - 0.5 - 0.02 * 640)
+    back = blender_from_intrinsics(K_b, 640, 480)
+    np.testing.assert_allclose(intrinsics_from_blender(back["lens"], back["sensor_width"], 640, 480,
+                                                       back["shift_x"], back["shift_y"]), K_b, atol=1e-12)
+    # A Blender camera at (0, -10, 2) looking along +Y (rotated 90 degrees about X) sees the world
+    # origin straight ahead, 10 m away, and world +Z up as image up (OpenCV -y).
+    m = np.eye(4)
+    m[:3, :3] = rot_x(math.pi / 2)
+    m[:3, 3] = [0.0, -10.0, 2.0]
+    r, t = world_to_opencv_camera(m)
+    p = r @ np.array([0.0, 0.0, 2.0]) + t
+    np.testing.assert_allclose(p, [0, 0, 10], atol=1e-12)
+    np.testing.assert_allclose(r @ np.array([0, 0, 1.0]), [0, -1, 0], atol=1e-12)
+    np.testing.assert_allclose(r @ np.array([1.0, 0, 0]), [1, 0, 0], atol=1e-12)
+
+
+def test_rotations_are_proper():
+    for f in (rot_x, rot_y, rot_z):
+        r = f(0.7)
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(r) == pytest.approx(1.0)
