@@ -6,12 +6,13 @@ every problem, so a user fixes a converter once rather than once per error.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from omnigen.dataset import MANIFEST, RECORDS_DIR, record_files
+from omnigen.dataset import MANIFEST, RECORDS_DIR, record_files, update_records_digest
 from omnigen.progress import progress
 from omnigen.record import FrameRecord, RecordError
 
@@ -35,10 +36,12 @@ def check_dataset(root: str | os.PathLike, show_progress: bool = True) -> tuple[
     if not (root / MANIFEST).exists():
         problems.append(Problem(str(root), MANIFEST, "missing (the dataset was never finalized)"))
     entries = record_files(root)
-    seen_images: dict[str, str] = {}
+    digest = hashlib.sha256()
     for e in progress(entries, desc="validating", unit="frame", disable=not show_progress):
+        data = Path(e.path).read_bytes()
+        update_records_digest(digest, e.name, data)
         try:
-            rec = FrameRecord.from_dict(json.loads(Path(e.path).read_bytes()), file=e.path)
+            rec = FrameRecord.from_dict(json.loads(data), file=e.path)
         except json.JSONDecodeError as exc:
             problems.append(Problem(e.path, "<json>", f"not valid JSON: {exc}"))
             continue
@@ -55,7 +58,14 @@ def check_dataset(root: str | os.PathLike, show_progress: bool = True) -> tuple[
         for field, rel in files:
             if not (root / rel).is_file():
                 problems.append(Problem(e.path, field, f"file {rel} not found"))
-        other = seen_images.setdefault(rec.image, rec.frame_id)
-        if other != rec.frame_id:
-            problems.append(Problem(e.path, "image", f"{rec.image} is also the image of frame {other}"))
+    manifest_path = root / MANIFEST
+    if manifest_path.exists():
+        try:
+            recorded = json.loads(manifest_path.read_text()).get("records_sha256")
+        except json.JSONDecodeError as exc:
+            problems.append(Problem(str(manifest_path), "<json>", f"not valid JSON: {exc}"))
+        else:
+            if recorded != digest.hexdigest():
+                problems.append(Problem(str(manifest_path), "records_sha256",
+                                        "does not match records/ (an interrupted or unfinished write?)"))
     return len(entries), problems

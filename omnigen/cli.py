@@ -17,10 +17,10 @@ from pathlib import Path
 from typing import Callable
 
 from omnigen import __version__
+from omnigen.files import LINK_MODES
 
 NOT_BUILT = {
     "render": "rendering the procedural city (issue 6)",
-    "merge": "merging sources into UrbanOmniView (issue 8)",
     "stats": "the statistics report (issue 9)",
     "show": "the frame viewer (issue 9)",
     "train": "the bundled detector (issue 10)",
@@ -80,14 +80,20 @@ def _run_validate(args: argparse.Namespace) -> int:
 
 
 def _add_export(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="write a dataset in another format (coco, kitti)")
+    p = sub.add_parser("export", help="write a dataset in another format (coco, yolo, kitti)")
     formats = p.add_subparsers(dest="format", required=True, metavar="FORMAT")
     coco = formats.add_parser("coco", help="COCO keypoints JSON (pycocotools reads it)")
     coco.add_argument("dataset", type=Path)
     coco.add_argument("--out", type=Path, required=True, help="output .json file")
     coco.add_argument("--split", default=None, help="only frames of this split (splits/<name>.txt)")
-    coco.add_argument("--taxonomy", default="fine", help="fine, coarse or a TOML file")
+    coco.add_argument("--taxonomy", default=None, help="fine, coarse or a TOML file (default: the dataset's)")
     coco.set_defaults(func=_run_export_coco)
+    yolo = formats.add_parser("yolo", help="Ultralytics pose layout (images/, labels/, data.yaml)")
+    yolo.add_argument("dataset", type=Path)
+    yolo.add_argument("--out", type=Path, required=True, help="output folder")
+    yolo.add_argument("--taxonomy", default=None, help="fine, coarse or a TOML file (default: the dataset's)")
+    yolo.add_argument("--link", choices=LINK_MODES, default="hardlink", help="how images are placed")
+    yolo.set_defaults(func=_run_export_yolo)
     _add_plugins(formats, EXPORTERS, "export")
 
 
@@ -98,9 +104,69 @@ def _run_export_coco(args: argparse.Namespace) -> int:
     from omnigen.taxonomy import load_taxonomy
 
     start = time.perf_counter()
-    counts = export_coco(Dataset.open(args.dataset), args.out, args.split, load_taxonomy(args.taxonomy))
+    ds = Dataset.open(args.dataset)
+    counts = export_coco(ds, args.out, args.split, _taxonomy_for(ds, args.taxonomy))
     print_table(f"export coco -> {args.out}", ["images", "annotations", "categories", "seconds"],
                 [[counts["images"], counts["annotations"], counts["categories"], round(time.perf_counter() - start, 2)]])
+    return 0
+
+
+def _taxonomy_for(ds, name: str | None):
+    """The taxonomy asked for, else the one the dataset's manifest records, else fine."""
+    from omnigen.taxonomy import load_taxonomy
+
+    return load_taxonomy(name or ds.manifest.get("taxonomy", {}).get("name", "fine"))
+
+
+def _run_export_yolo(args: argparse.Namespace) -> int:
+    from omnigen.dataset import Dataset
+    from omnigen.progress import print_table
+    from omnigen.yolo import export_yolo
+
+    start = time.perf_counter()
+    ds = Dataset.open(args.dataset)
+    counts = export_yolo(ds, args.out, _taxonomy_for(ds, args.taxonomy), args.link)
+    print_table(f"export yolo -> {args.out}", ["images", "objects", "classes", "seconds"],
+                [[counts["images"], counts["objects"], counts["classes"], round(time.perf_counter() - start, 2)]])
+    print(f"Ultralytics dataset YAML: {args.out / 'data.yaml'}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# merge
+# ---------------------------------------------------------------------------------------------
+
+
+def _add_merge(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("merge", help="merge source datasets into UrbanOmniView with a held-out test split")
+    p.add_argument("sources", type=Path, nargs="*", help="source datasets (render and convert outputs)")
+    p.add_argument("--out", type=Path, required=True, help="output dataset folder")
+    p.add_argument("--taxonomy", default="fine", help="fine, coarse or a TOML file; recorded in the manifest")
+    p.add_argument("--test-fraction", type=float, default=0.10, help="share of each source and view held out")
+    p.add_argument("--seed", type=int, default=0, help="seed of the test-split draw")
+    p.add_argument("--split-file", type=Path, action="append", default=[],
+                   help="a list of frame ids (or source ids such as KITTI's 000123); the file's stem names "
+                        "the split; repeatable (e.g. train.txt and val.txt)")
+    p.add_argument("--update", action="store_true", help="add sources to an existing merge, keeping its splits")
+    p.add_argument("--link", choices=LINK_MODES, default="hardlink", help="how images are placed")
+    p.set_defaults(func=_run_merge)
+
+
+def _run_merge(args: argparse.Namespace) -> int:
+    from omnigen.merge import merge
+    from omnigen.progress import print_table
+    from omnigen.taxonomy import load_taxonomy
+
+    if not args.sources and not args.update:
+        print("omnigen merge: give at least one source dataset", file=sys.stderr)
+        return 2
+    r = merge(args.sources, args.out, load_taxonomy(args.taxonomy), args.test_fraction, args.seed,
+              args.split_file, args.update, args.link)
+    print_table(f"merge -> {args.out}", ["source", "frames"], sorted(r.by_source.items()))
+    print_table("splits", ["split", "frames"], sorted(r.by_split.items()))
+    links = ", ".join(f"{k} {v}" for k, v in sorted(r.link_modes.items())) or "-"
+    print_table("summary", ["frames", "objects", "unique images", "images placed", "seconds"],
+                [[r.frames, r.objects, r.unique_images, links, round(r.seconds, 2)]])
     return 0
 
 
@@ -153,8 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name in ("render",):
         sub.add_parser(name, help=NOT_BUILT[name], add_help=False).set_defaults(func=_not_built(name))
     _add_convert(sub)
-    for name in ("merge",):
-        sub.add_parser(name, help=NOT_BUILT[name], add_help=False).set_defaults(func=_not_built(name))
+    _add_merge(sub)
     _add_export(sub)
     for name in ("stats", "show"):
         sub.add_parser(name, help=NOT_BUILT[name], add_help=False).set_defaults(func=_not_built(name))

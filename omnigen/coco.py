@@ -12,10 +12,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import orjson
 
 from omnigen.conventions import CORNER_NAMES, FINE_CLASSES, SKELETON, V_OUTSIDE, coco_visibility
-from omnigen.dataset import Dataset, read_split
-from omnigen.files import atomic_write_json
+from omnigen.dataset import Dataset
+from omnigen.splits import read_split
+from omnigen.files import atomic_write_bytes
 from omnigen.taxonomy import Taxonomy, load_taxonomy
 
 
@@ -31,21 +33,41 @@ def coco_categories(taxonomy: Taxonomy) -> list[dict[str, Any]]:
     ]
 
 
-def keypoints_with_visibility(keypoints: np.ndarray, v: np.ndarray) -> list[float]:
-    """24 numbers x, y, v; corners with v = 0 become 0 0 0 as COCO expects."""
-    out: list[float] = []
-    for (x, y), vis in zip(keypoints, v):
-        out.extend((0.0, 0.0, 0) if vis == V_OUTSIDE else (float(x), float(y), int(vis)))
-    return out
+def keypoints_with_visibility(keypoints: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(N, 24) x, y, v rows; corners with v = 0 become 0 0 0 as COCO expects."""
+    out = np.zeros((*v.shape, 3))
+    on = v != V_OUTSIDE
+    out[..., :2] = np.where(on[..., None], keypoints, 0.0)
+    out[..., 2] = v
+    return out.reshape(*v.shape[:-1], 3 * v.shape[-1])
+
+
+def _xywh(boxes: np.ndarray) -> np.ndarray:
+    return np.concatenate([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]], axis=1)
 
 
 def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = None) -> dict[str, Any]:
-    """Build the COCO dict. Image ids follow the dataset's frame order (1-based)."""
+    """Build the COCO dict. Image ids follow the dataset's frame order (1-based).
+
+    Per-object values are prepared for all objects at once (numpy, then one tolist per column),
+    so that 300,000 annotations cost seconds, not minutes.
+    """
     taxonomy = taxonomy or load_taxonomy("fine")
     keep = None if split is None else set(read_split(ds.root, split))
     t = ds.objects
     vis = coco_visibility(t.in_image, t.behind_camera, t.occluded)
     class_ids = np.array([(taxonomy.class_id(c) if taxonomy.class_id(c) is not None else -1) for c in FINE_CLASSES])
+    cid = class_ids[t.category] if len(t) else np.zeros(0, int)
+    bbox = _xywh(t.bbox).tolist()
+    area = (np.diff(t.bbox[:, [0, 2]], axis=1) * np.diff(t.bbox[:, [1, 3]], axis=1)).ravel().tolist()
+    kps = keypoints_with_visibility(t.keypoints, vis).tolist()
+    num_kp = (vis > 0).sum(axis=1).tolist()
+    has_src = ~np.isnan(t.bbox_source).any(axis=1)
+    has_vis = ~np.isnan(t.bbox_visible).any(axis=1)
+    bbox_src, bbox_vis = _xywh(t.bbox_source).tolist(), _xywh(t.bbox_visible).tolist()
+    centers, dims, rotations = t.center.tolist(), t.dims.tolist(), t.rotation.tolist()
+    trunc, occ_level, inst = t.truncation.tolist(), t.occlusion_level.tolist(), t.instance_id.tolist()
+    fine = [FINE_CLASSES[c] for c in t.category.tolist()]
     images, annotations = [], []
     ft = ds.table
     for i, frame_id in enumerate(ft.frame_id):
@@ -60,23 +82,21 @@ def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = N
             image["instance_file"] = extras["synthetic"]["instance"]
         images.append(image)
         for j in range(int(ds.offsets[i]), int(ds.offsets[i + 1])):
-            cid = class_ids[t.category[j]]
-            if cid < 0:
+            if cid[j] < 0:
                 continue
-            bbox = xyxy_to_xywh(t.bbox[j])
+            kp = kps[j]
+            kp[2::3] = [int(v) for v in kp[2::3]]
             ann = {
-                "id": len(annotations) + 1, "image_id": i + 1, "category_id": int(cid) + 1,
-                "fine_category": FINE_CLASSES[t.category[j]],
-                "bbox": bbox, "area": bbox[2] * bbox[3], "iscrowd": 0,
-                "keypoints": keypoints_with_visibility(t.keypoints[j], vis[j]),
-                "num_keypoints": int((vis[j] > 0).sum()), "instance_id": int(t.instance_id[j]),
-                "box3d": {"center": t.center[j].tolist(), "dims": t.dims[j].tolist(), "rotation": t.rotation[j].tolist()},
-                "truncation": float(t.truncation[j]), "occlusion_level": int(t.occlusion_level[j]),
+                "id": len(annotations) + 1, "image_id": i + 1, "category_id": int(cid[j]) + 1,
+                "fine_category": fine[j], "bbox": bbox[j], "area": area[j], "iscrowd": 0,
+                "keypoints": kp, "num_keypoints": num_kp[j], "instance_id": inst[j],
+                "box3d": {"center": centers[j], "dims": dims[j], "rotation": rotations[j]},
+                "truncation": trunc[j], "occlusion_level": occ_level[j],
             }
-            if not np.isnan(t.bbox_source[j]).any():
-                ann["bbox_source"] = xyxy_to_xywh(t.bbox_source[j])
-            if not np.isnan(t.bbox_visible[j]).any():
-                ann["bbox_visible"] = xyxy_to_xywh(t.bbox_visible[j])
+            if has_src[j]:
+                ann["bbox_source"] = bbox_src[j]
+            if has_vis[j]:
+                ann["bbox_visible"] = bbox_vis[j]
             annotations.append(ann)
     return {
         "info": {"description": "UrbanOmniView (COCO keypoints view)", "taxonomy": taxonomy.name,
@@ -88,5 +108,7 @@ def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = N
 def export_coco(ds: Dataset, out: str | Path, split: str | None = None, taxonomy: Taxonomy | None = None) -> dict[str, int]:
     """Write the COCO file atomically; returns counts for the summary."""
     coco = to_coco(ds, split, taxonomy)
-    atomic_write_json(out, coco)
+    # orjson encodes the 300,000 annotations of a large dataset several times faster than json;
+    # insertion order is deterministic, so reruns are byte-identical without sorting keys.
+    atomic_write_bytes(out, orjson.dumps(coco) + b"\n")
     return {"images": len(coco["images"]), "annotations": len(coco["annotations"]), "categories": len(coco["categories"])}

@@ -141,6 +141,16 @@ class ObjectTable:
     def columns(self) -> dict[str, np.ndarray]:
         return {name: getattr(self, name) for name in _OBJECT_COLUMNS}
 
+    @classmethod
+    def concat(cls, tables: list["ObjectTable"], frame_offsets: list[int]) -> "ObjectTable":
+        """Stack tables; each table's `frame` column is shifted by its frame offset."""
+        cols = {name: np.concatenate([getattr(t, name) for t in tables]) for name in _OBJECT_COLUMNS}
+        cols["frame"] = np.concatenate([t.frame + off for t, off in zip(tables, frame_offsets)]).astype(np.int32)
+        return cls(**cols)
+
+    def take(self, rows: np.ndarray) -> "ObjectTable":
+        return ObjectTable(**{name: getattr(self, name)[rows] for name in _OBJECT_COLUMNS})
+
 
 # ---------------------------------------------------------------------------------------------
 # Reading
@@ -152,13 +162,13 @@ def record_path(root: Path, frame_id: str) -> Path:
 
 
 def record_files(root: Path) -> list[os.DirEntry]:
-    """The finished record files of a dataset, sorted by name (temporary files skipped)."""
+    """The finished record files of a dataset, in frame-id order (temporary files skipped)."""
     folder = Path(root) / RECORDS_DIR
     if not folder.is_dir():
         return []
     with os.scandir(folder) as it:
         entries = [e for e in it if e.name.endswith(".json") and not e.name.startswith(TMP_PREFIX)]
-    entries.sort(key=lambda e: e.name)
+    entries.sort(key=lambda e: e.name[:-5])  # frame-id order, the order of the index and the digest
     return entries
 
 
@@ -169,6 +179,11 @@ def records_fingerprint(entries: list[os.DirEntry]) -> str:
         st = e.stat()
         h.update(f"{e.name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
     return h.hexdigest()
+
+
+def update_records_digest(digest: "hashlib._Hash", name: str, data: bytes) -> None:
+    """Fold one record file into the dataset's records_sha256 (name and bytes, in frame-id order)."""
+    digest.update(name.encode() + b"\0" + data)
 
 
 def read_record(path: str | os.PathLike) -> FrameRecord:
@@ -183,6 +198,7 @@ def read_record(path: str | os.PathLike) -> FrameRecord:
 
 
 _FRAME_STRINGS = ("frame_id", "source", "view", "image", "group")
+_FRAME_ARRAYS = ("width", "height", "K", "ground_plane", "camera_height", "camera_pitch", "schema_version")
 
 
 @dataclass
@@ -244,16 +260,28 @@ class FrameTable:
         return {
             "frm_strings": np.frombuffer(json.dumps(strings).encode(), dtype=np.uint8),
             "frm_extras": np.frombuffer(self.extras_blob, dtype=np.uint8),
-            **{f"frm_{k}": getattr(self, k) for k in
-               ("width", "height", "K", "ground_plane", "camera_height", "camera_pitch", "schema_version")},
+            **{f"frm_{k}": getattr(self, k) for k in _FRAME_ARRAYS},
         }
 
     @classmethod
     def from_arrays(cls, z: Any) -> "FrameTable":
         strings = json.loads(z["frm_strings"].tobytes())
-        return cls(**strings, **{k: z[f"frm_{k}"] for k in
-                                 ("width", "height", "K", "ground_plane", "camera_height", "camera_pitch", "schema_version")},
+        return cls(**strings, **{k: z[f"frm_{k}"] for k in _FRAME_ARRAYS},
                    extras_blob=z["frm_extras"].tobytes())
+
+    @classmethod
+    def concat(cls, tables: list["FrameTable"]) -> "FrameTable":
+        extras = [e for t in tables for e in t.extras]
+        return cls(**{k: [v for t in tables for v in getattr(t, k)] for k in _FRAME_STRINGS},
+                   **{k: np.concatenate([getattr(t, k) for t in tables]) for k in _FRAME_ARRAYS},
+                   extras_blob=json.dumps(extras).encode(), _extras=extras)
+
+    def take(self, rows: list[int] | np.ndarray) -> "FrameTable":
+        rows = [int(r) for r in rows]
+        extras = [self.extras[r] for r in rows]
+        return FrameTable(**{k: [getattr(self, k)[r] for r in rows] for k in _FRAME_STRINGS},
+                          **{k: getattr(self, k)[rows] for k in _FRAME_ARRAYS},
+                          extras_blob=json.dumps(extras).encode(), _extras=extras)
 
     def row(self, i: int) -> dict[str, Any]:
         """Frame i's fields as in its record (without objects)."""
@@ -415,15 +443,26 @@ def _load_index(root: Path, key: str, manifest: dict[str, Any]) -> Dataset | Non
 def build_index(root: Path, records: list[FrameRecord], key: str | None = None,
                 manifest: dict[str, Any] | None = None) -> Dataset:
     """Write the columnar index of `records` (sorted by frame id) and return the opened dataset."""
-    root = Path(root)
     records = sorted(records, key=lambda r: r.frame_id)
+    attributes = [o.source_attributes for r in records for o in r.objects]
+    return write_index(
+        root, FrameTable.from_records(records),
+        np.cumsum([0] + [len(r.objects) for r in records]).astype(np.int64),
+        ObjectTable.from_records(records), attributes if any(attributes) else None, key, manifest,
+    )
+
+
+def write_index(root: str | os.PathLike, table: FrameTable, offsets: np.ndarray, objects: ObjectTable,
+                attributes: list[dict[str, Any]] | None, key: str | None = None,
+                manifest: dict[str, Any] | None = None) -> Dataset:
+    """Write the index from columns (frames sorted by id) and return the opened dataset.
+
+    `key` is the fingerprint of records/ the index describes; by default, that of the folder now.
+    """
+    root = Path(root)
     if key is None:
         key = records_fingerprint(record_files(root))
-    table = FrameTable.from_records(records)
-    offsets = np.cumsum([0] + [len(r.objects) for r in records]).astype(np.int64)
-    attributes = [o.source_attributes for r in records for o in r.objects]
-    attributes_blob = json.dumps(attributes).encode() if any(attributes) else None
-    objects = ObjectTable.from_records(records)
+    attributes_blob = json.dumps(attributes).encode() if attributes else None
     arrays = {f"obj_{k}": v for k, v in objects.columns().items()}
     arrays.update(table.to_arrays())
     arrays["header"] = np.frombuffer(json.dumps({"version": INDEX_VERSION, "key": key}).encode(), dtype=np.uint8)
@@ -449,9 +488,10 @@ class DatasetWriter:
     the manifest from whatever records/ holds.
     """
 
-    def __init__(self, root: str | os.PathLike):
+    def __init__(self, root: str | os.PathLike, durable: bool = True):
         self.root = Path(root)
         (self.root / RECORDS_DIR).mkdir(parents=True, exist_ok=True)
+        self.durable = durable
         self._written: dict[str, FrameRecord] = {}
 
     def has(self, frame_id: str) -> bool:
@@ -462,7 +502,7 @@ class DatasetWriter:
         text = dumps_json(record.to_dict())
         path = record_path(self.root, record.frame_id)
         FrameRecord.from_dict(json.loads(text), file=str(path))
-        atomic_write_bytes(path, text.encode())
+        atomic_write_bytes(path, text.encode(), durable=self.durable)
         self._written[record.frame_id] = record
         return path
 
@@ -474,7 +514,7 @@ class DatasetWriter:
         digest = hashlib.sha256()
         for e in progress(entries, desc="indexing", disable=not show_progress):
             data = Path(e.path).read_bytes()
-            digest.update(e.name.encode() + b"\0" + data)
+            update_records_digest(digest, e.name, data)
             frame_id = e.name[:-5]
             cached = self._written.get(frame_id)
             if cached is not None:
@@ -484,61 +524,27 @@ class DatasetWriter:
                     records.append(FrameRecord.from_dict(json.loads(data), file=e.path))
                 except json.JSONDecodeError as exc:
                     raise RecordError(frame_id, "<json>", f"not valid JSON: {exc}", e.path) from None
-        manifest = make_manifest(records, digest.hexdigest(), extra or {})
-        atomic_write_json(self.root / MANIFEST, manifest, indent=2)
-        return build_index(self.root, records, key, manifest)
+        ds = build_index(self.root, records, key, manifest={})
+        ds.manifest = make_manifest(ds, digest.hexdigest(), extra or {})
+        atomic_write_json(self.root / MANIFEST, ds.manifest, indent=2)  # last: it seals the dataset
+        return ds
 
 
-def make_manifest(records: list[FrameRecord], records_sha256: str, extra: dict[str, Any]) -> dict[str, Any]:
+def make_manifest(ds: Dataset, records_sha256: str, extra: dict[str, Any]) -> dict[str, Any]:
     """The manifest: what a dataset holds, with no timestamps, so equal inputs give equal bytes."""
-    by_class: Counter[str] = Counter()
-    by_source: Counter[str] = Counter()
-    by_view: Counter[str] = Counter()
-    n_objects = 0
-    for r in records:
-        by_source[r.source] += 1
-        by_view[r.view] += 1
-        n_objects += len(r.objects)
-        by_class.update(o.category for o in r.objects)
+    by_class = Counter(np.asarray(FINE_CLASSES)[ds.objects.category].tolist())
     manifest = {
         "format": FORMAT_NAME,
         "schema_version": SCHEMA_VERSION,
         "omnigen_version": __version__,
         "records_sha256": records_sha256,
         "counts": {
-            "frames": len(records),
-            "objects": n_objects,
-            "frames_by_source": dict(sorted(by_source.items())),
-            "frames_by_view": dict(sorted(by_view.items())),
+            "frames": len(ds),
+            "objects": len(ds.objects),
+            "frames_by_source": dict(sorted(Counter(ds.table.source).items())),
+            "frames_by_view": dict(sorted(Counter(ds.table.view).items())),
             "objects_by_class": dict(sorted(by_class.items())),
         },
     }
     manifest.update(extra)
     return manifest
-
-
-# ---------------------------------------------------------------------------------------------
-# Splits
-# ---------------------------------------------------------------------------------------------
-
-SPLITS_DIR = "splits"
-
-
-def split_names(root: str | os.PathLike) -> list[str]:
-    """Names of the splits a dataset defines (splits/<name>.txt, one frame id per line)."""
-    folder = Path(root) / SPLITS_DIR
-    return sorted(p.stem for p in folder.glob("*.txt")) if folder.is_dir() else []
-
-
-def read_split(root: str | os.PathLike, name: str) -> list[str]:
-    """Frame ids of split `name`; an unknown split is an error listing the known ones."""
-    path = Path(root) / SPLITS_DIR / f"{name}.txt"
-    if not path.exists():
-        known = split_names(root)
-        raise DatasetError(f"{root}: no split {name!r} (known: {', '.join(known) or 'none'}; "
-                           f"splits are written by 'omnigen merge')")
-    return [line.strip() for line in path.read_text().splitlines() if line.strip()]
-
-
-def write_split(root: str | os.PathLike, name: str, frame_ids: Iterable[str]) -> None:
-    atomic_write_bytes(Path(root) / SPLITS_DIR / f"{name}.txt", "".join(f"{f}\n" for f in sorted(frame_ids)).encode())

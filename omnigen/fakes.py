@@ -82,15 +82,13 @@ def write_fake_dataset(root: str | Path, n_frames: int, objects_per_frame: int =
     assert source in SOURCES
     root = Path(root)
     writer = DatasetWriter(root)
-    blank = None
     for i in progress(range(n_frames), desc="fake frames", disable=not show_progress):
         view = VIEWS[i % len(VIEWS)] if source == "synthetic" else ("ego" if source == "kitti" else "infrastructure")
         rec = random_frame(seed, i, source, view, objects_per_frame)
         if images:
-            if blank is None:
-                blank = Image.new("RGB", (rec.width, rec.height), (90, 90, 90))
             (root / "images").mkdir(exist_ok=True)
-            blank.save(root / rec.image)
+            shade = (i % 251, (i // 251) % 251, seed % 251)  # distinct pixels per frame: no accidental duplicates
+            Image.new("RGB", (rec.width, rec.height), shade).save(root / rec.image)
             if rec.synthetic is not None:
                 for rel in (rec.synthetic.depth, rec.synthetic.instance):
                     (root / rel).parent.mkdir(exist_ok=True)

@@ -239,6 +239,14 @@ class _FrameParser:
             raise self.fail(path, f"{value!r} is not one of {', '.join(choices)}")
         return value
 
+    def relpath(self, value: Any, path: str) -> str:
+        """A file path inside the dataset root: relative, '/'-separated, no '..'."""
+        rel = self.string(value, path)
+        parts = rel.split("/")
+        if rel.startswith(("/", "\\")) or "\\" in rel or (len(rel) > 1 and rel[1] == ":") or ".." in parts or "" in parts:
+            raise self.fail(path, f"{rel!r} must be a relative path inside the dataset (no '..', no absolute path)")
+        return rel
+
     def array(self, value: Any, path: str, shape: tuple[int, ...]) -> np.ndarray:
         try:
             arr = np.asarray(value, dtype=np.float64)
@@ -273,7 +281,7 @@ class _FrameParser:
             raise self.fail("frame_id", f"{frame_id!r} must be letters, digits, '.', '_' or '-'")
         source = self.string(self.get(d, "source", "source"), "source", SOURCES)
         view = self.string(self.get(d, "view", "view"), "view", VIEWS)
-        image = self.string(self.get(d, "image", "image"), "image")
+        image = self.relpath(self.get(d, "image", "image"), "image")
         width = self.integer(self.get(d, "width", "width"), "width", 1, 65535)
         height = self.integer(self.get(d, "height", "height"), "height", 1, 65535)
         K = self.array(self.get(d, "K", "K"), "K", (3, 3))
@@ -332,8 +340,8 @@ class _FrameParser:
             scene=self.string(self.get(s, "scene", p + "scene"), p + "scene"),
             rig=self.string(self.get(s, "rig", p + "rig"), p + "rig"),
             weather=weather, lighting=lighting,
-            depth=self.string(self.get(s, "depth", p + "depth"), p + "depth"),
-            instance=self.string(self.get(s, "instance", p + "instance"), p + "instance"),
+            depth=self.relpath(self.get(s, "depth", p + "depth"), p + "depth"),
+            instance=self.relpath(self.get(s, "instance", p + "instance"), p + "instance"),
         )
 
     def object(self, o: Any, path: str) -> ObjectRecord:

@@ -95,6 +95,13 @@ def test_other_contract_violations(good):
     d = copy.deepcopy(good)
     d["objects"][0]["keypoints"][0] = None  # null but not flagged behind the camera
     _reject(d, "objects[0].keypoints[0]", "not behind the camera")
+    for bad in ("../outside.png", "/etc/passwd", "images/../../x.png", "C:/x.png"):
+        d = copy.deepcopy(good)
+        d["image"] = bad
+        _reject(d, "image", "relative path inside the dataset")
+    d = copy.deepcopy(good)
+    d["synthetic"]["depth"] = "../depth.exr"
+    _reject(d, "synthetic.depth", "relative path")
     d = copy.deepcopy(good)
     d["schema_version"] = 99
     _reject(d, "schema_version", "schema")

@@ -1,0 +1,368 @@
+"""`omnigen merge`: source datasets into one UrbanOmniView dataset with a held-out test split.
+
+What a merge guarantees:
+- every frame keeps its record and its (source-prefixed) frame id; a frame id found in two inputs
+  is one frame when the records are identical and an error otherwise;
+- images are deduplicated by content (SHA-256): frames whose pixels are identical share one file,
+  and are put in one split group so the same image can never be both trained and tested on;
+- the test split is deterministic for a seed, stratified by source and view, and keeps groups whole
+  (omnigen.splits); split files given by the user, and an earlier merge's assignments under
+  --update, are honoured;
+- the output is byte-identical for identical inputs; records are written atomically and the
+  manifest, written last, seals them (its records_sha256 is checked by `omnigen validate`), so an
+  interrupted merge never looks finished.
+
+The index of the merged dataset is assembled from the sources' indexes (columns), not by parsing
+records again, which is what makes a 40,000-frame merge take seconds.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from omnigen.conventions import FINE_CLASSES
+from omnigen.dataset import (
+    MANIFEST,
+    RECORDS_DIR,
+    Dataset,
+    DatasetError,
+    FrameTable,
+    ObjectTable,
+    make_manifest,
+    record_path,
+    records_fingerprint,
+    record_files,
+    update_records_digest,
+    write_index,
+)
+from omnigen.files import atomic_write_bytes, atomic_write_json, dumps_json, link_file
+from omnigen.progress import progress
+from omnigen.splits import SPLITS_DIR, TEST, TRAIN, assign_test_split, read_assignments, read_id_list, write_split
+from omnigen.taxonomy import Taxonomy, load_taxonomy
+
+
+@dataclass
+class MergeReport:
+    frames: int = 0
+    objects: int = 0
+    unique_images: int = 0
+    duplicate_frames: int = 0
+    by_source: Counter = field(default_factory=Counter)
+    by_split: Counter = field(default_factory=Counter)
+    link_modes: Counter = field(default_factory=Counter)
+    seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class _Frame:
+    frame_id: str
+    source_index: int  # which input
+    row: int  # frame index in that input
+
+
+class _Groups:
+    """Union-find over frame ids: split groups joined by shared images."""
+
+    def __init__(self) -> None:
+        self.parent: dict[str, str] = {}
+
+    def find(self, x: str) -> str:
+        self.parent.setdefault(x, x)
+        while self.parent[x] != x:
+            self.parent[x] = self.parent[self.parent[x]]
+            x = self.parent[x]
+        return x
+
+    def union(self, a: str, b: str) -> None:
+        ra, rb = self.find(a), self.find(b)
+        if ra != rb:
+            lo, hi = sorted((ra, rb))
+            self.parent[hi] = lo  # the smaller key represents: deterministic
+
+
+def _file_sha256(path: Path) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def _prepare_out(out: Path, update: bool) -> list[str]:
+    """Check the output folder; returns the source paths of the earlier merge under --update."""
+    manifest_path = out / MANIFEST
+    previous: dict[str, Any] = {}
+    if manifest_path.exists():
+        previous = json.loads(manifest_path.read_text())
+        if "merge" not in previous:
+            raise DatasetError(f"{out}: holds a dataset that 'omnigen merge' did not make; refusing to overwrite it")
+    elif update:
+        raise DatasetError(f"{out}: --update needs a finished merged dataset there (no {MANIFEST})")
+    return [s["path"] for s in previous.get("merge", {}).get("sources", [])] if update else []
+
+
+def merge(
+    sources: list[Path],
+    out: Path,
+    taxonomy: Taxonomy | None = None,
+    test_fraction: float = 0.10,
+    seed: int = 0,
+    split_files: list[Path] | None = None,
+    update: bool = False,
+    link: str = "hardlink",
+) -> MergeReport:
+    start = time.perf_counter()
+    out = Path(out)
+    taxonomy = taxonomy or load_taxonomy("fine")
+    earlier = _prepare_out(out, update)
+    fixed: dict[str, str] = read_assignments(out) if update else {}
+    paths = list(dict.fromkeys([*earlier, *(str(Path(s).resolve()) for s in sources)]))
+    if not paths:
+        raise ValueError("merge needs at least one source dataset")
+    if str(out.resolve()) in paths:
+        raise ValueError(f"{out}: the output cannot also be a source")
+    datasets = [Dataset.open(p) for p in paths]
+
+    # 1. Every frame once, in frame-id order.
+    frames: dict[str, _Frame] = {}
+    report = MergeReport()
+    for k, ds in enumerate(datasets):
+        for i, frame_id in enumerate(ds.table.frame_id):
+            other = frames.get(frame_id)
+            if other is not None:
+                a = record_path(datasets[other.source_index].root, frame_id).read_bytes()
+                if a != record_path(ds.root, frame_id).read_bytes():
+                    raise DatasetError(f"frame {frame_id} is in {datasets[other.source_index].root} and {ds.root} "
+                                       f"with different records; frame ids must be unique across sources")
+                report.duplicate_frames += 1
+                continue
+            frames[frame_id] = _Frame(frame_id, k, i)
+    order = sorted(frames)
+
+    # 2. Pixels. Records keep their paths where they can (then the record file is linked as it is);
+    # frames with identical images share the first one's file and a split group; a path already
+    # taken by other pixels is renamed after the frame.
+    groups = _Groups()
+    owner_of_hash: dict[str, str] = {}
+    placement = _Placement()
+    rewrites: dict[str, dict[str, str]] = {}  # frame id -> {field: new path}
+    for frame_id in progress(order, desc="hashing images", unit="frame"):
+        f = frames[frame_id]
+        ds = datasets[f.source_index]
+        rel = ds.table.image[f.row]
+        src = os.path.join(ds.root, rel)
+        owner = owner_of_hash.setdefault(_file_sha256(src), frame_id)
+        if owner != frame_id:  # same pixels as an earlier frame: use its file
+            new = placement.final[("image", owner)]
+            placement.final[("image", frame_id)] = new
+        else:
+            new = placement.claim("image", frame_id, rel, src)
+        if new != rel:
+            rewrites.setdefault(frame_id, {})["image"] = new
+        syn = ds.table.extras[f.row]["synthetic"]
+        if syn is not None:
+            for key in ("depth", "instance"):
+                new = placement.claim(key, frame_id, syn[key], os.path.join(ds.root, syn[key]))
+                if new != syn[key]:
+                    rewrites.setdefault(frame_id, {})[key] = new
+        g = ds.table.group[f.row]
+        groups.union(frame_id, f"{ds.table.source[f.row]}:{g}" if g else frame_id)
+        groups.union(frame_id, owner)
+    report.unique_images = len(owner_of_hash)
+
+    # 3. Splits: user files first, then the seeded stratified draw over whole groups.
+    for path in split_files or []:
+        name = Path(path).stem
+        by_suffix = _ids_by_source_suffix(order, datasets, frames)
+        for line in read_id_list(path):
+            for frame_id in by_suffix.get(line, [line] if line in frames else []):
+                fixed[frame_id] = name
+    strata = {fid: f"{datasets[f.source_index].table.source[f.row]}/{datasets[f.source_index].table.view[f.row]}"
+              for fid, f in frames.items()}
+    assignment = assign_test_split({fid: groups.find(fid) for fid in order}, strata, test_fraction, seed,
+                                   {k: v for k, v in fixed.items() if k in frames})
+
+    # 4. Records (paths rewritten), images, depth and instance files.
+    (out / RECORDS_DIR).mkdir(parents=True, exist_ok=True)
+    (out / MANIFEST).unlink(missing_ok=True)  # unsealed until the end
+    keep_names = {f"{fid}.json" for fid in order}
+    for e in record_files(out):
+        if e.name not in keep_names:
+            Path(e.path).unlink()
+    for rel, src in progress(placement.sources.items(), desc="linking pixels", unit="file"):
+        mode = link_file(src, os.path.join(out, rel), link)
+        if rel.startswith("images/"):
+            report.link_modes[mode] += 1
+    records_digest = hashlib.sha256()
+    for frame_id in progress(order, desc="merging records", unit="frame"):
+        f = frames[frame_id]
+        ds = datasets[f.source_index]
+        src = os.path.join(ds.root, RECORDS_DIR, f"{frame_id}.json")
+        dst = os.path.join(out, RECORDS_DIR, f"{frame_id}.json")
+        with open(src, "rb") as fh:
+            data = fh.read()
+        if frame_id in rewrites:
+            data = _rewrite_paths(data, rewrites[frame_id])
+            atomic_write_bytes(dst, data, durable=False)
+        else:
+            link_file(src, dst, link)  # records are immutable: a rewrite replaces the file, never edits it
+        update_records_digest(records_digest, f"{frame_id}.json", data)
+        report.by_source[ds.table.source[f.row]] += 1
+
+    _remove_unreferenced(out, set(placement.sources))
+
+    # 5. Index from the sources' columns, reordered.
+    table, objects, attributes = _merged_columns(datasets, frames, order, rewrites)
+    offsets = np.concatenate([[0], np.cumsum(np.bincount(objects.frame, minlength=len(order)))]).astype(np.int64)
+    key = records_fingerprint(record_files(out))
+    ds_out = write_index(out, table, offsets, objects, attributes, key, manifest={})
+
+    # 6. Split files, then the manifest, which seals the dataset.
+    by_split: dict[str, list[str]] = defaultdict(list)
+    for fid in order:
+        by_split[assignment[fid]].append(fid)
+    for old in (out / SPLITS_DIR).glob("*.txt") if (out / SPLITS_DIR).is_dir() else []:
+        if old.stem not in by_split:
+            old.unlink()
+    for name, ids in sorted(by_split.items()):
+        write_split(out, name, ids)
+    report.by_split = Counter({k: len(v) for k, v in by_split.items()})
+    extra = {
+        "name": out.name,
+        "taxonomy": taxonomy.to_dict(),
+        "merge": {
+            "sources": [_source_entry(p, ds) for p, ds in zip(paths, datasets)],
+            "seed": seed,
+            "test_fraction": test_fraction,
+            "split_files": [str(Path(p).resolve()) for p in split_files or []],
+            "unique_images": report.unique_images,
+            "duplicate_frames": report.duplicate_frames,
+        },
+        "splits": _split_counts(ds_out, assignment),
+    }
+    ds_out.manifest = make_manifest(ds_out, records_digest.hexdigest(), extra)
+    atomic_write_json(out / MANIFEST, ds_out.manifest, indent=2)
+    report.frames, report.objects = len(ds_out), len(ds_out.objects)
+    report.seconds = time.perf_counter() - start
+    return report
+
+
+class _Placement:
+    """Which source file lands at which path of the merged dataset."""
+
+    FOLDERS = {"image": "images", "depth": "depth", "instance": "instance"}
+
+    def __init__(self) -> None:
+        self.sources: dict[str, str] = {}  # path in the merged dataset -> source file
+        self.final: dict[tuple[str, str], str] = {}  # (field, frame id) -> path in the merged dataset
+
+    def claim(self, field: str, frame_id: str, rel: str, src: str) -> str:
+        """Keep `rel` unless another file holds it; then name the file after the frame."""
+        taken = self.sources.get(rel)
+        if taken is not None and taken != src:
+            rel = f"{self.FOLDERS[field]}/{frame_id}{os.path.splitext(rel)[1]}"
+            if self.sources.get(rel, src) != src:
+                raise DatasetError(f"frame {frame_id}: cannot find a free path for its {field}")
+        self.sources[rel] = src
+        self.final[(field, frame_id)] = rel
+        return rel
+
+
+def _rewrite_paths(data: bytes, new: dict[str, str]) -> bytes:
+    d = json.loads(data)
+    if "image" in new:
+        d["image"] = new["image"]
+    for key in ("depth", "instance"):
+        if key in new:
+            d["synthetic"][key] = new[key]
+    return dumps_json(d).encode()
+
+
+def _remove_unreferenced(out: Path, referenced: set[str]) -> None:
+    """Drop pixels an earlier merge into this folder placed and this one no longer uses."""
+    for folder in ("images", "depth", "instance"):
+        if (out / folder).is_dir():
+            for p in (out / folder).iterdir():
+                if f"{folder}/{p.name}" not in referenced:
+                    p.unlink()
+
+
+def _ids_by_source_suffix(order: list[str], datasets: list[Dataset], frames: dict[str, _Frame]) -> dict[str, list[str]]:
+    """Split-file lines may name frames without their source prefix (KITTI's '000123')."""
+    out: dict[str, list[str]] = defaultdict(list)
+    for fid in order:
+        f = frames[fid]
+        prefix = datasets[f.source_index].table.source[f.row] + "-"
+        if fid.startswith(prefix):
+            out[fid[len(prefix):]].append(fid)
+        out[fid].append(fid)
+    return out
+
+
+def _merged_columns(datasets: list[Dataset], frames: dict[str, _Frame], order: list[str],
+                    rewrites: dict[str, dict[str, str]]) -> tuple[FrameTable, ObjectTable, list[dict[str, Any]] | None]:
+    frame_base = np.cumsum([0] + [len(ds) for ds in datasets])
+    object_base = np.cumsum([0] + [len(ds.objects) for ds in datasets])
+    all_frames = FrameTable.concat([ds.table for ds in datasets])
+    all_objects = ObjectTable.concat([ds.objects for ds in datasets], list(frame_base[:-1]))
+    rows = [int(frame_base[frames[fid].source_index] + frames[fid].row) for fid in order]
+    table = all_frames.take(rows)
+    for i, fid in enumerate(order):
+        new = rewrites.get(fid)
+        if new:
+            table.image[i] = new.get("image", table.image[i])
+            syn = table.extras[i]["synthetic"]
+            for key in ("depth", "instance"):
+                if key in new:
+                    syn[key] = new[key]
+    table.extras_blob = json.dumps(table.extras).encode()
+    new_index = np.full(len(all_frames), -1, dtype=np.int64)
+    new_index[rows] = np.arange(len(rows))
+    obj_new_frame = new_index[all_objects.frame]
+    keep = np.flatnonzero(obj_new_frame >= 0)
+    keep = keep[np.argsort(obj_new_frame[keep], kind="stable")]
+    objects = all_objects.take(keep)
+    objects.frame = obj_new_frame[keep].astype(np.int32)
+    attributes = None
+    if any(ds._attributes_blob for ds in datasets):
+        flat = [a for ds, n in zip(datasets, object_base[1:] - object_base[:-1])
+                for a in (ds.source_attributes if ds._attributes_blob else [{}] * int(n))]
+        attributes = [flat[j] for j in keep]
+    return table, objects, attributes
+
+
+def _source_entry(path: str, ds: Dataset) -> dict[str, Any]:
+    return {
+        "path": path,
+        "name": ds.manifest.get("name", Path(path).name),
+        "records_sha256": ds.manifest.get("records_sha256"),
+        "frames": len(ds),
+        "objects": len(ds.objects),
+        "frames_by_source": dict(sorted(Counter(ds.table.source).items())),
+    }
+
+
+def _split_counts(ds: Dataset, assignment: dict[str, str]) -> dict[str, Any]:
+    """Per split: frames by source and view, objects by class."""
+    out: dict[str, Any] = {}
+    frame_split = np.array([assignment[fid] for fid in ds.table.frame_id], dtype=object)
+    for name in sorted(set(assignment.values())):
+        mask = frame_split == name
+        idx = np.flatnonzero(mask)
+        obj_mask = mask[ds.objects.frame] if len(ds.objects) else np.zeros(0, bool)
+        out[name] = {
+            "frames": int(mask.sum()),
+            "objects": int(obj_mask.sum()),
+            "frames_by_source_view": dict(sorted(Counter(f"{ds.table.source[i]}/{ds.table.view[i]}" for i in idx).items())),
+            "objects_by_class": dict(sorted(Counter(np.asarray(FINE_CLASSES)[ds.objects.category[obj_mask]].tolist()).items())),
+        }
+    return out
+
+
+__all__ = ["merge", "MergeReport", "TRAIN", "TEST"]

@@ -1,0 +1,108 @@
+"""Splits: which frames a model trains on and which it is tested on.
+
+On disk a split is `splits/<name>.txt`, one frame id per line (as KITTI's ImageSets), so any tool
+can read it. `assign_test_split` draws the held-out set: deterministic for a seed, stratified by
+source and view, and never cutting a group, so near-duplicate frames (one city seed, one
+DAIR-V2X sequence, frames sharing an image) all fall on the same side.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections import Counter, defaultdict
+from pathlib import Path
+from typing import Iterable, Mapping
+
+from omnigen.dataset import DatasetError
+from omnigen.files import atomic_write_bytes
+
+SPLITS_DIR = "splits"
+TRAIN, TEST = "train", "test"
+
+
+def split_names(root: str | os.PathLike) -> list[str]:
+    """Names of the splits a dataset defines."""
+    folder = Path(root) / SPLITS_DIR
+    return sorted(p.stem for p in folder.glob("*.txt")) if folder.is_dir() else []
+
+
+def read_split(root: str | os.PathLike, name: str) -> list[str]:
+    """Frame ids of split `name`; an unknown split is an error listing the known ones."""
+    path = Path(root) / SPLITS_DIR / f"{name}.txt"
+    if not path.exists():
+        known = split_names(root)
+        raise DatasetError(f"{root}: no split {name!r} (known: {', '.join(known) or 'none'}; "
+                           f"splits are written by 'omnigen merge')")
+    return read_id_list(path)
+
+
+def read_id_list(path: str | os.PathLike) -> list[str]:
+    return [line.strip() for line in Path(path).read_text().splitlines() if line.strip()]
+
+
+def write_split(root: str | os.PathLike, name: str, frame_ids: Iterable[str]) -> None:
+    atomic_write_bytes(Path(root) / SPLITS_DIR / f"{name}.txt", "".join(f"{f}\n" for f in sorted(frame_ids)).encode())
+
+
+def read_assignments(root: str | os.PathLike) -> dict[str, str]:
+    """frame id -> split name, from every split file of a dataset."""
+    out: dict[str, str] = {}
+    for name in split_names(root):
+        for frame_id in read_split(root, name):
+            out[frame_id] = name
+    return out
+
+
+def _rank(seed: int, group: str) -> str:
+    """A seed-dependent but machine-independent order of groups (no Python hash randomisation)."""
+    return hashlib.sha256(f"{seed}\0{group}".encode()).hexdigest()
+
+
+def assign_test_split(
+    groups: Mapping[str, str],
+    strata: Mapping[str, str],
+    fraction: float,
+    seed: int,
+    fixed: Mapping[str, str] | None = None,
+) -> dict[str, str]:
+    """frame id -> TRAIN or TEST.
+
+    groups: frame id -> group key (frames of one group share a side); strata: frame id -> stratum
+    (e.g. "kitti/ego"); fixed: assignments to keep (from a split file or an earlier merge); a group
+    with any fixed frame follows it. Free groups are visited in seeded-hash order and each joins the
+    test set when that brings the test frames of the strata it touches closer to
+    round(fraction * stratum size).
+    """
+    if not 0.0 <= fraction < 1.0:
+        raise ValueError(f"--test-fraction must be in [0, 1), got {fraction}")
+    fixed = dict(fixed or {})
+    members: dict[str, list[str]] = defaultdict(list)
+    for frame_id, g in groups.items():
+        members[g].append(frame_id)
+    total: Counter[str] = Counter(strata.values())
+    target = {s: round(fraction * n) for s, n in total.items()}
+    in_test: Counter[str] = Counter()
+    out: dict[str, str] = {}
+    free: list[str] = []
+    for g, frames in members.items():
+        pinned = [fixed[f] for f in frames if f in fixed]
+        if not pinned:
+            free.append(g)
+            continue
+        side = TEST if TEST in pinned else pinned[0]
+        for f in frames:
+            out[f] = fixed.get(f, side)
+            in_test[strata[f]] += out[f] == TEST
+    for g in sorted(free, key=lambda g: _rank(seed, g)):
+        adds = Counter(strata[f] for f in members[g])
+        # Take the group when it brings the test set closer to every stratum's target (squared
+        # error): groups that span strata (one city seen by three rigs) are weighed as a whole.
+        before = sum((target[s] - in_test[s]) ** 2 for s in adds)
+        after = sum((target[s] - in_test[s] - n) ** 2 for s, n in adds.items())
+        side = TEST if after < before else TRAIN
+        for f in members[g]:
+            out[f] = side
+        if side == TEST:
+            in_test.update(adds)
+    return out

@@ -1,0 +1,218 @@
+"""merge, splits and the YOLO and COCO exports of a merged dataset."""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pycocotools.coco import COCO
+from pycocotools.cocoeval import COCOeval
+
+import omnigen.merge as merge_module
+from omnigen.checks import check_dataset
+from omnigen.cli import main as cli
+from omnigen.coco import to_coco
+from omnigen.dataset import INDEX_FILE, Dataset, DatasetError
+from omnigen.fakes import write_fake_dataset
+from omnigen.merge import merge
+from omnigen.splits import read_assignments, read_split
+from omnigen.taxonomy import load_taxonomy
+
+
+@pytest.fixture(scope="module")
+def sources(tmp_path_factory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("sources")
+    syn = write_fake_dataset(root / "syn", n_frames=90, objects_per_frame=4, seed=1).root
+    kit = write_fake_dataset(root / "kit", n_frames=60, objects_per_frame=4, seed=2, source="kitti").root
+    return syn, kit
+
+
+def _tree_bytes(root: Path) -> dict[str, bytes]:
+    """Every file of a dataset but the index, a cache that holds file modification times."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and p.name != INDEX_FILE}
+
+
+def test_merge_is_valid_deterministic_and_keeps_groups(sources, tmp_path):
+    a = merge(list(sources), tmp_path / "a" / "uov", seed=3)
+    b = merge(list(sources), tmp_path / "b" / "uov", seed=3)
+    assert a.frames == 150 and a.objects == sum(len(Dataset.open(s).objects) for s in sources)
+    n, problems = check_dataset(tmp_path / "a" / "uov", show_progress=False)
+    assert n == 150 and not problems
+    assert _tree_bytes(tmp_path / "a" / "uov") == _tree_bytes(tmp_path / "b" / "uov")
+    ds = Dataset.open(tmp_path / "a" / "uov")
+    split = read_assignments(ds.root)
+    # Groups whole, test share near 10% in every source/view stratum.
+    by_group = defaultdict(set)
+    strata = defaultdict(list)
+    for i, fid in enumerate(ds.table.frame_id):
+        by_group[(ds.table.source[i], ds.table.group[i])].add(split[fid])
+        strata[f"{ds.table.source[i]}/{ds.table.view[i]}"].append(split[fid] == "test")
+    assert all(len(s) == 1 for s in by_group.values())
+    for name, flags in strata.items():
+        assert 0 < sum(flags) <= 0.2 * len(flags), name
+    # Another seed draws another test set.
+    c = merge(list(sources), tmp_path / "c" / "uov", seed=4)
+    assert c.frames == 150
+    assert read_split(tmp_path / "c" / "uov", "test") != read_split(ds.root, "test")
+    manifest = ds.manifest
+    assert manifest["taxonomy"]["name"] == "fine"
+    assert {s["frames"] for s in manifest["merge"]["sources"]} == {90, 60}
+    assert manifest["splits"]["test"]["frames"] == len(read_split(ds.root, "test"))
+
+
+def test_duplicate_images_share_a_file_and_a_side(tmp_path):
+    src = write_fake_dataset(tmp_path / "s", n_frames=20, objects_per_frame=2, seed=5).root
+    # Frame 13 gets the pixels of frame 2 (another group): they must end on the same side.
+    ds = Dataset.open(src)
+    (src / ds.table.image[13]).write_bytes((src / ds.table.image[2]).read_bytes())
+    out = tmp_path / "m"
+    for seed in range(6):
+        report = merge([src], out, test_fraction=0.3, seed=seed)
+        assert report.unique_images == 19
+        split = read_assignments(out)
+        assert split[ds.table.frame_id[13]] == split[ds.table.frame_id[2]]
+    merged = Dataset.open(out)
+    assert merged.table.image[13] == merged.table.image[2]
+
+
+def test_update_keeps_existing_assignments(sources, tmp_path):
+    syn, kit = sources
+    out = tmp_path / "uov"
+    merge([syn], out, seed=0)
+    before = read_assignments(out)
+    assert cli(["merge", str(kit), "--out", str(out), "--update"]) == 0
+    after = read_assignments(out)
+    assert len(after) == 150
+    assert all(after[f] == s for f, s in before.items())
+    assert any(f.startswith("kitti-") and s == "test" for f, s in after.items())
+    assert len(Dataset.open(out).manifest["merge"]["sources"]) == 2
+
+
+def test_split_files_are_honoured(sources, tmp_path):
+    syn, kit = sources
+    val = tmp_path / "val.txt"
+    val.write_text("000001\n000002\nsynthetic-000005\n")  # KITTI-style bare ids and a full id
+    merge([syn, kit], tmp_path / "uov", split_files=[val])
+    assert set(read_split(tmp_path / "uov", "val")) >= {"kitti-000001", "kitti-000002", "synthetic-000005"}
+
+
+def test_conflicting_frame_ids_are_refused(tmp_path):
+    a = write_fake_dataset(tmp_path / "a", n_frames=3, objects_per_frame=2, seed=1).root
+    b = write_fake_dataset(tmp_path / "b", n_frames=3, objects_per_frame=2, seed=2).root
+    with pytest.raises(DatasetError, match="different records"):
+        merge([a, b], tmp_path / "out")
+    assert merge([a, a], tmp_path / "same").frames == 3  # the same input twice is one source
+
+
+def test_interrupted_merge_never_validates(sources, tmp_path, monkeypatch):
+    out = tmp_path / "uov"
+    real = merge_module.link_file
+    calls = {"n": 0}
+
+    def dying(src, dst, mode="hardlink"):
+        calls["n"] += 1
+        if calls["n"] == 200:  # past the pixels, in the middle of the records
+            raise KeyboardInterrupt
+        return real(src, dst, mode)
+
+    monkeypatch.setattr(merge_module, "link_file", dying)
+    with pytest.raises(KeyboardInterrupt):
+        merge(list(sources), out)
+    monkeypatch.undo()
+    _, problems = check_dataset(out, show_progress=False)
+    assert any(p.field == "manifest.json" for p in problems)
+    merge(list(sources), out)  # a rerun finishes it
+    assert check_dataset(out, show_progress=False)[1] == []
+
+
+def test_refuses_to_overwrite_a_dataset_it_did_not_make(sources, tmp_path):
+    syn, _ = sources
+    with pytest.raises(DatasetError, match="did not make"):
+        merge([sources[1]], syn)
+
+
+def test_coco_ground_truth_scores_one_against_itself(sources, tmp_path):
+    out = tmp_path / "uov"
+    merge(list(sources), out, taxonomy=load_taxonomy("coarse"))
+    ds = Dataset.open(out)
+    coco_dict = to_coco(ds, split="test", taxonomy=load_taxonomy(ds.manifest["taxonomy"]["name"]))
+    path = tmp_path / "gt.json"
+    path.write_text(json.dumps(coco_dict))
+    gt = COCO(str(path))
+    dets = [{"image_id": a["image_id"], "category_id": a["category_id"], "keypoints": a["keypoints"],
+             "score": 1.0, "bbox": a["bbox"]} for a in coco_dict["annotations"] if a["num_keypoints"] > 0]
+    dt = gt.loadRes(dets)
+    ev = COCOeval(gt, dt, "keypoints")
+    ev.params.kpt_oks_sigmas = np.array([0.125] * 8)
+    ev.evaluate()
+    ev.accumulate()
+    ev.summarize()
+    assert ev.stats[0] == pytest.approx(1.0)
+
+
+def test_yolo_labels_pass_ultralytics_checks(sources, tmp_path):
+    out = tmp_path / "uov"
+    merge(list(sources), out)
+    assert cli(["export", "yolo", str(out), "--out", str(tmp_path / "yolo")]) == 0
+    yaml = (tmp_path / "yolo" / "data.yaml").read_text()
+    assert "kpt_shape: [8, 3]" in yaml and "flip_idx: [1, 0, 3, 2, 5, 4, 7, 6]" in yaml
+    assert "train: images/train" in yaml and "val: images/test" in yaml
+    ds = Dataset.open(out)
+    n_classes = yaml.count('\n  ')
+    n_objects = 0
+    for label in (tmp_path / "yolo" / "labels").rglob("*.txt"):
+        image = next((tmp_path / "yolo" / "images" / label.parent.name).glob(label.stem + ".*"))
+        assert image.stat().st_ino == (out / ds.frame(label.stem).image).stat().st_ino  # linked
+        rows = np.loadtxt(label, ndmin=2)
+        if rows.size == 0:
+            continue
+        n_objects += len(rows)
+        # verify_image_label: 5 + 8 * 3 columns, class ids valid, coordinates normalised.
+        assert rows.shape[1] == 5 + 8 * 3
+        assert (rows[:, 0] >= 0).all() and (rows[:, 0] < n_classes).all()
+        assert rows.min() >= 0 and rows[:, 1:5].max() <= 1
+        kp = rows[:, 5:].reshape(-1, 8, 3)
+        assert kp[..., :2].max() <= 1
+        assert (kp[kp[..., 2] == 0][:, :2] == 0).all()
+        assert set(np.unique(kp[..., 2])) <= {0, 1, 2}
+        rec = ds.frame(label.stem)
+        x1, y1, x2, y2 = rec.objects[0].bbox
+        assert rows[0, 1] == pytest.approx(((x1 + x2) / 2 + 0.5) / rec.width, abs=1e-5)
+    assert n_objects == len(ds.objects)
+
+
+def test_taxonomy_file_errors_name_the_field(tmp_path):
+    bad = tmp_path / "tax.toml"
+    bad.write_text('name = "mine"\n[classes]\nspaceship = "vehicle"\n')
+    with pytest.raises(ValueError, match="classes.spaceship"):
+        load_taxonomy(bad)
+    good = tmp_path / "good.toml"
+    good.write_text('name = "mine"\n[classes]\ncar = "vehicle"\nbus = "vehicle"\npedestrian = "walker"\n')
+    t = load_taxonomy(good)
+    assert t.classes == ["vehicle", "walker"] and t.class_id("bus") == 0 and t.class_id("van") is None
+
+
+def test_assign_test_split_properties():
+    from omnigen.splits import assign_test_split
+
+    rng = np.random.default_rng(0)
+    frames = [f"f{i:05d}" for i in range(3000)]
+    groups = {f: f"g{int(rng.integers(600))}" for f in frames}
+    strata = {f: ("kitti/ego", "dair-v2x-i/infrastructure", "synthetic/aerial")[int(rng.integers(3))] for f in frames}
+    a = assign_test_split(groups, strata, 0.1, seed=1)
+    assert a == assign_test_split(dict(reversed(list(groups.items()))), strata, 0.1, seed=1)  # order-free
+    assert a != assign_test_split(groups, strata, 0.1, seed=2)
+    sides = defaultdict(set)
+    for f, s in a.items():
+        sides[groups[f]].add(s)
+    assert all(len(s) == 1 for s in sides.values())
+    for stratum in set(strata.values()):
+        fs = [f for f in frames if strata[f] == stratum]
+        share = sum(a[f] == "test" for f in fs) / len(fs)
+        assert share == pytest.approx(0.1, abs=0.02), stratum
+    pinned = assign_test_split(groups, strata, 0.1, seed=1, fixed={frames[0]: "test"})
+    assert all(pinned[f] == "test" for f in frames if groups[f] == groups[frames[0]])
