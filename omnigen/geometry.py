@@ -43,7 +43,14 @@ def rot_z(angle: float) -> np.ndarray:
 def is_rotation(r: np.ndarray, tol: float = 1e-6) -> bool:
     """True for a proper rotation (orthonormal, determinant +1)."""
     r = np.asarray(r, dtype=np.float64)
-    return r.shape == (3, 3) and float(np.abs(r.T @ r - np.eye(3)).max()) <= tol and abs(np.linalg.det(r) - 1) < tol
+    if r.shape != (3, 3):
+        return False
+    gram = r.T @ r
+    gram.flat[::4] -= 1.0
+    if float(np.abs(gram).max()) > tol:
+        return False
+    (a, b, c), (d, e, f), (g, h, i) = r.tolist()  # orthonormal: only the determinant's sign is left
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -204,6 +211,10 @@ def project_box(box: Box3D, K: np.ndarray, width: int, height: int, near: float 
     corners = box.corners()
     uv, behind = project_points(K, corners, near)
     inside = in_image(uv, width, height)
+    if inside.all():
+        # Every corner in front and in the image: the convex silhouette is inside the (convex)
+        # image, so nothing is cut; skip the polygon work, which dominates conversion time.
+        return BoxProjection(uv, inside, behind, np.concatenate([uv.min(axis=0), uv.max(axis=0)]), 0.0)
     shape = silhouette(corners, K, near)
     bbox = None
     truncation = 1.0

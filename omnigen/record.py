@@ -194,6 +194,7 @@ def _opt_float(v: float | None) -> float | None:
 # ---------------------------------------------------------------------------------------------
 
 _MISSING = object()
+_NAN_PAIR = (float("nan"), float("nan"))
 
 
 class _FrameParser:
@@ -257,6 +258,29 @@ class _FrameParser:
         if not np.isfinite(arr).all():
             raise self.fail(path, "contains NaN or infinity")
         return arr
+
+    def keypoints(self, raw: list, behind: np.ndarray, path: str) -> np.ndarray:
+        """(8, 2) with NaN for null corners; null exactly where behind the camera, finite elsewhere.
+
+        Checked as one array (the common case), then corner by corner only to name a culprit.
+        """
+        nulls = [k is None for k in raw]
+        try:
+            arr = np.array([_NAN_PAIR if k is None else k for k in raw], dtype=np.float64)
+            ok = arr.shape == (NUM_KEYPOINTS, 2) and bool(np.isfinite(arr[~np.asarray(nulls)]).all())
+        except (TypeError, ValueError):
+            ok = False
+        if ok and nulls == behind.tolist():
+            return arr
+        for j, k in enumerate(raw):
+            kp_path = f"{path}[{j}]"
+            if k is None and not behind[j]:
+                raise self.fail(kp_path, "null, but the corner is not behind the camera")
+            if k is not None and behind[j]:
+                raise self.fail(kp_path, "behind the camera, so it must be null")
+            if k is not None:
+                self.array(k, kp_path, (2,))
+        raise self.fail(path, "malformed keypoints")  # unreachable unless the checks above disagree
 
     def flags(self, value: Any, path: str) -> np.ndarray:
         if not isinstance(value, list) or len(value) != NUM_KEYPOINTS or not all(isinstance(v, bool) for v in value):
@@ -365,16 +389,7 @@ class _FrameParser:
         if not isinstance(kp_raw, list) or len(kp_raw) != NUM_KEYPOINTS:
             n = len(kp_raw) if isinstance(kp_raw, list) else type(kp_raw).__name__
             raise self.fail(p + "keypoints", f"expected {NUM_KEYPOINTS} keypoints, got {n}")
-        keypoints = np.full((NUM_KEYPOINTS, 2), np.nan)
-        for j, k in enumerate(kp_raw):
-            kp_path = f"{p}keypoints[{j}]"
-            if k is None:
-                if not behind[j]:
-                    raise self.fail(kp_path, "null, but the corner is not behind the camera")
-                continue
-            if behind[j]:
-                raise self.fail(kp_path, "behind the camera, so it must be null")
-            keypoints[j] = self.array(k, kp_path, (2,))
+        keypoints = self.keypoints(kp_raw, behind, p + "keypoints")
         in_image = self.flags(self.get(o, "in_image", p + "in_image"), p + "in_image")
         if (in_image & behind).any():
             raise self.fail(p + "in_image", "a corner behind the camera cannot be in the image")

@@ -1,0 +1,76 @@
+"""The public entry points: a city once, then a Scene per frame.
+
+    gen = SceneGenerator("downtown", seed=7)          # builds the static city once
+    scene = gen.frame(dataset_seed=7, frame_index=3)  # agents, weather, lighting of frame 3
+    scene = build_scene("arterial", seed=1)            # city of seed 1 plus its frame 0
+
+Frame `i` draws only from np.random.default_rng([dataset_seed, i]) (split into independent
+streams for agents, weather and lighting, see seeding.py), so frames come out the same in any
+order and on any worker, and fixing the weather on the command line leaves the agents unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from scenes.description import City, Scene, canonical
+from scenes.layout import build_city
+from scenes.placement import place_agents
+from scenes.preset import Preset, load_preset
+from scenes.seeding import frame_streams
+from scenes.weather import draw_lighting, draw_weather
+
+
+@dataclass(frozen=True)
+class FrameOverrides:
+    """Values fixed by the caller (the command line) instead of drawn."""
+
+    weather: str | None = None
+    time_of_day: str | None = None
+    fog_density: float | None = None
+    precipitation: float | None = None
+
+
+def _user_library(preset: Preset):
+    if not preset.agents.user_assets:
+        return []
+    from scenes.assets.user import load_library  # trimesh only when a preset asks for user assets
+
+    folder = Path(preset.agents.user_assets)
+    if not folder.is_absolute() and preset.source:
+        folder = Path(preset.source).parent / folder
+    return load_library(folder)
+
+
+def randomize_frame(city: City, preset: Preset, dataset_seed: int, frame_index: int,
+                    overrides: FrameOverrides | None = None, user_assets=None) -> Scene:
+    """Agents, weather and lighting of one frame over a fixed city."""
+    o = overrides or FrameOverrides()
+    streams = frame_streams(dataset_seed, frame_index)
+    weather = draw_weather(streams["weather"], preset.weather.kinds, o.weather, o.fog_density, o.precipitation)
+    lighting = draw_lighting(streams["lighting"], preset.lighting.times, preset.lighting.latitude, weather, o.time_of_day)
+    if user_assets is None:
+        user_assets = _user_library(preset)
+    agents = tuple(canonical(a) for a in place_agents(city, preset.agents, streams["agents"], user_assets))
+    # The city is already canonical (build_city returns it so) and shared by every frame.
+    return Scene(city, agents, canonical(weather), canonical(lighting), int(dataset_seed), int(frame_index))
+
+
+class SceneGenerator:
+    """Holds a preset and its city; draws frames. Build once per process, call frame() often."""
+
+    def __init__(self, preset: str | Path | Preset = "downtown", seed: int = 0) -> None:
+        self.preset = preset if isinstance(preset, Preset) else load_preset(preset)
+        self.seed = int(seed)
+        self.city = build_city(self.preset, self.seed)
+        self.user_assets = _user_library(self.preset)
+
+    def frame(self, dataset_seed: int | None = None, frame_index: int = 0, overrides: FrameOverrides | None = None) -> Scene:
+        ds = self.seed if dataset_seed is None else dataset_seed
+        return randomize_frame(self.city, self.preset, ds, frame_index, overrides, self.user_assets)
+
+
+def build_scene(preset: str | Path | Preset = "downtown", seed: int = 0, overrides: FrameOverrides | None = None) -> Scene:
+    """The city of (preset, seed) with its frame 0 drawn from the same seed."""
+    return SceneGenerator(preset, seed).frame(seed, 0, overrides)

@@ -1,0 +1,128 @@
+"""Materials per part role, resolved from the description, the weather and the lighting.
+
+Why here and not in the backends: both backends must agree on what a "headlight" looks like at
+night or how wet asphalt darkens, so the rule is written once, as plain data (Material), and
+each backend only translates a Material into its own shader.
+
+Weather on surfaces: wetness darkens a surface (water fills its pores: up to 40% darker) and
+makes it glossy (roughness down to 20%); snow cover blends upward-facing surfaces (roads,
+sidewalks, lawns, roofs, ground) towards snow white. Night: lit windows, street lamps, vehicle
+head- and taillights and bus signs emit; traffic signals always do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from scenes.description import Agent, Building, City, Furniture, Lighting, Material, Weather
+
+SNOW = (0.82, 0.84, 0.88)
+GROUND_ROLES = ("ground", "road", "sidewalk", "lawn", "marking_white", "marking_yellow")
+
+_FIXED: dict[str, Material] = {
+    "marking_white": Material((0.75, 0.75, 0.72), roughness=0.6),
+    "marking_yellow": Material((0.75, 0.5, 0.04), roughness=0.6),
+    "glass": Material((0.015, 0.018, 0.022), roughness=0.04, metallic=0.3),
+    "tyre": Material((0.018, 0.018, 0.018), roughness=0.9),
+    "trim": Material((0.025, 0.025, 0.025), roughness=0.55),
+    "crate": Material((0.35, 0.22, 0.1), roughness=0.85),
+    "seat": Material((0.02, 0.02, 0.02), roughness=0.7),
+    "engine": Material((0.12, 0.12, 0.13), roughness=0.35, metallic=0.8),
+    "cone_stripe": Material((0.85, 0.85, 0.85), roughness=0.3),
+    "cone_base": Material((0.02, 0.02, 0.02), roughness=0.8),
+    "metal": Material((0.09, 0.1, 0.1), roughness=0.45, metallic=0.7),
+    "bark": Material((0.07, 0.045, 0.03), roughness=0.95),
+    "plastic": Material((0.03, 0.12, 0.05), roughness=0.6),
+    "wood": Material((0.25, 0.12, 0.05), roughness=0.8),
+    "paint_band": Material((0.75, 0.55, 0.02), roughness=0.5),
+    "hydrant": Material((0.45, 0.03, 0.02), roughness=0.5),
+    "signal": Material((0.02, 0.02, 0.02), roughness=0.6),
+    "lamp_red_off": Material((0.08, 0.01, 0.01), roughness=0.2),
+    "lamp_amber_off": Material((0.08, 0.05, 0.01), roughness=0.2),
+    "lamp_green_off": Material((0.01, 0.06, 0.03), roughness=0.2),
+    "lamp_red": Material((0.8, 0.05, 0.02), roughness=0.2, emission_color=(1.0, 0.05, 0.02), emission_strength=8.0),
+    "lamp_amber": Material((0.8, 0.5, 0.02), roughness=0.2, emission_color=(1.0, 0.55, 0.05), emission_strength=8.0),
+    "lamp_green": Material((0.05, 0.8, 0.3), roughness=0.2, emission_color=(0.1, 1.0, 0.45), emission_strength=8.0),
+}
+
+
+def _rgb(value, default=(0.5, 0.5, 0.5)) -> tuple[float, float, float]:
+    v = value if value is not None else default
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def weathered(m: Material, weather: Weather, upward: bool) -> Material:
+    """The material wet and/or under snow (snow only on upward-facing surfaces)."""
+    wet = float(weather.wetness)
+    c = np.asarray(m.base_color) * (1.0 - 0.4 * wet)
+    rough = m.roughness * (1.0 - 0.8 * wet)
+    if upward and weather.snow_cover > 0:
+        k = 0.9 * float(weather.snow_cover)
+        c = c * (1 - k) + np.asarray(SNOW) * k
+        rough = rough * (1 - k) + 0.6 * k
+    return replace(m, base_color=(float(c[0]), float(c[1]), float(c[2])), roughness=float(max(rough, 0.04)))
+
+
+def ground_material(role: str, city: City, weather: Weather) -> Material:
+    base = {
+        "ground": city.lawn_material if any(s.kind == "lawn" for s in city.sidewalks) else city.sidewalk_material,
+        "road": city.road_material,
+        "sidewalk": city.sidewalk_material,
+        "lawn": city.lawn_material,
+    }.get(role) or _FIXED[role]
+    return weathered(base, weather, upward=True)
+
+
+def building_material(role: str, b: Building, weather: Weather, lighting: Lighting) -> Material:
+    f = b.facade
+    if role == "wall":
+        return weathered(f.wall, weather, upward=False)
+    if role == "roof":
+        return weathered(b.roof, weather, upward=True)
+    if role == "frame":
+        return f.frame
+    if role == "window_lit" and lighting.windows_lit:
+        return replace(f.window, emission_color=(1.0, 0.78, 0.45), emission_strength=2.5)
+    return f.window
+
+
+def furniture_material(role: str, item: Furniture, weather: Weather, lighting: Lighting) -> Material:
+    if role == "lamp":
+        if lighting.street_lights_on:
+            return Material((0.9, 0.85, 0.7), roughness=0.3, emission_color=(1.0, 0.82, 0.55), emission_strength=40.0)
+        return Material((0.6, 0.6, 0.58), roughness=0.3)
+    if role == "leaves":
+        m = Material(_rgb(item.params.get("leaf_color"), (0.06, 0.16, 0.04)), roughness=0.8)
+        return weathered(m, weather, upward=True) if weather.snow_cover > 0 else m
+    return _FIXED[role]
+
+
+def agent_material(role: str, agent: Agent, lighting: Lighting) -> Material:
+    p = agent.asset.params
+    on = lighting.vehicle_lights_on
+    if role == "paint":
+        return Material(_rgb(p.get("paint") or p.get("livery")), roughness=float(p.get("paint_roughness", 0.3)),
+                        metallic=float(p.get("paint_metallic", 0.2)))
+    if role in ("cab", "cargo", "body", "stripe", "rim", "frame"):
+        default = {"rim": (0.5, 0.5, 0.52), "stripe": (0.8, 0.8, 0.78)}.get(role, (0.5, 0.5, 0.5))
+        metallic = 0.8 if role in ("rim", "frame") else 0.2
+        return Material(_rgb(p.get(role), default), roughness=0.35, metallic=metallic)
+    if role == "headlight":
+        return Material((0.9, 0.9, 0.85), roughness=0.1, emission_color=(1.0, 0.95, 0.85), emission_strength=25.0 if on else 0.0)
+    if role == "taillight":
+        return Material((0.45, 0.01, 0.01), roughness=0.2, emission_color=(1.0, 0.02, 0.01), emission_strength=6.0 if on else 0.0)
+    if role == "sign":
+        return Material((0.05, 0.05, 0.05), roughness=0.3, emission_color=(1.0, 0.6, 0.1), emission_strength=6.0)
+    if role in ("skin", "hair", "top", "bottom", "shoes"):
+        return Material(_rgb(p.get(role)), roughness=0.5 if role == "skin" else 0.8)
+    if role == "bag":
+        return Material(_rgb(p.get("bag_color")), roughness=0.7)
+    if role == "helmet":
+        return Material(_rgb(p.get("helmet_color")), roughness=0.25)
+    if role == "cone":
+        return Material(_rgb(p.get("color"), (0.85, 0.18, 0.01)), roughness=0.5)
+    if role == "user":
+        return Material(_rgb(p.get("color")), roughness=0.5)
+    return _FIXED[role]

@@ -1,0 +1,235 @@
+"""Agents in the city: vehicles in lanes or parked at the kerb, people on sidewalks and
+crosswalks, riders near the right edge of the road, lines of traffic cones.
+
+Rules (each tested):
+- moving vehicles and motorcyclists sit in a driving lane, heading along it with yaw noise
+  (normal, 2 degrees, cut at 6) and a small lateral offset that keeps them inside the lane;
+- parked vehicles sit in the kerb-side parking lanes, nose to tail with 0.8 to 2.5 m gaps, away
+  from intersections and crosswalks;
+- pedestrians stand or walk on sidewalks (walking along the street) or cross on crosswalks;
+- no two annotated cuboids intersect: footprints (all agents stand on the ground, so disjoint
+  footprints mean disjoint cuboids) keep 0.1 m apart, tested with shapely;
+- nothing stands inside a building or on a pole, trunk or bench (furniture footprints), and
+  nothing taller than a lamp arm's or tree crown's clearance stands under it.
+
+A drawn agent that finds no free spot in 40 tries is dropped, so counts can fall short of the
+preset's draw in a crowded city; that is logged in the Scene only by the agents present.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from shapely.geometry import Polygon
+
+from scenes.assets.catalog import draw_asset
+from scenes.description import Agent, AssetSpec, City, Lane
+from scenes.preset import AgentSpec
+from scenes.shapes import Occupancy, rect_polygon, to_world
+from scenes.weather import pick
+
+AGENT_GAP = 0.1  # metres between annotated footprints
+OBSTACLE_GAP = 0.05
+TRIES = 40
+YAW_NOISE = math.radians(2.0)
+YAW_NOISE_MAX = math.radians(6.0)
+
+
+@dataclass
+class _World:
+    """What placement checks against: agents so far, ground obstacles and overhead ones."""
+
+    agents: Occupancy
+    ground: Occupancy
+    overhead: list[tuple[Polygon, float]]  # (footprint of a canopy or arm, clearance height)
+
+    def free(self, poly: Polygon, top: float) -> bool:
+        if self.agents.collides(poly, AGENT_GAP) or self.ground.collides(poly, OBSTACLE_GAP):
+            return False
+        return not any(top > clearance and poly.intersects(canopy) for canopy, clearance in self.overhead)
+
+
+def _world(city: City) -> _World:
+    ground = Occupancy()
+    for b in city.buildings:
+        for part in b.parts:
+            ground.add(Polygon(part.footprint))
+    overhead = []
+    for f in city.furniture:
+        if f.footprint:
+            ground.add(Polygon(f.footprint))
+        if "clearance" in f.params:
+            canopy = rect_polygon(f.center[:2], f.dims[0], f.dims[1], f.yaw)
+            overhead.append((canopy, float(f.params["clearance"]) + (f.center[2] - f.dims[2] / 2)))
+    return _World(Occupancy(), ground, overhead)
+
+
+class _Placer:
+    def __init__(self, city: City, rng: np.random.Generator, user_assets=None, user_probability: float = 0.0) -> None:
+        self.city, self.rng = city, rng
+        self.world = _world(city)
+        self.agents: list[Agent] = []
+        self.user_assets = user_assets or []
+        self.user_probability = user_probability
+        self.driving = [lane for road in city.roads for lane in road.lanes if lane.kind == "driving"]
+        self.parking = [lane for road in city.roads for lane in road.lanes if lane.kind == "parking"]
+        self.rightmost = [lane for road in city.roads for lane in road.lanes
+                          if lane.kind == "driving" and not any(o.kind == "driving" and o.lane_id[:-1] == lane.lane_id[:-1]
+                                                                and int(o.lane_id[-1]) > int(lane.lane_id[-1]) for o in road.lanes)]
+
+    # -- drawing assets ---------------------------------------------------------------------
+
+    def asset(self, category: str, state: str = "") -> tuple[tuple[float, float, float], AssetSpec]:
+        pool = [a for a in self.user_assets if a.category == category]
+        if pool and self.rng.random() < self.user_probability:
+            chosen = pool[int(self.rng.integers(len(pool)))]
+            return chosen.dims, chosen.spec()
+        return draw_asset(self.rng, category, state)
+
+    def try_add(self, category: str, state: str, dims, spec: AssetSpec, xy, yaw: float, ground_z: float,
+                inside: Polygon | None = None) -> bool:
+        l, w, h = dims
+        poly = rect_polygon(xy, l, w, yaw)
+        if inside is not None and not inside.contains(poly):
+            return False
+        if not self.world.free(poly, ground_z + h):
+            return False
+        self.world.agents.add(poly)
+        iid = len(self.agents) + 1
+        yaw = math.atan2(math.sin(yaw), math.cos(yaw))
+        self.agents.append(Agent(iid, category, (float(xy[0]), float(xy[1]), ground_z + h / 2.0), (float(l), float(w), float(h)),
+                                 float(yaw), state, spec))
+        return True
+
+    def yaw_noise(self, scale: float = 1.0) -> float:
+        return float(np.clip(self.rng.normal(0.0, YAW_NOISE * scale), -YAW_NOISE_MAX, YAW_NOISE_MAX))
+
+    def pick_lane(self, lanes: list[Lane]) -> Lane:
+        lengths = np.array([lane.length for lane in lanes])
+        return lanes[int(self.rng.choice(len(lanes), p=lengths / lengths.sum()))]
+
+    # -- kinds of placement -----------------------------------------------------------------
+
+    def in_lane(self, category: str, lanes: list[Lane], edge: str = "centre") -> bool:
+        """A moving vehicle or rider along a lane; `edge` "right" keeps it near the lane's right edge."""
+        if not lanes:
+            return False
+        dims, spec = self.asset(category)
+        l, w, _ = dims
+        for _ in range(TRIES):
+            lane = self.pick_lane(lanes)
+            t = float(self.rng.uniform(l / 2 + 1.0, lane.length - l / 2 - 1.0))
+            room = max((lane.width - w) / 2.0 - 0.1, 0.0)
+            if edge == "right":
+                across = -room + float(self.rng.uniform(0.0, min(0.4, room)))
+            else:
+                across = float(np.clip(self.rng.normal(0.0, 0.15), -room, room))
+            xy = to_world(lane.start, lane.heading, t, across)
+            if self.try_add(category, "moving", dims, spec, xy, lane.heading + self.yaw_noise(), 0.0):
+                return True
+        return False
+
+    def parked(self, fraction: float, mix: dict[str, float]) -> None:
+        """Fill each parking lane nose to tail, leaving gaps near intersections and crosswalks."""
+        blocked = self._crossing_zones()
+        for lane in self.parking:
+            t = float(self.rng.uniform(0.5, 6.0))
+            while t < lane.length - 3.0:
+                category = pick(self.rng, mix)
+                dims, spec = self.asset(category)
+                l, w, _ = dims
+                if self.rng.random() < fraction:
+                    mid = t + l / 2
+                    if mid + l / 2 > lane.length - 0.5:
+                        break
+                    across = -(lane.width / 2 - 0.25 - w / 2)  # right side 0.25 m from the kerb
+                    xy = to_world(lane.start, lane.heading, mid, across)
+                    poly = rect_polygon(xy, l + 1.0, w, lane.heading)
+                    if not any(poly.intersects(z) for z in blocked):
+                        if self.try_add(category, "parked", dims, spec, xy, lane.heading + self.yaw_noise(0.5), 0.0):
+                            t += l + float(self.rng.uniform(0.8, 2.5))
+                            continue
+                t += float(self.rng.uniform(2.0, 6.0))
+
+    def _crossing_zones(self) -> list[Polygon]:
+        zones = [rect_polygon(i.center, i.size[0] + 12.0, i.size[1] + 12.0, 0.0) for i in self.city.intersections]
+        zones += [rect_polygon(c.center, c.length, c.width + 3.0, c.yaw) for c in self.city.crosswalks]
+        return zones
+
+    def pedestrian_on_sidewalk(self) -> bool:
+        strips = [s for s in self.city.sidewalks if s.kind == "sidewalk"]
+        if not strips:
+            return False
+        areas = np.array([s.length * s.width for s in strips])
+        walking = bool(self.rng.random() < 0.7)
+        state = "walking" if walking else "standing"
+        dims, spec = self.asset("pedestrian", state)
+        for _ in range(TRIES):
+            s = strips[int(self.rng.choice(len(strips), p=areas / areas.sum()))]
+            along = float(self.rng.uniform(-s.length / 2 + 0.5, s.length / 2 - 0.5))
+            across = float(self.rng.uniform(-s.width / 2 + 0.5, s.width / 2 - 0.5)) if s.width > 1.0 else 0.0
+            xy = to_world(s.center, s.yaw, along, across)
+            if walking:
+                yaw = s.road_yaw + (math.pi if self.rng.random() < 0.5 else 0.0) + float(self.rng.normal(0, math.radians(8)))
+            else:
+                yaw = float(self.rng.uniform(-math.pi, math.pi))
+            inside = rect_polygon(s.center, s.length, s.width, s.yaw)
+            if self.try_add("pedestrian", state, dims, spec, xy, yaw, s.height, inside):
+                return True
+        return False
+
+    def pedestrian_on_crosswalk(self) -> bool:
+        if not self.city.crosswalks:
+            return False
+        dims, spec = self.asset("pedestrian", "walking")
+        for _ in range(TRIES):
+            c = self.city.crosswalks[int(self.rng.integers(len(self.city.crosswalks)))]
+            along = float(self.rng.uniform(-c.length / 2 + 0.6, c.length / 2 - 0.6))
+            across = float(self.rng.uniform(-c.width / 2 + 0.5, c.width / 2 - 0.5))
+            xy = to_world(c.center, c.yaw, along, across)
+            yaw = c.yaw + (math.pi if self.rng.random() < 0.5 else 0.0) + float(self.rng.normal(0, math.radians(10)))
+            inside = rect_polygon(c.center, c.length, c.width, c.yaw)
+            if self.try_add("pedestrian", "crossing", dims, spec, xy, yaw, 0.0, inside):
+                return True
+        return False
+
+    def cone_line(self) -> None:
+        """3 to 6 cones 1.5 to 3 m apart along the right edge of a driving lane (road works)."""
+        if not self.rightmost:
+            return
+        n, gap = int(self.rng.integers(3, 7)), float(self.rng.uniform(1.5, 3.0))
+        lane = self.pick_lane(self.rightmost)
+        t0 = float(self.rng.uniform(3.0, max(lane.length - 3.0 - n * gap, 3.5)))
+        across = -lane.width / 2 + 0.45
+        for k in range(n):
+            dims, spec = self.asset("traffic_cone")
+            xy = to_world(lane.start, lane.heading, t0 + k * gap, across)
+            self.try_add("traffic_cone", "placed", dims, spec, xy, lane.heading + float(self.rng.uniform(-0.3, 0.3)), 0.0)
+
+
+def place_agents(city: City, spec: AgentSpec, rng: np.random.Generator, user_assets=None) -> tuple[Agent, ...]:
+    """All agents of one frame, drawn from `rng`; instance ids 1..N in placement order."""
+    p = _Placer(city, rng, user_assets, spec.user_asset_probability)
+    count = lambda r: int(rng.integers(int(r[0]), int(r[1]) + 1))  # noqa: E731
+    n_cones, n_moving = count(spec.cone_groups), count(spec.moving_vehicles)
+    n_cyc, n_moto, n_ped = count(spec.cyclists), count(spec.motorcyclists), count(spec.pedestrians)
+    parked_fraction = float(rng.uniform(*spec.parked_fraction))
+    # Big, constrained things first: cones and parked rows, then traffic, then people.
+    for _ in range(n_cones):
+        p.cone_line()
+    if p.parking and parked_fraction > 0:
+        p.parked(parked_fraction, spec.parked_mix)
+    for _ in range(n_moving):
+        p.in_lane(pick(rng, spec.vehicle_mix), p.driving)
+    for _ in range(n_moto):
+        p.in_lane("motorcyclist", p.driving)
+    for _ in range(n_cyc):
+        p.in_lane("cyclist", p.rightmost, edge="right")
+    n_cross = int(round(n_ped * spec.crossing_fraction))
+    for _ in range(n_cross):
+        p.pedestrian_on_crosswalk()
+    for _ in range(n_ped - n_cross):
+        p.pedestrian_on_sidewalk()
+    return tuple(p.agents)

@@ -1,0 +1,176 @@
+"""Scene presets: TOML files that set the distributions a city is drawn from.
+
+A preset is not a scene: it says how big blocks are, how many lanes each road has, how tall the
+buildings grow, how many agents of each kind appear and which weather and times of day are
+likely. `load_preset("downtown")` reads scenes/presets/downtown.toml; any other string that names
+an existing file (or ends in .toml) is read as a path. Every field has a default, and an unknown
+key is an error (a typo in a preset should fail loudly, not be ignored).
+
+Ranges are written [min, max] and drawn uniformly unless the field's comment says otherwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from scenes.description import from_dict
+
+PRESET_DIR = Path(__file__).resolve().parent / "presets"
+DEFAULT_PRESET = "downtown"
+
+Range = tuple[float, float]
+IntRange = tuple[int, int]
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    blocks_x: int = 2  # full blocks between roads; a row of edge blocks closes each side
+    blocks_y: int = 2
+    block_size: Range = (60.0, 80.0)  # kerb to kerb, metres
+    edge_depth: Range = (30.0, 40.0)  # depth of the edge blocks beyond the outer roads
+    road_lanes_x: tuple[int, ...] = (2,)  # lanes per direction of each road along x (cycled)
+    road_lanes_y: tuple[int, ...] = (2,)  # ... along y
+    lane_width: float = 3.3
+    parking_lanes: bool = True
+    parking_width: float = 2.3
+    sidewalk_width: Range = (3.5, 5.0)
+    curb_height: float = 0.15
+    crosswalk_probability: float = 0.9  # per intersection approach
+    traffic_light_probability: float = 1.0  # per intersection
+
+
+@dataclass(frozen=True)
+class BuildingSpec:
+    height: Range = (15.0, 70.0)
+    floor_height: Range = (3.2, 4.0)
+    setback: Range = (0.0, 1.0)  # from the sidewalk, on street sides
+    side_gap: Range = (0.0, 2.0)  # between neighbouring buildings
+    lot_width: Range = (18.0, 35.0)  # lots are split until shorter than a draw from this
+    min_footprint: float = 6.0
+    footprints: dict[str, float] = field(default_factory=lambda: {"rect": 0.55, "l_shape": 0.25, "tower": 0.2})
+    gable_probability: float = 0.0  # rectangular low buildings may get a gable roof
+    lot_surface: str = "plaza"  # or "lawn"
+    window_spacing: Range = (2.2, 3.5)
+    lit_fraction: Range = (0.2, 0.6)
+    empty_lot_probability: float = 0.05
+
+
+@dataclass(frozen=True)
+class FurnitureSpec:
+    street_light_spacing: float = 28.0  # 0: none
+    tree_spacing: float = 14.0  # 0: none
+    tree_probability: float = 0.5  # per tree slot
+    bins_per_100m: float = 1.5
+    benches_per_100m: float = 1.0
+    hydrants_per_100m: float = 0.7
+    bollards_per_corner: int = 2
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    moving_vehicles: IntRange = (8, 16)
+    parked_fraction: Range = (0.3, 0.7)  # of the kerb-side parking slots
+    pedestrians: IntRange = (20, 40)
+    crossing_fraction: float = 0.2  # of pedestrians drawn on crosswalks
+    cyclists: IntRange = (2, 5)
+    motorcyclists: IntRange = (1, 3)
+    cone_groups: IntRange = (0, 2)  # a line of 3 to 6 cones along a lane edge
+    vehicle_mix: dict[str, float] = field(default_factory=lambda: {"car": 0.72, "van": 0.12, "truck": 0.08, "bus": 0.08})
+    parked_mix: dict[str, float] = field(default_factory=lambda: {"car": 0.85, "van": 0.12, "truck": 0.03})
+    user_assets: str = ""  # folder with assets.toml; relative paths are relative to the preset
+    user_asset_probability: float = 0.0  # chance an agent of a class with user assets uses one
+
+
+@dataclass(frozen=True)
+class WeatherSpec:
+    kinds: dict[str, float] = field(
+        default_factory=lambda: {"clear": 0.4, "overcast": 0.25, "rain": 0.15, "snow": 0.08, "fog": 0.12}
+    )
+
+
+@dataclass(frozen=True)
+class LightingSpec:
+    times: dict[str, float] = field(
+        default_factory=lambda: {"dawn": 0.08, "morning": 0.22, "noon": 0.25, "afternoon": 0.22, "dusk": 0.1, "night": 0.13}
+    )
+    latitude: float = 45.0  # degrees north; sets how high the sun climbs
+
+
+@dataclass(frozen=True)
+class Preset:
+    name: str = "custom"
+    description: str = ""
+    grid: GridSpec = field(default_factory=GridSpec)
+    buildings: BuildingSpec = field(default_factory=BuildingSpec)
+    furniture: FurnitureSpec = field(default_factory=FurnitureSpec)
+    agents: AgentSpec = field(default_factory=AgentSpec)
+    weather: WeatherSpec = field(default_factory=WeatherSpec)
+    lighting: LightingSpec = field(default_factory=LightingSpec)
+    source: str = ""  # where it was read from (not part of the TOML)
+
+
+def available_presets() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
+
+
+def load_preset(name_or_path: str | Path = DEFAULT_PRESET) -> Preset:
+    """A preset by name (scenes/presets/NAME.toml) or by path."""
+    text = str(name_or_path)
+    path = Path(text)
+    if not (path.suffix == ".toml" or path.exists()):
+        path = PRESET_DIR / f"{text}.toml"
+        if not path.exists():
+            raise ValueError(f"unknown scene preset {text!r}; available: {', '.join(available_presets())} or a .toml path")
+    with open(path, "rb") as f:
+        data = tomllib.load(f)
+    data.setdefault("name", path.stem)
+    preset = from_dict(Preset, data)
+    preset = dataclasses.replace(preset, source=str(path.resolve()))
+    validate(preset)
+    return preset
+
+
+def with_overrides(preset: Preset, overrides: dict[str, Any]) -> Preset:
+    """A copy with dotted-key overrides, e.g. {"grid.blocks_x": 1, "agents.pedestrians": (2, 4)}."""
+    for key, value in overrides.items():
+        section, _, name = key.rpartition(".")
+        if section:
+            sub = getattr(preset, section)
+            if name not in {f.name for f in dataclasses.fields(sub)}:
+                raise KeyError(key)
+            preset = dataclasses.replace(preset, **{section: dataclasses.replace(sub, **{name: value})})
+        else:
+            preset = dataclasses.replace(preset, **{name: value})
+    validate(preset)
+    return preset
+
+
+def validate(preset: Preset) -> None:
+    g = preset.grid
+    if g.blocks_x < 1 or g.blocks_y < 1:
+        raise ValueError("a city needs at least one block along each axis")
+    if not g.road_lanes_x or not g.road_lanes_y or min(g.road_lanes_x + g.road_lanes_y) < 1:
+        raise ValueError("every road needs at least one lane per direction")
+    for label, dist in (
+        ("buildings.footprints", preset.buildings.footprints),
+        ("agents.vehicle_mix", preset.agents.vehicle_mix),
+        ("agents.parked_mix", preset.agents.parked_mix),
+        ("weather.kinds", preset.weather.kinds),
+        ("lighting.times", preset.lighting.times),
+    ):
+        if not dist or min(dist.values()) < 0 or sum(dist.values()) <= 0:
+            raise ValueError(f"{label} must be non-negative weights with a positive sum")
+    from scenes.weather import TIMES_OF_DAY, WEATHER_KINDS
+
+    if set(preset.weather.kinds) - set(WEATHER_KINDS):
+        raise ValueError(f"weather.kinds: unknown kinds {sorted(set(preset.weather.kinds) - set(WEATHER_KINDS))}")
+    if set(preset.lighting.times) - set(TIMES_OF_DAY):
+        raise ValueError(f"lighting.times: unknown times {sorted(set(preset.lighting.times) - set(TIMES_OF_DAY))}")
+    if set(preset.buildings.footprints) - {"rect", "l_shape", "tower"}:
+        raise ValueError("buildings.footprints: kinds are rect, l_shape, tower")
+    if preset.buildings.lot_surface not in ("plaza", "lawn"):
+        raise ValueError("buildings.lot_surface is plaza or lawn")

@@ -1,0 +1,74 @@
+"""Small 2D helpers shared by layout and placement: oriented rectangles and their polygons."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from shapely.geometry import Polygon
+
+
+def rect_corners(center: tuple[float, float], length: float, width: float, yaw: float) -> np.ndarray:
+    """(4, 2) corners, counter-clockwise, of a rectangle `length` along `yaw`, `width` across."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    hl, hw = length / 2.0, width / 2.0
+    local = np.array([[hl, -hw], [hl, hw], [-hl, hw], [-hl, -hw]])
+    rot = np.array([[c, -s], [s, c]])
+    return local @ rot.T + np.asarray(center, dtype=np.float64)
+
+
+def rect_polygon(center: tuple[float, float], length: float, width: float, yaw: float) -> Polygon:
+    return Polygon(rect_corners(center, length, width, yaw))
+
+
+def to_world(origin: tuple[float, float], yaw: float, along: float, across: float) -> tuple[float, float]:
+    """The point `along` the direction `yaw` and `across` to its left, from `origin`."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return (origin[0] + along * c - across * s, origin[1] + along * s + across * c)
+
+
+def polygon_tuple(poly: Polygon | np.ndarray) -> tuple[tuple[float, float], ...]:
+    """Counter-clockwise exterior without the repeated closing point, as plain tuples."""
+    if isinstance(poly, Polygon):
+        from shapely.geometry.polygon import orient
+
+        pts = np.asarray(orient(poly, 1.0).exterior.coords)[:-1]
+    else:
+        pts = np.asarray(poly)
+    return tuple((float(x), float(y)) for x, y in pts)
+
+
+class Occupancy:
+    """Polygons already placed, with a bounding-box prefilter so each query stays cheap.
+
+    Why not an STRtree: shapely's tree is immutable and placement inserts one shape at a time;
+    a numpy box test followed by exact shapely tests on the few candidates is fast enough for the
+    hundreds of shapes a city block holds.
+    """
+
+    def __init__(self) -> None:
+        self.polygons: list[Polygon] = []
+        self.owners: list[object] = []
+        self._bounds = np.zeros((64, 4))
+
+    def add(self, poly: Polygon, owner: object = None) -> None:
+        n = len(self.polygons)
+        if n == len(self._bounds):
+            self._bounds = np.vstack([self._bounds, np.zeros_like(self._bounds)])
+        self._bounds[n] = poly.bounds
+        self.polygons.append(poly)
+        self.owners.append(owner)
+
+    def collides(self, poly, margin: float = 0.0, ignore_owner: object = None) -> bool:
+        """True if `poly` grown by `margin` touches any stored polygon (not those of `ignore_owner`)."""
+        if not self.polygons:
+            return False
+        x0, y0, x1, y1 = poly.bounds
+        b = self._bounds[: len(self.polygons)]
+        near = np.nonzero((b[:, 0] <= x1 + margin) & (b[:, 2] >= x0 - margin) & (b[:, 1] <= y1 + margin) & (b[:, 3] >= y0 - margin))[0]
+        if ignore_owner is not None:
+            near = [i for i in near if self.owners[i] != ignore_owner]
+        if len(near) == 0:
+            return False
+        grown = poly.buffer(margin, join_style=2) if margin > 0 else poly
+        return any(grown.intersects(self.polygons[i]) for i in near)
