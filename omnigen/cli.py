@@ -20,9 +20,6 @@ from omnigen import __version__
 from omnigen.files import LINK_MODES
 
 NOT_BUILT = {
-    "render": "rendering the procedural city (issue 6)",
-    "stats": "the statistics report (issue 9)",
-    "show": "the frame viewer (issue 9)",
     "train": "the bundled detector (issue 10)",
     "predict": "the bundled detector (issue 10)",
     "eval": "evaluation (issue 11)",
@@ -171,6 +168,136 @@ def _run_merge(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------------------------
+# stats
+# ---------------------------------------------------------------------------------------------
+
+
+def _add_stats(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("stats", help="write a dataset's statistics report (index.html, stats.json, PNG figures)")
+    p.add_argument("dataset", type=Path)
+    p.add_argument("--out", type=Path, required=True, help="report folder (created; files in it are replaced)")
+    p.add_argument("--gallery", type=int, default=6, help="sample frames drawn with cuboids and BEV (0: none)")
+    p.add_argument("--no-check-images", dest="check_images", action="store_false",
+                   help="do not open every image's header (the one step that reads a file per frame)")
+    p.add_argument("--prior-sigma", type=float, default=None,
+                   help="flag dimensions this many spreads from their class prior (default: omnigen.priors.FAR_SIGMA)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the gallery's pick")
+    p.add_argument("--jobs", type=int, default=0, help="processes drawing figures (0: up to 4, one per core)")
+    p.set_defaults(func=_run_stats)
+
+
+def _run_stats(args: argparse.Namespace) -> int:
+    import os
+
+    from omnigen.dataset import Dataset
+    from omnigen.priors import FAR_SIGMA
+    from omnigen.progress import print_table
+    from omnigen.stats.report import write_report
+
+    start = time.perf_counter()
+    ds = Dataset.open(args.dataset)
+    opened = time.perf_counter() - start
+    jobs = args.jobs if args.jobs > 0 else max(1, min(4, os.cpu_count() or 1))
+    sigma = FAR_SIGMA if args.prior_sigma is None else args.prior_sigma
+    r = write_report(ds, args.out, args.gallery, args.check_images, sigma, args.seed, jobs)
+    health = r.stats["health"]
+    print_table("health", ["check", "count"], [[c["title"], c["count"]] for c in health["checks"]])
+    steps = {"open dataset": opened, **r.timings, "total": time.perf_counter() - start}
+    print_table("seconds", ["step", "seconds"], [[k, round(v, 2)] for k, v in steps.items()])
+    print_table(f"stats {args.dataset} -> {args.out}", ["frames", "objects", "figures", "findings"],
+                [[len(ds), len(ds.objects), r.figures, health["problems"]]])
+    print(f"report: {args.out / 'index.html'}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# show
+# ---------------------------------------------------------------------------------------------
+
+
+def _add_show(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("show", help="draw one frame's cuboids, boxes and ignore regions (and its BEV) as a PNG")
+    p.add_argument("dataset", type=Path)
+    p.add_argument("frame_id", help="a frame id (or the part after the source prefix when it is unique)")
+    p.add_argument("--out", type=Path, default=None, help="output PNG (default: FRAME_ID.png here)")
+    p.add_argument("--bev", action="store_true", help="add the bird's-eye view of the ground plane beside the image")
+    p.add_argument("--scale", type=float, default=None,
+                   help="display scale (default: whole-number upscale of small images)")
+    p.add_argument("--margin", type=float, default=0.0,
+                   help="border around the image, as a fraction of its size, to show corners outside it (e.g. 0.2)")
+    p.set_defaults(func=_run_show)
+
+
+def _run_show(args: argparse.Namespace) -> int:
+    from omnigen.dataset import Dataset
+    from omnigen.draw import render_frame
+
+    ds = Dataset.open(args.dataset)
+    frame_id = _resolve_frame_id(ds.frame_ids, args.frame_id)
+    if frame_id is None:
+        import difflib
+
+        close = difflib.get_close_matches(args.frame_id, ds.frame_ids, n=3)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        print(f"omnigen show: error: {args.dataset}: no frame {args.frame_id!r}{hint}", file=sys.stderr)
+        return 1
+    rec = ds.frame(frame_id)
+    view = render_frame(rec, ds.path(rec.image), bev=args.bev, scale=args.scale, margin=args.margin)
+    out = args.out or Path(f"{frame_id}.png")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    view.image.save(out)
+    note = f" (image: {view.image_error})" if view.image_error else ""
+    print(f"{frame_id}: {len(rec.objects)} objects, {len(rec.ignore_regions)} ignore regions -> {out}{note}")
+    return 0
+
+
+def _resolve_frame_id(frame_ids: list[str], wanted: str) -> str | None:
+    """The frame id itself, else the one frame whose id ends with '-' + wanted (kitti-000123 for 000123)."""
+    if wanted in frame_ids:
+        return wanted
+    matches = [f for f in frame_ids if f.endswith("-" + wanted)]
+    return matches[0] if len(matches) == 1 else None
+
+
+# ---------------------------------------------------------------------------------------------
+# render
+# ---------------------------------------------------------------------------------------------
+
+
+def _add_render(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("render", help="render annotated frames of the procedural city from a camera rig")
+    p.add_argument("--rig", required=True, help="ego, pole, drone or a rig TOML file")
+    p.add_argument("--frames", type=int, required=True, help="how many frames (indices start..start+N-1)")
+    p.add_argument("--out", type=Path, required=True, help="output dataset folder (rerun to resume)")
+    p.add_argument("--seed", type=int, default=0, help="dataset seed: the city and every frame follow from it")
+    p.add_argument("--scene", default="downtown", help="city preset (downtown, arterial, suburban, tiny) or a TOML file")
+    p.add_argument("--width", type=int, default=None, help="image width (default: the rig's)")
+    p.add_argument("--height", type=int, default=None, help="image height (default: the rig's)")
+    p.add_argument("--backend", choices=("cycles", "raster"), default="cycles", help="Cycles, or the fast raster preview")
+    p.add_argument("--quality", choices=("preview", "fast", "final"), default="fast",
+                   help="Cycles samples, denoising and bounces (raster ignores it)")
+    p.add_argument("--start", type=int, default=0, help="index of the first frame")
+    p.set_defaults(func=_run_render)
+
+
+def _run_render(args: argparse.Namespace) -> int:
+    from omnigen.progress import print_table
+    from rigs.render import RenderJob, Renderer
+
+    if args.frames < 0 or args.seed < 0 or args.start < 0:
+        print("omnigen render: --frames, --seed and --start must be >= 0", file=sys.stderr)
+        return 2
+    job = RenderJob(rig=args.rig, frames=args.frames, out=args.out, seed=args.seed, scene=args.scene,
+                    width=args.width, height=args.height, backend=args.backend, quality=args.quality, start=args.start)
+    s = Renderer(job).run()
+    fps = s.rendered / s.seconds if s.seconds > 0 else 0.0
+    print_table(f"render {args.rig} -> {args.out}", ["rendered", "skipped", "objects", "redraws", "seconds", "frames/s"],
+                [[s.rendered, s.skipped, s.objects, s.redraws, round(s.seconds, 2), round(fps, 2)]])
+    print_table("time by stage (s)", list(s.timings), [[round(v, 2) for v in s.timings.values()]])
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
 # convert
 # ---------------------------------------------------------------------------------------------
 
@@ -216,13 +343,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"omnigen {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name in ("render",):
-        sub.add_parser(name, help=NOT_BUILT[name], add_help=False).set_defaults(func=_not_built(name))
+    _add_render(sub)
     _add_convert(sub)
     _add_merge(sub)
     _add_export(sub)
-    for name in ("stats", "show"):
-        sub.add_parser(name, help=NOT_BUILT[name], add_help=False).set_defaults(func=_not_built(name))
+    _add_stats(sub)
+    _add_show(sub)
     _add_validate(sub)
     for name in ("train", "predict", "eval", "bev"):
         sub.add_parser(name, help=NOT_BUILT[name], add_help=False).set_defaults(func=_not_built(name))

@@ -172,6 +172,29 @@ class RasterScene:
             rgb = self._atmosphere(rgb, depth, K, R, width, height)
         return RasterFrame(rgb, depth, instance)
 
+    def render_instances(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int,
+                         instance_ids: list[int]) -> np.ndarray:
+        """The instance image of only the agents in `instance_ids`, nothing else drawn (uint16).
+
+        Used for silhouettes "drawn alone": when the given agents' projections do not overlap, each
+        one's pixels here are exactly its full silhouette (rigs/annotate.py).
+        """
+        K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
+        cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=ZNEAR, zfar=ZFAR)
+        pose = np.eye(4)
+        pose[:3, :3] = R.T @ np.diag([1.0, -1.0, -1.0])
+        pose[:3, 3] = -R.T @ t.reshape(3)
+        wanted = {int(i) for i in instance_ids}
+        seg_map = {node: id_color(self.objects[name].instance_id) for name, node in self.nodes.items()
+                   if self.objects[name].instance_id in wanted}
+        cam_node = self.pr.add(cam, pose=pose)
+        try:
+            seg, _ = self._get_renderer(width, height).render(self.pr, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)
+        finally:
+            self.pr.remove_node(cam_node)
+        seg = seg.astype(np.uint16)
+        return (seg[..., 0] | (seg[..., 1] << 8)).astype(np.uint16)
+
     def _get_renderer(self, width: int, height: int) -> pyrender.OffscreenRenderer:
         r = self._renderer
         if r is None or r.viewport_width != width or r.viewport_height != height:

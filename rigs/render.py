@@ -1,0 +1,303 @@
+"""The render pipeline behind `omnigen render`: city once, then per frame scene, camera, render,
+annotate, write.
+
+Per frame i of a dataset with seed s (frame id `synthetic-<rig>-s<seed>-<i:06d>`):
+1. the scene: `SceneGenerator(scene, s).frame(s, i)` (agents, weather, lighting from
+   default_rng([s, i]); the city of (scene, s) is built once per process);
+2. the camera: `rigs.sampling.sample_camera` from the rig's own stream `rig_rng(s, i)`;
+3. render (backend `raster` or `cycles`), annotate (rigs/annotate.py); if fewer than the rig's
+   `min_objects` objects are annotated (buildings hid what the geometric estimate counted), the
+   camera is redrawn from the same stream, up to the rig's max_tries in all;
+4. write images/<id>.png (RGB), depth/<id>.exr (float32 camera z in metres, channel "Z", inf
+   where nothing was hit), instance/<id>.png (16-bit, 0 background, k = instance id) and last the
+   record, each atomically. A frame whose record exists is skipped, so a rerun after a kill
+   renders only what is missing, and since every frame depends only on (s, i) the result equals
+   an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from omnigen.dataset import DatasetWriter
+from omnigen.files import TMP_PREFIX, atomic_write_bytes
+from omnigen.record import FrameRecord, SyntheticInfo
+from rigs.annotate import annotate
+from rigs.rig import Rig, load_rig
+from rigs.sampling import Camera, Obstacles, rig_rng, sample_camera
+from scenes.description import Scene, to_dict
+
+BACKENDS = ("cycles", "raster")
+QUALITIES = ("preview", "fast", "final")
+
+
+def frame_id_for(rig: str, seed: int, index: int) -> str:
+    return f"synthetic-{rig}-s{seed}-{index:06d}"
+
+
+# ---------------------------------------------------------------------------------------------
+# Images on disk
+# ---------------------------------------------------------------------------------------------
+
+
+def png_bytes(array: np.ndarray) -> bytes:
+    """RGB (H, W, 3) uint8 or 16-bit (H, W) uint16 (PIL mode I;16) as PNG bytes."""
+    from PIL import Image
+
+    img = Image.fromarray(np.ascontiguousarray(array.astype(np.uint16 if array.ndim == 2 else np.uint8)))
+    if img.mode not in ("I;16", "RGB"):
+        raise ValueError(f"unexpected PNG mode {img.mode}")
+    buf = io.BytesIO()
+    img.save(buf, format="PNG", compress_level=1)
+    return buf.getvalue()
+
+
+def write_depth_exr(path: str | os.PathLike, depth: np.ndarray) -> None:
+    """float32 depth as a one-channel ("Z") ZIP-compressed scanline EXR, written atomically."""
+    import OpenEXR
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=".exr", dir=path.parent)
+    os.close(fd)
+    try:
+        with OpenEXR.File(header, {"Z": np.ascontiguousarray(depth, dtype=np.float32)}) as f:
+            f.write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_depth_exr(path: str | os.PathLike) -> np.ndarray:
+    import OpenEXR
+
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        return np.asarray(f.channels()["Z"].pixels, dtype=np.float32)
+
+
+def read_instance_png(path: str | os.PathLike) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as img:
+        return np.asarray(img, dtype=np.uint16)
+
+
+# ---------------------------------------------------------------------------------------------
+# Backends
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Rendered:
+    rgb: np.ndarray
+    depth: np.ndarray
+    instance: np.ndarray
+    render_seconds: float = 0.0  # the renderer's own work: Cycles' beauty path tracing; pyrender's whole render
+
+
+class RasterBackend:
+    """pyrender (scenes/raster_backend.py): RGB, depth and masks in one call; `quality` ignored."""
+
+    name = "raster"
+
+    def __init__(self, scene: Scene, quality: str = "fast") -> None:
+        from scenes.raster_backend import RasterScene
+
+        self.rs = RasterScene(scene)
+
+    def update(self, scene: Scene) -> None:
+        if scene is not self.rs.scene:
+            self.rs.update(scene)
+
+    def render(self, cam: Camera) -> Rendered:
+        t0 = time.perf_counter()
+        f = self.rs.render(cam.K, cam.R, cam.t, cam.width, cam.height)
+        return Rendered(f.rgb, f.depth, f.instance, time.perf_counter() - t0)
+
+    def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
+        return self.rs.render_instances(cam.K, cam.R, cam.t, cam.width, cam.height, ids)
+
+    def close(self) -> None:
+        self.rs.close()
+
+
+class CyclesBackend:
+    """Blender Cycles for RGB; depth and instance ids from Blender (scenes/blender_backend.py)."""
+
+    name = "cycles"
+
+    def __init__(self, scene: Scene, quality: str = "fast") -> None:
+        from scenes.blender_backend import BlenderScene
+
+        self.bs = BlenderScene(scene)
+        self.bs.set_quality(quality)
+        self._first = True
+
+    def update(self, scene: Scene) -> None:
+        if self._first and scene is self.bs.scene:
+            return
+        self._first = False
+        self.bs.update(scene)
+
+    def render(self, cam: Camera) -> Rendered:
+        out = self.bs.render(cam.K, cam.R, cam.t, cam.width, cam.height)
+        return Rendered(out["rgb"], out["depth"], out["instance"], out["seconds"])
+
+    def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
+        return self.bs.render_instances(cam.K, cam.R, cam.t, cam.width, cam.height, ids)
+
+    def close(self) -> None:
+        import shutil
+
+        tmp = getattr(self.bs, "_tmp", None)
+        if tmp:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def make_backend(name: str, scene: Scene, quality: str):
+    if name == "raster":
+        return RasterBackend(scene, quality)
+    if name == "cycles":
+        return CyclesBackend(scene, quality)
+    raise ValueError(f"unknown backend {name!r}; choose from {', '.join(BACKENDS)}")
+
+
+# ---------------------------------------------------------------------------------------------
+# The job
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class RenderJob:
+    rig: str
+    frames: int
+    out: Path
+    seed: int = 0
+    scene: str = "downtown"
+    width: int | None = None
+    height: int | None = None
+    backend: str = "cycles"
+    quality: str = "fast"
+    start: int = 0
+    durable: bool = True
+
+
+@dataclass
+class RenderSummary:
+    rendered: int = 0
+    skipped: int = 0
+    objects: int = 0
+    redraws: int = 0
+    seconds: float = 0.0
+    timings: dict[str, float] = field(default_factory=lambda: {"scene": 0.0, "camera": 0.0, "render": 0.0,
+                                                               "annotate": 0.0, "write": 0.0, "build": 0.0,
+                                                               "renderer_core": 0.0})
+
+
+class Renderer:
+    """Holds the city, the backend and the rig; renders frames by index. Build once per process."""
+
+    def __init__(self, job: RenderJob) -> None:
+        from scenes.generate import SceneGenerator
+
+        if job.backend not in BACKENDS:
+            raise ValueError(f"unknown backend {job.backend!r}; choose from {', '.join(BACKENDS)}")
+        if job.quality not in QUALITIES:
+            raise ValueError(f"unknown quality {job.quality!r}; choose from {', '.join(QUALITIES)}")
+        self.job = job
+        self.rig: Rig = load_rig(job.rig)
+        self.width = int(job.width or self.rig.resolution[0])
+        self.height = int(job.height or self.rig.resolution[1])
+        self.gen = SceneGenerator(job.scene, job.seed)
+        self.scene_name = Path(str(job.scene)).stem if str(job.scene).endswith(".toml") else str(job.scene)
+        self.backend = None
+        self.writer = DatasetWriter(job.out, durable=job.durable)
+        self.summary = RenderSummary()
+
+    def frame_id(self, index: int) -> str:
+        return frame_id_for(self.rig.name, self.job.seed, index)
+
+    def render_frame(self, index: int) -> FrameRecord:
+        """Render, annotate and write frame `index`; returns its record."""
+        job, tm = self.job, self.summary.timings
+        t0 = time.perf_counter()
+        scene = self.gen.frame(job.seed, index)
+        t1 = time.perf_counter()
+        tm["scene"] += t1 - t0
+        if self.backend is None:
+            self.backend = make_backend(job.backend, scene, job.quality)
+            tm["build"] += time.perf_counter() - t1
+        else:
+            self.backend.update(scene)
+            tm["scene"] += time.perf_counter() - t1
+        rng = rig_rng(job.seed, index)
+        obstacles = Obstacles(scene)
+        tries = 0
+        while True:
+            t2 = time.perf_counter()
+            cam = sample_camera(self.rig, scene, rng, self.width, self.height, obstacles, start_try=tries)
+            tries = cam.tries
+            t3 = time.perf_counter()
+            tm["camera"] += t3 - t2
+            out = self.backend.render(cam)
+            t4 = time.perf_counter()
+            tm["render"] += t4 - t3
+            tm["renderer_core"] += out.render_seconds
+            ann = annotate(scene, cam, out.depth, out.instance, lambda ids: self.backend.silhouettes(cam, ids))
+            tm["annotate"] += time.perf_counter() - t4
+            if len(ann.objects) >= self.rig.min_objects or tries >= self.rig.max_tries:
+                break
+            self.summary.redraws += 1
+        t5 = time.perf_counter()
+        fid = self.frame_id(index)
+        image, depth, instance = f"images/{fid}.png", f"depth/{fid}.exr", f"instance/{fid}.png"
+        root = Path(job.out)
+        atomic_write_bytes(root / image, png_bytes(out.rgb), durable=job.durable)
+        write_depth_exr(root / depth, out.depth)
+        atomic_write_bytes(root / instance, png_bytes(out.instance), durable=job.durable)
+        plane = cam.ground_plane
+        record = FrameRecord(
+            frame_id=fid, source="synthetic", view=self.rig.view, image=image, width=self.width, height=self.height,
+            K=cam.K, objects=ann.objects, ignore_regions=ann.ignore_regions, ground_plane=plane,
+            camera_height=plane.camera_height, camera_pitch=plane.camera_pitch,
+            group=f"synthetic-{self.scene_name}-{job.seed}",
+            synthetic=SyntheticInfo(seed=job.seed, scene=self.scene_name, rig=self.rig.name,
+                                    weather=to_dict(scene.weather), lighting=to_dict(scene.lighting),
+                                    depth=depth, instance=instance),
+        )
+        self.writer.write(record)
+        tm["write"] += time.perf_counter() - t5
+        self.summary.rendered += 1
+        self.summary.objects += len(record.objects)
+        return record
+
+    def run(self, show_progress: bool = True) -> RenderSummary:
+        from omnigen.progress import progress
+
+        start = time.perf_counter()
+        job = self.job
+        indices = range(job.start, job.start + job.frames)
+        todo = [i for i in indices if not self.writer.has(self.frame_id(i))]
+        self.summary.skipped = len(indices) - len(todo)
+        try:
+            for i in progress(todo, desc=f"render {self.rig.name}", disable=not show_progress, unit="frame"):
+                self.render_frame(i)
+        finally:
+            if self.backend is not None:
+                self.backend.close()
+        self.writer.finalize({"render": {"rig": self.rig.name, "scene": self.scene_name, "seed": job.seed,
+                                         "backend": job.backend, "quality": job.quality,
+                                         "width": self.width, "height": self.height}},
+                             show_progress=show_progress)
+        self.summary.seconds = time.perf_counter() - start
+        return self.summary

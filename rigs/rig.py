@@ -1,0 +1,138 @@
+"""Rig presets: a distribution over camera poses and intrinsics, read from TOML.
+
+    rig = load_rig("drone")              # rigs/presets/drone.toml
+    rig = load_rig("my_rigs/mast.toml")  # or a path
+
+Every key is listed in `Rig` with its meaning; unknown keys and bad values are errors that name
+the file and the field. Angles in the file are degrees (people write them); `Rig` keeps them so.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from omnigen.conventions import VIEWS
+
+PRESET_DIR = Path(__file__).parent / "presets"
+ANCHORS = ("lane", "intersection", "roadside", "anywhere")
+
+
+class RigError(ValueError):
+    def __init__(self, file: str, field_name: str, message: str):
+        super().__init__(f"{file}: field '{field_name}': {message}")
+        self.file, self.field, self.message = file, field_name, message
+
+
+@dataclass(frozen=True)
+class Rig:
+    """A camera distribution (all ranges [lo, hi], uniform).
+
+    anchor: where the camera stands, with weights: `lane` (over a driving lane's centreline,
+    looking along the traffic), `intersection` (at a corner of an intersection, looking at its
+    centre), `roadside` (at the kerb, looking along the road and in towards it), `anywhere`
+    (uniform over the city's bounds, any heading).
+    height: metres above the road surface (world z = 0). pitch: degrees below the horizon.
+    yaw_jitter: degrees added to the anchor's heading. hfov: horizontal field of view, degrees.
+    resolution: default (width, height). min_objects: fewest annotated objects a frame must
+    have, else the pose is redrawn (max_tries times, then the last pose is kept and said so).
+    """
+
+    name: str
+    view: str
+    anchor: dict[str, float]
+    height: tuple[float, float]
+    pitch: tuple[float, float]
+    yaw_jitter: tuple[float, float]
+    hfov: tuple[float, float]
+    resolution: tuple[int, int]
+    min_objects: int = 1
+    max_tries: int = 60
+    description: str = ""
+    source: str = field(default="", compare=False)
+
+
+def rig_names() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
+
+
+def load_rig(name_or_path: str | Path) -> Rig:
+    """A preset by name (ego, pole, drone) or a TOML file by path."""
+    p = Path(name_or_path)
+    if p.suffix != ".toml" and not p.exists():
+        p = PRESET_DIR / f"{name_or_path}.toml"
+        if not p.exists():
+            raise ValueError(f"no rig preset {str(name_or_path)!r}; presets: {', '.join(rig_names())}, or a path to a .toml")
+    file = str(p)
+    try:
+        data = tomllib.loads(p.read_text())
+    except OSError as exc:
+        raise ValueError(f"{file}: cannot read: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{file}: not valid TOML: {exc}") from None
+    return rig_from_dict(data, p.stem, file)
+
+
+def _range(data: dict, key: str, file: str, lo: float, hi: float) -> tuple[float, float]:
+    v = data.get(key)
+    if v is None:
+        raise RigError(file, key, "missing")
+    if (not isinstance(v, list) or len(v) != 2
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+        raise RigError(file, key, f"expected [lo, hi] numbers, got {v!r}")
+    a, b = float(v[0]), float(v[1])
+    if a > b:
+        raise RigError(file, key, f"lo {a} > hi {b}")
+    if a < lo or b > hi:
+        raise RigError(file, key, f"{[a, b]} outside [{lo}, {hi}]")
+    return a, b
+
+
+def _int(data: dict, key: str, file: str, default: int, lo: int, hi: int) -> int:
+    v = data.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise RigError(file, key, f"expected an integer in [{lo}, {hi}], got {v!r}")
+    return v
+
+
+def rig_from_dict(data: dict[str, Any], name: str, file: str = "<rig>") -> Rig:
+    known = {"view", "anchor", "height", "pitch", "yaw_jitter", "hfov", "resolution", "min_objects",
+             "max_tries", "description", "name"}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise RigError(file, unknown[0], f"unknown key (known: {', '.join(sorted(known))})")
+    view = data.get("view")
+    if view not in VIEWS:
+        raise RigError(file, "view", f"expected one of {', '.join(VIEWS)}, got {view!r}")
+    anchor = data.get("anchor")
+    if isinstance(anchor, str):
+        anchor = {anchor: 1.0}
+    if not isinstance(anchor, dict) or not anchor:
+        raise RigError(file, "anchor", f"expected a table of weights over {', '.join(ANCHORS)}, got {anchor!r}")
+    for k, w in anchor.items():
+        if k not in ANCHORS:
+            raise RigError(file, f"anchor.{k}", f"unknown anchor (known: {', '.join(ANCHORS)})")
+        if isinstance(w, bool) or not isinstance(w, (int, float)) or w < 0:
+            raise RigError(file, f"anchor.{k}", f"weight must be a number >= 0, got {w!r}")
+    if sum(anchor.values()) <= 0:
+        raise RigError(file, "anchor", "weights sum to zero")
+    res = data.get("resolution")
+    if (not isinstance(res, list) or len(res) != 2
+            or not all(isinstance(x, int) and not isinstance(x, bool) and 8 <= x <= 8192 for x in res)):
+        raise RigError(file, "resolution", f"expected [width, height] integers in [8, 8192], got {res!r}")
+    return Rig(
+        name=str(data.get("name", name)), view=view,
+        anchor={k: float(w) for k, w in anchor.items()},
+        height=_range(data, "height", file, 0.3, 1000.0),
+        pitch=_range(data, "pitch", file, -89.0, 90.0),
+        yaw_jitter=_range(data, "yaw_jitter", file, -180.0, 180.0),
+        hfov=_range(data, "hfov", file, 5.0, 170.0),
+        resolution=(res[0], res[1]),
+        min_objects=_int(data, "min_objects", file, 1, 0, 10_000),
+        max_tries=_int(data, "max_tries", file, 60, 1, 10_000),
+        description=str(data.get("description", "")),
+        source=file,
+    )

@@ -1,0 +1,208 @@
+"""Drawing one camera (pose and K) for a frame from a rig, the frame's generator and the scene.
+
+World: x east, y north, z up, the road surface at z = 0 (scenes/). The camera is an OpenCV
+camera, X_cam = R X_world + t, built from a heading (yaw, about +z from +x) and a pitch (below
+the horizon, positive down), no roll:
+    forward = (cos p cos y, cos p sin y, -sin p), right = (sin y, -cos y, 0), down = forward x right
+R's rows are (right, down, forward). Pitch 90 degrees looks straight down, the heading then sets
+which way is "up" in the image.
+
+Rejection (`pose_problem`): a pose is redrawn when the camera stands inside or within 0.5 m of
+a building, an agent's cuboid or a furniture footprint (below its top), or when fewer than the
+rig's `min_objects` agents would be annotated by a cheap geometric estimate (cuboid in front, in
+the image, at least MIN_BOX_PIXELS tall and wide, nearer than MAX_DISTANCE). The renderer checks
+the real count after annotation and redraws again if the estimate was optimistic (buildings hide
+agents); see rigs/render.py.
+
+Randomness: only the generator passed in (the frame's rig stream, `rig_rng(seed, index)`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from shapely.geometry import Point, Polygon
+
+from omnigen.geometry import Box3D, Plane, intrinsics_from_fov, project_box, rot_z
+from rigs.rig import Rig
+from scenes.description import Scene
+
+_RIG_SPAWN_KEY = (0x0416,)
+MIN_BOX_PIXELS = 6.0
+MAX_DISTANCE = 250.0
+CLEARANCE = 0.5
+
+
+def rig_rng(dataset_seed: int, frame_index: int) -> np.random.Generator:
+    """The camera's own stream for frame `frame_index`: independent of the scene's streams
+    (which come from default_rng([seed, index]) spawned), so changing the rig leaves agents,
+    weather and lighting of a frame unchanged."""
+    return np.random.default_rng(np.random.SeedSequence([int(dataset_seed), int(frame_index)], spawn_key=_RIG_SPAWN_KEY))
+
+
+def camera_rotation(yaw: float, pitch: float) -> np.ndarray:
+    """World-to-OpenCV-camera rotation for a heading `yaw` and a downward `pitch` (radians)."""
+    cp, sp, cy, sy = math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    f = np.array([cp * cy, cp * sy, -sp])
+    r = np.array([sy, -cy, 0.0])
+    d = np.cross(f, r)
+    return np.stack([r, d, f])
+
+
+@dataclass(frozen=True)
+class Camera:
+    """One drawn camera: intrinsics, extrinsics (X_cam = R X_world + t) and how it was drawn."""
+
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    width: int
+    height: int
+    position: np.ndarray  # world
+    yaw: float  # radians
+    pitch: float  # radians, below the horizon
+    hfov: float  # radians
+    anchor: str
+    tries: int = 1
+
+    @property
+    def camera_height(self) -> float:
+        return float(self.position[2])
+
+    @property
+    def ground_plane(self) -> Plane:
+        """The world's z = 0 in this camera's frame: normal R e_z, offset = height above it."""
+        return Plane(self.R @ np.array([0.0, 0.0, 1.0]), float(self.position[2]))
+
+    def to_dict(self) -> dict:
+        return {"position": [round(float(v), 6) for v in self.position], "yaw": round(self.yaw, 6),
+                "pitch": round(self.pitch, 6), "hfov": round(self.hfov, 6), "anchor": self.anchor, "tries": self.tries}
+
+
+def agent_box(agent, R: np.ndarray, t: np.ndarray) -> Box3D:
+    """An agent's cuboid in the camera frame."""
+    return Box3D(agent.center, agent.dims, rot_z(agent.yaw)).transformed(R, t)
+
+
+def _weighted(rng: np.random.Generator, items: list, weights: list[float]):
+    w = np.asarray(weights, dtype=np.float64)
+    return items[int(rng.choice(len(items), p=w / w.sum()))]
+
+
+def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, float]:
+    """(x, y) and a base heading for the anchor kind."""
+    city = scene.city
+    if anchor == "lane":
+        lanes = [ln for r in city.roads for ln in r.lanes if ln.kind == "driving"]
+        lane = _weighted(rng, lanes, [ln.length for ln in lanes])
+        s = rng.uniform(0.05, 0.95)
+        d = np.subtract(lane.end, lane.start) / lane.length
+        p = np.asarray(lane.start) + s * lane.length * d + np.array([-d[1], d[0]]) * rng.normal(0.0, 0.2)
+        return p, lane.heading
+    if anchor == "intersection":
+        inter = city.intersections[int(rng.integers(len(city.intersections)))]
+        sx, sy = rng.choice([-1.0, 1.0], size=2)
+        off = rng.uniform(1.0, 3.0, size=2)
+        c = np.asarray(inter.center)
+        p = c + np.array([sx * (inter.size[0] / 2 + off[0]), sy * (inter.size[1] / 2 + off[1])])
+        return p, math.atan2(c[1] - p[1], c[0] - p[0])
+    if anchor == "roadside":
+        road = _weighted(rng, list(city.roads), [math.dist(r.start, r.end) for r in city.roads])
+        length = math.dist(road.start, road.end)
+        d = np.subtract(road.end, road.start) / length
+        n = np.array([-d[1], d[0]])
+        side = rng.choice([-1.0, 1.0])
+        p = np.asarray(road.start) + rng.uniform(0.1, 0.9) * length * d + side * n * (road.width / 2 + rng.uniform(0.5, 2.0))
+        along = d if rng.random() < 0.5 else -d
+        base = math.atan2(along[1], along[0])
+        # turn in towards the road: the road lies on the -side of the normal from the camera
+        inward = -side * n
+        turn = math.radians(rng.uniform(10.0, 40.0))
+        cross = along[0] * inward[1] - along[1] * inward[0]
+        return p, base + math.copysign(turn, cross)
+    xmin, ymin, xmax, ymax = city.bounds
+    mx, my = 0.1 * (xmax - xmin), 0.1 * (ymax - ymin)
+    return np.array([rng.uniform(xmin + mx, xmax - mx), rng.uniform(ymin + my, ymax - my)]), 0.0
+
+
+class Obstacles:
+    """What a camera may not stand in: buildings, agents' cuboids, furniture; built per scene."""
+
+    def __init__(self, scene: Scene) -> None:
+        polys, tops = [], []
+        for b in scene.city.buildings:
+            for part in b.parts:
+                polys.append(Polygon(part.footprint))
+                tops.append(part.top_z + part.roof_height)
+        for f in scene.city.furniture:
+            polys.append(Polygon(f.footprint) if len(f.footprint) >= 3 else Point(f.center[:2]).buffer(0.2))
+            tops.append(f.center[2] + f.dims[2] / 2)
+        for a in scene.agents:
+            box = shapely.box(-a.dims[0] / 2, -a.dims[1] / 2, a.dims[0] / 2, a.dims[1] / 2)
+            c, s = math.cos(a.yaw), math.sin(a.yaw)
+            polys.append(shapely.affinity.affine_transform(box, [c, -s, s, c, a.center[0], a.center[1]]))
+            tops.append(a.center[2] + a.dims[2] / 2)
+        self.polys = np.asarray(polys, dtype=object)
+        self.tops = np.asarray(tops)
+        self.tree = shapely.STRtree(self.polys)
+
+    def blocked(self, position: np.ndarray) -> bool:
+        pt = Point(position[:2])
+        idx = self.tree.query(pt, predicate="dwithin", distance=CLEARANCE)
+        return bool((self.tops[idx] + CLEARANCE > position[2]).any())
+
+
+def expected_objects(scene: Scene, cam: Camera) -> int:
+    """Agents a camera would annotate by geometry alone (no occlusion): a quick pre-render check."""
+    n = 0
+    for a in scene.agents:
+        box = agent_box(a, cam.R, cam.t)
+        if not 0.5 < box.center[2] < MAX_DISTANCE:
+            continue
+        proj = project_box(box, cam.K, cam.width, cam.height)
+        if proj.bbox is not None and min(proj.bbox[2] - proj.bbox[0], proj.bbox[3] - proj.bbox[1]) >= MIN_BOX_PIXELS:
+            n += 1
+    return n
+
+
+def draw_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, height: int) -> Camera:
+    """One candidate camera from the rig's distribution (no rejection)."""
+    kinds = list(rig.anchor)
+    anchor = _weighted(rng, kinds, [rig.anchor[k] for k in kinds])
+    xy, heading = _anchor_pose(rig, anchor, scene, rng)
+    z = rng.uniform(*rig.height)
+    yaw = heading + math.radians(rng.uniform(*rig.yaw_jitter))
+    pitch = math.radians(rng.uniform(*rig.pitch))
+    hfov = math.radians(rng.uniform(*rig.hfov))
+    R = camera_rotation(yaw, pitch)
+    pos = np.array([xy[0], xy[1], z])
+    K = intrinsics_from_fov(hfov, width, height)
+    return Camera(K, R, -R @ pos, width, height, pos, math.atan2(math.sin(yaw), math.cos(yaw)), pitch, hfov, anchor)
+
+
+def sample_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, height: int,
+                  obstacles: Obstacles | None = None, start_try: int = 0) -> Camera:
+    """Draw until a pose is clear of geometry and expects at least rig.min_objects objects.
+
+    After rig.max_tries the last clear pose (or the last one) is returned; `tries` says how many
+    draws it took, counting from `start_try` (the renderer continues the count when it redraws).
+    """
+    obstacles = obstacles or Obstacles(scene)
+    fallback = None
+    tries = start_try
+    while tries < rig.max_tries:
+        tries += 1
+        cam = draw_camera(rig, scene, rng, width, height)
+        if obstacles.blocked(cam.position):
+            fallback = fallback or cam
+            continue
+        cam = Camera(**{**cam.__dict__, "tries": tries})
+        fallback = cam
+        if expected_objects(scene, cam) >= rig.min_objects:
+            return cam
+    if fallback is None:
+        fallback = draw_camera(rig, scene, rng, width, height)
+    return Camera(**{**fallback.__dict__, "tries": tries})
