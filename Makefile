@@ -30,24 +30,40 @@ $(STAMP): pyproject.toml constraints.txt
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[all,test]"
 	@touch $(STAMP)
 
-# The main job on its embedded default: convert the real KITTI sample frames when ../shared is
-# beside the checkout, else a small KITTI-format tree the project generates; then validate the
-# result and export it to COCO. Grows with the project (render, merge, stats).
+# The main job on its embedded default: a few frames of the procedural city rendered with Cycles
+# from each rig, real KITTI sample frames (from ../shared when it is beside the checkout, else a
+# KITTI-format tree the project generates) and a generated DAIR-V2X-C tree, converted, merged into
+# UrbanOmniView, validated, reported on, drawn and exported. DEMO_FRAMES and DEMO_SIZE scale it.
+DEMO_FRAMES ?= 2
+DEMO_SIZE   ?= --width 320 --height 240
+OMNIGEN := $(BIN)/omnigen
 demo: $(STAMP) system
-	@set -e; \
-	if [ -d "$(SHARED)/realdata/kitti/training" ]; then src="$(SHARED)/realdata/kitti"; \
+	@set -e; rm -rf "$(DEMO)"; mkdir -p "$(DEMO)"; \
+	if [ -d "$(SHARED)/realdata/kitti/training" ]; then kitti="$(SHARED)/realdata/kitti"; \
 	else echo "$(SHARED)/realdata not found: generating a KITTI-format sample"; \
-	     $(BIN)/python -m converters.kitti_fixture "$(DEMO)/kitti-source" --frames 8; src="$(DEMO)/kitti-source"; fi; \
-	$(BIN)/omnigen convert kitti "$$src" --out "$(DEMO)/kitti"; \
-	$(BIN)/omnigen validate "$(DEMO)/kitti"; \
-	$(BIN)/omnigen export coco "$(DEMO)/kitti" --out "$(DEMO)/kitti-coco.json"; \
-	echo "demo: dataset in $(DEMO)/kitti, COCO keypoints in $(DEMO)/kitti-coco.json"
+	     $(BIN)/python -m converters.kitti_fixture "$(DEMO)/kitti-source" --frames 8; kitti="$(DEMO)/kitti-source"; fi; \
+	$(BIN)/python -c "from converters.dair_fixture import write_dair_tree; write_dair_tree('$(DEMO)/dair-source', 12, seed=0, variant='c')"; \
+	for rig in ego pole drone; do \
+	  $(OMNIGEN) render --rig $$rig --frames $(DEMO_FRAMES) --seed 0 $(DEMO_SIZE) --quality preview --out "$(DEMO)/render-$$rig"; done; \
+	$(OMNIGEN) convert kitti "$$kitti" --out "$(DEMO)/kitti"; \
+	$(OMNIGEN) convert dair "$(DEMO)/dair-source" --out "$(DEMO)/dair"; \
+	$(OMNIGEN) merge "$(DEMO)"/render-* "$(DEMO)/kitti" "$(DEMO)/dair" --out "$(DEMO)/uov" --test-fraction 0.25; \
+	$(OMNIGEN) validate "$(DEMO)/uov"; \
+	$(OMNIGEN) stats "$(DEMO)/uov" --out "$(DEMO)/report"; \
+	$(OMNIGEN) show "$(DEMO)/uov" kitti-000001 --bev --out "$(DEMO)/kitti-000001.png"; \
+	$(OMNIGEN) show "$(DEMO)/uov" synthetic-drone-s0-000000 --bev --out "$(DEMO)/synthetic-drone-s0-000000.png"; \
+	$(OMNIGEN) export coco "$(DEMO)/uov" --out "$(DEMO)/uov-coco.json"; \
+	$(OMNIGEN) export yolo "$(DEMO)/uov" --out "$(DEMO)/uov-yolo"; \
+	echo; echo "demo: UrbanOmniView in $(DEMO)/uov; open $(DEMO)/report/index.html in a browser;"; \
+	echo "      frames drawn in $(DEMO)/*.png; COCO and YOLO exports beside them"
 
 test: $(STAMP) system
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_load.py
+	$(BIN)/python benchmarks/bench_merge_export.py
+	$(BIN)/python benchmarks/bench_stats.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) .pytest_cache

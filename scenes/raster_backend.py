@@ -25,7 +25,7 @@ import numpy as np  # noqa: E402
 import pyrender  # noqa: E402
 
 from scenes.description import Material, Scene  # noqa: E402
-from scenes.meshes import RenderObject, compile_scene  # noqa: E402
+from scenes.meshes import RenderObject, compile_scene, world_box  # noqa: E402
 from scenes.seeding import frame_streams  # noqa: E402
 
 ZNEAR, ZFAR = 0.25, 3000.0
@@ -61,37 +61,138 @@ def id_color(instance_id: int) -> tuple[int, int, int]:
     return (instance_id & 255, (instance_id >> 8) & 255, 0)
 
 
+def _material_key(m: Material) -> tuple:
+    """What pyrender draws of a material: parts with equal keys can share one draw call."""
+    return (tuple(m.base_color), float(m.metallic), float(m.roughness), tuple(m.emission_color), float(m.emission_strength))
+
+
+def _triangles(mesh, matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh as a flat-shaded triangle soup placed by `matrix`: (positions, per-face normals).
+
+    Flat shading needs vertices split per face; the soup is in the frame `matrix` maps to, so
+    parts of many objects can be concatenated into one draw call.
+    """
+    v = np.asarray(mesh.vertices, dtype=np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
+    tri = v[np.asarray(mesh.faces)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.where(length > 0, n / np.where(length > 0, length, 1.0), 0.0)
+    return tri.reshape(-1, 3).astype(np.float32), np.repeat(n, 3, axis=0).astype(np.float32)
+
+
+def _merged_mesh(soups: list[tuple[np.ndarray, np.ndarray]], materials: list[Material], name: str,
+                 origin: np.ndarray) -> tuple[pyrender.Mesh | None, list[pyrender.MetallicRoughnessMaterial]]:
+    """One primitive per distinct material (first-appearance order, so the same frame always
+    gives the same draw order), positions relative to `origin`. Why: pyrender's cost is per draw
+    call, not per triangle, and a city has ~1,100 static parts but ~440 distinct materials."""
+    groups: dict[tuple, list[int]] = {}
+    for i, m in enumerate(materials):
+        groups.setdefault(_material_key(m), []).append(i)
+    prims, pms = [], []
+    for idx in groups.values():
+        pm = _pr_material(materials[idx[0]])
+        pos = np.concatenate([soups[i][0] for i in idx]) - origin.astype(np.float32)
+        nrm = np.concatenate([soups[i][1] for i in idx])
+        prims.append(pyrender.Primitive(positions=pos, normals=nrm, material=pm))
+        pms.append(pm)
+    return (pyrender.Mesh(prims, name=name) if prims else None), pms
+
+
+def _translation(origin: np.ndarray) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, 3] = origin
+    return pose
+
+
 class RasterScene:
-    """A pyrender scene kept in step with a Scene; `update` swaps agents and restyles the rest."""
+    """A pyrender scene kept in step with a Scene; `update` swaps agents and restyles the rest.
+
+    Draw calls are what a frame costs (pyrender binds uniforms per primitive), so geometry is
+    merged: the colour pass draws the static city as one node with one primitive per distinct
+    material (kept between frames while the grouping is unchanged; only materials are restyled)
+    and all agents as one node grouped the same way (rebuilt per frame). The segmentation pass
+    needs per-agent ids, so it draws other nodes: the whole static city as one id-0 primitive and
+    each agent as one primitive in its own frame. Segmentation-only nodes are hidden during the
+    colour pass; colour-only nodes are simply left out of the segmentation map.
+    """
 
     def __init__(self, scene: Scene) -> None:
         self.pr = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[0.2, 0.2, 0.2])
-        self.nodes: dict[str, pyrender.Node] = {}
         self.objects: dict[str, RenderObject] = {}
-        self._materials: dict[str, dict[str, pyrender.MetallicRoughnessMaterial]] = {}
         self._renderer: pyrender.OffscreenRenderer | None = None
         self._sun: pyrender.Node | None = None
+        self._static_soups: list[tuple[np.ndarray, np.ndarray]] = []
+        self._static_roles: list[tuple[str, str]] = []
+        self._static_color: pyrender.Node | None = None
+        self._static_pms: list[pyrender.MetallicRoughnessMaterial] = []
+        self._static_partition: tuple | None = None
+        self._agent_color: pyrender.Node | None = None
+        self._seg_nodes: dict[str, pyrender.Node] = {}
         self.scene = scene
-        for obj in compile_scene(scene):
-            self._add(obj)
+        objs = compile_scene(scene)
+        self._build_static([o for o in objs if o.kind != "agent"])
+        self._restyle_static([o for o in objs if o.kind != "agent"])
+        self._set_agents([o for o in objs if o.kind == "agent"])
         self._light(scene)
 
     # -- building ---------------------------------------------------------------------------
 
-    def _add(self, obj: RenderObject) -> None:
-        mats = {role: _pr_material(obj.materials[role]) for role in obj.parts}
-        # Flat shading from per-face normals: split vertices per face (cheap at city sizes).
-        prims = [self._flat_primitive(mesh, mats[role]) for role, mesh in obj.parts.items()]
-        node = self.pr.add(pyrender.Mesh(prims, name=obj.name), name=obj.name, pose=obj.matrix_world)
-        self.nodes[obj.name] = node
-        self.objects[obj.name] = obj
-        self._materials[obj.name] = mats
+    def _build_static(self, statics: list[RenderObject]) -> None:
+        """World-space soups of every static part (once per city) and the id-0 segmentation node."""
+        for obj in statics:
+            self.objects[obj.name] = obj
+            for role, mesh in obj.parts.items():
+                self._static_soups.append(_triangles(mesh, obj.matrix_world))
+                self._static_roles.append((obj.name, role))
+        pos = np.concatenate([s[0] for s in self._static_soups])
+        seg = pyrender.Mesh([pyrender.Primitive(positions=pos, material=_pr_material(Material((0.0, 0.0, 0.0))))], name="static")
+        self._seg_nodes["static"] = self.pr.add(seg, name="static_seg")
 
-    @staticmethod
-    def _flat_primitive(mesh, material) -> pyrender.Primitive:
-        tri = np.asarray(mesh.vertices, dtype=np.float32)[np.asarray(mesh.faces)].reshape(-1, 3)
-        normals = np.repeat(np.asarray(mesh.face_normals, dtype=np.float32), 3, axis=0)
-        return pyrender.Primitive(positions=tri, normals=normals, material=material)
+    def _restyle_static(self, statics: list[RenderObject]) -> None:
+        """This frame's static materials: restyle in place, or regroup when equal materials changed."""
+        by_name = {o.name: o for o in statics}
+        for obj in statics:
+            self.objects[obj.name] = obj
+        materials = [by_name[name].materials[role] for name, role in self._static_roles]
+        keys = [_material_key(m) for m in materials]
+        first: dict[tuple, int] = {}
+        partition = tuple(first.setdefault(k, len(first)) for k in keys)
+        if partition == self._static_partition:
+            reps = {}
+            for i, g in enumerate(partition):
+                reps.setdefault(g, materials[i])
+            for g, pm in enumerate(self._static_pms):
+                _set_material(pm, reps[g])
+            return
+        if self._static_color is not None:
+            self.pr.remove_node(self._static_color)
+        mesh, self._static_pms = _merged_mesh(self._static_soups, materials, "static", np.zeros(3))
+        self._static_color = self.pr.add(mesh, name="static_color")
+        self._static_partition = partition
+
+    def _set_agents(self, agents: list[RenderObject]) -> None:
+        """Replace the agents: one merged colour node, one segmentation node per agent."""
+        for name in [n for n, o in self.objects.items() if o.kind == "agent"]:
+            self.pr.remove_node(self._seg_nodes.pop(name))
+            del self.objects[name]
+        if self._agent_color is not None:
+            self.pr.remove_node(self._agent_color)
+            self._agent_color = None
+        soups, materials = [], []
+        for obj in agents:
+            self.objects[obj.name] = obj
+            local = [_triangles(mesh, np.eye(4)) for mesh in obj.parts.values()]
+            seg = pyrender.Primitive(positions=np.concatenate([p for p, _ in local]), material=_pr_material(Material((0.0, 0.0, 0.0))))
+            self._seg_nodes[obj.name] = self.pr.add(pyrender.Mesh([seg], name=obj.name), name=obj.name, pose=obj.matrix_world)
+            for role, mesh in obj.parts.items():
+                soups.append(_triangles(mesh, obj.matrix_world))
+                materials.append(obj.materials[role])
+        if soups:
+            # A pose away from the origin keeps pyrender's distance sort of the two colour nodes
+            # free of ties (ties fall back to set order, which differs between processes).
+            origin = np.mean([o.matrix_world[:3, 3] for o in agents], axis=0) + np.array([0.0, 0.0, 0.5])
+            mesh, _ = _merged_mesh(soups, materials, "agents", origin)
+            self._agent_color = self.pr.add(mesh, name="agents_color", pose=_translation(origin))
 
     def _light(self, scene: Scene) -> None:
         light = scene.lighting
@@ -116,32 +217,34 @@ class RasterScene:
         if scene.city is not self.scene.city and scene.city != self.scene.city:
             raise ValueError("RasterScene.update needs the same city; build a new RasterScene for another")
         objs = compile_scene(scene)
-        for name in [n for n, o in self.objects.items() if o.kind == "agent"]:
-            self.pr.remove_node(self.nodes.pop(name))
-            del self.objects[name], self._materials[name]
-        for obj in objs:
-            if obj.kind == "agent":
-                self._add(obj)
-            else:
-                for role, pm in self._materials[obj.name].items():
-                    _set_material(pm, obj.materials[role])
-                self.objects[obj.name] = obj
+        self._restyle_static([o for o in objs if o.kind != "agent"])
+        self._set_agents([o for o in objs if o.kind == "agent"])
         self.scene = scene
         self._light(scene)
 
     # -- inspection -------------------------------------------------------------------------
 
     def objects_summary(self) -> list[dict]:
-        """Name, instance id, class and world box of every object, read back from pyrender."""
+        """Name, instance id, class and world box of every object (from the geometry drawn)."""
         out = []
-        for name, node in self.nodes.items():
-            obj = self.objects[name]
-            lo, hi = node.mesh.bounds
-            m = self.pr.get_pose(node)
-            center = m @ np.append((lo + hi) / 2.0, 1.0)
+        for name, obj in self.objects.items():
+            center, dims, yaw = world_box(obj)
             out.append({"name": name, "instance_id": obj.instance_id, "category": obj.category,
-                        "center": center[:3].tolist(), "dims": (hi - lo).tolist(), "yaw": math.atan2(m[1, 0], m[0, 0])})
+                        "center": center.tolist(), "dims": dims.tolist(), "yaw": yaw})
         return out
+
+    def _seg_map(self, wanted: set[int] | None = None) -> dict:
+        """Segmentation colours of the segmentation nodes (all, or only the agents in `wanted`)."""
+        out = {}
+        for name, node in self._seg_nodes.items():
+            iid = self.objects[name].instance_id if name in self.objects else 0
+            if wanted is None or (iid in wanted and iid != 0):
+                out[node] = id_color(iid)
+        return out
+
+    def _show_seg_nodes(self, visible: bool) -> None:
+        for node in self._seg_nodes.values():
+            node.mesh.is_visible = visible
 
     # -- rendering --------------------------------------------------------------------------
 
@@ -155,12 +258,15 @@ class RasterScene:
         cam_node = self.pr.add(cam, pose=pose)
         try:
             r = self._get_renderer(width, height)
-            color, _ = r.render(self.pr)
+            self._show_seg_nodes(False)
+            try:
+                color, _ = r.render(self.pr)
+            finally:
+                self._show_seg_nodes(True)
             # Masks and depth come from the segmentation pass, which pyrender draws without
             # multisampling: ids are exact (never averaged at edges) and each pixel's depth
             # belongs to the object its id names. The colour pass keeps its antialiasing.
-            seg_map = {node: id_color(self.objects[name].instance_id) for name, node in self.nodes.items()}
-            seg, depth = r.render(self.pr, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)
+            seg, depth = r.render(self.pr, flags=pyrender.RenderFlags.SEG, seg_node_map=self._seg_map())
         finally:
             self.pr.remove_node(cam_node)
         seg = seg.astype(np.uint16)
@@ -184,9 +290,7 @@ class RasterScene:
         pose = np.eye(4)
         pose[:3, :3] = R.T @ np.diag([1.0, -1.0, -1.0])
         pose[:3, 3] = -R.T @ t.reshape(3)
-        wanted = {int(i) for i in instance_ids}
-        seg_map = {node: id_color(self.objects[name].instance_id) for name, node in self.nodes.items()
-                   if self.objects[name].instance_id in wanted}
+        seg_map = self._seg_map({int(i) for i in instance_ids})
         cam_node = self.pr.add(cam, pose=pose)
         try:
             seg, _ = self._get_renderer(width, height).render(self.pr, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)

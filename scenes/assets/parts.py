@@ -8,6 +8,7 @@ are made with process=False: trimesh's vertex merging costs time and changes not
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 import trimesh
@@ -30,7 +31,22 @@ def _mesh(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices=np.asarray(vertices, dtype=np.float64), faces=np.asarray(faces, dtype=np.int64), process=False)
 
 
-def box(lo, hi) -> trimesh.Trimesh:
+class Piece:
+    """A primitive before it joins its role's mesh: bare vertex and face arrays.
+
+    Why not a trimesh: an agent is built from dozens of primitives every frame, and constructing
+    (and transforming) a Trimesh per primitive cost most of a frame's re-randomisation. Parts
+    makes one Trimesh per role from these.
+    """
+
+    __slots__ = ("vertices", "faces")
+
+    def __init__(self, vertices, faces) -> None:
+        self.vertices = np.asarray(vertices, dtype=np.float64)
+        self.faces = np.asarray(faces, dtype=np.int64)
+
+
+def box(lo, hi) -> Piece:
     """Axis-aligned box between corners lo and hi."""
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     return hexahedron(
@@ -39,15 +55,15 @@ def box(lo, hi) -> trimesh.Trimesh:
     )
 
 
-def hexahedron(bottom, z0: float, top, z1: float) -> trimesh.Trimesh:
+def hexahedron(bottom, z0: float, top, z1: float) -> Piece:
     """Solid between a bottom quad at z0 and a top quad at z1 (xy corners, counter-clockwise)."""
     b = np.asarray(bottom, dtype=np.float64)
     t = np.asarray(top, dtype=np.float64)
     v = np.vstack([np.column_stack([b, np.full(4, z0)]), np.column_stack([t, np.full(4, z1)])])
-    return _mesh(v, _HEX_FACES)
+    return Piece(v, _HEX_FACES)
 
 
-def trapezoid_x(x0b: float, x1b: float, x0t: float, x1t: float, wb: float, wt: float, z0: float, z1: float) -> trimesh.Trimesh:
+def trapezoid_x(x0b: float, x1b: float, x0t: float, x1t: float, wb: float, wt: float, z0: float, z1: float) -> Piece:
     """Solid symmetric about y = 0: bottom spans x0b..x1b, width wb; top spans x0t..x1t, width wt."""
     return hexahedron(
         [(x0b, -wb / 2), (x1b, -wb / 2), (x1b, wb / 2), (x0b, wb / 2)], z0,
@@ -55,28 +71,36 @@ def trapezoid_x(x0b: float, x1b: float, x0t: float, x1t: float, wb: float, wt: f
     )
 
 
-def frustum(center_xy, z0: float, z1: float, r0: float, r1: float, sections: int = 16) -> trimesh.Trimesh:
+def frustum(center_xy, z0: float, z1: float, r0: float, r1: float, sections: int = 16) -> Piece:
     """A capped cone segment about a vertical axis (a cylinder when r0 == r1)."""
     a = np.linspace(0, 2 * math.pi, sections, endpoint=False)
     cx, cy = center_xy
     ring0 = np.column_stack([cx + r0 * np.cos(a), cy + r0 * np.sin(a), np.full(sections, z0)])
     ring1 = np.column_stack([cx + r1 * np.cos(a), cy + r1 * np.sin(a), np.full(sections, z1)])
     v = np.vstack([ring0, ring1, [[cx, cy, z0], [cx, cy, z1]]])
+    return Piece(v, _frustum_faces(sections))
+
+
+@lru_cache(maxsize=None)
+def _frustum_faces(sections: int) -> np.ndarray:
+    """The faces of `frustum` (they depend only on the number of sections)."""
     i = np.arange(sections)
     j = (i + 1) % sections
     side = np.concatenate([np.column_stack([i, j, j + sections]), np.column_stack([i, j + sections, i + sections])])
     c0, c1 = 2 * sections, 2 * sections + 1
     caps = np.concatenate([np.column_stack([np.full(sections, c0), j, i]), np.column_stack([np.full(sections, c1), i + sections, j + sections])])
-    return _mesh(v, np.concatenate([side, caps]))
+    faces = np.concatenate([side, caps])
+    faces.flags.writeable = False
+    return faces
 
 
-def cylinder_between(p0, p1, radius: float, sections: int = 10) -> trimesh.Trimesh:
+def cylinder_between(p0, p1, radius: float, sections: int = 10) -> Piece:
     """A capped cylinder from point p0 to point p1."""
     p0, p1 = np.asarray(p0, dtype=np.float64), np.asarray(p1, dtype=np.float64)
     length = float(np.linalg.norm(p1 - p0))
     m = frustum((0.0, 0.0), 0.0, max(length, 1e-6), radius, radius, sections)
-    m.apply_transform(_align_z(p1 - p0, p0))
-    return m
+    t = _align_z(p1 - p0, p0)
+    return Piece(m.vertices @ t[:3, :3].T + t[:3, 3], m.faces)
 
 
 def _align_z(direction, origin) -> np.ndarray:
@@ -85,39 +109,53 @@ def _align_z(direction, origin) -> np.ndarray:
     n = np.linalg.norm(d)
     z = d / n if n > 0 else np.array([0.0, 0.0, 1.0])
     helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(helper, z)
+    x = _cross(helper, z)
     x /= np.linalg.norm(x)
-    y = np.cross(z, x)
+    y = _cross(z, x)
     t = np.eye(4)
     t[:3, 0], t[:3, 1], t[:3, 2], t[:3, 3] = x, y, z, origin
     return t
 
 
-def wheel(center, radius: float, width: float, sections: int = 16) -> trimesh.Trimesh:
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.cross for two 3-vectors, without its generic-axis overhead (called per primitive)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def wheel(center, radius: float, width: float, sections: int = 16) -> Piece:
     """A disc-like wheel whose axle is the y axis."""
     c = np.asarray(center, dtype=np.float64)
     return cylinder_between(c - [0, width / 2, 0], c + [0, width / 2, 0], radius, sections)
 
 
-def ring_y(center, r_in: float, r_out: float, width: float, sections: int = 20) -> trimesh.Trimesh:
+def ring_y(center, r_in: float, r_out: float, width: float, sections: int = 20) -> Piece:
     """A flat annulus (bicycle tyre) in the x-z plane, axle along y."""
     m = trimesh.creation.annulus(r_min=r_in, r_max=r_out, height=width, sections=sections)
     rot = np.eye(4)
     rot[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]  # z axis -> y axis
     m.apply_transform(rot)
     m.apply_translation(center)
-    return _mesh(m.vertices, m.faces)
+    return Piece(m.vertices, m.faces)
 
 
-def ellipsoid(center, radii, subdivisions: int = 1) -> trimesh.Trimesh:
+def ellipsoid(center, radii, subdivisions: int = 1) -> Piece:
+    v, f = _unit_sphere(subdivisions)
+    return Piece(v * np.asarray(radii, dtype=np.float64) + np.asarray(center, dtype=np.float64), f)
+
+
+@lru_cache(maxsize=None)
+def _unit_sphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
+    """The unit icosphere's arrays, made once (trimesh builds it from scratch on every call)."""
     m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
-    v = m.vertices * np.asarray(radii, dtype=np.float64) + np.asarray(center, dtype=np.float64)
-    return _mesh(v, m.faces)
+    v, f = np.array(m.vertices, dtype=np.float64), np.array(m.faces, dtype=np.int64)
+    v.flags.writeable = False
+    f.flags.writeable = False
+    return v, f
 
 
-def quad(p0, p1, p2, p3) -> trimesh.Trimesh:
+def quad(p0, p1, p2, p3) -> Piece:
     """A two-triangle quad, corners in counter-clockwise order seen from its front."""
-    return _mesh(np.array([p0, p1, p2, p3], dtype=np.float64), np.array([[0, 1, 2], [0, 2, 3]]))
+    return Piece(np.array([p0, p1, p2, p3], dtype=np.float64), np.array([[0, 1, 2], [0, 2, 3]]))
 
 
 class Parts:
