@@ -1,0 +1,770 @@
+"""DAIR-V2X-I and the infrastructure side of DAIR-V2X-C (pitched pole cameras) into UrbanOmniView.
+
+Usage: `omnigen convert dair SRC --out DIR`, where SRC is a DAIR-V2X-I folder
+(`single-infrastructure-side`), a DAIR-V2X-C `infrastructure-side` folder, or the DAIR-V2X-C root
+that holds `infrastructure-side/`. docs/converters-dair.md explains every decision; the short
+version of the ones that change numbers:
+
+- Boxes are built in the virtual-LiDAR frame (x forward, y left, z up; `3d_location` is the box
+  centre, `rotation` the yaw about +z, 0 along +x, `l` along the heading) and carried into the
+  camera with `virtuallidar_to_camera` (omnigen.geometry.box_from_dair). The camera's pitch is
+  therefore part of every box's rotation, and top and bottom come from the LiDAR's z. The official
+  DAIR-to-KITTI converter is not used: it writes headings 90 degrees off and drops the pitch.
+- Keypoints come from `label/camera` (boxes fitted to the image); `label/virtuallidar` (fitted to
+  the point cloud, at the point cloud's time) is used only when asked (--label virtuallidar, or
+  --fallback-virtuallidar for frames whose camera label is missing).
+- Classes are compared case-insensitively with conventions.DAIR_CLASSES; every other class
+  (DAIR's ignore and unknown classes, and any name we do not know) becomes an ignore region with the
+  label's 2D box, so that a detector is neither rewarded nor punished there.
+- The ground plane is fitted through the boxes' bottom corners in the virtual-LiDAR frame when a
+  frame has enough objects, else it is the level plane at their median bottom height; it is then
+  carried into the camera, and camera height and pitch are read off it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from converters.common import (
+    ConvertedFrame,
+    ImageSource,
+    SourceError,
+    add_common_arguments,
+    image_relpath,
+    print_report,
+    run_conversion,
+)
+from omnigen.conventions import DAIR_CLASSES, OCCLUSION_UNKNOWN
+from omnigen.geometry import Plane, box_from_dair, fit_plane
+from omnigen.record import FRAME_ID_PATTERN, FrameRecord, IgnoreRegion, ObjectRecord
+
+# ---------------------------------------------------------------------------------------------
+# The format, as the official repository writes it (AIR-THU/DAIR-V2X: data/README.md, v2x/dataset)
+# ---------------------------------------------------------------------------------------------
+
+SOURCE_I = "dair-v2x-i"
+SOURCE_C = "dair-v2x-c"
+VIEW = "infrastructure"
+DATA_INFO = "data_info.json"
+INFRASTRUCTURE_SIDE = "infrastructure-side"
+
+LABEL_SETS = ("camera", "virtuallidar")
+LABEL_KEYS: dict[str, tuple[str, ...]] = {
+    # the official code reads the *_std_path keys; the README writes the others
+    "camera": ("label_camera_std_path", "label_camera_path"),
+    "virtuallidar": ("label_lidar_std_path", "label_lidar_path", "label_virtuallidar_path"),
+}
+LABEL_DIRS: dict[str, tuple[str, ...]] = {"camera": ("label/camera",), "virtuallidar": ("label/virtuallidar",)}
+INTRINSIC_KEYS = ("calib_camera_intrinsic_path",)
+INTRINSIC_DIRS = ("calib/camera_intrinsic", "calib/camera")  # the README's DAIR-V2X-C tree says calib/camera
+EXTRINSIC_KEYS = ("calib_virtuallidar_to_camera_path",)
+EXTRINSIC_DIRS = ("calib/virtuallidar_to_camera",)
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+C_MARKERS = ("batch_id", "batch_start_id", "batch_end_id", "valid_batch_splits", "calib_virtuallidar_to_world_path")
+"""data_info fields only DAIR-V2X-C's infrastructure side carries; any of them means `dair-v2x-c`."""
+
+GEOMETRY_KEYS = ("2d_box", "3d_dimensions", "3d_location", "rotation")
+"""Label fields that become record fields; every other field goes to source_attributes untouched."""
+
+TIMESTAMP_KEYS = ("image_timestamp", "pointcloud_timestamp")  # microseconds, as digit strings
+
+# ---------------------------------------------------------------------------------------------
+# Decisions (docs/converters-dair.md)
+# ---------------------------------------------------------------------------------------------
+
+DEFAULT_GROUP_GAP_S = 10.0
+"""Two frames of one camera whose timestamps differ by at most this many seconds are neighbours and
+share a group. 10 s keeps a red-light queue (the same cars, seen again and again) on one side of a
+split, yet separates recordings minutes apart."""
+
+GROUP_METHODS = ("batch", "time", "intersection")
+
+PLANE_MIN_OBJECTS = 5
+"""Fit a tilted ground plane only through the bottoms of at least this many objects; fewer leave the
+tilt poorly determined, and a level plane (the virtual LiDAR's z is up) is the better guess."""
+
+PLANE_MAX_TILT_DEG = 6.0
+"""A fitted plane tilted more than this from the LiDAR's level is rejected (a 10% grade is 5.7
+degrees): such a fit comes from boxes on kerbs and ramps, not from the road."""
+
+ROTATION_TOLERANCE = 0.05
+"""Largest |R^T R - I| entry accepted in an extrinsic rotation. Calibrated matrices are orthonormal
+only to a few decimals; within this tolerance R is replaced by the nearest rotation (SVD), so that
+every stored box rotation is a proper rotation. Beyond it the file is rejected as not a rotation."""
+
+ORTHONORMAL_EPS = 1e-9
+"""Below this deviation R is used exactly as given (byte-identical to the source)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading values that may be numbers or strings
+# ---------------------------------------------------------------------------------------------
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def read_json(path: Path, named_by: str = "") -> Any:
+    """Parse a JSON file; a missing or broken file is a SourceError naming it (and who named it)."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise SourceError(path, "", f"missing{f' ({named_by})' if named_by else ''}") from None
+    except OSError as exc:
+        raise SourceError(path, "", f"cannot read: {exc.strerror or exc}") from None
+    try:
+        return json.loads(data, parse_constant=_reject_constant)
+    except json.JSONDecodeError as exc:
+        raise SourceError(path, f"line {exc.lineno} column {exc.colno}", f"not valid JSON: {exc.msg}") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise SourceError(path, "", f"not valid JSON: {exc}") from None
+
+
+def _reject_constant(name: str) -> float:
+    # NaN and Infinity are not JSON; Python would accept them and the record writer would then fail.
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def as_number(value: Any, file: Path, where: str) -> float:
+    """A finite number given as a JSON number or as a string ("0", "1.5"), as DAIR-V2X writes both."""
+    if isinstance(value, bool):
+        number = math.nan
+    elif isinstance(value, (int, float)):
+        number = float(value)
+    elif isinstance(value, str):
+        try:
+            number = float(value.strip())
+        except ValueError:
+            raise SourceError(file, where, f"expected a number, got {_short(value)}") from None
+    else:
+        raise SourceError(file, where, "missing" if value is None else f"expected a number, got {_short(value)}")
+    if not math.isfinite(number):
+        raise SourceError(file, where, f"expected a finite number, got {_short(value)}")
+    return number
+
+
+def as_matrix(value: Any, shape: tuple[int, ...], file: Path, where: str) -> np.ndarray:
+    """Numbers (or numeric strings) of the given shape, nested or flat row-major (3x1 == 3)."""
+    if value is None:
+        raise SourceError(file, where, "missing")
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SourceError(file, where, f"expected {'x'.join(map(str, shape))} numbers, got {_short(value)}") from None
+    if arr.size != math.prod(shape) or arr.ndim == 0:
+        raise SourceError(file, where, f"expected {'x'.join(map(str, shape))} numbers, got shape {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise SourceError(file, where, "contains NaN or infinity")
+    return arr.reshape(shape)
+
+
+# ---------------------------------------------------------------------------------------------
+# Calibration
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Extrinsics:
+    """Virtual LiDAR to camera: X_cam = rotation @ X_lidar + translation."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    def up_in_camera(self) -> np.ndarray:
+        """The virtual LiDAR's +z (up) seen from the camera."""
+        return self.rotation[:, 2]
+
+
+def parse_intrinsics(data: Any, file: Path) -> np.ndarray:
+    """K from `cam_K` (row-major, flat 9 or 3x3). `cam_D` is ignored, as the official code does."""
+    if not isinstance(data, dict):
+        raise SourceError(file, "", f"expected a JSON object with cam_K, got {type(data).__name__}")
+    K = as_matrix(data.get("cam_K"), (3, 3), file, "cam_K")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or np.abs(K[2] - (0.0, 0.0, 1.0)).max() > 1e-6:
+        raise SourceError(file, "cam_K", f"not a pinhole intrinsic matrix: {K.tolist()}")
+    return K
+
+
+def parse_extrinsics(data: Any, file: Path) -> Extrinsics:
+    """`{"rotation": 3x3, "translation": 3x1}`, or `Tr_velo_to_cam` (3x4 or 4x4, nested or flat).
+
+    Some tools wrap the pair in `{"transform": {...}}` (as the vehicle side's lidar_to_novatel
+    does); that is accepted too.
+    """
+    if isinstance(data, dict) and isinstance(data.get("transform"), dict):
+        data = data["transform"]
+    if not isinstance(data, dict):
+        raise SourceError(file, "", f"expected a JSON object with rotation and translation, got {type(data).__name__}")
+    if "rotation" in data or "translation" in data:
+        rotation = as_matrix(data.get("rotation"), (3, 3), file, "rotation")
+        translation = as_matrix(data.get("translation"), (3,), file, "translation")
+        rotation_field = "rotation"
+    elif "Tr_velo_to_cam" in data:
+        rotation, translation = _split_transform(data["Tr_velo_to_cam"], file)
+        rotation_field = "Tr_velo_to_cam"
+    else:
+        raise SourceError(file, "rotation", "missing: expected rotation and translation, or Tr_velo_to_cam")
+    return Extrinsics(nearest_rotation(rotation, file, rotation_field), translation)
+
+
+def _split_transform(value: Any, file: Path) -> tuple[np.ndarray, np.ndarray]:
+    """[R | t] from a 3x4 or 4x4 matrix (the 4x4 must end in 0 0 0 1)."""
+    try:
+        size = np.asarray(value, dtype=np.float64).size
+    except (TypeError, ValueError):
+        size = 0  # as_matrix below names the problem
+    if size == 16:
+        m = as_matrix(value, (4, 4), file, "Tr_velo_to_cam")
+        if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-6:
+            raise SourceError(file, "Tr_velo_to_cam", f"last row of a 4x4 transform must be 0 0 0 1, got {m[3].tolist()}")
+    else:
+        m = as_matrix(value, (3, 4), file, "Tr_velo_to_cam")
+    return m[:3, :3].copy(), m[:3, 3].copy()
+
+
+def nearest_rotation(r: np.ndarray, file: Path, where: str) -> np.ndarray:
+    """r itself when orthonormal, its nearest rotation when nearly so, else a SourceError."""
+    deviation = float(np.abs(r.T @ r - np.eye(3)).max())
+    if deviation > ROTATION_TOLERANCE or np.linalg.det(r) <= 0:
+        raise SourceError(file, where, f"not a rotation matrix (|R^T R - I| = {deviation:.3g}, det = {np.linalg.det(r):.3g})")
+    if deviation <= ORTHONORMAL_EPS:
+        return r
+    u, _, vt = np.linalg.svd(r)
+    return u @ vt
+
+
+# ---------------------------------------------------------------------------------------------
+# Labels
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LabelObject:
+    """One labelled object of a known class, still in the virtual-LiDAR frame."""
+
+    index: int  # position in the label file; instance_id = index + 1, so a record points back at it
+    category: str
+    center: np.ndarray  # (3,) box centre
+    lwh: np.ndarray  # (3,) l, w, h
+    yaw: float
+    box2d: np.ndarray  # (4,) the label's 2d_box
+    occlusion_level: int
+    attributes: dict[str, Any]
+
+
+@dataclass
+class ParsedLabel:
+    objects: list[LabelObject] = field(default_factory=list)
+    ignore_regions: list[IgnoreRegion] = field(default_factory=list)
+
+
+def parse_label(data: Any, file: Path) -> ParsedLabel:
+    """A DAIR-V2X label file (a list of objects) into known-class objects and ignore regions."""
+    if not isinstance(data, list):
+        raise SourceError(file, "", f"expected a JSON list of objects, got {type(data).__name__}")
+    parsed = ParsedLabel()
+    for i, obj in enumerate(data):
+        item = parse_label_object(obj, file, i)
+        if isinstance(item, IgnoreRegion):
+            parsed.ignore_regions.append(item)
+        else:
+            parsed.objects.append(item)
+    return parsed
+
+
+def parse_label_object(obj: Any, file: Path, i: int) -> LabelObject | IgnoreRegion:
+    """One label entry; a class outside DAIR_CLASSES becomes an ignore region with its 2D box."""
+    at = f"[{i}]"
+    if not isinstance(obj, dict):
+        raise SourceError(file, at, f"expected a JSON object, got {type(obj).__name__}")
+    name = obj.get("type")
+    if not isinstance(name, str) or not name.strip():
+        raise SourceError(file, f"{at}.type", f"expected a class name, got {_short(name)}")
+    box2d = parse_box2d(obj.get("2d_box"), file, f"{at}.2d_box")
+    category = DAIR_CLASSES.get(name.strip().lower())
+    if category is None:
+        return IgnoreRegion(box2d, name)
+    dims = _fields(obj, "3d_dimensions", ("l", "w", "h"), file, at)
+    if (dims <= 0).any():
+        raise SourceError(file, f"{at}.3d_dimensions", f"dimensions must be positive, got l w h = {dims.tolist()}")
+    return LabelObject(
+        index=i, category=category, center=_fields(obj, "3d_location", ("x", "y", "z"), file, at), lwh=dims,
+        yaw=as_number(obj.get("rotation"), file, f"{at}.rotation"), box2d=box2d,
+        occlusion_level=occlusion_level(obj.get("occluded_state")),
+        attributes={k: v for k, v in obj.items() if k not in GEOMETRY_KEYS},
+    )
+
+
+def _fields(obj: dict, key: str, names: tuple[str, ...], file: Path, at: str) -> np.ndarray:
+    sub = obj.get(key)
+    if not isinstance(sub, dict):
+        raise SourceError(file, f"{at}.{key}", "missing" if sub is None else f"expected an object with {', '.join(names)}")
+    return np.array([as_number(sub.get(n), file, f"{at}.{key}.{n}") for n in names])
+
+
+def parse_box2d(value: Any, file: Path, where: str) -> np.ndarray:
+    """`{xmin, ymin, xmax, ymax}` as [x1, y1, x2, y2]; reversed corners are an error."""
+    if not isinstance(value, dict):
+        raise SourceError(file, where, "missing" if value is None else "expected an object with xmin, ymin, xmax, ymax")
+    box = np.array([as_number(value.get(k), file, f"{where}.{k}") for k in ("xmin", "ymin", "xmax", "ymax")])
+    if box[2] < box[0] or box[3] < box[1]:
+        raise SourceError(file, where, f"xmax < xmin or ymax < ymin in {box.tolist()}")
+    return box
+
+
+def occlusion_level(value: Any) -> int:
+    """DAIR-V2X's occluded_state 0/1/2 (number or string) is the contract's level; else 3 (unknown)."""
+    try:
+        level = int(float(value))
+    except (TypeError, ValueError, OverflowError):
+        return OCCLUSION_UNKNOWN
+    return level if level in (0, 1, 2) and float(value) == level else OCCLUSION_UNKNOWN
+
+
+# ---------------------------------------------------------------------------------------------
+# Ground plane
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GroundEstimate:
+    """The ground in the virtual-LiDAR frame and how it was found ("fit" or "level")."""
+
+    plane: Plane
+    method: str
+
+
+def estimate_ground(objects: Sequence[LabelObject]) -> GroundEstimate | None:
+    """Ground plane in the virtual-LiDAR frame from the objects' bottoms; None without objects.
+
+    With PLANE_MIN_OBJECTS or more, a plane is fitted (IRLS, so a few boxes on a kerb do not tilt
+    it) through all bottom corners; a fit tilted beyond PLANE_MAX_TILT_DEG is discarded. Otherwise
+    the plane is level (the virtual LiDAR's z is up) at the median bottom height, which one box
+    floating or sunk cannot move much.
+    """
+    if not objects:
+        return None
+    up = np.array([0.0, 0.0, 1.0])
+    if len(objects) >= PLANE_MIN_OBJECTS:
+        corners = bottom_corners(objects).reshape(-1, 3)
+        try:
+            plane = fit_plane(corners, up_hint=up)
+        except ValueError:
+            plane = None
+        if plane is not None and math.degrees(math.acos(min(1.0, plane.normal[2]))) <= PLANE_MAX_TILT_DEG:
+            return GroundEstimate(plane, "fit")
+    bottom = float(np.median([o.center[2] - o.lwh[2] / 2.0 for o in objects]))
+    return GroundEstimate(Plane(up, -bottom), "level")
+
+
+FOOTPRINT_SIGNS = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, -1.0], [-1.0, 1.0]])
+"""x (forward) and y (left) signs of the bottom corners 4-7, in the contract's order."""
+
+
+def bottom_corners(objects: Sequence[LabelObject]) -> np.ndarray:
+    """(N, 4, 3) ground-contact corners of every object in the virtual-LiDAR frame (vectorised)."""
+    center = np.array([o.center for o in objects])
+    lwh = np.array([o.lwh for o in objects])
+    yaw = np.array([o.yaw for o in objects])
+    local = FOOTPRINT_SIGNS[None] * lwh[:, None, :2] / 2.0  # (N, 4, 2)
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    x = c * local[..., 0] - s * local[..., 1] + center[:, None, 0]
+    y = s * local[..., 0] + c * local[..., 1] + center[:, None, 1]
+    z = np.broadcast_to((center[:, 2] - lwh[:, 2] / 2.0)[:, None], x.shape)
+    return np.stack([x, y, z], axis=-1)
+
+
+def plane_to_camera(plane: Plane, ext: Extrinsics) -> Plane:
+    """The same plane in the camera frame (n' = R n, through R p + t for a point p on it)."""
+    normal = ext.rotation @ plane.normal
+    point = ext.rotation @ (-plane.offset * plane.normal) + ext.translation
+    return Plane(normal, -float(normal @ point))
+
+
+def pitch_from_up(up_in_camera: np.ndarray) -> float:
+    """Optical axis below the horizon (radians, positive looking down), as Plane.camera_pitch."""
+    return float(math.asin(np.clip(-up_in_camera[2], -1.0, 1.0)))
+
+
+def camera_pose(estimate: GroundEstimate | None, ext: Extrinsics) -> tuple[Plane | None, float | None, float]:
+    """Ground plane in the camera, camera height and pitch read off it.
+
+    Without objects there is no ground height, but the virtual LiDAR's z is up, so the pitch still
+    follows from the extrinsics; the plane and the height stay unknown (None).
+    """
+    if estimate is None:
+        return None, None, pitch_from_up(ext.up_in_camera())
+    plane = plane_to_camera(estimate.plane, ext)
+    return plane, plane.camera_height, plane.camera_pitch
+
+
+# ---------------------------------------------------------------------------------------------
+# Frames, sources and groups
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FrameInfo:
+    """One data_info.json entry with the DAIR frame id taken from its image path."""
+
+    position: int  # index in data_info.json, for messages
+    key: str  # DAIR's id, e.g. "001366"
+    info: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class SourceTree:
+    """Where the infrastructure side lives and what data_info.json says (or the layout implies)."""
+
+    root: Path
+    data_info: Path | None  # None: no data_info.json, frames found from the folder layout
+    frames: list[FrameInfo]
+    errors: dict[str, SourceError]  # entries that cannot become frames, reported as skips
+
+
+def locate_root(src: Path) -> Path:
+    """The infrastructure-side folder: SRC itself, or SRC/infrastructure-side for a DAIR-V2X-C root."""
+    src = Path(src)
+    if (src / DATA_INFO).is_file() or (src / "image").is_dir():
+        return src
+    side = src / INFRASTRUCTURE_SIDE
+    if (side / DATA_INFO).is_file() or (side / "image").is_dir():
+        return side
+    if not src.exists():
+        raise SourceError(src, "", "does not exist")
+    raise SourceError(src, "", f"no {DATA_INFO} or image/ folder here or in {INFRASTRUCTURE_SIDE}/")
+
+
+def read_tree(src: Path) -> SourceTree:
+    """Read data_info.json (or list image/ when it is absent) into frames keyed by DAIR id."""
+    root = locate_root(src)
+    path = root / DATA_INFO
+    if not path.is_file():
+        return SourceTree(root, None, _frames_from_layout(root), {})
+    data = read_json(path)
+    if not isinstance(data, list):
+        raise SourceError(path, "", f"expected a JSON list of frames, got {type(data).__name__}")
+    frames: list[FrameInfo] = []
+    errors: dict[str, SourceError] = {}
+    seen: dict[str, int] = {}
+    for i, entry in enumerate(data):
+        try:
+            frame = _frame_info(entry, i, path)
+            if frame.key in seen:
+                raise SourceError(path, f"[{i}].image_path", f"frame {frame.key} is listed twice (first at [{seen[frame.key]}])")
+        except SourceError as exc:
+            errors[f"#{i}"] = exc
+            continue
+        seen[frame.key] = i
+        frames.append(frame)
+    return SourceTree(root, path, frames, errors)
+
+
+def _frame_info(entry: Any, i: int, path: Path) -> FrameInfo:
+    if not isinstance(entry, dict):
+        raise SourceError(path, f"[{i}]", f"expected a JSON object, got {type(entry).__name__}")
+    image = entry.get("image_path")
+    if not isinstance(image, str) or not image.strip():
+        raise SourceError(path, f"[{i}].image_path", "missing" if image is None else f"expected a path, got {_short(image)}")
+    key = Path(image).stem
+    if not FRAME_ID_PATTERN.match(key):
+        raise SourceError(path, f"[{i}].image_path", f"frame id {key!r} must be letters, digits, '.', '_' or '-'")
+    return FrameInfo(i, key, entry)
+
+
+def _frames_from_layout(root: Path) -> list[FrameInfo]:
+    """Without data_info.json, every image/{id}.jpg is a frame and the other files follow the layout."""
+    images = sorted(p for p in (root / "image").iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    return [FrameInfo(i, p.stem, {"image_path": f"image/{p.name}"}) for i, p in enumerate(images)
+            if FRAME_ID_PATTERN.match(p.stem)]
+
+
+def detect_source(tree: SourceTree) -> str:
+    """dair-v2x-c when data_info carries batch fields or the tree has DAIR-V2X-C's folders, else dair-v2x-i."""
+    if any(k in f.info for f in tree.frames for k in C_MARKERS):
+        return SOURCE_C
+    if (tree.root / "calib" / "virtuallidar_to_world").is_dir():
+        return SOURCE_C
+    if tree.root.name == INFRASTRUCTURE_SIDE and (tree.root.parent / "vehicle-side").is_dir():
+        return SOURCE_C
+    return SOURCE_I
+
+
+def assign_groups(frames: Sequence[FrameInfo], source: str, prefer: str = "batch",
+                  gap_s: float = DEFAULT_GROUP_GAP_S, file: Path | None = None) -> tuple[dict[str, str | None], dict[str, SourceError]]:
+    """A group per frame, so that a split keeps neighbouring frames on one side.
+
+    Methods, tried in order starting with `prefer` (then batch, time, intersection): `batch`, the
+    DAIR-V2X-C sequence (`batch_id`); `time`, runs of timestamps (image, else point cloud) of one
+    intersection with no gap above `gap_s`; `intersection`, the whole `intersection_loc`. A frame
+    none of them applies to gets no group (None). Bad timestamps are returned as errors.
+    """
+    order = [prefer] + [m for m in GROUP_METHODS if m != prefer]
+    stamps, errors = _timestamps(frames, file)
+    runs = _time_runs(frames, stamps, source, gap_s)
+    groups: dict[str, str | None] = {}
+    for f in frames:
+        groups[f.key] = None
+        for method in order:
+            group = _group_for(f, method, source, runs)
+            if group is not None:
+                groups[f.key] = group
+                break
+    return groups, errors
+
+
+def _text(info: dict[str, Any], key: str) -> str | None:
+    value = info.get(key)
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = str(value)
+    return value.strip() if isinstance(value, str) and value.strip() else None
+
+
+def _group_for(f: FrameInfo, method: str, source: str, runs: dict[str, str]) -> str | None:
+    if method == "batch":
+        batch = _text(f.info, "batch_id")
+        return f"{source}-batch-{batch}" if batch else None
+    if method == "time":
+        return runs.get(f.key)
+    loc = _text(f.info, "intersection_loc")
+    return f"{source}-{loc}" if loc else None
+
+
+def _timestamps(frames: Sequence[FrameInfo], file: Path | None) -> tuple[dict[str, int], dict[str, SourceError]]:
+    stamps: dict[str, int] = {}
+    errors: dict[str, SourceError] = {}
+    for f in frames:
+        for key in TIMESTAMP_KEYS:
+            raw = _text(f.info, key)
+            if raw is None:
+                continue
+            if not re.fullmatch(r"\d+", raw):
+                errors[f.key] = SourceError(file or DATA_INFO, f"[{f.position}].{key}",
+                                            f"expected microseconds as digits, got {_short(f.info[key])}")
+            else:
+                stamps[f.key] = int(raw)
+            break
+    return stamps, errors
+
+
+def _time_runs(frames: Sequence[FrameInfo], stamps: dict[str, int], source: str, gap_s: float) -> dict[str, str]:
+    """Group name per timestamped frame: runs without a gap above gap_s, per intersection."""
+    by_place: dict[str, list[tuple[int, str]]] = {}
+    for f in frames:
+        if f.key in stamps:
+            by_place.setdefault(_text(f.info, "intersection_loc") or "", []).append((stamps[f.key], f.key))
+    gap_us = gap_s * 1e6
+    runs: dict[str, str] = {}
+    for items in by_place.values():
+        items.sort()
+        name, previous = "", None
+        for stamp, key in items:
+            if previous is None or stamp - previous > gap_us:
+                name = f"{source}-run-{key}"
+            runs[key] = name
+            previous = stamp
+    return runs
+
+
+# ---------------------------------------------------------------------------------------------
+# Converting one frame
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DairOptions:
+    source: str = "auto"  # auto, dair-v2x-i or dair-v2x-c
+    label: str = "camera"  # which label set gives the boxes
+    fallback_virtuallidar: bool = False  # use label/virtuallidar where label/camera is missing
+    images: Path | None = None  # another folder to look for images in (by file name)
+    group_by: str = "batch"
+    group_gap_s: float = DEFAULT_GROUP_GAP_S
+
+
+class DairConverter:
+    """Turns DAIR frame ids into ConvertedFrames; the frame loop itself is converters.common's."""
+
+    def __init__(self, src: Path, options: DairOptions = DairOptions()):
+        self.options = options
+        self.tree = read_tree(src)
+        self.root = self.tree.root
+        self.source = detect_source(self.tree) if options.source == "auto" else options.source
+        self.frames = {f.key: f for f in self.tree.frames}
+        self.groups, group_errors = assign_groups(self.tree.frames, self.source, options.group_by,
+                                                  options.group_gap_s, self.tree.data_info)
+        self.errors: dict[str, SourceError] = {**self.tree.errors, **group_errors}
+
+    def keys(self) -> list[str]:
+        """Frame ids in sorted order, then the data_info entries that could not become frames."""
+        return sorted(self.frames) + sorted(k for k in self.errors if k not in self.frames)
+
+    def convert(self, key: str) -> ConvertedFrame:
+        """One frame; holds no open files, so it is safe to call in forked workers."""
+        if key in self.errors:
+            raise self.errors[key]
+        f = self.frames[key]
+        image = self.image_path(f)
+        width, height = read_image_size(image)
+        K = parse_intrinsics(*self._read(f, INTRINSIC_KEYS, INTRINSIC_DIRS))
+        ext = parse_extrinsics(*self._read(f, EXTRINSIC_KEYS, EXTRINSIC_DIRS))
+        label_file, label_set = self.label_path(f)
+        label = parse_label(read_json(label_file), label_file)
+        objects = [make_object(o, K, ext, width, height, label_set) for o in label.objects]
+        estimate = estimate_ground(label.objects)
+        plane, camera_height, camera_pitch = camera_pose(estimate, ext)
+        frame_id = f"{self.source}-{f.key}"
+        suffix = image.suffix.lower()
+        record = FrameRecord(
+            frame_id=frame_id, source=self.source, view=VIEW, image=image_relpath(frame_id, suffix),
+            width=width, height=height, K=K, objects=[o for o in objects if o is not None], ignore_regions=label.ignore_regions,
+            ground_plane=plane, camera_height=camera_height, camera_pitch=camera_pitch, group=self.groups.get(f.key),
+        )
+        return ConvertedFrame(record, ImageSource(suffix, path=image), frame_stats(objects, estimate, label_set))
+
+    # -- paths ------------------------------------------------------------------------------------
+    def image_path(self, f: FrameInfo) -> Path:
+        path = self.root / f.info["image_path"]
+        if self.options.images is not None and not path.exists():
+            return Path(self.options.images) / Path(f.info["image_path"]).name
+        return path
+
+    def label_path(self, f: FrameInfo) -> tuple[Path, str]:
+        """The label file for the chosen set, or label/virtuallidar where allowed and needed."""
+        wanted = self.options.label
+        path, named_by = self.resolve(f, LABEL_KEYS[wanted], LABEL_DIRS[wanted])
+        if wanted == "camera" and self.options.fallback_virtuallidar and not path.exists():
+            other, _ = self.resolve(f, LABEL_KEYS["virtuallidar"], LABEL_DIRS["virtuallidar"])
+            if other.exists():
+                return other, "virtuallidar"
+        if not path.exists():
+            hint = "; --fallback-virtuallidar uses label/virtuallidar instead" if wanted == "camera" else ""
+            raise SourceError(path, "", f"missing ({named_by}){hint}")
+        return path, wanted
+
+    def resolve(self, f: FrameInfo, keys: tuple[str, ...], dirs: tuple[str, ...]) -> tuple[Path, str]:
+        """A file named by data_info (first key present), else by the folder layout; and who named it."""
+        for k in keys:
+            value = f.info.get(k)
+            if isinstance(value, str) and value.strip():
+                return self.root / value, f"named by {self.data_info_name}[{f.position}].{k}"
+        candidates = [self.root / d / f"{f.key}.json" for d in dirs]
+        for path in candidates:
+            if path.exists():
+                return path, "expected by the folder layout"
+        return candidates[0], "expected by the folder layout"
+
+    def _read(self, f: FrameInfo, keys: tuple[str, ...], dirs: tuple[str, ...]) -> tuple[Any, Path]:
+        path, named_by = self.resolve(f, keys, dirs)
+        return read_json(path, named_by), path
+
+    @property
+    def data_info_name(self) -> str:
+        return str(self.tree.data_info) if self.tree.data_info is not None else DATA_INFO
+
+
+STAT_KEYS = ("objects_outside_image", "ground_plane_fitted", "ground_plane_level", "ground_plane_none",
+             "frames_label_virtuallidar")
+"""Counts each frame reports; run_conversion sums them into the report and the manifest."""
+
+
+def frame_stats(objects: Sequence[ObjectRecord | None], estimate: GroundEstimate | None, label_set: str) -> dict[str, int]:
+    method = "none" if estimate is None else {"fit": "fitted", "level": "level"}[estimate.method]
+    return {
+        "objects_outside_image": sum(o is None for o in objects),
+        "ground_plane_fitted": int(method == "fitted"),
+        "ground_plane_level": int(method == "level"),
+        "ground_plane_none": int(method == "none"),
+        "frames_label_virtuallidar": int(label_set == "virtuallidar"),
+    }
+
+
+def make_object(o: LabelObject, K: np.ndarray, ext: Extrinsics, width: int, height: int,
+                label_set: str) -> ObjectRecord | None:
+    """The record of one labelled object; None when its cuboid misses the image."""
+    box = box_from_dair(o.center, o.lwh, o.yaw, ext.rotation, ext.translation)
+    attributes = dict(o.attributes)
+    attributes["label_set"] = label_set
+    return ObjectRecord.from_box(o.category, o.index + 1, box, K, width, height,
+                                 occlusion_level=o.occlusion_level, bbox_source=o.box2d,
+                                 source_attributes=attributes)
+
+
+def read_image_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the image header only (PIL opens lazily and decodes no pixels)."""
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except FileNotFoundError:
+        raise SourceError(path, "", "missing image") from None
+    except (OSError, UnidentifiedImageError, SyntaxError) as exc:
+        raise SourceError(path, "", f"not a readable image: {exc}") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# Command line
+# ---------------------------------------------------------------------------------------------
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("src", type=Path, help="DAIR-V2X-I folder, DAIR-V2X-C infrastructure-side folder, or the DAIR-V2X-C root")
+    add_common_arguments(p)
+    p.add_argument("--source", choices=("auto", SOURCE_I, SOURCE_C), default="auto",
+                   help="which dataset this is (auto: dair-v2x-c when data_info has batch fields, else dair-v2x-i)")
+    p.add_argument("--label", choices=LABEL_SETS, default="camera",
+                   help="label set giving the boxes: camera (fitted to the image; default) or virtuallidar")
+    p.add_argument("--fallback-virtuallidar", action="store_true",
+                   help="where label/camera is missing, use label/virtuallidar (recorded per object as label_set)")
+    p.add_argument("--images", type=Path, default=None,
+                   help="folder to look for images in by file name when SRC/image_path does not exist")
+    p.add_argument("--group-by", choices=GROUP_METHODS, default="batch",
+                   help="first grouping to try: batch (DAIR-V2X-C batch_id), time (timestamp runs) or intersection")
+    p.add_argument("--group-gap", type=float, default=DEFAULT_GROUP_GAP_S, metavar="SECONDS",
+                   help=f"largest timestamp gap inside one time run (default {DEFAULT_GROUP_GAP_S:g})")
+    p.add_argument("--workers", type=int, default=default_workers(),
+                   help="processes converting frames (default: the CPUs available, at most 8); the dataset is the same for any N")
+    p.add_argument("--durable", action="store_true",
+                   help="fsync every record as it is written (default: one sync before the manifest)")
+
+
+def default_workers() -> int:
+    return max(1, min(len(os.sched_getaffinity(0)), 8))
+
+
+def options_from_args(args: argparse.Namespace) -> DairOptions:
+    return DairOptions(source=args.source, label=args.label, fallback_virtuallidar=args.fallback_virtuallidar,
+                       images=args.images, group_by=args.group_by, group_gap_s=args.group_gap)
+
+
+def run(args: argparse.Namespace) -> int:
+    converter = DairConverter(args.src, options_from_args(args))
+    keys = converter.keys()
+    if args.limit is not None:
+        keys = keys[: max(0, args.limit)]
+    if not keys:
+        raise SourceError(converter.root, "", "no frames found")
+    o = converter.options
+    conversion = {"converter": "dair", "source": converter.source, "label": o.label,
+                  "fallback_virtuallidar": o.fallback_virtuallidar, "group_by": o.group_by, "group_gap_s": o.group_gap_s}
+    report = run_conversion(keys, converter.convert, args.out, link=args.link, strict=args.strict,
+                            desc=f"dair {converter.source}", manifest_extra={"conversion": conversion},
+                            workers=args.workers, durable=args.durable)
+    code = print_report(f"convert dair ({converter.source}) -> {args.out}", report)
+    s = report.stats
+    print(f"  ground plane: fitted in {s['ground_plane_fitted']} frames, level at the median bottom in "
+          f"{s['ground_plane_level']}, none (no objects) in {s['ground_plane_none']}; "
+          f"objects with no part in the image (left out): {s['objects_outside_image']}; "
+          f"frames labelled from label/virtuallidar: {s['frames_label_virtuallidar']}")
+    return code
