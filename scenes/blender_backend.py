@@ -23,7 +23,10 @@ What it builds, and why this way:
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import sys
 from pathlib import Path
 
 import bpy
@@ -33,6 +36,23 @@ import numpy as np
 from scenes.description import Material, Scene
 from scenes.meshes import RenderObject, compile_scene, lamp_lights
 from scenes.seeding import frame_streams
+
+
+@contextlib.contextmanager
+def _quiet_native_output():
+    """Silence what Blender's C code prints during a render ("Saved: ..." per file written by the
+    compositor): it goes straight to file descriptor 1, past Python's sys.stdout, and would bury
+    the progress bar and summary tables of `omnigen render`."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
 
 PBR = "omnigen_pbr"
 AGENTS, STATIC, WEATHER = "omnigen_agents", "omnigen_static", "omnigen_weather"
@@ -432,12 +452,11 @@ class BlenderScene:
         sc.render.resolution_x, sc.render.resolution_y = int(width), int(height)
 
     def _run(self, tree) -> None:
-        import os
-
         for f in os.listdir(self._tmp):
             os.unlink(os.path.join(self._tmp, f))
         self.bscene.compositing_node_group = tree
-        bpy.ops.render.render(write_still=False)
+        with _quiet_native_output():
+            bpy.ops.render.render(write_still=False)
 
     def render(self, K, R, t, width: int, height: int) -> dict:
         """Cycles RGB (uint8 sRGB through the view transform) plus the label pass's depth (camera z,
@@ -617,7 +636,8 @@ def sky_sun_azimuth_probe(elevation_deg: float, azimuth_deg: float, width: int =
     sc.render.image_settings.file_format = "OPEN_EXR"
     with tempfile.TemporaryDirectory() as tmp:
         sc.render.filepath = str(Path(tmp) / "sky.exr")
-        bpy.ops.render.render(write_still=True, scene=sc.name)
+        with _quiet_native_output():
+            bpy.ops.render.render(write_still=True, scene=sc.name)
         img = bpy.data.images.load(sc.render.filepath)
         px = np.array(img.pixels[:], dtype=np.float32).reshape(height, width, 4)
         bpy.data.images.remove(img)
