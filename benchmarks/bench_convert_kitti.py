@@ -26,7 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from converters.kitti import default_workers  # noqa: E402
+from converters.common import default_workers  # noqa: E402
 from converters.kitti_fixture import write_kitti_tree  # noqa: E402
 from omnigen.cli import main as omnigen  # noqa: E402
 

@@ -84,6 +84,16 @@ def add_common_arguments(p: argparse.ArgumentParser) -> None:
                    help="how images are placed: hardlink (falls back to symlink, then copy), symlink or copy")
     p.add_argument("--strict", action="store_true", help="stop at the first bad frame instead of skipping it")
     p.add_argument("--limit", type=int, default=None, help="convert only the first N frames")
+    p.add_argument("--workers", type=int, default=default_workers(),
+                   help="processes converting frames (default: the CPUs available, at most 8); "
+                        "the dataset is the same for any number")
+    p.add_argument("--durable", action="store_true",
+                   help="fsync every record as it is written (slow on busy disks); by default one flush "
+                        "before the manifest seals the dataset")
+
+
+def default_workers() -> int:
+    return max(1, min(len(os.sched_getaffinity(0)), 8))
 
 
 def image_relpath(frame_id: str, suffix: str) -> str:

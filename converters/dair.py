@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -733,14 +732,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="first grouping to try: batch (DAIR-V2X-C batch_id), time (timestamp runs) or intersection")
     p.add_argument("--group-gap", type=float, default=DEFAULT_GROUP_GAP_S, metavar="SECONDS",
                    help=f"largest timestamp gap inside one time run (default {DEFAULT_GROUP_GAP_S:g})")
-    p.add_argument("--workers", type=int, default=default_workers(),
-                   help="processes converting frames (default: the CPUs available, at most 8); the dataset is the same for any N")
-    p.add_argument("--durable", action="store_true",
-                   help="fsync every record as it is written (default: one sync before the manifest)")
-
-
-def default_workers() -> int:
-    return max(1, min(len(os.sched_getaffinity(0)), 8))
 
 
 def options_from_args(args: argparse.Namespace) -> DairOptions:

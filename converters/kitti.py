@@ -486,21 +486,12 @@ class KittiConverter:
 # ---------------------------------------------------------------------------------------------
 
 
-def default_workers() -> int:
-    return max(1, min(len(os.sched_getaffinity(0)), 8))
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("src", type=Path, help="KITTI root (training/, testing/), one split folder, "
                    "or the folder holding data_object_{image_2,label_2,calib}.zip")
     p.add_argument("--split", choices=SPLITS, default="training",
                    help="training (labelled) or testing (images and calibration only)")
     add_common_arguments(p)
-    p.add_argument("--workers", type=int, default=default_workers(),
-                   help="processes converting frames (default: the CPUs available, at most 8)")
-    p.add_argument("--durable", action="store_true",
-                   help="fsync every record as it is written (slow on busy disks); by default one flush "
-                        "before the manifest seals the dataset")
 
 
 def run(args: argparse.Namespace) -> int:
