@@ -121,11 +121,10 @@ def project_points(K: np.ndarray, points: np.ndarray, near: float = NEAR_PLANE) 
     the optical axis, so a point behind the camera is never mirrored into the image.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    z = points[:, 2]
-    behind = z < near
-    with np.errstate(divide="ignore", invalid="ignore"):
-        proj = points @ np.asarray(K, dtype=np.float64).T
-        uv = proj[:, :2] / proj[:, 2:3]
+    behind = points[:, 2] < near
+    proj = points @ np.asarray(K, dtype=np.float64).T
+    depth = np.where(behind, 1.0, proj[:, 2])  # no division by ~0 for points that are dropped anyway
+    uv = proj[:, :2] / depth[:, None]
     uv[behind] = np.nan
     return uv, behind
 
@@ -138,14 +137,9 @@ def image_rect(width: int, height: int) -> Polygon:
 def in_image(uv: np.ndarray, width: int, height: int) -> np.ndarray:
     """True where a finite pixel coordinate lies inside the image rectangle."""
     uv = np.asarray(uv, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        return (
-            np.isfinite(uv).all(axis=-1)
-            & (uv[..., 0] >= -0.5)
-            & (uv[..., 0] <= width - 0.5)
-            & (uv[..., 1] >= -0.5)
-            & (uv[..., 1] <= height - 0.5)
-        )
+    x, y = uv[..., 0], uv[..., 1]
+    # NaN compares False, so corners behind the camera are never in the image.
+    return (x >= -0.5) & (x <= width - 0.5) & (y >= -0.5) & (y <= height - 0.5)
 
 
 def clip_corners_at_near_plane(corners: np.ndarray, near: float = NEAR_PLANE) -> np.ndarray:

@@ -195,6 +195,7 @@ def _opt_float(v: float | None) -> float | None:
 
 _MISSING = object()
 _NAN_PAIR = (float("nan"), float("nan"))
+_CLASS_NAMES = tuple(CLASS_INDEX)
 
 
 class _FrameParser:
@@ -258,6 +259,22 @@ class _FrameParser:
         if not np.isfinite(arr).all():
             raise self.fail(path, "contains NaN or infinity")
         return arr
+
+    def box3d(self, b: dict, path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """center (3), dims (3), rotation (3, 3): checked as one array in the common case (this
+        runs for every object written or read), field by field only to name a culprit."""
+        c, d, r = b.get("center"), b.get("dims"), b.get("rotation")
+        if (type(c) is list and len(c) == 3 and type(d) is list and len(d) == 3 and type(r) is list
+                and len(r) == 3 and all(type(row) is list and len(row) == 3 for row in r)):
+            try:
+                flat = np.array([*c, *d, *r[0], *r[1], *r[2]], dtype=np.float64)
+            except (TypeError, ValueError):
+                flat = None
+            if flat is not None and np.isfinite(flat).all():
+                return flat[:3], flat[3:6], flat[6:].reshape(3, 3)
+        return (self.array(self.get(b, "center", path + "center"), path + "center", (3,)),
+                self.array(self.get(b, "dims", path + "dims"), path + "dims", (3,)),
+                self.array(self.get(b, "rotation", path + "rotation"), path + "rotation", (3, 3)))
 
     def keypoints(self, raw: list, behind: np.ndarray, path: str) -> np.ndarray:
         """(8, 2) with NaN for null corners; null exactly where behind the camera, finite elsewhere.
@@ -372,16 +389,14 @@ class _FrameParser:
         if not isinstance(o, dict):
             raise self.fail(path, "expected an object")
         p = path + "."
-        category = self.string(self.get(o, "category", p + "category"), p + "category", tuple(CLASS_INDEX))
+        category = self.string(self.get(o, "category", p + "category"), p + "category", _CLASS_NAMES)
         instance_id = self.integer(self.get(o, "instance_id", p + "instance_id"), p + "instance_id", 1, 65535)
         b = self.get(o, "box3d", p + "box3d")
         if not isinstance(b, dict):
             raise self.fail(p + "box3d", "expected an object with center, dims, rotation")
-        center = self.array(self.get(b, "center", p + "box3d.center"), p + "box3d.center", (3,))
-        dims = self.array(self.get(b, "dims", p + "box3d.dims"), p + "box3d.dims", (3,))
+        center, dims, rotation = self.box3d(b, p + "box3d.")
         if (dims <= 0).any():
             raise self.fail(p + "box3d.dims", f"dimensions must be positive, got {dims.tolist()}")
-        rotation = self.array(self.get(b, "rotation", p + "box3d.rotation"), p + "box3d.rotation", (3, 3))
         if not is_rotation(rotation, 1e-4):
             raise self.fail(p + "box3d.rotation", "not a proper rotation matrix")
         behind = self.flags(self.get(o, "behind_camera", p + "behind_camera"), p + "behind_camera")
