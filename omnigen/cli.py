@@ -277,23 +277,74 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quality", choices=("preview", "fast", "final"), default="fast",
                    help="Cycles samples, denoising and bounces (raster ignores it)")
     p.add_argument("--start", type=int, default=0, help="index of the first frame")
+    p.add_argument("--shard", default=None, metavar="K/N",
+                   help="render only frames with index %% N == K-1 (1 <= K <= N) into the shared --out; the shard "
+                        "that finds every frame of the run written finalizes (docs/rendering-at-scale.md)")
+    p.add_argument("--finalize-only", action="store_true",
+                   help="render nothing: build the index and manifest once every frame of the run is written")
+    p.add_argument("--executor", choices=("local", "ray"), default="local",
+                   help="local: this process renders; ray: frames fan out over a Ray cluster (optional extra)")
+    p.add_argument("--ray-address", default=None,
+                   help="Ray cluster to join (auto, host:6379, ray://host:10001); default: a local Ray for the run")
+    p.add_argument("--ray-workers", type=int, default=None, help="concurrent render actors (default: CPUs / cpus-per-worker)")
+    p.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs Ray reserves for each render actor")
+    p.add_argument("--frames-per-worker", type=int, default=100,
+                   help="restart a Ray render actor after this many frames (keeps memory flat)")
+    p.add_argument("--retries", type=int, default=2, help="retries of a failed frame on Ray before it is reported")
     p.set_defaults(func=_run_render)
 
 
 def _run_render(args: argparse.Namespace) -> int:
     from omnigen.progress import print_table
-    from rigs.render import RenderJob, Renderer
+    from rigs.render import RenderJob, Renderer, finalize_run, missing_frames, parse_shard
 
     if args.frames < 0 or args.seed < 0 or args.start < 0:
         print("omnigen render: --frames, --seed and --start must be >= 0", file=sys.stderr)
         return 2
+    if args.frames_per_worker < 1 or args.retries < 0 or (args.ray_workers is not None and args.ray_workers < 1):
+        print("omnigen render: --frames-per-worker and --ray-workers must be >= 1, --retries >= 0", file=sys.stderr)
+        return 2
+    try:
+        shard = parse_shard(args.shard) if args.shard else (1, 1)
+    except ValueError as exc:
+        print(f"omnigen render: {exc}", file=sys.stderr)
+        return 2
     job = RenderJob(rig=args.rig, frames=args.frames, out=args.out, seed=args.seed, scene=args.scene,
-                    width=args.width, height=args.height, backend=args.backend, quality=args.quality, start=args.start)
-    s = Renderer(job).run()
+                    width=args.width, height=args.height, backend=args.backend, quality=args.quality, start=args.start,
+                    shard=shard)
+    if args.finalize_only:
+        missing = missing_frames(job)
+        if missing or not finalize_run(job):
+            print(f"omnigen render --finalize-only: {len(missing)} of {args.frames} frames not written yet "
+                  f"(first: {missing[:5]}); run the missing shards (or rerun to resume) first", file=sys.stderr)
+            return 1
+        print(f"finalized {args.out}: {args.frames} frames")
+        return 0
+    if args.executor == "ray":
+        from rigs.ray_executor import run_ray
+
+        try:
+            s = run_ray(job, address=args.ray_address, workers=args.ray_workers, cpus_per_worker=args.cpus_per_worker,
+                        frames_per_worker=args.frames_per_worker, retries=args.retries)
+        except RuntimeError as exc:
+            if "needs Ray" not in str(exc):
+                raise
+            print(f"omnigen render: {exc}", file=sys.stderr)
+            return 2
+    else:
+        s = Renderer(job).run()
     fps = s.rendered / s.seconds if s.seconds > 0 else 0.0
-    print_table(f"render {args.rig} -> {args.out}", ["rendered", "skipped", "objects", "redraws", "seconds", "frames/s"],
-                [[s.rendered, s.skipped, s.objects, s.redraws, round(s.seconds, 2), round(fps, 2)]])
+    title = f"render {args.rig} -> {args.out}" + (f" (shard {shard[0]}/{shard[1]})" if args.shard else "")
+    print_table(title, ["rendered", "skipped", "failed", "objects", "redraws", "seconds", "frames/s"],
+                [[s.rendered, s.skipped, len(s.failed), s.objects, s.redraws, round(s.seconds, 2), round(fps, 2)]])
     print_table("time by stage (s)", list(s.timings), [[round(v, 2) for v in s.timings.values()]])
+    if s.failed:
+        print(f"omnigen render: {len(s.failed)} frames failed: {s.failed[:20]}; rerun the command to retry them",
+              file=sys.stderr)
+        return 1
+    if not s.finalized:
+        print(f"not finalized yet: {len(missing_frames(job))} frames of the run are missing (other shards); "
+              "the shard that completes the run finalizes, or run with --finalize-only", file=sys.stderr)
     return 0
 
 

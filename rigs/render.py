@@ -13,6 +13,11 @@ Per frame i of a dataset with seed s (frame id `synthetic-<rig>-s<seed>-<i:06d>`
    record, each atomically. A frame whose record exists is skipped, so a rerun after a kill
    renders only what is missing, and since every frame depends only on (s, i) the result equals
    an uninterrupted run.
+
+Shards (`RenderJob.shard = (K, N)`, `--shard K/N`) render the indices with index % N == K - 1
+into one shared folder; whichever finds every frame of the run written builds the index and the
+manifest (`finalize_run`), so the dataset equals an unsharded run's. `rigs/ray_executor.py`
+calls `Renderer.render_frame(index)` from Ray actors (docs/rendering-at-scale.md).
 """
 
 from __future__ import annotations
@@ -190,6 +195,54 @@ class RenderJob:
     quality: str = "fast"
     start: int = 0
     durable: bool = True
+    shard: tuple[int, int] = (1, 1)  # (K, N): this process renders the frames with index % N == K - 1
+
+    def indices(self) -> range:
+        """Every frame index of the run (all shards)."""
+        return range(self.start, self.start + self.frames)
+
+    def shard_indices(self) -> list[int]:
+        """The frame indices this shard renders: index % N == K - 1 (round robin on the absolute index)."""
+        k, n = self.shard
+        return [i for i in self.indices() if i % n == k - 1]
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """'K/N' (1 <= K <= N) -> (K, N)."""
+    try:
+        k, n = (int(x) for x in str(text).split("/"))
+    except ValueError:
+        raise ValueError(f"--shard {text!r}: expected K/N, e.g. 2/8") from None
+    if not 1 <= k <= n:
+        raise ValueError(f"--shard {text!r}: need 1 <= K <= N")
+    return k, n
+
+
+def render_info(job: RenderJob, rig: Rig | None = None) -> dict:
+    """The manifest's `render` entry: the same for every shard and executor of one run."""
+    rig = rig or load_rig(job.rig)
+    scene_name = Path(str(job.scene)).stem if str(job.scene).endswith(".toml") else str(job.scene)
+    return {"rig": rig.name, "scene": scene_name, "seed": job.seed, "backend": job.backend, "quality": job.quality,
+            "width": int(job.width or rig.resolution[0]), "height": int(job.height or rig.resolution[1])}
+
+
+def missing_frames(job: RenderJob, rig: Rig | None = None) -> list[int]:
+    """Indices of the run (all shards) whose record is not written yet."""
+    rig = rig or load_rig(job.rig)
+    records = Path(job.out) / "records"
+    return [i for i in job.indices() if not (records / f"{frame_id_for(rig.name, job.seed, i)}.json").exists()]
+
+
+def finalize_run(job: RenderJob, show_progress: bool = True, writer: DatasetWriter | None = None) -> bool:
+    """Build the index and manifest once every frame of the run has its record; False (nothing
+    written) while any is missing. The manifest depends only on records/ and `render_info`, so
+    shards that finalize at the same time write the same bytes, each atomically."""
+    rig = load_rig(job.rig)
+    if missing_frames(job, rig):
+        return False
+    writer = writer or DatasetWriter(job.out, durable=job.durable)
+    writer.finalize({"render": render_info(job, rig)}, show_progress=show_progress)
+    return True
 
 
 @dataclass
@@ -199,6 +252,8 @@ class RenderSummary:
     objects: int = 0
     redraws: int = 0
     seconds: float = 0.0
+    failed: list[int] = field(default_factory=list)  # frames given up after the retries (Ray executor)
+    finalized: bool = False  # False: other shards' frames are still missing (or frames failed)
     timings: dict[str, float] = field(default_factory=lambda: {"scene": 0.0, "camera": 0.0, "render": 0.0,
                                                                "annotate": 0.0, "write": 0.0, "build": 0.0,
                                                                "renderer_core": 0.0})
@@ -286,18 +341,20 @@ class Renderer:
 
         start = time.perf_counter()
         job = self.job
-        indices = range(job.start, job.start + job.frames)
+        indices = job.shard_indices()
         todo = [i for i in indices if not self.writer.has(self.frame_id(i))]
         self.summary.skipped = len(indices) - len(todo)
         try:
             for i in progress(todo, desc=f"render {self.rig.name}", disable=not show_progress, unit="frame"):
                 self.render_frame(i)
         finally:
-            if self.backend is not None:
-                self.backend.close()
-        self.writer.finalize({"render": {"rig": self.rig.name, "scene": self.scene_name, "seed": job.seed,
-                                         "backend": job.backend, "quality": job.quality,
-                                         "width": self.width, "height": self.height}},
-                             show_progress=show_progress)
+            self.close()
+        # The last shard to finish finds every frame written and finalizes (see finalize_run).
+        self.summary.finalized = finalize_run(job, show_progress, self.writer)
         self.summary.seconds = time.perf_counter() - start
         return self.summary
+
+    def close(self) -> None:
+        if self.backend is not None:
+            self.backend.close()
+            self.backend = None
