@@ -277,6 +277,13 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quality", choices=("preview", "fast", "final"), default="fast",
                    help="Cycles samples, denoising and bounces (raster ignores it)")
     p.add_argument("--start", type=int, default=0, help="index of the first frame")
+    p.add_argument("--weather", default=None, help="fix the weather (clear, overcast, rain, snow, fog); default: drawn per frame")
+    p.add_argument("--time-of-day", default=None,
+                   help="fix the time of day (dawn, morning, noon, afternoon, dusk, night); default: drawn per frame")
+    p.add_argument("--fog-density", type=float, default=None, help="fix the fog density (1/m); default: drawn")
+    p.add_argument("--precipitation", type=float, default=None, help="fix rain or snow intensity (0-1); default: drawn")
+    p.add_argument("--save-blend", type=Path, default=None,
+                   help="Cycles: also write the first rendered frame's scene as a .blend to open in Blender")
     p.add_argument("--shard", default=None, metavar="K/N",
                    help="render only frames with index %% N == K-1 (1 <= K <= N) into the shared --out; the shard "
                         "that finds every frame of the run written finalizes (docs/rendering-at-scale.md)")
@@ -309,9 +316,21 @@ def _run_render(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"omnigen render: {exc}", file=sys.stderr)
         return 2
+    from scenes.generate import FrameOverrides
+    from scenes.weather import TIMES_OF_DAY, WEATHER_KINDS
+
+    if args.weather not in (None, *WEATHER_KINDS) or args.time_of_day not in (None, *TIMES_OF_DAY):
+        print(f"omnigen render: --weather is one of {', '.join(WEATHER_KINDS)}; "
+              f"--time-of-day one of {', '.join(TIMES_OF_DAY)}", file=sys.stderr)
+        return 2
+    if args.save_blend is not None and args.backend != "cycles":
+        print("omnigen render: --save-blend needs --backend cycles", file=sys.stderr)
+        return 2
+    overrides = FrameOverrides(weather=args.weather, time_of_day=args.time_of_day, fog_density=args.fog_density,
+                               precipitation=args.precipitation)
     job = RenderJob(rig=args.rig, frames=args.frames, out=args.out, seed=args.seed, scene=args.scene,
                     width=args.width, height=args.height, backend=args.backend, quality=args.quality, start=args.start,
-                    shard=shard)
+                    shard=shard, overrides=overrides, save_blend=args.save_blend)
     if args.finalize_only:
         missing = missing_frames(job)
         if missing or not finalize_run(job):

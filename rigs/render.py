@@ -38,6 +38,7 @@ from rigs.annotate import annotate
 from rigs.rig import Rig, load_rig
 from rigs.sampling import Camera, Obstacles, rig_rng, sample_camera
 from scenes.description import Scene, to_dict
+from scenes.generate import FrameOverrides
 
 BACKENDS = ("cycles", "raster")
 QUALITIES = ("preview", "fast", "final")
@@ -132,6 +133,9 @@ class RasterBackend:
     def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
         return self.rs.render_instances(cam.K, cam.R, cam.t, cam.width, cam.height, ids)
 
+    def save_blend(self, path: Path) -> Path:
+        raise ValueError("--save-blend needs --backend cycles (the raster preview has no Blender scene)")
+
     def close(self) -> None:
         self.rs.close()
 
@@ -160,6 +164,10 @@ class CyclesBackend:
 
     def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
         return self.bs.render_instances(cam.K, cam.R, cam.t, cam.width, cam.height, ids)
+
+    def save_blend(self, path: Path) -> Path:
+        """The current frame's Blender scene, camera included, as a .blend a user opens in Blender."""
+        return self.bs.save_blend(path)
 
     def close(self) -> None:
         import shutil
@@ -196,6 +204,8 @@ class RenderJob:
     start: int = 0
     durable: bool = True
     shard: tuple[int, int] = (1, 1)  # (K, N): this process renders the frames with index % N == K - 1
+    overrides: FrameOverrides | None = None  # weather / time of day fixed on the command line
+    save_blend: Path | None = None  # Cycles: write the first rendered frame's scene as a .blend
 
     def indices(self) -> range:
         """Every frame index of the run (all shards)."""
@@ -263,7 +273,7 @@ class Renderer:
     """Holds the city, the backend and the rig; renders frames by index. Build once per process."""
 
     def __init__(self, job: RenderJob) -> None:
-        from scenes.generate import SceneGenerator
+        from scenes.generate import FrameOverrides, SceneGenerator
 
         if job.backend not in BACKENDS:
             raise ValueError(f"unknown backend {job.backend!r}; choose from {', '.join(BACKENDS)}")
@@ -276,6 +286,7 @@ class Renderer:
         self.gen = SceneGenerator(job.scene, job.seed)
         self.scene_name = Path(str(job.scene)).stem if str(job.scene).endswith(".toml") else str(job.scene)
         self.backend = None
+        self._blend_saved = False
         self.writer = DatasetWriter(job.out, durable=job.durable)
         self.summary = RenderSummary()
 
@@ -286,7 +297,7 @@ class Renderer:
         """Render, annotate and write frame `index`; returns its record."""
         job, tm = self.job, self.summary.timings
         t0 = time.perf_counter()
-        scene = self.gen.frame(job.seed, index)
+        scene = self.gen.frame(job.seed, index, job.overrides)
         t1 = time.perf_counter()
         tm["scene"] += t1 - t0
         if self.backend is None:
@@ -331,6 +342,9 @@ class Renderer:
                                     depth=depth, instance=instance),
         )
         self.writer.write(record)
+        if job.save_blend is not None and not self._blend_saved:
+            self.backend.save_blend(job.save_blend)
+            self._blend_saved = True
         tm["write"] += time.perf_counter() - t5
         self.summary.rendered += 1
         self.summary.objects += len(record.objects)
