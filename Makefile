@@ -60,10 +60,16 @@ demo: $(STAMP) system
 test: $(STAMP) system
 	$(BIN)/python -m pytest -q
 
+# Every figure quoted in the docs; each script prints its own (slow: generates large fake datasets).
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_load.py
 	$(BIN)/python benchmarks/bench_merge_export.py
 	$(BIN)/python benchmarks/bench_stats.py
+	$(BIN)/python benchmarks/bench_convert_kitti.py
+	$(BIN)/python benchmarks/bench_convert_dair.py
+	$(BIN)/python benchmarks/bench_scene.py
+	$(BIN)/python benchmarks/bench_render.py
+	$(BIN)/python benchmarks/bench_render_scale.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) .pytest_cache
