@@ -14,6 +14,8 @@ import tempfile
 from pathlib import Path
 from typing import Any, Literal
 
+import orjson
+
 TMP_PREFIX = ".tmp-"
 
 LinkMode = Literal["hardlink", "symlink", "copy"]
@@ -50,11 +52,14 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 
 def dumps_json(obj: Any) -> str:
-    """The one JSON style omnigen writes: sorted keys, compact, a trailing newline.
+    """The one JSON style omnigen writes records in: sorted keys, compact, a trailing newline.
 
-    Sorted keys and a fixed float repr make reruns byte-identical.
+    Sorted keys and orjson's shortest round-trip floats make reruns byte-identical; orjson encodes
+    several times faster than the json module, which matters at tens of thousands of records.
+    Records are validated before they are written, so no NaN reaches a checked field (orjson would
+    write it as null); free-form source attributes are the source's own values.
     """
-    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False) + "\n"
+    return orjson.dumps(obj, option=orjson.OPT_SORT_KEYS).decode() + "\n"
 
 
 def atomic_write_json(path: str | os.PathLike, obj: Any, indent: int | None = None) -> None:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import fields as dataclass_fields
 from typing import Any
 
 from rigs.render import RenderJob, RenderSummary, finalize_run, frame_id_for, load_rig
@@ -116,7 +116,7 @@ def _drive(ray, GetTimeoutError, job, todo, n_workers, cpus_per_worker, frames_p
     from tqdm import tqdm
 
     Actor = ray.remote(num_cpus=cpus_per_worker, max_restarts=0, max_task_retries=0)(FrameWorker)
-    fields = asdict(job)
+    fields = {f.name: getattr(job, f.name) for f in dataclass_fields(job)}  # shallow: overrides stay objects
     fields["out"] = str(job.out)
     crash = os.environ.get(CRASH_ENV) or None
     pending = list(reversed(todo))  # pop() takes the lowest index first
