@@ -11,7 +11,7 @@ Issue 6's targets: raster >= 3 annotated frames/s; Cycles --quality fast <= 8 s 
 <= 10% of the frame time over 20 frames.
 
     .venv/bin/python benchmarks/bench_render.py [--raster-frames 21] [--cycles-frames 21] [--size 640] [--no-cycles]
-        [--no-raster] [--memory-frames 200]
+        [--no-raster] [--memory-frames 200 [--memory-backend cycles] [--memory-size 96] [--memory-quality preview]]
 """
 
 from __future__ import annotations
@@ -77,21 +77,28 @@ def report(res: dict) -> None:
     print_table(f"{res['backend']}: drone rig", ["measure", "value"], rows)
 
 
-def memory(backend: str, frames: int, size: int, scene: str, seed: int) -> None:
-    """Resident memory every 10 frames over a long run (leaks show as steady growth)."""
+def memory(backend: str, frames: int, size: int, scene: str, seed: int, quality: str = "preview") -> None:
+    """Resident memory every 10 frames over a long run (leaks show as steady growth), and the change
+    from frame 20 to the last (issue 6: within 10% from frame 20 to frame 200)."""
     from omnigen.progress import print_table
     from rigs.render import RenderJob, Renderer
 
-    rows = []
+    rows, at = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         r = Renderer(RenderJob(rig="drone", frames=frames, out=Path(tmp), seed=seed, scene=scene, width=size,
-                               height=size, backend=backend, quality="preview", durable=False))
+                               height=size, backend=backend, quality=quality, durable=False))
         for i in range(frames):
             r.render_frame(i)
             if (i + 1) % 10 == 0:
-                rows.append([i + 1, round(rss_mb())])
+                at[i + 1] = rss_mb()
+                blocks = r.backend.bs.datablock_counts() if backend == "cycles" else {}
+                rows.append([i + 1, round(at[i + 1])] + ([" ".join(f"{k} {v}" for k, v in blocks.items())] if blocks else []))
         r.backend.close()
-    print_table(f"{backend}: resident MB by frame ({size}x{size})", ["frames", "resident MB"], rows)
+    head = ["frames", "resident MB"] + (["bpy datablocks"] if backend == "cycles" else [])
+    print_table(f"{backend}: resident MB by frame ({size}x{size}, {quality})", head, rows)
+    if 20 in at and frames in at and frames > 20:
+        print(f"{backend}: resident MB after frame 20 {at[20]:.0f}, after frame {frames} {at[frames]:.0f}: "
+              f"{100 * (at[frames] / at[20] - 1):+.1f}% (target within 10%)")
 
 
 def main() -> int:
@@ -104,7 +111,10 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-cycles", action="store_true")
     ap.add_argument("--no-raster", action="store_true")
-    ap.add_argument("--memory-frames", type=int, default=0, help="also: raster frames at 160x160, RSS every 10")
+    ap.add_argument("--memory-frames", type=int, default=0, help="also: a long run, RSS every 10 frames")
+    ap.add_argument("--memory-backend", default="raster", choices=("raster", "cycles"))
+    ap.add_argument("--memory-size", type=int, default=160, help="frame size of the memory run (square)")
+    ap.add_argument("--memory-quality", default="preview")
     args = ap.parse_args()
     import os
 
@@ -115,7 +125,7 @@ def main() -> int:
     if not args.no_cycles:
         report(bench("cycles", args.cycles_frames, args.size, args.quality, args.scene, args.seed))
     if args.memory_frames:
-        memory("raster", args.memory_frames, 160, args.scene, args.seed)
+        memory(args.memory_backend, args.memory_frames, args.memory_size, args.scene, args.seed, args.memory_quality)
     return 0
 
 
