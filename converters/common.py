@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Hashable, Iterable, Iterator, Sequence
 
-from omnigen.dataset import DatasetWriter, record_path
-from omnigen.files import LINK_MODES, atomic_write_bytes, dumps_json, link_file
+from omnigen.dataset import DatasetWriter
+from omnigen.files import LINK_MODES, atomic_write_bytes, link_file
 from omnigen.progress import print_table, progress
 from omnigen.record import FrameRecord, RecordError
 
@@ -133,7 +133,7 @@ def run_conversion(
     "conversion_stats".
     """
     start = time.perf_counter()
-    writer = _ConversionWriter(out, durable=durable)
+    writer = DatasetWriter(out, durable=durable)
     report = ConversionReport()
     outcomes = _outcomes(keys, convert_one, writer, Path(out), link, workers)
     for key, outcome in progress(outcomes, desc=desc, total=len(keys), unit="frame"):
@@ -157,31 +157,6 @@ def run_conversion(
     writer.finalize(extra)
     report.seconds = time.perf_counter() - start
     return report
-
-
-class _ConversionWriter(DatasetWriter):
-    """The DatasetWriter of a conversion: validates as cheaply as it can and keeps records written
-    by worker processes, so that finalize indexes them from memory instead of parsing every file
-    again."""
-
-    keep_written = True
-    """False in worker processes: their records travel to the parent, which keeps them."""
-
-    def write(self, record: FrameRecord) -> Path:
-        """As DatasetWriter.write, but validates the dict that is dumped instead of parsing the
-        dumped text back: dumps_json writes exactly that dict (it refuses NaN and non-JSON types),
-        so the check is the same and the JSON parse, a fifth of a KITTI frame's cost, is saved."""
-        d = record.to_dict()
-        path = record_path(self.root, record.frame_id)
-        FrameRecord.from_dict(d, file=str(path))
-        atomic_write_bytes(path, dumps_json(d).encode(), durable=self.durable)
-        if self.keep_written:
-            self._written[record.frame_id] = record
-        return path
-
-    def adopt(self, record: FrameRecord) -> None:
-        """Index a record a worker process wrote (and validated) from memory."""
-        self._written[record.frame_id] = record
 
 
 @dataclass
@@ -219,7 +194,7 @@ def _convert_and_write(key: Hashable, convert_one: Callable[[Any], ConvertedFram
     return _Written(frame.record, mode, frame.stats)
 
 
-def _outcomes(keys: Sequence[Hashable], convert_one: Callable[[Any], ConvertedFrame], writer: _ConversionWriter,
+def _outcomes(keys: Sequence[Hashable], convert_one: Callable[[Any], ConvertedFrame], writer: DatasetWriter,
               out: Path, link: str, workers: int) -> Iterator[tuple[Hashable, Outcome]]:
     """(key, outcome) in key order, from this process or from forked workers."""
     if workers <= 1 or len(keys) < PARALLEL_MIN_FRAMES:

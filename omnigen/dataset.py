@@ -492,19 +492,31 @@ class DatasetWriter:
         self.root = Path(root)
         (self.root / RECORDS_DIR).mkdir(parents=True, exist_ok=True)
         self.durable = durable
+        self.keep_written = True
+        """Remember written records so finalize indexes them from memory; a writer in a worker
+        process turns this off and its parent `adopt`s the records it sends back."""
         self._written: dict[str, FrameRecord] = {}
 
     def has(self, frame_id: str) -> bool:
         return record_path(self.root, frame_id).exists()
 
     def write(self, record: FrameRecord) -> Path:
-        """Validate (round-trip through the parser) and write one record atomically."""
-        text = dumps_json(record.to_dict())
+        """Validate and write one record atomically.
+
+        The dict that is dumped is the dict that is validated (the same check as parsing the
+        dumped text back, without the cost of the parse).
+        """
+        d = record.to_dict()
         path = record_path(self.root, record.frame_id)
-        FrameRecord.from_dict(json.loads(text), file=str(path))
-        atomic_write_bytes(path, text.encode(), durable=self.durable)
-        self._written[record.frame_id] = record
+        FrameRecord.from_dict(d, file=str(path))
+        atomic_write_bytes(path, dumps_json(d).encode(), durable=self.durable)
+        if self.keep_written:
+            self._written[record.frame_id] = record
         return path
+
+    def adopt(self, record: FrameRecord) -> None:
+        """Index a record that another process wrote (and validated) from memory."""
+        self._written[record.frame_id] = record
 
     def finalize(self, extra: dict[str, Any] | None = None, show_progress: bool = True) -> Dataset:
         """Index every record in records/ and write manifest.json; returns the opened dataset."""
