@@ -96,6 +96,15 @@ def default_workers() -> int:
     return max(1, min(len(os.sched_getaffinity(0)), 8))
 
 
+def select_keys(keys: list, limit: int | None, root: str | Path, what: str = "frames") -> list:
+    """The keys a run converts (the first `limit` with --limit); no keys at all is an input error."""
+    if limit is not None:
+        keys = keys[: max(0, limit)]
+    if not keys:
+        raise SourceError(root, "", f"no {what} found")
+    return keys
+
+
 def image_relpath(frame_id: str, suffix: str) -> str:
     """Where a frame's image lives inside a dataset."""
     return f"images/{frame_id}{suffix}"
@@ -263,7 +272,3 @@ def print_report(title: str, report: ConversionReport) -> int:
     for s in report.skips:
         print(f"  skipped: {s}")
     return 1 if report.skips else 0
-
-
-def first(items: Iterable[Any], default: Any = None) -> Any:
-    return next(iter(items), default)

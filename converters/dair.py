@@ -42,6 +42,7 @@ from converters.common import (
     image_relpath,
     print_report,
     run_conversion,
+    select_keys,
 )
 from omnigen.conventions import DAIR_CLASSES, OCCLUSION_UNKNOWN
 from omnigen.geometry import Plane, box_from_dair, fit_plane
@@ -741,11 +742,7 @@ def options_from_args(args: argparse.Namespace) -> DairOptions:
 
 def run(args: argparse.Namespace) -> int:
     converter = DairConverter(args.src, options_from_args(args))
-    keys = converter.keys()
-    if args.limit is not None:
-        keys = keys[: max(0, args.limit)]
-    if not keys:
-        raise SourceError(converter.root, "", "no frames found")
+    keys = select_keys(converter.keys(), args.limit, converter.root)
     o = converter.options
     conversion = {"converter": "dair", "source": converter.source, "label": o.label,
                   "fallback_virtuallidar": o.fallback_virtuallidar, "group_by": o.group_by, "group_gap_s": o.group_gap_s}

@@ -31,6 +31,7 @@ from converters.common import (
     image_relpath,
     print_report,
     run_conversion,
+    select_keys,
 )
 from omnigen.conventions import BOTTOM_CORNERS, DIFFICULTIES, KITTI_CLASSES, KITTI_IGNORE
 from omnigen.geometry import (
@@ -497,11 +498,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     source = open_input(args.src, args.split)
     converter = KittiConverter(source, args.split)
-    keys = converter.keys()
-    if args.limit is not None:
-        keys = keys[: max(0, args.limit)]
-    if not keys:
-        raise SourceError(args.src, "", f"no {args.split} frames found")
+    keys = select_keys(converter.keys(), args.limit, args.src, f"{args.split} frames")
     report = run_conversion(keys, converter.convert_one, args.out, link=args.link, strict=args.strict,
                             desc=f"kitti {args.split}",
                             manifest_extra={"conversion": {"converter": "kitti", "split": args.split}},

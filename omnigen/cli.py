@@ -420,7 +420,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_stats(sub)
     _add_show(sub)
     _add_validate(sub)
-    for name in ("train", "predict", "eval", "bev"):
+    for name in NOT_BUILT:
         sub.add_parser(name, help=NOT_BUILT[name], add_help=False).set_defaults(func=_not_built(name))
     return parser
 

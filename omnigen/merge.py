@@ -46,7 +46,7 @@ from omnigen.dataset import (
 )
 from omnigen.files import atomic_write_bytes, atomic_write_json, dumps_json, link_file
 from omnigen.progress import progress
-from omnigen.splits import SPLITS_DIR, TEST, TRAIN, assign_test_split, read_assignments, read_id_list, write_split
+from omnigen.splits import SPLITS_DIR, assign_test_split, read_assignments, read_id_list, write_split
 from omnigen.taxonomy import Taxonomy, load_taxonomy
 
 
@@ -177,9 +177,9 @@ def merge(
     report.unique_images = len(owner_of_hash)
 
     # 3. Splits: user files first, then the seeded stratified draw over whole groups.
+    by_suffix = _ids_by_source_suffix(order, datasets, frames) if split_files else {}
     for path in split_files or []:
         name = Path(path).stem
-        by_suffix = _ids_by_source_suffix(order, datasets, frames)
         for line in read_id_list(path):
             for frame_id in by_suffix.get(line, [line] if line in frames else []):
                 fixed[frame_id] = name
@@ -363,6 +363,3 @@ def _split_counts(ds: Dataset, assignment: dict[str, str]) -> dict[str, Any]:
             "objects_by_class": dict(sorted(Counter(np.asarray(FINE_CLASSES)[ds.objects.category[obj_mask]].tolist()).items())),
         }
     return out
-
-
-__all__ = ["merge", "MergeReport", "TRAIN", "TEST"]
