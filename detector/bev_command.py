@@ -1,0 +1,194 @@
+"""`omnigen bev PREDICTIONS --out DIR`: the calibration-free BEV of every image in a predictions file.
+
+PREDICTIONS is COCO-results JSON: a list of {image_id, category_id, keypoints (24 numbers: x, y, v
+per corner, contract order), bbox [x, y, w, h], score}. Detections whose ground-contact corners 4-7
+all have v > 0 define the image's homography (detector.bev.rectify); the others, and entries with
+no keypoints at all (an auxiliary 2D detector's), are placed in the BEV by the ridge map fitted on
+the image's keypoint detections. Per image it writes DIR/<image_id>.json and DIR/<image_id>.png.
+
+category_id is 1-based into the taxonomy's classes (as omnigen's COCO export writes it); the
+class names choose the aspect and size priors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import orjson
+
+from detector.bev import RIDGE_LAMBDA, apply_homography, fit_ridge, rectify
+from omnigen.conventions import BOTTOM_CORNERS, NUM_KEYPOINTS
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
+
+
+@dataclass
+class Detection:
+    index: int  # position in the predictions file
+    image_id: int | str
+    category_id: int
+    score: float
+    bbox: np.ndarray | None  # (4,) xywh
+    keypoints: np.ndarray | None  # (8, 3)
+
+    @property
+    def has_ground(self) -> bool:
+        return self.keypoints is not None and bool((self.keypoints[list(BOTTOM_CORNERS), 2] > 0).all())
+
+    def box_xywh(self) -> np.ndarray:
+        """The 2D box; for a keypoint detection without one, the box around its visible corners."""
+        if self.bbox is not None:
+            return self.bbox
+        kp = self.keypoints[self.keypoints[:, 2] > 0, :2]
+        lo, hi = kp.min(0), kp.max(0)
+        return np.array([*lo, *(hi - lo)])
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("predictions", type=Path, help="COCO-results JSON (image_id, category_id, keypoints, bbox, score)")
+    parser.add_argument("--out", type=Path, required=True, help="folder for <image_id>.json and <image_id>.png")
+    parser.add_argument("--images", type=Path, default=None, help="folder holding <image_id>.png/.jpg to draw under")
+    parser.add_argument("--score-thr", type=float, default=0.25, help="drop detections scoring below (default 0.25)")
+    parser.add_argument("--taxonomy", default="fine", help="taxonomy whose classes category_id counts (default fine)")
+    parser.add_argument("--ridge-lambda", type=float, default=RIDGE_LAMBDA, help="ridge strength for 2D-only boxes")
+    parser.add_argument("--no-draw", action="store_true", help="write the JSON only")
+
+
+def _number_list(path: Path, i: int, entry: dict, key: str, length: int) -> np.ndarray:
+    value = entry[key]
+    if not isinstance(value, list) or len(value) != length or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value):
+        raise ValueError(f"{path}: entry {i}: field '{key}': expected {length} finite numbers, got {str(value)[:80]}")
+    return np.asarray(value, dtype=np.float64)
+
+
+def load_predictions(path: Path, n_classes: int) -> list[Detection]:
+    """Parse and check a COCO-results file; errors name the file, the entry and the field."""
+    try:
+        data = orjson.loads(Path(path).read_bytes())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such file") from None
+    except orjson.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON: {exc}") from None
+    if not isinstance(data, list):
+        raise ValueError(f"{path}: expected a list of detections (COCO results), got {type(data).__name__}")
+    out = []
+    for i, entry in enumerate(data):
+        if not isinstance(entry, dict):
+            raise ValueError(f"{path}: entry {i}: expected an object, got {type(entry).__name__}")
+        for key in ("image_id", "category_id"):
+            if key not in entry:
+                raise ValueError(f"{path}: entry {i}: field '{key}' is missing")
+        image_id = entry["image_id"]
+        if isinstance(image_id, bool) or not isinstance(image_id, (int, str)) or (
+                isinstance(image_id, str) and (not image_id or "/" in image_id or image_id.startswith("."))):
+            raise ValueError(f"{path}: entry {i}: field 'image_id': expected an integer or a plain name, got {image_id!r}")
+        cid = entry["category_id"]
+        if isinstance(cid, bool) or not isinstance(cid, int) or not 1 <= cid <= n_classes:
+            raise ValueError(f"{path}: entry {i}: field 'category_id': expected an integer in 1..{n_classes}, got {cid!r}")
+        score = entry.get("score", 1.0)
+        if isinstance(score, bool) or not isinstance(score, (int, float)) or not math.isfinite(score):
+            raise ValueError(f"{path}: entry {i}: field 'score': expected a number, got {score!r}")
+        kp = _number_list(path, i, entry, "keypoints", 3 * NUM_KEYPOINTS).reshape(NUM_KEYPOINTS, 3) \
+            if entry.get("keypoints") is not None else None
+        bbox = _number_list(path, i, entry, "bbox", 4) if entry.get("bbox") is not None else None
+        if bbox is not None and (bbox[2] <= 0 or bbox[3] <= 0):
+            raise ValueError(f"{path}: entry {i}: field 'bbox': width and height must be positive, got {bbox.tolist()}")
+        if bbox is None and (kp is None or not (kp[:, 2] > 0).any()):
+            raise ValueError(f"{path}: entry {i}: field 'bbox' is missing and there are no keypoints to place it by")
+        out.append(Detection(i, image_id, cid, float(score), bbox, kp))
+    return out
+
+
+def find_image(folder: Path | None, image_id: int | str) -> Path | None:
+    if folder is None:
+        return None
+    for suffix in IMAGE_SUFFIXES:
+        p = folder / f"{image_id}{suffix}"
+        if p.exists():
+            return p
+    return None
+
+
+def bev_for_image(dets: list[Detection], classes: list[str], lam: float) -> dict[str, Any]:
+    """The head on one image's detections: the result, the placed 2D-only boxes, and the JSON record."""
+    kp = [d for d in dets if d.has_ground]
+    flat = [d for d in dets if not d.has_ground]
+    names = [classes[d.category_id - 1] for d in kp]
+    record: dict[str, Any] = {"image_id": dets[0].image_id, "homography": None, "detections": [], "placed_2d": [],
+                              "ridge": {"lambda": lam, "features": ["cx", "cy", "w", "h", "w/h"], "bias": True}}
+    result, placed = None, np.zeros((0, 2))
+    ground = np.stack([d.keypoints[list(BOTTOM_CORNERS), :2] for d in kp]) if kp else np.zeros((0, 4, 2))
+    if kp:
+        result = rectify(ground, names)
+        record.update(homography=result.homography.tolist(), degenerate=result.degenerate, residual=result.residual,
+                      iterations=result.iterations, folded=result.folded)
+        for j, d in enumerate(kp):
+            record["detections"].append({
+                "index": d.index, "category_id": d.category_id, "class": names[j], "score": d.score,
+                "footprint": result.footprints[j].tolist(), "centre": result.centres[j].tolist(),
+                "heading": float(result.headings[j]), "angle_error_deg": float(result.angle_error_deg[j])})
+        if flat:
+            ridge = fit_ridge(np.stack([d.box_xywh() for d in kp]), result.centres, lam)
+            placed = ridge(np.stack([d.box_xywh() for d in flat]))
+    for j, d in enumerate(flat):
+        box = d.box_xywh()
+        via_h = None
+        if result is not None:  # the box's bottom-centre, where it meets the ground, through H
+            via_h = apply_homography(result.homography, np.array([box[0] + box[2] / 2, box[1] + box[3]])).tolist()
+        record["placed_2d"].append({"index": d.index, "category_id": d.category_id, "score": d.score,
+                                    "bbox": box.tolist(), "centre": placed[j].tolist() if len(placed) else None,
+                                    "centre_bottom_through_h": via_h})
+    return {"record": record, "result": result, "ground": ground, "names": names,
+            "boxes_2d": np.stack([d.box_xywh() for d in flat]) if flat else np.zeros((0, 4)), "placed": placed}
+
+
+def run(args: argparse.Namespace) -> int:
+    from PIL import Image
+
+    from detector.bev_draw import BevScene, render_bev_figure
+    from omnigen.files import atomic_write_bytes, atomic_write_json
+    from omnigen.progress import print_table, progress
+    from omnigen.taxonomy import load_taxonomy
+
+    classes = load_taxonomy(args.taxonomy).classes
+    dets = [d for d in load_predictions(args.predictions, len(classes)) if d.score >= args.score_thr]
+    by_image: dict[int | str, list[Detection]] = {}
+    for d in dets:
+        by_image.setdefault(d.image_id, []).append(d)
+    rows, t0 = [], time.perf_counter()
+    for image_id, group in progress(sorted(by_image.items(), key=lambda kv: str(kv[0])), "bev", unit="img"):
+        out = bev_for_image(group, classes, args.ridge_lambda)
+        atomic_write_json(args.out / f"{image_id}.json", out["record"])
+        res = out["result"]
+        if not args.no_draw:
+            path = find_image(args.images, image_id)
+            image = Image.open(path).convert("RGB") if path else None
+            pts = np.concatenate([out["ground"].reshape(-1, 2),
+                                  out["boxes_2d"][:, :2].reshape(-1, 2), (out["boxes_2d"][:, :2] + out["boxes_2d"][:, 2:])])
+            w, h = image.size if image else (int(pts[:, 0].max()) + 20, int(pts[:, 1].max()) + 20)
+            title = f"{image_id}: {len(out['names'])} footprints, {len(out['placed'])} 2D-only" + (
+                "" if image else "  [no image]")
+            scene = BevScene(out["ground"], out["names"], res, out["boxes_2d"], out["placed"], title)
+            buf = io.BytesIO()
+            render_bev_figure(scene, image, w, h).save(buf, format="PNG")
+            atomic_write_bytes(args.out / f"{image_id}.png", buf.getvalue())
+        rows.append((str(image_id), len(out["names"]), len(out["placed"]),
+                     "-" if res is None else float(np.median(res.angle_error_deg)),
+                     "-" if res is None else ("yes" if res.degenerate else "no")))
+    elapsed = time.perf_counter() - t0
+    shown = rows if len(rows) <= 20 else rows[:20]
+    footprints = sum(r[1] for r in rows)
+    print_table(f"omnigen bev: {len(rows)} images -> {args.out} ({elapsed:.1f} s)",
+                ["image", "footprints", "2D-only placed", "median angle err (deg)", "one heading"],
+                shown + ([("...", "", "", "", "")] if len(rows) > 20 else []) +
+                [("all", footprints, sum(r[2] for r in rows),
+                  "", f"{sum(r[4] == 'yes' for r in rows)} of {len(rows)}")])
+    return 0

@@ -1,0 +1,314 @@
+"""omnigen eval: OKS metrics per group, best-F1 precision/recall, adherence, prediction checks, the command."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from pycocotools.cocoeval import COCOeval
+
+import detector.oks_eval as oks_eval
+from detector import eval_command
+from detector.oks_eval import (PredictionError, _coco_from_dict, _results_coco, ap_numbers, best_f1,
+                               evalimgs_subset, evaluate, make_cocoeval, normalize_predictions, run_quietly)
+from omnigen.coco import to_coco
+from omnigen.dataset import Dataset
+from omnigen.fakes import write_fake_dataset
+from omnigen.merge import merge
+from omnigen.splits import read_split
+
+
+@pytest.fixture(scope="module")
+def ds(tmp_path_factory) -> Dataset:
+    """Synthetic (three views) and kitti frames, merged, with train and test splits."""
+    root = tmp_path_factory.mktemp("eval")
+    syn = write_fake_dataset(root / "syn", n_frames=60, objects_per_frame=5, seed=11).root
+    kit = write_fake_dataset(root / "kit", n_frames=30, objects_per_frame=5, seed=12, source="kitti").root
+    merge([syn, kit], root / "uov", test_fraction=0.3, seed=1)
+    return Dataset.open(root / "uov", show_progress=False)
+
+
+def perfect(ds: Dataset, split: str | None = "test", by: str = "frame_id") -> list[dict]:
+    """Every ground-truth object of the split predicted at its true corners (all eight), score 0.9.
+
+    Objects with no corner in the image are left out: COCO ignores them as ground truth, and a
+    detection of one is only forgiven when its corners fall in twice the object's clipped 2D box.
+    """
+    keep = None if split is None else set(read_split(ds.root, split))
+    coco = to_coco(ds)  # fine taxonomy: one annotation per object, object order
+    frames = {im["id"]: im["frame_id"] for im in coco["images"]}
+    out = []
+    for a, kp in zip(coco["annotations"], ds.objects.keypoints):
+        fid = frames[a["image_id"]]
+        if (keep is not None and fid not in keep) or a["num_keypoints"] == 0:
+            continue
+        xyv = np.concatenate([np.nan_to_num(kp), np.full((8, 1), 2.0)], axis=1)
+        p = {"category_id": a["category_id"], "keypoints": xyv.ravel().tolist(), "score": 0.9, "bbox": a["bbox"]}
+        p["frame_id" if by == "frame_id" else "image_id"] = fid if by == "frame_id" else a["image_id"]
+        out.append(p)
+    return out
+
+
+def noisy(preds: list[dict], rng: np.random.Generator, px: float) -> list[dict]:
+    out = []
+    for p in preds:
+        kp = np.asarray(p["keypoints"]).reshape(8, 3)
+        kp[:, :2] += rng.normal(0, px, (8, 2))
+        out.append({**p, "keypoints": kp.ravel().tolist(), "score": float(rng.uniform(0.1, 1.0))})
+    return out
+
+
+def plain_cocoeval(gt, dt, img_ids):
+    """pycocotools' own COCOeval (no subclass) with the module's parameters: the reference."""
+    e = COCOeval(gt, dt, iouType="keypoints")
+    e.params.kpt_oks_sigmas = np.full(8, oks_eval.OKS_SIGMA)
+    e.params.maxDets = [oks_eval.MAX_DETS]
+    e.params.areaRng, e.params.areaRngLbl = [list(oks_eval.AREA_ALL)], ["all"]
+    e.params.imgIds = sorted(img_ids)
+    run_quietly(e.evaluate)
+    run_quietly(e.accumulate)
+    return e
+
+
+def test_perfect_predictions_score_one_in_every_group(ds):
+    report = evaluate(ds, perfect(ds), split="test", adherence=False)
+    groups = {r.group for r in report.rows}
+    assert {"overall", "source=synthetic", "source=kitti", "view=ego", "view=aerial"} <= groups
+    n_test = len(read_split(ds.root, "test"))
+    assert report.row("overall").images == n_test
+    for r in report.rows:
+        assert r.objects > 0
+        assert (r.oks_map50_95, r.ap_oks50, r.precision, r.recall, r.f1) == pytest.approx((1, 1, 1, 1, 1)), r.group
+        assert r.conf_threshold == pytest.approx(0.9)
+    assert report.row("source=synthetic").images + report.row("source=kitti").images == n_test
+
+
+def test_noise_lowers_the_numbers_more_the_more_noise(ds):
+    rng = np.random.default_rng(0)
+    base = perfect(ds)
+    small = evaluate(ds, noisy(base, rng, 1.0), split="test", adherence=False).row("overall")
+    large = evaluate(ds, noisy(base, rng, 6.0), split="test", adherence=False).row("overall")
+    assert small.oks_map50_95 < 1.0
+    assert large.oks_map50_95 < small.oks_map50_95
+    assert large.recall < 1.0 and large.f1 < small.f1 + 1e-9
+
+
+def test_confident_false_positive_sets_precision_as_by_hand(ds):
+    preds = perfect(ds)
+    coco = to_coco(ds, "test")
+    counted = [a for a in coco["annotations"] if a["num_keypoints"] > 0]
+    n = len(counted)
+    victim = dict(preds[0])
+    kp = np.asarray(victim["keypoints"]).reshape(8, 3)
+    kp[:, :2] += 5000.0  # far from everything: matches nothing
+    fp = {**victim, "keypoints": kp.ravel().tolist(), "score": 0.99}
+    r = evaluate(ds, preds + [fp], split="test", adherence=False).row("overall")
+    # Above 0.99 nothing; at 0.9: n TPs and the one FP, F1 = 2n / (2n + 1), the best threshold.
+    assert r.conf_threshold == pytest.approx(0.9)
+    assert r.precision == pytest.approx(n / (n + 1))
+    assert r.recall == pytest.approx(1.0)
+    assert r.f1 == pytest.approx(2 * n / (2 * n + 1))
+    # AP50: the FP ranks first in its class, whose envelope precision is nc / (nc + 1) at every recall.
+    cat = fp["category_id"]
+    per_cat = {}
+    for a in counted:
+        per_cat[a["category_id"]] = per_cat.get(a["category_id"], 0) + 1
+    nc = per_cat[cat]
+    expected = (len(per_cat) - 1 + nc / (nc + 1)) / len(per_cat)
+    assert r.ap_oks50 == pytest.approx(expected)
+    # The same FP below every TP costs nothing at the best threshold.
+    low = evaluate(ds, preds + [{**fp, "score": 0.1}], split="test", adherence=False).row("overall")
+    assert (low.precision, low.recall, low.conf_threshold) == pytest.approx((1.0, 1.0, 0.9))
+
+
+def test_groups_equal_a_separate_restricted_cocoeval(ds):
+    preds = noisy(perfect(ds, split=None), np.random.default_rng(3), 3.0)
+    report = evaluate(ds, preds, split=None, adherence=False)
+    gt_dict = to_coco(ds)
+    gt = _coco_from_dict(gt_dict)
+    anns, _ = normalize_predictions(preds, ds, {im["id"] for im in gt_dict["images"]}, len(gt_dict["categories"]))
+    dt = _results_coco(gt, anns)
+    checked = 0
+    for key in ("source", "view"):
+        for name in {im[key] for im in gt_dict["images"]}:
+            ids = [im["id"] for im in gt_dict["images"] if im[key] == name]
+            e = plain_cocoeval(gt, dt, ids)
+            alone = ap_numbers(e.eval["precision"])
+            f = best_f1(e.evalImgs)
+            row = report.row(f"{key}={name}")
+            assert (row.oks_map50_95, row.ap_oks50) == pytest.approx(alone, abs=1e-12)
+            assert (row.precision, row.recall, row.f1, row.conf_threshold) == \
+                pytest.approx((f.precision, f.recall, f.f1, f.conf_threshold), abs=1e-12)
+            assert 0 < row.oks_map50_95 < 1
+            checked += 1
+    assert checked >= 5
+
+
+def test_subset_accumulate_matches_pycocotools_precision_array(ds):
+    preds = noisy(perfect(ds, split=None), np.random.default_rng(4), 2.0)
+    gt_dict = to_coco(ds)
+    gt = _coco_from_dict(gt_dict)
+    anns, _ = normalize_predictions(preds, ds, {im["id"] for im in gt_dict["images"]}, len(gt_dict["categories"]))
+    dt = _results_coco(gt, anns)
+    full = make_cocoeval(gt, dt)
+    run_quietly(full.evaluate)
+    ids = [im["id"] for im in gt_dict["images"] if im["view"] == "aerial"]
+    _, sub = evalimgs_subset(full, ids)
+    run_quietly(sub.accumulate)
+    alone = plain_cocoeval(_coco_from_dict(to_coco(ds)), dt, ids)
+    np.testing.assert_array_equal(sub.eval["precision"], alone.eval["precision"])
+
+
+def test_frame_ids_win_over_image_ids_and_outside_split_is_counted(ds):
+    by_image = evaluate(ds, perfect(ds, by="image_id"), split="test", adherence=False)
+    wrong_ids = [{**p, "image_id": 1} for p in perfect(ds)]  # frame_id present: image_id ignored
+    by_frame = evaluate(ds, wrong_ids, split="test", adherence=False)
+    assert [r.__dict__ for r in by_frame.rows] == [r.__dict__ for r in by_image.rows]
+    everything = evaluate(ds, perfect(ds, split=None), split="test", adherence=False)
+    assert everything.predictions == by_frame.predictions
+    assert everything.predictions_outside_split == len(perfect(ds, split="train")) > 0
+    assert everything.row("overall").f1 == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("change, field", [
+    (lambda p: p.pop("keypoints"), "keypoints"),
+    (lambda p: p.update(keypoints=p["keypoints"][:21]), "keypoints"),
+    (lambda p: p.update(keypoints=[math.nan] * 24), "keypoints"),
+    (lambda p: (p.pop("frame_id"), p.update(image_id=10 ** 6)), "image_id"),
+    (lambda p: p.update(frame_id="no-such-frame"), "frame_id"),
+    (lambda p: p.update(category_id=99), "category_id"),
+    (lambda p: p.pop("score"), "score"),
+])
+def test_bad_predictions_name_the_file_and_field(ds, change, field):
+    preds = perfect(ds)[:3]
+    change(preds[1])
+    with pytest.raises(PredictionError, match=rf"preds\.json: prediction 1: field '{field}'"):
+        evaluate(ds, preds, split="test", adherence=False, source="preds.json")
+
+
+def test_adherence_means_per_group_with_a_stub_lift(ds, monkeypatch):
+    """The adherence plumbing against detector.lift's API, whatever the lift computes."""
+    calls = {}
+
+    class Priors:
+        def dims_for(self, names):
+            return np.ones((len(names), 3))
+
+    def fit_dimension_priors(dataset, frame_ids):
+        calls["frames"] = list(frame_ids)
+        return Priors()
+
+    def lift_keypoints(keypoints, dims, K, valid=None):
+        return SimpleNamespace(ok=np.ones(len(keypoints), bool))
+
+    # Every fake frame has its own random ground plane: the stub tells the sources apart by it.
+    kitti_planes = {ds.table.ground_plane[i].tobytes() for i, s in enumerate(ds.table.source) if s == "kitti"}
+
+    def ground_adherence_deg(lifted, plane):
+        return np.full(len(lifted.ok), 1.0 if np.asarray(plane).tobytes() in kitti_planes else 3.0)
+
+    stub = SimpleNamespace(fit_dimension_priors=fit_dimension_priors, lift_keypoints=lift_keypoints,
+                           ground_adherence_deg=ground_adherence_deg)
+    monkeypatch.setitem(__import__("sys").modules, "detector.lift", stub)
+    report = evaluate(ds, perfect(ds), split="test")
+    assert calls["frames"] == read_split(ds.root, "train")
+    assert report.priors_from == "train"
+    assert report.row("source=kitti").ground_adherence_deg == pytest.approx(1.0)
+    assert report.row("source=synthetic").ground_adherence_deg == pytest.approx(3.0)
+    k, s = report.row("source=kitti"), report.row("source=synthetic")
+    overall = report.row("overall")
+    assert overall.adherence_objects == k.adherence_objects + s.adherence_objects == overall.objects
+    assert overall.ground_adherence_deg == pytest.approx((k.adherence_objects + 3 * s.adherence_objects) /
+                                                         overall.adherence_objects)
+
+
+def test_priors_from_all_frames_without_a_train_split_and_no_plane_no_adherence(tmp_path, monkeypatch):
+    small = write_fake_dataset(tmp_path / "small", n_frames=6, objects_per_frame=3, seed=7, images=False)
+    calls = {}
+
+    def fit_dimension_priors(dataset, frame_ids):
+        calls["frames"] = list(frame_ids)
+        return SimpleNamespace(dims_for=lambda names: np.ones((len(names), 3)))
+
+    stub = SimpleNamespace(
+        fit_dimension_priors=fit_dimension_priors,
+        lift_keypoints=lambda kp, dims, K, valid=None: SimpleNamespace(ok=np.ones(len(kp), bool)),
+        ground_adherence_deg=lambda lifted, plane: np.full(len(lifted.ok), 2.0))
+    monkeypatch.setitem(__import__("sys").modules, "detector.lift", stub)
+    report = evaluate(small, perfect(small, split=None), split=None)
+    assert report.priors_from == "all frames" and calls["frames"] == small.table.frame_id
+    assert report.row("overall").ground_adherence_deg == pytest.approx(2.0)
+    small.table.ground_plane[:] = np.nan  # ground plane unknown everywhere: nothing to report
+    unknown = evaluate(small, perfect(small, split=None), split=None)
+    assert math.isnan(unknown.row("overall").ground_adherence_deg) and unknown.row("overall").adherence_objects == 0
+    assert unknown.to_dict()["rows"][0]["ground_adherence_deg"] is None
+
+
+@pytest.mark.skipif(importlib.util.find_spec("detector.lift") is None, reason="detector.lift not built yet")
+def test_adherence_with_the_real_lift_is_small_for_true_corners(ds):
+    report = evaluate(ds, perfect(ds), split="test")
+    r = report.row("overall")
+    assert r.adherence_objects > 0.8 * r.objects
+    assert 0.0 <= r.ground_adherence_deg < 5.0  # true corners, median class sizes: nearly flat bottoms
+    noisy_r = evaluate(ds, noisy(perfect(ds), np.random.default_rng(1), 3.0), split="test").row("overall")
+    assert noisy_r.ground_adherence_deg > r.ground_adherence_deg
+
+
+def _args(tmp_path: Path, predictions: Path, dataset: Path, **kw) -> argparse.Namespace:
+    p = argparse.ArgumentParser()
+    eval_command.add_arguments(p)
+    argv = [str(predictions), str(dataset), "--out", str(tmp_path / "report.json")]
+    for k, v in kw.items():
+        argv += [f"--{k.replace('_', '-')}"] + ([] if v is True else [str(v)])
+    return p.parse_args(argv)
+
+
+def test_command_writes_json_and_prints_a_table(ds, tmp_path, capsys, monkeypatch):
+    from omnigen import progress
+
+    monkeypatch.setattr(progress.console, "_width", 200)  # no column folding in the captured table
+    path = tmp_path / "preds.json"
+    path.write_text(json.dumps(perfect(ds)))
+    assert eval_command.run(_args(tmp_path, path, ds.root, no_adherence=True)) == 0
+    out = capsys.readouterr().out
+    assert "overall" in out and "source=kitti" in out
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert doc["arguments"]["split"] == "test" and doc["wall_s"] >= 0
+    rows = {r["group"]: r for r in doc["report"]["rows"]}
+    assert rows["overall"]["f1"] == pytest.approx(1.0)
+
+
+def test_command_runs_weights_through_predict(ds, tmp_path, monkeypatch):
+    import detector.predict as predict
+
+    seen = {}
+
+    def fake_predict(weights, root, split, imgsz, batch):
+        seen.update(weights=Path(weights), split=split, imgsz=imgsz, batch=batch)
+        return perfect(ds)
+
+    monkeypatch.setattr(predict, "predict_dataset", fake_predict)
+    weights = tmp_path / "best.pt"
+    weights.write_bytes(b"x")
+    args = _args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True, taxonomy="fine")
+    assert eval_command.run(args) == 0
+    assert seen == {"weights": weights, "split": "test", "imgsz": 320, "batch": 2}
+
+
+def test_command_bad_input_exits_2_naming_file_and_field(ds, tmp_path, capsys):
+    assert eval_command.run(_args(tmp_path, tmp_path / "missing.json", ds.root)) == 2
+    assert "missing.json" in capsys.readouterr().err
+    bad = tmp_path / "bad.json"
+    preds = perfect(ds)[:2]
+    del preds[1]["keypoints"]
+    bad.write_text(json.dumps(preds))
+    assert eval_command.run(_args(tmp_path, bad, ds.root)) == 2
+    err = capsys.readouterr().err
+    assert "bad.json" in err and "'keypoints'" in err
+    assert not (tmp_path / "report.json").exists()
