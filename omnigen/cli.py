@@ -14,30 +14,27 @@ import importlib
 import sys
 import time
 from pathlib import Path
-from typing import Callable
 
 from omnigen import __version__
 from omnigen.files import LINK_MODES
 
-NOT_BUILT = {
-    "train": "the bundled detector (issue 10)",
-    "predict": "the bundled detector (issue 10)",
-    "eval": "evaluation (issue 11)",
-    "bev": "the BEV head (issue 11)",
+COMMANDS: dict[str, str] = {
+    # verb: module exposing add_arguments(parser) and run(args) -> int; modules import their heavy
+    # dependencies (torch, pycocotools) inside run, so building the parser stays fast.
+    "train": "detector.train_command",
+    "predict": "detector.predict_command",
+    "eval": "detector.eval_command",
+    "bev": "detector.bev_command",
+    "eval-kitti": "detector.kitti_eval_command",
+    "calib-sensitivity": "detector.calib_command",
 }
 
 
 EXPORTERS: dict[str, str] = {
     # format: module exposing add_arguments(parser) and run(args) -> int
     "kitti": "converters.kitti_export",
+    "onnx": "detector.export_onnx",
 }
-
-
-def _not_built(name: str) -> Callable[[argparse.Namespace], int]:
-    def run(args: argparse.Namespace) -> int:
-        print(f"omnigen {name}: not built yet: {NOT_BUILT[name]}.", file=sys.stderr)
-        return 2
-    return run
 
 
 # ---------------------------------------------------------------------------------------------
@@ -389,7 +386,7 @@ def _add_plugins(subparsers: argparse._SubParsersAction, registry: dict[str, str
             if exc.name != module_name:
                 raise
             q = subparsers.add_parser(name, help="(not built yet)")
-            q.set_defaults(func=lambda args, n=name: _say_not_built(f"{verb} {n}"))
+            q.set_defaults(func=lambda args, n=name: _say_not_built(f"{verb} {n}".strip()))
             continue
         q = subparsers.add_parser(name, help=(module.__doc__ or "").strip().splitlines()[0])
         module.add_arguments(q)
@@ -420,16 +417,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_stats(sub)
     _add_show(sub)
     _add_validate(sub)
-    for name in NOT_BUILT:
-        sub.add_parser(name, help=NOT_BUILT[name], add_help=False).set_defaults(func=_not_built(name))
+    _add_plugins(sub, COMMANDS, "")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args, extra = parser.parse_known_args(argv)
-    if extra and args.command not in NOT_BUILT:
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

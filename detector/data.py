@@ -1,0 +1,238 @@
+"""Training samples from an UrbanOmniView dataset: images letterboxed to the network input, and
+each object's class, 2D box and eight corners as loss targets.
+
+The loader reads the canonical records (not a COCO export) because the record keeps what COCO
+drops: corners outside the image but in front of the camera. Those are real targets for truncated
+objects (a car cut by the image border still has a rear corner somewhere to the left of it), so by
+default the model learns them (`out_of_image="learn"`); `out_of_image="drop"` masks them as COCO's
+v = 0 does. Corners behind the camera are never targets: they have no image position.
+
+Randomness: every sample draws from its own `numpy.random.Generator`, seeded from (seed, epoch,
+frame index), so an epoch is the same whatever the number of workers or processes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import torch
+
+from omnigen.conventions import FINE_CLASSES, FLIP_IDX, NUM_KEYPOINTS
+from omnigen.dataset import Dataset
+from omnigen.splits import TRAIN, read_split, split_names
+from omnigen.taxonomy import Taxonomy
+
+PAD_VALUE = 114
+"""Grey of the letterbox padding, as YOLO detectors use (a neutral value for the normalised input)."""
+
+MIN_BOX_PX = 2.0
+"""Objects whose box, after augmentation and clipping to the canvas, is narrower or lower than this
+are dropped: the assigner cannot place an anchor inside them."""
+
+OutOfImage = Literal["learn", "drop"]
+
+
+@dataclass(frozen=True)
+class Augment:
+    """Training augmentation; all off gives the validation transform (letterbox only)."""
+
+    flip: float = 0.5  # probability of a horizontal flip (corners permuted by FLIP_IDX)
+    scale: float = 0.5  # random zoom in [1 - scale, 1 + scale] of the letterboxed image
+    translate: float = 0.1  # random shift, fraction of the input size
+    hsv: tuple[float, float, float] = (0.015, 0.7, 0.4)  # hue, saturation, value jitter gains
+
+    @classmethod
+    def off(cls) -> "Augment":
+        return cls(flip=0.0, scale=0.0, translate=0.0, hsv=(0.0, 0.0, 0.0))
+
+
+@dataclass
+class Letterbox:
+    """How an image of (width, height) maps into the square input: x_in = x * gain + pad."""
+
+    gain: float
+    pad: tuple[float, float]
+
+    def to_input(self, xy: np.ndarray) -> np.ndarray:
+        return xy * self.gain + np.asarray(self.pad)
+
+    def to_image(self, xy: np.ndarray) -> np.ndarray:
+        return (xy - np.asarray(self.pad)) / self.gain
+
+
+def letterbox(image: np.ndarray, size: int) -> tuple[np.ndarray, Letterbox]:
+    """Resize keeping the aspect ratio and pad to size x size (centred)."""
+    h, w = image.shape[:2]
+    gain = size / max(h, w)
+    nw, nh = max(1, round(w * gain)), max(1, round(h * gain))
+    resized = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA if gain < 1 else cv2.INTER_LINEAR)
+    px, py = (size - nw) // 2, (size - nh) // 2
+    out = np.full((size, size, 3), PAD_VALUE, np.uint8)
+    out[py:py + nh, px:px + nw] = resized
+    # The pixel grid is continuous-coordinate exact when gain is the per-axis ratio; the rounding of
+    # nw, nh moves edges by under half a pixel, which is below annotation noise.
+    return out, Letterbox(gain, (float(px), float(py)))
+
+
+def read_image(path: Path) -> np.ndarray:
+    """RGB uint8; a missing or unreadable file is an error naming it."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise FileNotFoundError(f"{path}: image missing or unreadable")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def hsv_jitter(image: np.ndarray, gains: tuple[float, float, float], rng: np.random.Generator) -> np.ndarray:
+    """Colour jitter in HSV with lookup tables (cheap on large images)."""
+    if not any(gains):
+        return image
+    r = rng.uniform(-1, 1, 3) * np.asarray(gains) + 1
+    hue, sat, val = cv2.split(cv2.cvtColor(image, cv2.COLOR_RGB2HSV))
+    x = np.arange(256, dtype=np.float32)
+    lut_h = ((x * r[0]) % 180).astype(np.uint8)
+    lut_s = np.clip(x * r[1], 0, 255).astype(np.uint8)
+    lut_v = np.clip(x * r[2], 0, 255).astype(np.uint8)
+    hsv = cv2.merge((cv2.LUT(hue, lut_h), cv2.LUT(sat, lut_s), cv2.LUT(val, lut_v)))
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+
+
+@dataclass
+class Sample:
+    """One training example: the input image and its targets in input pixels."""
+
+    image: np.ndarray  # (size, size, 3) uint8 RGB
+    cls: np.ndarray  # (M,) int64
+    bboxes: np.ndarray  # (M, 4) xyxy
+    keypoints: np.ndarray  # (M, 8, 2)
+    kpt_mask: np.ndarray  # (M, 8) bool
+    kpt_visible: np.ndarray  # (M, 8) float32
+    frame_index: int
+    letterbox: Letterbox
+
+
+def flip_horizontal(sample: Sample) -> Sample:
+    """Mirror the image; x -> W - x for boxes and corners, and swap left and right corners."""
+    w = sample.image.shape[1]
+    b = sample.bboxes.copy()
+    b[:, [0, 2]] = w - sample.bboxes[:, [2, 0]]
+    k = sample.keypoints[:, FLIP_IDX].copy()
+    k[..., 0] = w - k[..., 0]
+    return Sample(np.ascontiguousarray(sample.image[:, ::-1]), sample.cls, b, k,
+                  sample.kpt_mask[:, FLIP_IDX], sample.kpt_visible[:, FLIP_IDX], sample.frame_index,
+                  sample.letterbox)
+
+
+def random_affine(sample: Sample, scale: float, translate: float, rng: np.random.Generator) -> Sample:
+    """Zoom about the centre and shift; corners keep their (possibly outside) positions."""
+    if scale == 0 and translate == 0:
+        return sample
+    size = sample.image.shape[0]
+    s = rng.uniform(1 - scale, 1 + scale)
+    tx, ty = rng.uniform(-translate, translate, 2) * size
+    c = size / 2
+    M = np.array([[s, 0, c - s * c + tx], [0, s, c - s * c + ty]], np.float32)
+    image = cv2.warpAffine(sample.image, M, (size, size), flags=cv2.INTER_LINEAR, borderValue=(PAD_VALUE,) * 3)
+    A, t = M[:, :2].astype(np.float64), M[:, 2].astype(np.float64)
+    kp = sample.keypoints @ A.T + t
+    b = sample.bboxes.reshape(-1, 2, 2) @ A.T + t
+    return Sample(image, sample.cls, b.reshape(-1, 4), kp, sample.kpt_mask, sample.kpt_visible,
+                  sample.frame_index, sample.letterbox)
+
+
+def clip_to_canvas(sample: Sample, out_of_image: OutOfImage) -> Sample:
+    """Clip boxes to the canvas, drop objects left too small, update corner masks and visibility."""
+    size = sample.image.shape[0]
+    b = np.clip(sample.bboxes, 0, size)
+    keep = ((b[:, 2] - b[:, 0]) >= MIN_BOX_PX) & ((b[:, 3] - b[:, 1]) >= MIN_BOX_PX)
+    kp = sample.keypoints[keep]
+    inside = (kp >= 0).all(-1) & (kp <= size).all(-1)
+    mask = sample.kpt_mask[keep] & (inside if out_of_image == "drop" else True)
+    visible = sample.kpt_visible[keep] * inside
+    return Sample(sample.image, sample.cls[keep], b[keep], kp, mask, visible.astype(np.float32),
+                  sample.frame_index, sample.letterbox)
+
+
+class KeypointDataset(torch.utils.data.Dataset):
+    """Frames of one split as training samples for a taxonomy (classes it drops are not targets).
+
+    Ignore regions (KITTI DontCare) are not used in training: objects inside them are simply
+    unlabelled, which costs a little recall signal and never teaches a wrong box.
+    """
+
+    def __init__(self, root: str | Path, taxonomy: Taxonomy, size: int, frame_ids: list[str] | None = None,
+                 augment: Augment | None = None, out_of_image: OutOfImage = "learn", seed: int = 0):
+        if out_of_image not in ("learn", "drop"):
+            raise ValueError(f"out_of_image must be 'learn' or 'drop', got {out_of_image!r}")
+        self.ds = Dataset.open(root, show_progress=False)
+        self.taxonomy = taxonomy
+        self.size = size
+        self.augment = augment or Augment.off()
+        self.out_of_image = out_of_image
+        self.seed = seed
+        self.epoch = 0
+        if frame_ids is None:
+            self.indices = np.arange(len(self.ds))
+        else:
+            self.indices = np.array([self.ds.index_of(f) for f in frame_ids], dtype=np.int64)
+        lookup = [taxonomy.class_id(c) for c in FINE_CLASSES]
+        self.class_of_fine = np.array([-1 if c is None else c for c in lookup], dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def raw(self, i: int) -> tuple[np.ndarray, Sample]:
+        """The original image and the letterboxed sample, before augmentation."""
+        f = int(self.indices[i])
+        ds, t = self.ds, self.ds.objects
+        image = read_image(ds.path(ds.table.image[f]))
+        boxed, lb = letterbox(image, self.size)
+        rows = np.arange(int(ds.offsets[f]), int(ds.offsets[f + 1]))
+        rows = rows[self.class_of_fine[t.category[rows]] >= 0] if len(rows) else rows
+        kp = lb.to_input(t.keypoints[rows]) if len(rows) else np.zeros((0, NUM_KEYPOINTS, 2))
+        bb = lb.to_input(t.bbox[rows].reshape(-1, 2, 2)).reshape(-1, 4) if len(rows) else np.zeros((0, 4))
+        front = ~t.behind_camera[rows] & np.isfinite(kp).all(-1)
+        visible = (t.in_image[rows] & ~t.occluded[rows] & front).astype(np.float32)
+        sample = Sample(boxed, self.class_of_fine[t.category[rows]], bb, np.nan_to_num(kp), front, visible, f, lb)
+        return image, sample
+
+    def __getitem__(self, i: int) -> Sample:
+        _, sample = self.raw(i)
+        rng = np.random.default_rng([self.seed, self.epoch, int(self.indices[i])])
+        a = self.augment
+        sample = random_affine(sample, a.scale, a.translate, rng)
+        if rng.random() < a.flip:
+            sample = flip_horizontal(sample)
+        sample.image = hsv_jitter(sample.image, a.hsv, rng)
+        return clip_to_canvas(sample, self.out_of_image)
+
+
+def collate(samples: list[Sample]) -> tuple[torch.Tensor, dict[str, torch.Tensor], list[Sample]]:
+    """Images (B, 3, S, S) float in 0..1 and the loss's targets (detector/outputs.py layout)."""
+    images = torch.from_numpy(np.stack([s.image for s in samples])).permute(0, 3, 1, 2).float().div_(255)
+    n = [len(s.cls) for s in samples]
+    targets = {
+        "batch_idx": torch.from_numpy(np.repeat(np.arange(len(samples)), n)).long(),
+        "cls": torch.from_numpy(np.concatenate([s.cls for s in samples])).long(),
+        "bboxes": torch.from_numpy(np.concatenate([s.bboxes for s in samples])).float(),
+        "keypoints": torch.from_numpy(np.concatenate([s.keypoints for s in samples])).float(),
+        "kpt_mask": torch.from_numpy(np.concatenate([s.kpt_mask for s in samples])).bool(),
+        "kpt_visible": torch.from_numpy(np.concatenate([s.kpt_visible for s in samples])).float(),
+    }
+    return images, targets, samples
+
+
+def split_frames(root: str | Path, name: str | None) -> list[str] | None:
+    """Frame ids of a split; None (all frames) when the name is None or 'all'. A dataset without
+    split files (a raw render) trains on all frames when the train split is asked for."""
+    if name is None or name == "all":
+        return None
+    if name == TRAIN and not split_names(root):
+        return None
+    return read_split(root, name)

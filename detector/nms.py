@@ -1,0 +1,76 @@
+"""Non-maximum suppression in plain PyTorch, outside the exported graph.
+
+torchvision is not a dependency, so the greedy NMS is written here: class-aware by offsetting the
+boxes of each class far apart, then a loop over the score-sorted candidates that suppresses all
+later boxes overlapping the kept one above the IoU threshold. The loop runs once per *kept* box, on
+a precomputed IoU matrix, which is fast for the few thousand candidates left after the confidence
+filter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from omnigen.conventions import NUM_KEYPOINTS
+
+
+@dataclass
+class Detections:
+    """Detections of one image, in the coordinates of the tensor they were decoded from."""
+
+    boxes: torch.Tensor  # (n, 4) xyxy
+    scores: torch.Tensor  # (n,)
+    classes: torch.Tensor  # (n,) long
+    keypoints: torch.Tensor  # (n, 8, 3) x, y, visibility score
+
+    def __len__(self) -> int:
+        return len(self.scores)
+
+
+def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Pairwise IoU of xyxy boxes (n, 4) x (m, 4) -> (n, m)."""
+    lt = torch.maximum(a[:, None, :2], b[None, :, :2])
+    rb = torch.minimum(a[:, None, 2:], b[None, :, 2:])
+    inter = (rb - lt).clamp(min=0).prod(-1)
+    area_a = (a[:, 2:] - a[:, :2]).clamp(min=0).prod(-1)
+    area_b = (b[:, 2:] - b[:, :2]).clamp(min=0).prod(-1)
+    return inter / (area_a[:, None] + area_b[None] - inter + 1e-9)
+
+
+def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> torch.Tensor:
+    """Indices of the kept boxes, by decreasing score."""
+    order = scores.argsort(descending=True)
+    boxes = boxes[order]
+    over = (box_iou(boxes, boxes) > iou_threshold).cpu().numpy()
+    suppressed = np.zeros(len(order), dtype=bool)
+    keep = []
+    for i in range(len(order)):
+        if not suppressed[i]:
+            keep.append(i)
+            suppressed |= over[i]
+    return order[torch.tensor(keep, dtype=torch.long, device=boxes.device)]
+
+
+def postprocess(pred: torch.Tensor, num_classes: int, conf: float = 0.25, iou: float = 0.7,
+                max_det: int = 300, max_candidates: int = 3000) -> list[Detections]:
+    """Decoded head output (B, 4 + nc + 24, A) -> per-image detections after NMS.
+
+    One class per anchor (its best), as single-label detectors do; candidates above `conf`, the
+    best `max_candidates` of them, class-aware NMS, then the top `max_det`.
+    """
+    out = []
+    for p in pred.transpose(1, 2):  # (A, C)
+        boxes, scores_all, kpt = p[:, :4], p[:, 4:4 + num_classes], p[:, 4 + num_classes:]
+        scores, classes = scores_all.max(1)
+        sel = scores > conf
+        boxes, scores, classes, kpt = boxes[sel], scores[sel], classes[sel], kpt[sel]
+        if len(scores) > max_candidates:
+            top = scores.topk(max_candidates).indices
+            boxes, scores, classes, kpt = boxes[top], scores[top], classes[top], kpt[top]
+        offset = classes[:, None].to(boxes.dtype) * (boxes.abs().max() * 2 + 1 if len(boxes) else 1)
+        keep = nms(boxes + offset, scores, iou)[:max_det] if len(scores) else classes[:0]
+        out.append(Detections(boxes[keep], scores[keep], classes[keep], kpt[keep].view(-1, NUM_KEYPOINTS, 3)))
+    return out

@@ -1,0 +1,85 @@
+"""What the detector's head hands to the loss and to inference, and how raw outputs are decoded.
+
+This module is the seam between the model (backbone, neck, head) and everything that consumes it
+(the task-aligned assigner, the loss, prediction, ONNX export). Keeping the tensor layout and the
+decoding rules in one place means the loss trains exactly what inference decodes.
+
+Layout: every per-anchor tensor is (B, C, A), anchors of all levels concatenated from the finest
+stride to the coarsest, row-major within a level. Coordinates are pixels of the network input.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from omnigen.conventions import NUM_KEYPOINTS
+
+REG_MAX = 16
+"""Bins of the distribution focal loss: each box side is a distribution over 0..REG_MAX-1 strides."""
+
+
+@dataclass
+class HeadOutput:
+    """Raw, undecoded head outputs of one batch (training mode)."""
+
+    box: torch.Tensor  # (B, 4 * REG_MAX, A) DFL logits for the left, top, right, bottom distances
+    cls: torch.Tensor  # (B, nc, A) class logits
+    kpt: torch.Tensor  # (B, NUM_KEYPOINTS * 3, A) per corner: x offset, y offset, visibility logit
+    anchors: torch.Tensor  # (A, 2) anchor centres in input pixels ((i + 0.5) * stride)
+    strides: torch.Tensor  # (A,) stride of each anchor's level
+
+    @property
+    def num_classes(self) -> int:
+        return self.cls.shape[1]
+
+
+def make_anchors(shapes: list[tuple[int, int]], strides: list[int], device=None, dtype=torch.float32
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Anchor centres (A, 2) in input pixels and strides (A,) for feature maps of `shapes` (h, w)."""
+    points, stride_list = [], []
+    for (h, w), s in zip(shapes, strides):
+        ys = (torch.arange(h, device=device, dtype=dtype) + 0.5) * s
+        xs = (torch.arange(w, device=device, dtype=dtype) + 0.5) * s
+        yy, xx = torch.meshgrid(ys, xs, indexing="ij")
+        points.append(torch.stack([xx, yy], -1).reshape(-1, 2))
+        stride_list.append(torch.full((h * w,), float(s), device=device, dtype=dtype))
+    return torch.cat(points), torch.cat(stride_list)
+
+
+def dfl_expectation(box: torch.Tensor) -> torch.Tensor:
+    """(B, 4 * REG_MAX, A) logits -> (B, 4, A) expected distances in strides (softmax over bins)."""
+    b, _, a = box.shape
+    prob = box.view(b, 4, REG_MAX, a).softmax(2)
+    bins = torch.arange(REG_MAX, device=box.device, dtype=prob.dtype).view(1, 1, REG_MAX, 1)
+    return (prob * bins).sum(2)
+
+
+def decode_boxes(box: torch.Tensor, anchors: torch.Tensor, strides: torch.Tensor) -> torch.Tensor:
+    """DFL logits -> (B, 4, A) xyxy boxes in input pixels."""
+    ltrb = dfl_expectation(box) * strides
+    centre = anchors.T.unsqueeze(0)  # (1, 2, A)
+    return torch.cat([centre - ltrb[:, :2], centre + ltrb[:, 2:]], 1)
+
+
+def decode_keypoints(kpt: torch.Tensor, anchors: torch.Tensor, strides: torch.Tensor) -> torch.Tensor:
+    """Raw keypoint outputs -> (B, NUM_KEYPOINTS, 3, A): x, y in input pixels and visibility logit.
+
+    x = anchor_x + 2 * raw_x * stride: an unbounded offset, so that corners of truncated objects
+    outside the image (real targets in the record) stay reachable.
+    """
+    b, _, a = kpt.shape
+    k = kpt.view(b, NUM_KEYPOINTS, 3, a)
+    xy = anchors.T.view(1, 1, 2, a) + k[:, :, :2] * 2.0 * strides.view(1, 1, 1, a)
+    return torch.cat([xy, k[:, :, 2:]], 2)
+
+
+def decode(out: HeadOutput) -> torch.Tensor:
+    """The inference tensor (B, 4 + nc + NUM_KEYPOINTS * 3, A): xyxy box, class scores (sigmoid),
+    and per corner x, y, visibility score (sigmoid). NMS is applied outside (detector/nms.py)."""
+    boxes = decode_boxes(out.box, out.anchors, out.strides)
+    scores = out.cls.sigmoid()
+    k = decode_keypoints(out.kpt, out.anchors, out.strides)
+    k = torch.cat([k[:, :, :2], k[:, :, 2:].sigmoid()], 2)
+    return torch.cat([boxes, scores, k.flatten(1, 2)], 1)

@@ -1,0 +1,131 @@
+"""Inference: images in, COCO-results detections out (boxes, eight keypoints, class, score).
+
+Detections are mapped from the letterboxed input back to the original image, so they compare
+directly with the dataset's annotations. Results follow pycocotools' results format (image_id,
+category_id 1-based in the taxonomy's order, bbox as x y w h, keypoints as 24 numbers x y v with v
+the corner's predicted visibility score, score) and add `frame_id` when the image is a dataset
+frame, so evaluation never depends on the order images were listed in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+import torch
+
+from detector.data import KeypointDataset, Letterbox, letterbox, read_image, split_frames
+from detector.model import KeypointDetector
+from detector.nms import Detections, postprocess
+from omnigen.conventions import NUM_KEYPOINTS
+from omnigen.taxonomy import Taxonomy
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
+
+EVAL_CONF = 0.001
+"""Confidence floor for evaluation: AP integrates over the whole score range, so keep low scores."""
+
+
+@dataclass
+class PredictOptions:
+    imgsz: int = 640
+    conf: float = 0.25
+    iou: float = 0.7
+    max_det: int = 300
+    batch: int = 8
+
+
+def to_image_coords(det: Detections, lb: Letterbox) -> dict[str, np.ndarray]:
+    """Detections of the letterboxed input -> numpy arrays in original image pixels."""
+    boxes = lb.to_image(det.boxes.cpu().numpy().reshape(-1, 2, 2)).reshape(-1, 4)
+    kp = det.keypoints.cpu().numpy().copy()
+    kp[..., :2] = lb.to_image(kp[..., :2])
+    return {"boxes": boxes, "scores": det.scores.cpu().numpy(), "classes": det.classes.cpu().numpy(), "keypoints": kp}
+
+
+def coco_results(det: dict[str, np.ndarray], image_id: int, frame_id: str | None = None) -> list[dict[str, Any]]:
+    """One image's detections as pycocotools results."""
+    out = []
+    for b, s, c, k in zip(det["boxes"].tolist(), det["scores"].tolist(), det["classes"].tolist(),
+                          det["keypoints"].reshape(len(det["scores"]), 3 * NUM_KEYPOINTS).tolist()):
+        r = {"image_id": image_id, "category_id": int(c) + 1, "bbox": [b[0], b[1], b[2] - b[0], b[3] - b[1]],
+             "keypoints": k, "score": s}
+        if frame_id is not None:
+            r["frame_id"] = frame_id
+        out.append(r)
+    return out
+
+
+@torch.inference_mode()
+def infer_batch(model: KeypointDetector, images: list[np.ndarray], boxes: list[Letterbox], opts: PredictOptions
+                ) -> list[dict[str, np.ndarray]]:
+    """Letterboxed uint8 images -> detections in original image coordinates."""
+    device = next(model.parameters()).device
+    x = torch.from_numpy(np.stack(images)).to(device).permute(0, 3, 1, 2).float().div_(255)
+    pred = model.infer(x)
+    dets = postprocess(pred.float(), model.cfg.num_classes, opts.conf, opts.iou, opts.max_det)
+    return [to_image_coords(d, lb) for d, lb in zip(dets, boxes)]
+
+
+def batches(items: list[Any], size: int) -> Iterator[list[Any]]:
+    for i in range(0, len(items), size):
+        yield items[i:i + size]
+
+
+def predict_frames(model: KeypointDetector, data: KeypointDataset, opts: PredictOptions,
+                   show_progress: bool = False) -> list[dict[str, Any]]:
+    """COCO results for the frames of a dataset split; image ids as omnigen.coco.to_coco gives them
+    (1-based frame order of the whole dataset), plus frame_id."""
+    from omnigen.progress import progress
+
+    model.eval()
+    results: list[dict[str, Any]] = []
+    ds = data.ds
+    for chunk in progress(list(batches(list(range(len(data))), opts.batch)), "predict", disable=not show_progress):
+        samples = [data.raw(i)[1] for i in chunk]
+        dets = infer_batch(model, [s.image for s in samples], [s.letterbox for s in samples], opts)
+        for s, d in zip(samples, dets):
+            results.extend(coco_results(d, s.frame_index + 1, ds.table.frame_id[s.frame_index]))
+    return results
+
+
+def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | None = "test", imgsz: int = 640,
+                    batch: int = 8, conf: float = EVAL_CONF) -> list[dict[str, Any]]:
+    """Detections of a checkpoint on a dataset split, ready for `omnigen eval`."""
+    from detector.checkpoint import load_model
+    from omnigen.taxonomy import load_taxonomy
+
+    model, state = load_model(weights)
+    taxonomy = Taxonomy(state["taxonomy"]["name"], dict(state["taxonomy"]["mapping"])) if "taxonomy" in state \
+        else load_taxonomy("fine")
+    data = KeypointDataset(dataset_root, taxonomy, imgsz, split_frames(dataset_root, split))
+    return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=1000),
+                          show_progress=True)
+
+
+def image_files(paths: Iterable[str | Path]) -> list[Path]:
+    """Files given, and the images inside folders given (sorted); anything else is an error."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            out.extend(sorted(q for q in p.iterdir() if q.suffix.lower() in IMAGE_SUFFIXES))
+        elif p.is_file():
+            if p.suffix.lower() not in IMAGE_SUFFIXES:
+                raise ValueError(f"{p}: not an image ({', '.join(IMAGE_SUFFIXES)})")
+            out.append(p)
+        else:
+            raise FileNotFoundError(f"{p}: no such file or folder")
+    return out
+
+
+def predict_images(model: KeypointDetector, files: list[Path], opts: PredictOptions
+                   ) -> Iterator[tuple[Path, np.ndarray, dict[str, np.ndarray]]]:
+    """(file, original RGB image, detections) per image file."""
+    model.eval()
+    for chunk in batches(files, opts.batch):
+        originals = [read_image(f) for f in chunk]
+        boxed = [letterbox(im, opts.imgsz) for im in originals]
+        dets = infer_batch(model, [b[0] for b in boxed], [b[1] for b in boxed], opts)
+        yield from zip(chunk, originals, dets)

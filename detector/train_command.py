@@ -1,0 +1,57 @@
+"""Train the bundled keypoint detector on an UrbanOmniView dataset (CPU, one GPU, or torchrun)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", help="UrbanOmniView dataset folder (splits from omnigen merge)")
+    p.add_argument("--out", required=True, help="run folder: last.pt, best.pt, args.json, results.csv")
+    p.add_argument("--model", default="n", choices=["n", "s", "m", "l", "x"], help="width and depth scale")
+    p.add_argument("--backbone", default="c3k2", help="backbone family: c3k2 (YOLO11-style) or c2f (YOLOv8-style)")
+    p.add_argument("--p2", action=argparse.BooleanOptionalAction, default=True, help="stride-4 level for small objects")
+    p.add_argument("--p6", action="store_true", help="add a stride-64 level")
+    p.add_argument("--imgsz", type=int, default=640)
+    p.add_argument("--epochs", type=int, default=100)
+    p.add_argument("--batch", type=int, default=16, help="total batch over all processes")
+    p.add_argument("--lr0", type=float, default=1e-2, help="Adam learning rate (cosine decay to lr0 * lrf)")
+    p.add_argument("--lrf", type=float, default=0.01)
+    p.add_argument("--taxonomy", default="fine", help="class taxonomy preset or TOML file")
+    p.add_argument("--train-split", default="train")
+    p.add_argument("--val-split", default=None, help="default: val if present, else test, else all frames")
+    p.add_argument("--out-of-image", default="learn", choices=["learn", "drop"],
+                   help="corners outside the image but in front of the camera: learn them (default) or mask them")
+    p.add_argument("--no-augment", action="store_true", help="letterbox only (flip, scale, colour off)")
+    p.add_argument("--workers", type=int, default=2, help="data loader processes")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")
+    p.add_argument("--resume", action="store_true", help="continue OUT/last.pt")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from detector.data import Augment
+    from detector.train import TrainConfig, train
+    from omnigen.progress import print_table
+
+    cfg = TrainConfig(
+        dataset=str(args.dataset), out=str(args.out), model=args.model, backbone=args.backbone, p2=args.p2,
+        p6=args.p6, imgsz=args.imgsz, epochs=args.epochs, batch=args.batch, lr0=args.lr0, lrf=args.lrf,
+        taxonomy=args.taxonomy, train_split=args.train_split, val_split=args.val_split,
+        out_of_image=args.out_of_image, augment=asdict(Augment.off() if args.no_augment else Augment()),
+        workers=args.workers, seed=args.seed, device=args.device)
+    start = time.perf_counter()
+
+    def report(epoch: int, row: dict) -> None:
+        parts = " ".join(f"{k}={row[k]:.4f}" for k in ("box", "dfl", "cls", "kpt", "kvis", "oks_map50_95") if k in row)
+        print(f"epoch {epoch + 1}: {parts} ({row['seconds']:.1f} s)", file=sys.stderr, flush=True)
+
+    last = train(cfg, resume=args.resume, on_epoch=report)
+    if last:
+        print_table(f"omnigen train: {args.out}", ["metric", "value"],
+                    [(k, v) for k, v in last.items()] + [("wall time (s)", time.perf_counter() - start)])
+    return 0

@@ -1,0 +1,148 @@
+"""Issue 10: the detector's data pipeline (letterbox, augmentation, targets) and NMS."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
+
+from detector.data import (Augment, KeypointDataset, Sample, clip_to_canvas, collate, flip_horizontal, letterbox,
+                           random_affine)
+from detector.nms import box_iou, nms, postprocess
+from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
+from omnigen.fakes import write_fake_dataset
+from omnigen.taxonomy import load_taxonomy
+
+
+@pytest.fixture(scope="module")
+def fake(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fake")
+    write_fake_dataset(root, 6, objects_per_frame=6, seed=2)
+    return root
+
+
+def _sample(rng, n=3, size=64):
+    image = rng.integers(0, 255, (size, size, 3), dtype=np.uint8)
+    kp = rng.uniform(-10, size + 10, (n, NUM_KEYPOINTS, 2))
+    boxes = np.concatenate([kp.min(1), kp.max(1)], 1)
+    mask = rng.random((n, NUM_KEYPOINTS)) < 0.8
+    vis = (rng.random((n, NUM_KEYPOINTS)) < 0.5).astype(np.float32)
+    from detector.data import Letterbox
+    return Sample(image, np.arange(n), boxes, kp, mask, vis, 0, Letterbox(1.0, (0.0, 0.0)))
+
+
+def test_flip_permutes_corners_by_flip_idx_and_mirrors_x():
+    rng = np.random.default_rng(0)
+    s = _sample(rng)
+    f = flip_horizontal(s)
+    W = s.image.shape[1]
+    for j in range(NUM_KEYPOINTS):
+        # corner j of the flipped object is the mirror of corner FLIP_IDX[j] of the original
+        np.testing.assert_allclose(f.keypoints[:, j, 0], W - s.keypoints[:, FLIP_IDX[j], 0])
+        np.testing.assert_allclose(f.keypoints[:, j, 1], s.keypoints[:, FLIP_IDX[j], 1])
+        np.testing.assert_array_equal(f.kpt_mask[:, j], s.kpt_mask[:, FLIP_IDX[j]])
+    np.testing.assert_array_equal(f.image, s.image[:, ::-1])
+    assert (f.bboxes[:, 0] <= f.bboxes[:, 2]).all()
+    # flipping twice is the identity
+    g = flip_horizontal(f)
+    np.testing.assert_allclose(g.keypoints, s.keypoints)
+    np.testing.assert_array_equal(g.kpt_mask, s.kpt_mask)
+
+
+def test_flip_idx_swaps_left_and_right_partners():
+    """A mirrored object's left side is the original's right side: FLIP_IDX pairs each corner with
+    the one that differs only in left/right."""
+    from omnigen.conventions import CORNER_NAMES
+    for j, k in enumerate(FLIP_IDX):
+        a, b = CORNER_NAMES[j], CORNER_NAMES[k]
+        assert a.replace("left", "X").replace("right", "left").replace("X", "right") == b
+
+
+def test_letterbox_maps_points_both_ways():
+    image = np.zeros((100, 200, 3), np.uint8)
+    out, lb = letterbox(image, 64)
+    assert out.shape == (64, 64, 3)
+    assert lb.gain == pytest.approx(64 / 200) and lb.pad == (0.0, 16.0)
+    pts = np.array([[0.0, 0.0], [200.0, 100.0], [50.0, 25.0]])
+    np.testing.assert_allclose(lb.to_image(lb.to_input(pts)), pts)
+    np.testing.assert_allclose(lb.to_input(pts)[1], [64, 48])
+
+
+def test_affine_moves_corners_with_the_image():
+    rng = np.random.default_rng(1)
+    image = np.zeros((64, 64, 3), np.uint8)
+    image[30:34, 20:24] = 255  # a bright square around (21.5, 31.5) in pixel-centre coordinates
+    s = Sample(image, np.zeros(1, np.int64), np.array([[20.0, 30, 24, 34]]), np.full((1, 8, 2), [22.0, 32.0]),
+               np.ones((1, 8), bool), np.ones((1, 8), np.float32), 0, None)
+    t = random_affine(s, 0.4, 0.1, rng)
+    ys, xs = np.nonzero(t.image[..., 0] > 128)
+    centre = np.array([xs.mean() + 0.5, ys.mean() + 0.5])  # cv2 maps pixel corners: +0.5 to our frame
+    np.testing.assert_allclose(t.keypoints[0, 0], centre, atol=1.0)
+
+
+def test_out_of_image_corners_learned_or_dropped():
+    s = Sample(np.zeros((64, 64, 3), np.uint8), np.zeros(1, np.int64), np.array([[-20.0, 10, 30, 40]]),
+               np.array([[[-20.0, 10]] * 4 + [[30.0, 40]] * 4]), np.ones((1, 8), bool), np.ones((1, 8), np.float32),
+               0, None)
+    learn = clip_to_canvas(s, "learn")
+    drop = clip_to_canvas(s, "drop")
+    assert learn.kpt_mask.all()  # truncated object's outside corners stay targets
+    assert not drop.kpt_mask[0, :4].any() and drop.kpt_mask[0, 4:].all()
+    assert not learn.kpt_visible[0, :4].any()  # outside corners are never 'visible'
+    np.testing.assert_allclose(learn.bboxes[0], [0, 10, 30, 40])
+
+
+def test_dataset_targets_match_records(fake):
+    tax = load_taxonomy("fine")
+    data = KeypointDataset(fake, tax, 160)
+    image, s = data.raw(0)
+    rec = data.ds[0]
+    assert s.image.shape == (160, 160, 3)
+    assert len(s.cls) == len(rec.objects)
+    for o, m, k in zip(rec.objects, s.kpt_mask, s.letterbox.to_image(s.keypoints)):
+        np.testing.assert_array_equal(m, ~o.behind_camera)
+        np.testing.assert_allclose(k[m], o.keypoints[m], atol=1e-6)
+    images, targets, _ = collate([data[i] for i in range(3)])
+    assert images.shape == (3, 3, 160, 160) and images.dtype == torch.float32 and images.max() <= 1
+    assert targets["keypoints"].shape[1:] == (8, 2) and targets["batch_idx"].max() == 2
+
+
+def test_augmentation_is_seeded_per_frame_and_epoch(fake):
+    tax = load_taxonomy("fine")
+    a = KeypointDataset(fake, tax, 96, augment=Augment(), seed=7)
+    b = KeypointDataset(fake, tax, 96, augment=Augment(), seed=7)
+    np.testing.assert_array_equal(a[2].image, b[2].image)
+    np.testing.assert_array_equal(a[2].keypoints, b[2].keypoints)
+    b.set_epoch(1)
+    assert not np.array_equal(a[2].keypoints, b[2].keypoints)
+
+
+def test_coarse_taxonomy_drops_classes(fake):
+    fine = KeypointDataset(fake, load_taxonomy("fine"), 96)
+    coarse = KeypointDataset(fake, load_taxonomy("coarse"), 96)
+    n_fine = sum(len(fine.raw(i)[1].cls) for i in range(len(fine)))
+    n_coarse = sum(len(coarse.raw(i)[1].cls) for i in range(len(coarse)))
+    assert n_coarse < n_fine and max(coarse.raw(i)[1].cls.max(initial=0) for i in range(len(coarse))) <= 2
+
+
+def test_nms_by_hand():
+    boxes = torch.tensor([[0, 0, 10, 10], [1, 1, 11, 11], [20, 20, 30, 30], [0, 0, 10, 9.0]])
+    scores = torch.tensor([0.9, 0.8, 0.7, 0.95])
+    keep = nms(boxes, scores, 0.5)
+    assert keep.tolist() == [3, 2]  # box 3 wins; 0 (IoU 0.9) and 1 (IoU ~0.61 with 3) go; 2 is apart
+    assert box_iou(boxes[:1], boxes[1:2]).item() == pytest.approx(81 / 119)
+
+
+def test_postprocess_is_class_aware():
+    nc = 2
+    A = 3
+    pred = torch.zeros(1, 4 + nc + 24, A)
+    pred[0, :4] = torch.tensor([[0.0, 0, 1], [0, 0, 1], [10, 10, 11], [10, 10, 11]])  # rows x1 y1 x2 y2
+    pred[0, 4] = torch.tensor([0.9, 0.1, 0.8])  # class 0 scores
+    pred[0, 5] = torch.tensor([0.1, 0.85, 0.1])  # class 1 scores
+    dets = postprocess(pred, nc, conf=0.5, iou=0.5)[0]
+    # anchors 0 and 1 are the same box but different classes: both kept; anchor 2 overlaps 0, same class
+    assert sorted(dets.classes.tolist()) == [0, 1]
+    assert dets.keypoints.shape == (2, 8, 3)
