@@ -14,8 +14,10 @@ by several objects keeps the one its predicted box overlaps most. Target scores 
 alignment metric normalised per object so that its best anchor gets the object's best IoU: a
 soft, quality-aware classification target instead of a hard 1.
 
-Limitation (as in YOLOv8): an object with no anchor centre strictly inside its box (narrower
-than the finest stride: under 4 px with P2, 8 px without) gets no positive and is not learned.
+Small objects: YOLOv8 leaves an object with no anchor centre strictly inside its box (narrower
+than the finest stride: under 4 px with P2, 8 px without) without a positive, so it is never
+learned. Distant cars in pole and drone views are that small, so here such an object takes the
+anchor nearest to its box centre as its only candidate.
 """
 
 from __future__ import annotations
@@ -94,7 +96,14 @@ class TaskAlignedAssigner:
         y = anchors[:, 1].view(1, 1, -1)
         x1, y1, x2, y2 = (gt_boxes[:, :, i : i + 1] for i in range(4))
         inside = (x > x1 + self.eps) & (x < x2 - self.eps) & (y > y1 + self.eps) & (y < y2 - self.eps)
-        return (inside & gt_mask[:, :, None]).nonzero(as_tuple=True)
+        inside &= gt_mask[:, :, None]
+        orphan = gt_mask & ~inside.any(-1)  # real objects too small to contain an anchor centre
+        if orphan.any():
+            bo, mo = orphan.nonzero(as_tuple=True)
+            centre = (gt_boxes[bo, mo, :2] + gt_boxes[bo, mo, 2:]) / 2
+            nearest = torch.cdist(centre.to(anchors.dtype), anchors).argmin(1)
+            inside[bo, mo, nearest] = True
+        return inside.nonzero(as_tuple=True)
 
 
 def _rank_within(groups: torch.Tensor, values: torch.Tensor, num_groups: int) -> torch.Tensor:

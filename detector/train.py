@@ -4,8 +4,10 @@ One process trains on the CPU or one GPU; under torchrun (WORLD_SIZE > 1) each p
 shard of every epoch (DistributedSampler) and DistributedDataParallel averages the gradients, with
 NCCL on CUDA and gloo on the CPU. Only rank 0 validates and writes checkpoints.
 
-A run folder holds `last.pt` (written after every epoch, atomically: a kill loses at most the epoch
-in progress), `best.pt` (the best validation OKS mAP so far), `args.json` and `results.csv`.
+A run folder holds `last.pt` (written atomically after an epoch when `save_interval` seconds have
+passed since the last write, after every validation and at the end: a kill loses at most that
+much work; tiny datasets have sub-second epochs, whose every checkpoint would cost more than the
+epoch), `best.pt` (the best validation OKS mAP so far), `args.json` and `results.csv`.
 `--resume` continues from `last.pt` with the optimiser, EMA, schedule and history, and gives the
 same weights as an uninterrupted run on the CPU (each sample's augmentation is seeded from
 (seed, epoch, frame), the shuffling from (seed, epoch)).
@@ -66,6 +68,7 @@ class TrainConfig:
     workers: int = 2
     seed: int = 0
     val_every: int = 1
+    save_interval: float = 60.0  # seconds between last.pt writes (also written after validation and at the end)
     device: str | None = None
 
     def model_config(self, num_classes: int) -> DetectorConfig:
@@ -206,7 +209,9 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     total = cfg.epochs * iters_per_epoch
     from tqdm import tqdm
 
-    for epoch in range(start_epoch, cfg.epochs if stop_after is None else min(cfg.epochs, stop_after)):
+    end_epoch = cfg.epochs if stop_after is None else min(cfg.epochs, stop_after)
+    last_save = time.perf_counter()
+    for epoch in range(start_epoch, end_epoch):
         data.set_epoch(epoch)
         if sampler is not None:
             sampler.set_epoch(epoch)
@@ -239,22 +244,25 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
                                  "seconds": time.perf_counter() - t0}
         row.update({k: v / max(1, len(loader)) for k, v in sums.items()})
         if rank == 0:
-            last_epoch = epoch + 1 == cfg.epochs
-            if len(val) and ((epoch + 1) % cfg.val_every == 0 or last_epoch):
+            validated = len(val) > 0 and ((epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.epochs)
+            if validated:
                 row.update(validate(ema.ema, val, val_name if val_name != 'all' else None, per_step))
             history.append(row)
             fitness = row.get("oks_map50_95", -1.0)
-            ckpt = {"config": model.cfg.to_dict(), "classes": taxonomy.classes, "taxonomy": taxonomy.to_dict(),
-                    "model": ema.ema.state_dict(), "raw_model": model.state_dict(), "ema_updates": ema.updates,
-                    "optimizer": optimizer.state_dict(), "epoch": epoch, "best_fitness": max(best, fitness),
-                    "history": history, "train_config": asdict(cfg)}
-            save_checkpoint(out / "last.pt", ckpt)
-            if fitness > best:
-                best = fitness
-                save_checkpoint(out / "best.pt", ckpt)
-            write_results_csv(out / "results.csv", history)
+            due = validated or epoch + 1 == end_epoch or time.perf_counter() - last_save >= cfg.save_interval
             if on_epoch is not None:
                 on_epoch(epoch, row)
+            if due:
+                last_save = time.perf_counter()
+                ckpt = {"config": model.cfg.to_dict(), "classes": taxonomy.classes, "taxonomy": taxonomy.to_dict(),
+                        "model": ema.ema.state_dict(), "raw_model": model.state_dict(), "ema_updates": ema.updates,
+                        "optimizer": optimizer.state_dict(), "epoch": epoch, "best_fitness": max(best, fitness),
+                        "history": history, "train_config": asdict(cfg)}
+                save_checkpoint(out / "last.pt", ckpt)
+                if fitness > best:
+                    best = fitness
+                    save_checkpoint(out / "best.pt", ckpt)
+                write_results_csv(out / "results.csv", history)
         if world > 1:
             dist.barrier()
     return history[-1] if history else {}

@@ -260,6 +260,18 @@ def _brute_assign(scores, boxes, anchors, labels, gts, mask, topk, alpha=0.5, be
     return {k: max(v)[1] for k, v in claims.items()}
 
 
+def test_assigner_gives_objects_smaller_than_a_cell_their_nearest_anchor():
+    """A 3x3 px object between anchor centres (stride 8: centres at 4, 12, ...) still gets a positive."""
+    anchors, _ = make_anchors([(8, 8)], [8])
+    a = anchors.shape[0]
+    pd_boxes = torch.cat([anchors - 4, anchors + 4], 1)
+    gt_boxes = torch.tensor([[[13.5, 5.0, 16.5, 8.0]]])  # centre (15, 6.5): nearest anchor (12, 4)
+    res = TaskAlignedAssigner(topk=4)(torch.full((1, a, 1), 0.5), pd_boxes[None], anchors,
+                                      torch.tensor([[0]]), gt_boxes, torch.tensor([[True]]))
+    fg = res.fg_mask[0].nonzero().flatten().tolist()
+    assert len(fg) == 1 and anchors[fg[0]].tolist() == [12.0, 4.0]
+
+
 def test_assigner_matches_brute_force_reference():
     g = torch.Generator().manual_seed(3)
     anchors, _ = _anchors()
