@@ -11,6 +11,7 @@ conversions between their frames sit side by side and are tested together.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -220,6 +221,108 @@ def project_box(box: Box3D, K: np.ndarray, width: int, height: int, near: float 
     return BoxProjection(uv, inside, behind, bbox, truncation)
 
 
+@dataclass(frozen=True)
+class BoxProjections:
+    """project_box for N cuboids at once, as arrays: row i equals project_box of box i.
+
+    keypoints (N, 8, 2), in_image and behind_camera (N, 8), bbox (N, 4) with a row of NaN where
+    project_box gives None, truncation (N,).
+    """
+
+    keypoints: np.ndarray
+    in_image: np.ndarray
+    behind_camera: np.ndarray
+    bbox: np.ndarray
+    truncation: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.truncation)
+
+    def has_bbox(self) -> np.ndarray:
+        """(N,) True where some part of the cuboid is in the image (project_box's bbox is not None)."""
+        return ~np.isnan(self.bbox[:, 0])
+
+    def __getitem__(self, i: int) -> BoxProjection:
+        bbox = None if np.isnan(self.bbox[i, 0]) else self.bbox[i]
+        return BoxProjection(self.keypoints[i], self.in_image[i], self.behind_camera[i], bbox, float(self.truncation[i]))
+
+
+def boxes_corners(centers: np.ndarray, dims: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+    """(N, 8, 3) corners, each bit for bit Box3D.corners() of the same box.
+
+    Unlike box_corners (einsum), every box goes through the same 8x3 @ 3x3 product as
+    Box3D.corners, so batch and per-box results agree exactly (records stay byte-identical).
+    """
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    local = CORNER_SIGNS[None] * (np.asarray(dims, dtype=np.float64).reshape(-1, 1, 3) / 2.0)
+    return local @ np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3).transpose(0, 2, 1) + centers[:, None, :]
+
+
+def project_boxes(corners: np.ndarray, K: np.ndarray, width: int, height: int,
+                  near: float = NEAR_PLANE) -> BoxProjections:
+    """project_box for N cuboids given as (N, 8, 3) corners (boxes_corners), with identical results.
+
+    Why: converters project every object of a frame; one object at a time, numpy's per-call cost and
+    one shapely call per step dominate. Here the projection and the common case (every corner in
+    the image, so nothing is cut) are whole-array operations, and the silhouettes of the rest go
+    through shapely's vectorised functions in one call each. Cuboids with a corner behind the
+    camera (rare) are clipped at the near plane one by one, exactly as project_box does.
+    """
+    corners = np.asarray(corners, dtype=np.float64).reshape(-1, 8, 3)
+    n = len(corners)
+    K = np.asarray(K, dtype=np.float64)
+    behind = corners[..., 2] < near
+    proj = corners @ K.T  # one 8x3 @ 3x3 product per box, as project_points does
+    depth = np.where(behind, 1.0, proj[..., 2])
+    uv = proj[..., :2] / depth[..., None]
+    uv[behind] = np.nan
+    inside = in_image(uv, width, height)
+    bbox = np.full((n, 4), np.nan)
+    truncation = np.ones(n)
+    whole = inside.all(axis=1)
+    bbox[whole] = np.concatenate([uv[whole].min(axis=1), uv[whole].max(axis=1)], axis=1)
+    truncation[whole] = 0.0
+    cut = np.flatnonzero(~whole)
+    if len(cut):
+        shapes = np.empty(len(cut), dtype=object)
+        front = ~behind[cut].any(axis=1)
+        if front.any():
+            # No corner behind: the near-plane clip keeps all eight, and project_points gives uv again.
+            shapes[front] = shapely.convex_hull(shapely.multipoints(uv[cut[front]]))
+        for j in np.flatnonzero(~front):
+            shapes[j] = silhouette(corners[cut[j]], K, near)
+        polygon = shapely.get_type_id(shapes) == shapely.GeometryType.POLYGON  # silhouette's isinstance test
+        area = np.where(polygon, shapely.area(shapes), 0.0)
+        ok = polygon & ~shapely.is_empty(shapes) & (area > 0)
+        if ok.any():
+            visible = shapely.intersection(shapes[ok], _cached_image_rect(width, height))
+            visible_area = shapely.area(visible)
+            seen = ~shapely.is_empty(visible) & (visible_area > 0)
+            rows = cut[ok][seen]
+            bbox[rows] = shapely.bounds(visible[seen])
+            truncation[rows] = np.clip(1.0 - visible_area[seen] / area[ok][seen], 0.0, 1.0)
+    return BoxProjections(uv, inside, behind, bbox, truncation)
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_image_rect(width: int, height: int) -> Polygon:
+    # The same polygon as image_rect (shapely geometries are immutable); building one costs as
+    # much as a frame's intersection, and a dataset has one or a few image sizes.
+    return image_rect(width, height)
+
+
+def self_occluded_corners_batch(centers: np.ndarray, dims: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+    """(N, 8) self_occluded_corners of N boxes, each computed exactly as for one Box3D."""
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    rotations = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
+    along = (rotations.transpose(0, 2, 1) @ centers[:, :, None])[:, :, 0]
+    half = np.asarray(dims, dtype=np.float64).reshape(-1, 3) / 2.0
+    facing_plus = along + half < 0
+    facing_minus = -along + half < 0
+    facing = np.where(CORNER_SIGNS[None] > 0, facing_plus[:, None, :], facing_minus[:, None, :])
+    return ~facing.any(axis=2)
+
+
 # ---------------------------------------------------------------------------------------------
 # Ground plane and camera pose relative to it
 # ---------------------------------------------------------------------------------------------
@@ -363,6 +466,29 @@ def box_from_dair(center_lidar: np.ndarray, lwh: np.ndarray, yaw: float,
     """
     in_lidar = Box3D(center_lidar, lwh, rot_z(yaw))
     return in_lidar.transformed(lidar_to_camera_rotation, np.asarray(lidar_to_camera_translation).reshape(3))
+
+
+def boxes_from_dair(centers_lidar: np.ndarray, yaws: np.ndarray, lidar_to_camera_rotation: np.ndarray,
+                    lidar_to_camera_translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centers (N, 3), rotations (N, 3, 3)) in the camera of N DAIR-V2X boxes; dims are unchanged.
+
+    Bit for bit box_from_dair's center and rotation: the yaw's cosine and sine come from math (as
+    rot_z's do) and every box goes through the same 3x3 products.
+    """
+    centers_lidar = np.asarray(centers_lidar, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(lidar_to_camera_rotation, dtype=np.float64)
+    t = np.asarray(lidar_to_camera_translation, dtype=np.float64).reshape(3)
+    yaws = np.asarray(yaws, dtype=np.float64).reshape(-1).tolist()
+    c = [math.cos(a) for a in yaws]
+    s = [math.sin(a) for a in yaws]
+    rz = np.zeros((len(yaws), 3, 3))  # rot_z of every yaw, entry for entry
+    rz[:, 0, 0] = c
+    rz[:, 0, 1] = [-v for v in s]
+    rz[:, 1, 0] = s
+    rz[:, 1, 1] = c
+    rz[:, 2, 2] = 1.0
+    centers = (r @ centers_lidar[:, :, None])[:, :, 0] + t
+    return centers, r @ rz
 
 
 # ---------------------------------------------------------------------------------------------

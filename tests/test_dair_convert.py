@@ -500,3 +500,40 @@ def test_fixture_is_deterministic_per_frame(tmp_path):
             assert (a.root / sub / f"{key}.json").read_bytes() == (b.root / sub / f"{key}.json").read_bytes()
     with Image.open(a.root / "image/000000.jpg") as im:
         assert im.size == (96, 54)
+
+
+# ---------------------------------------------------------------------------------------------
+# The batch path (make_objects) against the one-object-at-a-time reference (make_object)
+# ---------------------------------------------------------------------------------------------
+
+
+def test_batch_objects_equal_one_at_a_time(tree_i):
+    """make_objects, which the converter uses, gives records identical to make_object's for the
+    fixture's objects plus random ones anywhere around the camera (behind it, outside the image,
+    cut by its edge), also under a large image where most objects lie wholly inside."""
+    rng = np.random.default_rng(11)
+    kinds = {"inside": 0, "cut": 0, "left out": 0, "behind": 0}
+    for label_file in sorted((tree_i / "label" / "camera").glob("*.json")):
+        key = label_file.stem
+        K = dair.parse_intrinsics(read(tree_i / "calib" / "camera_intrinsic" / f"{key}.json"), label_file)
+        ext = dair.parse_extrinsics(read(tree_i / "calib" / "virtuallidar_to_camera" / f"{key}.json"), label_file)
+        objects = dair.parse_label(read(label_file), label_file).objects
+        extra = [dair.LabelObject(index=len(objects) + j, category="car",
+                                  center=rng.uniform([-30, -40, -8], [60, 40, 3]), lwh=rng.uniform(0.3, 12.0, 3),
+                                  yaw=float(rng.uniform(-4, 4)), box2d=np.array([0.0, 0.0, 5.0, 5.0]),
+                                  occlusion_level=int(rng.integers(0, 4)), attributes={"type": "Car"})
+                 for j in range(30)]
+        for width, height in ((96, 54), (1920, 1080)):
+            everything = objects + extra
+            batch = dair.make_objects(everything, K, ext, width, height, "camera")
+            assert len(batch) == len(everything)
+            for o, got in zip(everything, batch):
+                want = dair.make_object(o, K, ext, width, height, "camera")
+                assert (want is None) == (got is None)
+                if want is None:
+                    kinds["left out"] += 1
+                    continue
+                assert json.dumps(got.to_dict()) == json.dumps(want.to_dict())
+                kinds["behind" if want.behind_camera.any() else "inside" if want.truncation == 0 else "cut"] += 1
+    assert min(kinds.values()) >= 10, kinds
+    assert dair.make_objects([], K, ext, 96, 54, "camera") == []

@@ -16,6 +16,8 @@ from omnigen.geometry import (
     box_from_dair,
     box_from_kitti,
     box_to_kitti,
+    boxes_corners,
+    boxes_from_dair,
     blender_from_intrinsics,
     camera_offset_from_projection,
     fit_plane,
@@ -23,11 +25,13 @@ from omnigen.geometry import (
     kitti_rotation,
     plane_from_height_pitch,
     project_box,
+    project_boxes,
     project_points,
     rot_x,
     rot_y,
     rot_z,
     self_occluded_corners,
+    self_occluded_corners_batch,
     world_to_opencv_camera,
 )
 
@@ -257,3 +261,57 @@ def test_rotations_are_proper():
         r = f(0.7)
         np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
         assert np.linalg.det(r) == pytest.approx(1.0)
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """Bit for bit (NaN included), as a record written from either would be byte-identical."""
+    a, b = np.asarray(a), np.asarray(b)
+    return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
+
+
+def test_batch_projection_is_bit_identical_to_project_box():
+    """project_boxes, boxes_from_dair, boxes_corners and self_occluded_corners_batch against the
+    per-box functions on random DAIR boxes under random pole cameras, with every kind of box:
+    wholly inside, truncated, wholly outside, and straddling or behind the camera."""
+    rng = np.random.default_rng(7)
+    kinds = {"inside": 0, "truncated": 0, "outside": 0, "behind": 0}
+    for _ in range(120):
+        r = rot_x(-math.pi / 2 - rng.uniform(0.1, 0.5)) @ rot_z(rng.uniform(-math.pi, math.pi))  # a pitched pole camera
+        t = rng.normal(0.0, 3.0, size=3)
+        width, height = int(rng.integers(64, 1920)), int(rng.integers(36, 1080))
+        K = np.array([[rng.uniform(300, 2500), 0, width / 2], [0, rng.uniform(300, 2500), height / 2], [0, 0, 1.0]])
+        n = int(rng.integers(1, 25))
+        centers_lidar = rng.uniform([-30, -40, -10], [60, 40, 4], size=(n, 3))
+        lwh = rng.uniform(0.2, 12.0, size=(n, 3))
+        yaw = rng.uniform(-7.0, 7.0, size=n)
+        centers, rotations = boxes_from_dair(centers_lidar, yaw, r, t)
+        corners = boxes_corners(centers, lwh, rotations)
+        batch = project_boxes(corners, K, width, height)
+        occluded = self_occluded_corners_batch(centers, lwh, rotations)
+        assert len(batch) == n
+        for i in range(n):
+            box = box_from_dair(centers_lidar[i], lwh[i], float(yaw[i]), r, t)
+            one = project_box(box, K, width, height)
+            got = batch[i]
+            assert _same(box.center, centers[i]) and _same(box.rotation, rotations[i])
+            assert _same(box.corners(), corners[i])
+            assert _same(one.keypoints, got.keypoints)
+            assert _same(one.in_image, got.in_image) and _same(one.behind_camera, got.behind_camera)
+            assert (one.bbox is None) == (got.bbox is None) == (not batch.has_bbox()[i])
+            if one.bbox is not None:
+                assert _same(one.bbox, got.bbox)
+            assert one.truncation == got.truncation
+            assert _same(self_occluded_corners(box), occluded[i])
+            if one.behind_camera.any():
+                kinds["behind"] += 1
+            elif one.in_image.all():
+                kinds["inside"] += 1
+            else:
+                kinds["truncated" if one.bbox is not None else "outside"] += 1
+    assert min(kinds.values()) >= 20, kinds  # every branch of project_box was compared
+
+
+def test_batch_projection_of_no_boxes():
+    K = np.array([[500.0, 0, 50], [0, 500.0, 30], [0, 0, 1]])
+    empty = project_boxes(np.zeros((0, 8, 3)), K, 100, 60)
+    assert len(empty) == 0 and empty.keypoints.shape == (0, 8, 2) and empty.bbox.shape == (0, 4)
