@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 SHARED ?= ../shared
 DEMO   ?= demo
 
-.PHONY: demo test venv system clean bench
+.PHONY: demo test venv system clean bench validate
 
 venv: $(STAMP)
 
@@ -35,6 +35,7 @@ $(STAMP): pyproject.toml constraints.txt
 # KITTI-format tree the project generates) and a generated DAIR-V2X-C tree, converted, merged into
 # UrbanOmniView, validated, reported on, drawn and exported. DEMO_FRAMES and DEMO_SIZE scale it.
 DEMO_FRAMES ?= 2
+DEMO_EPOCHS ?= 3
 DEMO_SIZE   ?= --width 320 --height 240
 OMNIGEN := $(BIN)/omnigen
 demo: $(STAMP) system
@@ -54,8 +55,12 @@ demo: $(STAMP) system
 	$(OMNIGEN) show "$(DEMO)/uov" synthetic-drone-s0-000000 --bev --out "$(DEMO)/synthetic-drone-s0-000000.png"; \
 	$(OMNIGEN) export coco "$(DEMO)/uov" --out "$(DEMO)/uov-coco.json"; \
 	$(OMNIGEN) export yolo "$(DEMO)/uov" --out "$(DEMO)/uov-yolo"; \
+	$(OMNIGEN) train "$(DEMO)/uov" --out "$(DEMO)/run" --imgsz 320 --epochs $(DEMO_EPOCHS) --batch 8 --workers 0; \
+	$(OMNIGEN) eval "$(DEMO)/run/best.pt" "$(DEMO)/uov" --split test --imgsz 320 --out "$(DEMO)/eval.json"; \
 	echo; echo "demo: UrbanOmniView in $(DEMO)/uov; open $(DEMO)/report/index.html in a browser;"; \
-	echo "      frames drawn in $(DEMO)/*.png; COCO and YOLO exports beside them"
+	echo "      frames drawn in $(DEMO)/*.png; COCO and YOLO exports beside them;"; \
+	echo "      a detector smoke run in $(DEMO)/run and its evaluation in $(DEMO)/eval.json ($(DEMO_EPOCHS) epochs:"; \
+	echo "      the pipeline runs end to end; a useful model needs make validate or a GPU, docs/detector-training.md)"
 
 test: $(STAMP) system
 	$(BIN)/python -m pytest -q
@@ -70,6 +75,19 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_scene.py
 	$(BIN)/python benchmarks/bench_render.py
 	$(BIN)/python benchmarks/bench_render_scale.py
+	$(BIN)/python benchmarks/bench_detector_size.py
+	$(BIN)/python benchmarks/bench_detector_latency.py
+	$(BIN)/python benchmarks/bench_eval.py
+	$(BIN)/python benchmarks/bench_eval_kitti.py
+	$(BIN)/python benchmarks/bench_bev.py
+	$(BIN)/python benchmarks/bench_calib.py
+
+# End to end on a 2-core machine (under 2 hours): render all three rigs, merge with the real KITTI
+# sample frames, train nano+P2 (and the no-P2 ablation), evaluate, run the BEV head; writes
+# docs/RESULTS.md and docs/results.json. Resumable; VALIDATE_ARGS scales it (benchmarks/validate.py).
+VALIDATE_ARGS ?= --ablations no-p2
+validate: $(STAMP) system
+	$(BIN)/python benchmarks/validate.py $$( [ -d "$(SHARED)/realdata/kitti/training" ] && echo --kitti "$(SHARED)/realdata/kitti" ) $(VALIDATE_ARGS)
 
 clean:
 	rm -rf $(VENV) $(DEMO) .pytest_cache

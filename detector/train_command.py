@@ -25,6 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out-of-image", default="learn", choices=["learn", "drop"],
                    help="corners outside the image but in front of the camera: learn them (default) or mask them")
     p.add_argument("--no-augment", action="store_true", help="letterbox only (flip, scale, colour off)")
+    p.add_argument("--val-every", type=int, default=1, help="validate every N epochs (and after the last)")
     p.add_argument("--workers", type=int, default=2, help="data loader processes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")
@@ -43,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         p6=args.p6, imgsz=args.imgsz, epochs=args.epochs, batch=args.batch, lr0=args.lr0, lrf=args.lrf,
         taxonomy=args.taxonomy, train_split=args.train_split, val_split=args.val_split,
         out_of_image=args.out_of_image, augment=asdict(Augment.off() if args.no_augment else Augment()),
-        workers=args.workers, seed=args.seed, device=args.device)
+        workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every)
     start = time.perf_counter()
 
     def report(epoch: int, row: dict) -> None:

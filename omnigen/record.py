@@ -87,7 +87,9 @@ class ObjectRecord:
         return coco_visibility(self.in_image, self.behind_camera, self.occluded)
 
     def to_dict(self) -> dict[str, Any]:
-        kp = [None if b else [float(x), float(y)] for (x, y), b in zip(self.keypoints, self.behind_camera)]
+        # numpy's tolist gives the same Python floats and bools as per-element conversion, in one call
+        behind = np.asarray(self.behind_camera, bool).tolist()
+        kp = [None if b else xy for xy, b in zip(np.asarray(self.keypoints, np.float64).tolist(), behind)]
         return {
             "category": self.category,
             "instance_id": int(self.instance_id),
@@ -97,15 +99,15 @@ class ObjectRecord:
                 "rotation": self.box.rotation.tolist(),
             },
             "keypoints": kp,
-            "in_image": [bool(v) for v in self.in_image],
-            "behind_camera": [bool(v) for v in self.behind_camera],
-            "occluded": [bool(v) for v in self.occluded],
-            "bbox": [float(v) for v in self.bbox],
+            "in_image": np.asarray(self.in_image, bool).tolist(),
+            "behind_camera": behind,
+            "occluded": np.asarray(self.occluded, bool).tolist(),
+            "bbox": np.asarray(self.bbox, np.float64).tolist(),
             "truncation": float(self.truncation),
             "occlusion": None if self.occlusion is None else float(self.occlusion),
             "occlusion_level": int(self.occlusion_level),
-            "bbox_source": None if self.bbox_source is None else [float(v) for v in self.bbox_source],
-            "bbox_visible": None if self.bbox_visible is None else [float(v) for v in self.bbox_visible],
+            "bbox_source": None if self.bbox_source is None else np.asarray(self.bbox_source, np.float64).tolist(),
+            "bbox_visible": None if self.bbox_visible is None else np.asarray(self.bbox_visible, np.float64).tolist(),
             "difficulty": self.difficulty,
             "source_attributes": self.source_attributes,
         }
