@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import orjson
 
+from detector.results_file import read_results
 from detector.bev import RIDGE_LAMBDA, apply_homography, fit_ridge, rectify
 from omnigen.conventions import BOTTOM_CORNERS, NUM_KEYPOINTS
 
@@ -71,14 +71,7 @@ def _number_list(path: Path, i: int, entry: dict, key: str, length: int) -> np.n
 
 def load_predictions(path: Path, n_classes: int) -> list[Detection]:
     """Parse and check a COCO-results file; errors name the file, the entry and the field."""
-    try:
-        data = orjson.loads(Path(path).read_bytes())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such file") from None
-    except orjson.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON: {exc}") from None
-    if not isinstance(data, list):
-        raise ValueError(f"{path}: expected a list of detections (COCO results), got {type(data).__name__}")
+    data = read_results(path)
     out = []
     for i, entry in enumerate(data):
         if not isinstance(entry, dict):

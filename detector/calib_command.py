@@ -21,6 +21,7 @@ from typing import Any, Callable
 import numpy as np
 
 from converters.kitti_export import kitti_file_names, label_text
+from detector.results_file import read_results
 from detector.lift import DimensionPriors, fit_dimension_priors, ground_adherence_deg, lift_keypoints, to_kitti_lines
 from omnigen.conventions import FINE_CLASSES, NUM_KEYPOINTS
 from omnigen.dataset import Dataset
@@ -110,14 +111,7 @@ def load_predictions(path: Path, ds: Dataset, fine_of_class: list[str]) -> dict[
     corner); bbox [x, y, w, h] (optional: else the used corners' box, clipped to the image); score.
     A corner written 0 0 0 (COCO's "not labelled") is not used.
     """
-    try:
-        data = json.loads(Path(path).read_bytes())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read predictions: {exc}") from None
-    if isinstance(data, dict):
-        data = data.get("annotations", data.get("predictions"))
-    if not isinstance(data, list):
-        raise ValueError(f"{path}: expected a list of detections (COCO results form)")
+    data = read_results(path)
     grouped: dict[int, list[tuple]] = {}
     for n, d in enumerate(data):
         where = f"{path}: detection {n}"
@@ -303,9 +297,7 @@ def keypoint_metrics_of(args: argparse.Namespace, ds: Dataset, taxonomy: Taxonom
         from detector.oks_eval import evaluate as oks_evaluate
     except ImportError:
         return None
-    predictions = json.loads(Path(args.predictions).read_bytes())
-    if isinstance(predictions, dict):
-        predictions = predictions.get("annotations", predictions.get("predictions"))
+    predictions = read_results(args.predictions)
     report = oks_evaluate(ds, predictions, None if args.split == "all" else args.split, taxonomy,
                           adherence=False, source=str(args.predictions))
     views = args.views.split(",")

@@ -37,15 +37,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def load_predictions(path: Path) -> list[dict[str, Any]]:
     """A predictions file; unreadable or non-list content is an error naming the file."""
-    try:
-        data = orjson.loads(path.read_bytes())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such predictions file") from None
-    except orjson.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON: {exc}") from None
-    if not isinstance(data, list):
-        raise ValueError(f"{path}: expected a JSON list of predictions (COCO results form)")
-    return data
+    from detector.results_file import read_results
+
+    return read_results(path)
 
 
 def _cell(v: float) -> float | str:
