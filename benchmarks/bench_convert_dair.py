@@ -39,6 +39,7 @@ TARGET_S = 20.0
 def convert_once(tree: Path, out: Path, workers: int | None, quiet: bool) -> tuple[float, int, int]:
     """(seconds, exit code, workers) of one `omnigen convert dair` run into a fresh `out`."""
     shutil.rmtree(out, ignore_errors=True)
+    os.sync()  # the previous run's deletion and writes are flushed before the clock starts, not during
     parser = argparse.ArgumentParser()
     dair.add_arguments(parser)
     argv = [str(tree), "--out", str(out), "--link", "hardlink"]

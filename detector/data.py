@@ -52,16 +52,18 @@ class Augment:
 
 @dataclass
 class Letterbox:
-    """How an image of (width, height) maps into the square input: x_in = x * gain + pad."""
+    """How an image maps into the square input, in the contract's pixel convention (pixel centres
+    at integers, so an image of width w spans -0.5 .. w - 0.5, as cv2.resize samples it):
+    x_in = (x + 0.5) * gain - 0.5 + pad."""
 
     gain: float
     pad: tuple[float, float]
 
     def to_input(self, xy: np.ndarray) -> np.ndarray:
-        return xy * self.gain + np.asarray(self.pad)
+        return (xy + 0.5) * self.gain - 0.5 + np.asarray(self.pad)
 
     def to_image(self, xy: np.ndarray) -> np.ndarray:
-        return (xy - np.asarray(self.pad)) / self.gain
+        return (xy - np.asarray(self.pad) + 0.5) / self.gain - 0.5
 
 
 def letterbox(image: np.ndarray, size: int) -> tuple[np.ndarray, Letterbox]:
@@ -115,25 +117,27 @@ class Sample:
 
 
 def flip_horizontal(sample: Sample) -> Sample:
-    """Mirror the image; x -> W - x for boxes and corners, and swap left and right corners."""
+    """Mirror the image and swap left and right corners. Pixel column c goes to w - 1 - c, so with
+    pixel centres at integers a coordinate x goes to w - 1 - x (boxes and corners alike)."""
     w = sample.image.shape[1]
     b = sample.bboxes.copy()
-    b[:, [0, 2]] = w - sample.bboxes[:, [2, 0]]
+    b[:, [0, 2]] = (w - 1) - sample.bboxes[:, [2, 0]]
     k = sample.keypoints[:, FLIP_IDX].copy()
-    k[..., 0] = w - k[..., 0]
+    k[..., 0] = (w - 1) - k[..., 0]
     return Sample(np.ascontiguousarray(sample.image[:, ::-1]), sample.cls, b, k,
                   sample.kpt_mask[:, FLIP_IDX], sample.kpt_visible[:, FLIP_IDX], sample.frame_index,
                   sample.letterbox)
 
 
 def random_affine(sample: Sample, scale: float, translate: float, rng: np.random.Generator) -> Sample:
-    """Zoom about the centre and shift; corners keep their (possibly outside) positions."""
+    """Zoom about the centre and shift; corners keep their (possibly outside) positions. cv2's
+    warpAffine maps pixel centres (integers) by M, so M maps the contract's coordinates exactly."""
     if scale == 0 and translate == 0:
         return sample
     size = sample.image.shape[0]
     s = rng.uniform(1 - scale, 1 + scale)
     tx, ty = rng.uniform(-translate, translate, 2) * size
-    c = size / 2
+    c = (size - 1) / 2  # the canvas centre in pixel-centre coordinates
     M = np.array([[s, 0, c - s * c + tx], [0, s, c - s * c + ty]], np.float32)
     image = cv2.warpAffine(sample.image, M, (size, size), flags=cv2.INTER_LINEAR, borderValue=(PAD_VALUE,) * 3)
     A, t = M[:, :2].astype(np.float64), M[:, 2].astype(np.float64)
@@ -146,10 +150,11 @@ def random_affine(sample: Sample, scale: float, translate: float, rng: np.random
 def clip_to_canvas(sample: Sample, out_of_image: OutOfImage) -> Sample:
     """Clip boxes to the canvas, drop objects left too small, update corner masks and visibility."""
     size = sample.image.shape[0]
-    b = np.clip(sample.bboxes, 0, size)
+    lo, hi = -0.5, size - 0.5  # the canvas's extent with pixel centres at integers
+    b = np.clip(sample.bboxes, lo, hi)
     keep = ((b[:, 2] - b[:, 0]) >= MIN_BOX_PX) & ((b[:, 3] - b[:, 1]) >= MIN_BOX_PX)
     kp = sample.keypoints[keep]
-    inside = (kp >= 0).all(-1) & (kp <= size).all(-1)
+    inside = (kp >= lo).all(-1) & (kp <= hi).all(-1)
     mask = sample.kpt_mask[keep] & (inside if out_of_image == "drop" else True)
     visible = sample.kpt_visible[keep] * inside
     return Sample(sample.image, sample.cls[keep], b[keep], kp, mask, visible.astype(np.float32),
@@ -199,7 +204,9 @@ class KeypointDataset(torch.utils.data.Dataset):
         bb = lb.to_input(t.bbox[rows].reshape(-1, 2, 2)).reshape(-1, 4) if len(rows) else np.zeros((0, 4))
         front = ~t.behind_camera[rows] & np.isfinite(kp).all(-1)
         visible = (t.in_image[rows] & ~t.occluded[rows] & front).astype(np.float32)
-        sample = Sample(boxed, self.class_of_fine[t.category[rows]], bb, np.nan_to_num(kp), front, visible, f, lb)
+        # 'drop' masks corners outside the original image, not only outside the (padded) canvas
+        mask = front & t.in_image[rows] if self.out_of_image == "drop" else front
+        sample = Sample(boxed, self.class_of_fine[t.category[rows]], bb, np.nan_to_num(kp), mask, visible, f, lb)
         return image, sample
 
     def __getitem__(self, i: int) -> Sample:

@@ -1,7 +1,7 @@
 """omnigen eval: keypoint metrics of a checkpoint or of a predictions file, per source, per view and overall.
 
     omnigen eval WEIGHTS_OR_PREDICTIONS DATASET [--split test] [--out FILE.json] [--taxonomy fine]
-                 [--imgsz 640] [--batch 8]
+                 [--imgsz SIZE] [--batch 8]
 
 A .json argument is a list of predictions in COCO-results form (image_id or frame_id,
 category_id, keypoints: 24 numbers, score); a .pt argument is a checkpoint, run first over the
@@ -30,7 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
     p.add_argument("--taxonomy", default=None,
                    help="taxonomy of the predictions' category ids (preset or TOML; default: the checkpoint's, or fine)")
-    p.add_argument("--imgsz", type=int, default=640, help="network input size, with a checkpoint")
+    p.add_argument("--imgsz", type=int, default=None,
+                   help="network input size, with a checkpoint (default: its training size)")
     p.add_argument("--batch", type=int, default=8, help="images per batch, with a checkpoint")
     p.add_argument("--no-adherence", action="store_true", help="skip the ground-plane adherence (no 3D lifting)")
 

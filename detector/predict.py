@@ -91,13 +91,21 @@ def predict_frames(model: KeypointDetector, data: KeypointDataset, opts: Predict
     return results
 
 
-def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | None = "test", imgsz: int = 640,
-                    batch: int = 8, conf: float = EVAL_CONF) -> list[dict[str, Any]]:
-    """Detections of a checkpoint on a dataset split, ready for `omnigen eval`."""
+def trained_imgsz(state: dict[str, Any], default: int = 640) -> int:
+    """The input size a checkpoint was trained at: predicting at another size shows the model
+    objects at scales it did not learn."""
+    return int(state.get("train_config", {}).get("imgsz", default))
+
+
+def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | None = "test",
+                    imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF) -> list[dict[str, Any]]:
+    """Detections of a checkpoint on a dataset split, ready for `omnigen eval` (at the training
+    input size unless `imgsz` says otherwise)."""
     from detector.checkpoint import load_model
     from omnigen.taxonomy import load_taxonomy
 
     model, state = load_model(weights)
+    imgsz = imgsz or trained_imgsz(state)
     taxonomy = Taxonomy(state["taxonomy"]["name"], dict(state["taxonomy"]["mapping"])) if "taxonomy" in state \
         else load_taxonomy("fine")
     data = KeypointDataset(dataset_root, taxonomy, imgsz, split_frames(dataset_root, split))

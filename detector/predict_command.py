@@ -10,7 +10,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("weights", help="checkpoint (best.pt or last.pt of a run)")
     p.add_argument("sources", nargs="+", help="image files or folders of images")
     p.add_argument("--out", required=True, type=Path, help="folder for predictions.json and overlay images")
-    p.add_argument("--imgsz", type=int, default=640)
+    p.add_argument("--imgsz", type=int, default=None, help="network input size (default: the training size)")
     p.add_argument("--conf", type=float, default=0.25, help="confidence threshold")
     p.add_argument("--iou", type=float, default=0.7, help="NMS IoU threshold")
     p.add_argument("--max-det", type=int, default=300)
@@ -21,7 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from detector.checkpoint import load_model
     from detector.overlay import draw_detections
-    from detector.predict import PredictOptions, coco_results, image_files, predict_images
+    from detector.predict import PredictOptions, coco_results, image_files, predict_images, trained_imgsz
     from omnigen.files import atomic_write_bytes
     from omnigen.progress import print_table, progress
     import orjson
@@ -31,7 +31,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"no images in {' '.join(map(str, args.sources))}")
     model, state = load_model(args.weights)
     args.out.mkdir(parents=True, exist_ok=True)
-    opts = PredictOptions(imgsz=args.imgsz, conf=args.conf, iou=args.iou, max_det=args.max_det, batch=args.batch)
+    opts = PredictOptions(imgsz=args.imgsz or trained_imgsz(state), conf=args.conf, iou=args.iou,
+                          max_det=args.max_det, batch=args.batch)
     results, images = [], []
     for i, (path, image, det) in enumerate(progress(predict_images(model, files, opts), "predict", total=len(files))):
         results.extend(r | {"file_name": str(path)} for r in coco_results(det, i + 1))

@@ -16,10 +16,12 @@ same weights as an uninterrupted run on the CPU (each sample's augmentation is s
 from __future__ import annotations
 
 import copy
+import datetime
 import math
 import os
+import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -34,7 +36,7 @@ from detector.model import DetectorConfig, KeypointDetector
 from detector.predict import EVAL_CONF, PredictOptions, predict_frames
 from omnigen.files import atomic_write_text, dumps_json
 from omnigen.splits import TEST, split_names
-from omnigen.taxonomy import load_taxonomy
+from omnigen.taxonomy import Taxonomy, load_taxonomy
 
 
 @dataclass
@@ -167,14 +169,20 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     cluster do the same.
     """
     rank, local_rank, world = distributed()
-    if world > 1 and not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
     device = pick_device(cfg, local_rank)
+    if world > 1 and not dist.is_initialized():
+        if device.type == "cuda":
+            torch.cuda.set_device(device)  # NCCL collectives use the current device: one GPU per process
+        # rank 0 validates while the others wait at the epoch's barrier: allow long validations
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo", timeout=datetime.timedelta(hours=2))
     out = Path(cfg.out)
-    taxonomy = load_taxonomy(cfg.taxonomy)
     state = load_checkpoint(out / "last.pt") if resume else None
     if state is not None:
-        cfg = TrainConfig(**state["train_config"])
+        # the run's own settings; where it runs and with how many loader processes may change
+        cfg = replace(TrainConfig(**state["train_config"]), out=cfg.out, device=cfg.device, workers=cfg.workers)
+        taxonomy = Taxonomy(state["taxonomy"]["name"], dict(state["taxonomy"]["mapping"]))
+    else:
+        taxonomy = load_taxonomy(cfg.taxonomy)
     torch.manual_seed(cfg.seed)
 
     train_ids = split_frames(cfg.dataset, cfg.train_split)
@@ -222,7 +230,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
         model.train()
         sums: dict[str, float] = {}
         bar = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", disable=rank != 0, leave=False,
-                   dynamic_ncols=True)
+                   dynamic_ncols=True, mininterval=0.5 if sys.stderr.isatty() else 60.0)  # logs: a line a minute
         t0 = time.perf_counter()
         for i, (images, targets, _) in enumerate(bar):
             it = epoch * iters_per_epoch + i
@@ -264,7 +272,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
                     save_checkpoint(out / "best.pt", ckpt)
                 write_results_csv(out / "results.csv", history)
         if world > 1:
-            dist.barrier()
+            dist.barrier(device_ids=[torch.cuda.current_device()] if device.type == "cuda" else None)
     return history[-1] if history else {}
 
 

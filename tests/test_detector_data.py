@@ -40,7 +40,8 @@ def test_flip_permutes_corners_by_flip_idx_and_mirrors_x():
     W = s.image.shape[1]
     for j in range(NUM_KEYPOINTS):
         # corner j of the flipped object is the mirror of corner FLIP_IDX[j] of the original
-        np.testing.assert_allclose(f.keypoints[:, j, 0], W - s.keypoints[:, FLIP_IDX[j], 0])
+        # (pixel centres at integers: column c goes to W - 1 - c)
+        np.testing.assert_allclose(f.keypoints[:, j, 0], W - 1 - s.keypoints[:, FLIP_IDX[j], 0])
         np.testing.assert_allclose(f.keypoints[:, j, 1], s.keypoints[:, FLIP_IDX[j], 1])
         np.testing.assert_array_equal(f.kpt_mask[:, j], s.kpt_mask[:, FLIP_IDX[j]])
     np.testing.assert_array_equal(f.image, s.image[:, ::-1])
@@ -66,20 +67,32 @@ def test_letterbox_maps_points_both_ways():
     assert out.shape == (64, 64, 3)
     assert lb.gain == pytest.approx(64 / 200) and lb.pad == (0.0, 16.0)
     pts = np.array([[0.0, 0.0], [200.0, 100.0], [50.0, 25.0]])
-    np.testing.assert_allclose(lb.to_image(lb.to_input(pts)), pts)
-    np.testing.assert_allclose(lb.to_input(pts)[1], [64, 48])
+    np.testing.assert_allclose(lb.to_image(lb.to_input(pts)), pts, atol=1e-9)
+    # the image's outer edges (pixel centres at integers: -0.5 and w - 0.5) land on the canvas's
+    np.testing.assert_allclose(lb.to_input(np.array([[-0.5, -0.5], [199.5, 99.5]])), [[-0.5, 15.5], [63.5, 47.5]])
+
+
+def test_flip_of_an_image_moves_a_bright_pixel_where_its_corner_goes():
+    image = np.zeros((8, 10, 3), np.uint8)
+    image[3, 2] = 255  # the pixel whose centre is (x=2, y=3)
+    s = Sample(image, np.zeros(1, np.int64), np.array([[1.5, 2.5, 2.5, 3.5]]), np.full((1, 8, 2), [2.0, 3.0]),
+               np.ones((1, 8), bool), np.ones((1, 8), np.float32), 0, None)
+    f = flip_horizontal(s)
+    ys, xs = np.nonzero(f.image[..., 0])
+    np.testing.assert_allclose(f.keypoints[0, 0], [xs[0], ys[0]])
+    np.testing.assert_allclose(f.bboxes[0], [xs[0] - 0.5, 2.5, xs[0] + 0.5, 3.5])
 
 
 def test_affine_moves_corners_with_the_image():
     rng = np.random.default_rng(1)
     image = np.zeros((64, 64, 3), np.uint8)
-    image[30:34, 20:24] = 255  # a bright square around (21.5, 31.5) in pixel-centre coordinates
-    s = Sample(image, np.zeros(1, np.int64), np.array([[20.0, 30, 24, 34]]), np.full((1, 8, 2), [22.0, 32.0]),
+    image[30:34, 20:24] = 255  # a bright square centred on (21.5, 31.5) in pixel-centre coordinates
+    s = Sample(image, np.zeros(1, np.int64), np.array([[19.5, 29.5, 23.5, 33.5]]), np.full((1, 8, 2), [21.5, 31.5]),
                np.ones((1, 8), bool), np.ones((1, 8), np.float32), 0, None)
     t = random_affine(s, 0.4, 0.1, rng)
     ys, xs = np.nonzero(t.image[..., 0] > 128)
-    centre = np.array([xs.mean() + 0.5, ys.mean() + 0.5])  # cv2 maps pixel corners: +0.5 to our frame
-    np.testing.assert_allclose(t.keypoints[0, 0], centre, atol=1.0)
+    centre = np.array([xs.mean(), ys.mean()])  # warpAffine maps pixel centres: our convention
+    np.testing.assert_allclose(t.keypoints[0, 0], centre, atol=0.5)
 
 
 def test_out_of_image_corners_learned_or_dropped():
@@ -91,7 +104,7 @@ def test_out_of_image_corners_learned_or_dropped():
     assert learn.kpt_mask.all()  # truncated object's outside corners stay targets
     assert not drop.kpt_mask[0, :4].any() and drop.kpt_mask[0, 4:].all()
     assert not learn.kpt_visible[0, :4].any()  # outside corners are never 'visible'
-    np.testing.assert_allclose(learn.bboxes[0], [0, 10, 30, 40])
+    np.testing.assert_allclose(learn.bboxes[0], [-0.5, 10, 30, 40])
 
 
 def test_dataset_targets_match_records(fake):
@@ -107,6 +120,14 @@ def test_dataset_targets_match_records(fake):
     images, targets, _ = collate([data[i] for i in range(3)])
     assert images.shape == (3, 3, 160, 160) and images.dtype == torch.float32 and images.max() <= 1
     assert targets["keypoints"].shape[1:] == (8, 2) and targets["batch_idx"].max() == 2
+
+
+def test_drop_masks_corners_outside_the_image_even_inside_the_padding(fake):
+    data = KeypointDataset(fake, load_taxonomy("fine"), 160, out_of_image="drop")
+    for i in range(len(data)):
+        rec, s = data.ds[i], data.raw(i)[1]
+        for o, m in zip(rec.objects, s.kpt_mask):
+            np.testing.assert_array_equal(m, ~o.behind_camera & o.in_image)
 
 
 def test_augmentation_is_seeded_per_frame_and_epoch(fake):

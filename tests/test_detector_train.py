@@ -66,10 +66,11 @@ def test_train_writes_checkpoints_loadable_with_weights_only(fake, tmp_path):
 
 
 def test_resume_equals_uninterrupted_run(fake, tmp_path):
-    train(_cfg(fake, tmp_path / "full", epochs=3, val_every=100))
-    train(_cfg(fake, tmp_path / "cut", epochs=3, val_every=100), stop_after=2)  # as if killed after epoch 2
+    train(_cfg(fake, tmp_path / "full", epochs=3, val_every=100, taxonomy="coarse"))
+    train(_cfg(fake, tmp_path / "cut", epochs=3, val_every=100, taxonomy="coarse"), stop_after=2)  # as if killed
     assert load_checkpoint(tmp_path / "cut" / "last.pt")["epoch"] == 1
-    train(_cfg(fake, tmp_path / "cut", epochs=3, val_every=100), resume=True)
+    # `omnigen train D --out R --resume` passes default settings: the run's own (coarse, 3 epochs) win
+    train(_cfg(fake, tmp_path / "cut", epochs=50, val_every=100), resume=True)
     a = load_checkpoint(tmp_path / "full" / "last.pt")["model"]
     b = load_checkpoint(tmp_path / "cut" / "last.pt")["model"]
     for k in a:
