@@ -250,7 +250,8 @@ def results_markdown(r: dict[str, Any]) -> str:
         "",
         f"- command: `{cmd}`",
         f"- machine: {r['machine']}",
-        f"- date: {r['date']}; wall time {r['wall_seconds'] / 60:.1f} min (the sum of the stages below)",
+        f"- date: {r['date']}; {r['wall_seconds'] / 60:.1f} min of stage time (the sum of the stages below; "
+        f"renders run {a['jobs']} at a time, so less elapsed)",
         f"- frames: {r['frames']['total']} ({', '.join(f'{k} {v}' for k, v in (r['frames']['by_source'] or {}).items())}); "
         f"{r['frames']['objects']} objects; split frames "
         f"{ {k: v['frames'] for k, v in (r['frames']['splits'] or {}).items()} }",
@@ -265,6 +266,9 @@ def results_markdown(r: dict[str, Any]) -> str:
         f"| ground-plane adherence of predicted corners (deg) | {_f(r['bev_adherence_deg'], 2)} | <= {r['targets']['bev_adherence_deg']} |",
         "",
         "## Every run (the design's Tables 2 and 8, as far as this machine allowed)",
+        "",
+        f"Scales trained: {', '.join(a['scales'])}; ablations: {', '.join(a['ablations']) or 'none in this run'} "
+        "(`--ablations no-p2 hires no-synthetic`, `--scales n s m` add the others).",
         "",
         "| run | train args | input | train time (s) | synthetic mAP50:95 | AP50 | F1 | adherence (deg) | overall mAP50:95 |",
         "|---|---|---|---|---|---|---|---|---|",

@@ -120,7 +120,11 @@ def bev_for_image(dets: list[Detection], classes: list[str], lam: float) -> dict
     result, placed = None, np.zeros((0, 2))
     ground = np.stack([d.keypoints[list(BOTTOM_CORNERS), :2] for d in kp]) if kp else np.zeros((0, 4, 2))
     if kp:
-        result = rectify(ground, names)
+        try:
+            result = rectify(ground, names)
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:  # one bad image, not the run
+            record["error"] = f"not rectified: {exc.__class__.__name__}: {exc}"
+    if result is not None:
         record.update(homography=result.homography.tolist(), degenerate=result.degenerate, residual=result.residual,
                       iterations=result.iterations, folded=result.folded)
         for j, d in enumerate(kp):

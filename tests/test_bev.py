@@ -224,3 +224,17 @@ def test_bev_command_names_file_and_field_on_bad_input(tmp_path):
     with pytest.raises(ValueError, match="not valid JSON"):
         _run_bev([str(path), "--out", str(tmp_path / "o")])
     assert not (tmp_path / "o").exists()
+
+
+def test_wild_corners_of_a_poor_detector_never_crash():
+    """Corners of an undertrained model (random quads, crossed, tiny, far apart) give a result or
+    a clear error, never an overflow."""
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        quads = rng.uniform(0, 320, (int(rng.integers(1, 12)), 4, 2))
+        quads[: len(quads) // 3] *= rng.uniform(1e-3, 1e3)
+        try:
+            res = rectify(quads)
+        except ValueError:
+            continue
+        assert np.isfinite(res.homography).all()
