@@ -172,7 +172,7 @@ def test_two_gloo_processes_run_one_data_parallel_step(fake, tmp_path):
 # ---------------------------------------------------------------------------------------------
 
 OVERFIT_SIZE = (256, 192)
-OVERFIT_EPOCHS = 500  # one batch of the four frames per epoch: 500 Adam steps
+OVERFIT_EPOCHS = 700  # one batch of the four frames per epoch: 700 Adam steps
 
 
 @pytest.fixture(scope="module")
