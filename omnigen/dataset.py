@@ -108,6 +108,7 @@ class ObjectTable:
     @classmethod
     def from_records(cls, records: Iterable[FrameRecord]) -> "ObjectTable":
         rows: dict[str, list] = {name: [] for name in _OBJECT_COLUMNS}
+        no_box = np.full(4, np.nan)  # an absent bbox_source / bbox_visible: one shared row of NaN
         for f_index, rec in enumerate(records):
             for o in rec.objects:
                 rows["frame"].append(f_index)
@@ -121,8 +122,8 @@ class ObjectTable:
                 rows["behind_camera"].append(o.behind_camera)
                 rows["occluded"].append(o.occluded)
                 rows["bbox"].append(o.bbox)
-                rows["bbox_source"].append(o.bbox_source if o.bbox_source is not None else _OBJECT_COLUMNS["bbox_source"][2])
-                rows["bbox_visible"].append(o.bbox_visible if o.bbox_visible is not None else _OBJECT_COLUMNS["bbox_visible"][2])
+                rows["bbox_source"].append(o.bbox_source if o.bbox_source is not None else no_box)
+                rows["bbox_visible"].append(o.bbox_visible if o.bbox_visible is not None else no_box)
                 rows["truncation"].append(o.truncation)
                 rows["occlusion"].append(np.nan if o.occlusion is None else o.occlusion)
                 rows["occlusion_level"].append(o.occlusion_level)
@@ -132,8 +133,6 @@ class ObjectTable:
             values = rows[name]
             if not values:
                 columns[name] = np.zeros((0, *shape), dtype=dtype)
-            elif shape and name in ("bbox_source", "bbox_visible"):
-                columns[name] = np.array([np.broadcast_to(v, shape) for v in values], dtype=dtype)
             else:
                 columns[name] = np.asarray(values, dtype=dtype).reshape(len(values), *shape)
         return cls(**columns)
