@@ -1,4 +1,4 @@
-"""`omnigen bev PREDICTIONS --out DIR`: the calibration-free BEV of every image in a predictions file.
+"""The calibration-free BEV of every image in a predictions file.
 
 PREDICTIONS is COCO-results JSON: a list of {image_id, category_id, keypoints (24 numbers: x, y, v
 per corner, contract order), bbox [x, y, w, h], score}. Detections whose ground-contact corners 4-7

@@ -1,4 +1,4 @@
-"""`omnigen calib-sensitivity`: how much metric 3D depends on the intrinsics given to the lifting.
+"""How much metric 3D depends on the intrinsics given to the lifting.
 
 The keypoint detector never sees K; K enters only when predicted corners are lifted to metric
 boxes (detector/lift.py). This command lifts the same predictions with K perturbed (focal length

@@ -1,4 +1,4 @@
-"""omnigen eval: keypoint metrics of a checkpoint or of a predictions file, per source, per view and overall.
+"""Keypoint metrics of a checkpoint or a predictions file, per source, per view and overall.
 
     omnigen eval WEIGHTS_OR_PREDICTIONS DATASET [--split test] [--out FILE.json] [--taxonomy fine]
                  [--imgsz SIZE] [--batch 8]

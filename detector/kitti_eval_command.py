@@ -1,4 +1,4 @@
-"""`omnigen eval-kitti --gt DIR --pred DIR`: KITTI AP (2D, BEV, 3D; R40 and R11) of label folders.
+"""KITTI AP (2D, BEV, 3D; R40 and R11) of KITTI label folders.
 
 The numbers follow the official devkit (see detector.kitti_eval for every rule); the JSON holds
 {"AP40": {class: {"bbox": [easy, moderate, hard], "bev": [...], "3d": [...]}}, "AP11": {...}} in percent.

@@ -74,7 +74,7 @@ def _run_validate(args: argparse.Namespace) -> int:
 
 
 def _add_export(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="write a dataset in another format (coco, yolo, kitti)")
+    p = sub.add_parser("export", help="write a dataset in another format (coco, yolo, kitti), or a model as ONNX")
     formats = p.add_subparsers(dest="format", required=True, metavar="FORMAT")
     coco = formats.add_parser("coco", help="COCO keypoints JSON (pycocotools reads it)")
     coco.add_argument("dataset", type=Path)
@@ -388,7 +388,10 @@ def _add_plugins(subparsers: argparse._SubParsersAction, registry: dict[str, str
             q = subparsers.add_parser(name, help="(not built yet)")
             q.set_defaults(func=lambda args, n=name: _say_not_built(f"{verb} {n}".strip()))
             continue
-        q = subparsers.add_parser(name, help=(module.__doc__ or "").strip().splitlines()[0])
+        first = (module.__doc__ or "").strip().splitlines()[0]
+        if first[1:2].islower():  # "Train the ..." -> "train the ...", as the built-in verbs read; not "KITTI"
+            first = first[:1].lower() + first[1:]
+        q = subparsers.add_parser(name, help=first.rstrip("."))
         module.add_arguments(q)
         q.set_defaults(func=module.run)
 
