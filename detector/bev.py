@@ -225,13 +225,18 @@ def heading_spread_deg(quads: np.ndarray) -> float:
 
 
 def _affine_matrix(alpha: float, log_beta: float) -> np.ndarray:
-    beta = math.exp(log_beta)
+    beta = float(_bounded_exp(log_beta))  # the same clamp as _warp, so H is the warp the solver saw
     return np.array([[1.0 / beta, -alpha / beta, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
 
 
 LOG_BETA_LIMIT = 30.0
-"""|log beta| beyond this (a stretch of e^30) is no rectification of a real ground; clamping keeps
-the solver's trial steps finite on wild input (poorly trained detectors' corners)."""
+"""|log| of a stretch or size beyond this (e^30) is no rectification of a real ground; clamping
+keeps the solver's trial steps finite on wild input (poorly trained detectors' corners)."""
+
+
+def _bounded_exp(x):
+    """exp of a log-parameter clamped to +-LOG_BETA_LIMIT (floats or arrays)."""
+    return np.exp(np.clip(x, -LOG_BETA_LIMIT, LOG_BETA_LIMIT))
 
 
 def _projective_matrix(l1: float, l2: float) -> np.ndarray:
@@ -244,7 +249,7 @@ def _warp(params: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     w = 1.0 + l1 * pts[..., 0] + l2 * pts[..., 1]
     safe = np.where(np.abs(w) < 1e-9, 1e-9, w)
     x, y = pts[..., 0] / safe, pts[..., 1] / safe
-    beta = math.exp(min(max(log_beta, -LOG_BETA_LIMIT), LOG_BETA_LIMIT))  # the solver may probe far out
+    beta = float(_bounded_exp(log_beta))  # the solver may probe far out
     return np.stack([(x - alpha * y) / beta, y], axis=-1), w
 
 
@@ -385,7 +390,7 @@ def rectify(ground_xy: np.ndarray, classes: Sequence[str | None] | None = None,
 def _unwarp(params: np.ndarray, rect: np.ndarray) -> np.ndarray:
     """Rectified points (..., 2) -> normalised image points: the inverse of `_warp`."""
     l1, l2, alpha, log_beta = params
-    beta = math.exp(min(max(log_beta, -LOG_BETA_LIMIT), LOG_BETA_LIMIT))
+    beta = float(_bounded_exp(log_beta))
     a = np.stack([beta * rect[..., 0] + alpha * rect[..., 1], rect[..., 1]], axis=-1)
     w = 1.0 - l1 * a[..., 0] - l2 * a[..., 1]
     w = np.where(np.abs(w) < 1e-9, 1e-9, w)
@@ -401,8 +406,7 @@ def _rectangles(inst: np.ndarray, handedness: float = 1.0) -> np.ndarray:
     handedness -1: the rectified frame is a mirror image of the ground (left is clockwise of forward).
     """
     cx, cy, th, ll, lw = inst.T
-    ll, lw = np.clip(ll, -LOG_BETA_LIMIT, LOG_BETA_LIMIT), np.clip(lw, -LOG_BETA_LIMIT, LOG_BETA_LIMIT)
-    local = _UNIT_RECT[None] * np.stack([np.exp(ll), handedness * np.exp(lw)], axis=-1)[:, None, :]
+    local = _UNIT_RECT[None] * np.stack([_bounded_exp(ll), handedness * _bounded_exp(lw)], axis=-1)[:, None, :]
     c, s = np.cos(th)[:, None], np.sin(th)[:, None]
     return np.stack([cx[:, None] + c * local[..., 0] - s * local[..., 1],
                      cy[:, None] + s * local[..., 0] + c * local[..., 1]], axis=-1)

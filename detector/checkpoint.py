@@ -15,6 +15,7 @@ import torch
 
 from detector.model import DetectorConfig, KeypointDetector
 from omnigen.files import atomic_write_bytes
+from omnigen.taxonomy import Taxonomy, load_taxonomy
 
 
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
@@ -44,3 +45,8 @@ def load_model(path: str | Path) -> tuple[KeypointDetector, dict[str, Any]]:
     model = KeypointDetector(DetectorConfig.from_dict(state["config"]))
     model.load_state_dict(state["model"])
     return model.eval(), state
+
+
+def checkpoint_taxonomy(state: dict[str, Any]) -> Taxonomy:
+    """The classes a checkpoint was trained on (checkpoints without the field: the fine taxonomy)."""
+    return Taxonomy.from_dict(state["taxonomy"]) if "taxonomy" in state else load_taxonomy("fine")

@@ -65,13 +65,11 @@ def run(args: argparse.Namespace) -> int:
         elif suffix == ".pt":
             if not args.predictions.exists():
                 raise ValueError(f"{args.predictions}: no such checkpoint")
-            from detector.checkpoint import load_checkpoint
+            from detector.checkpoint import checkpoint_taxonomy, load_checkpoint
             from detector.predict import predict_dataset
-            from omnigen.taxonomy import Taxonomy
 
             if args.taxonomy is None:  # the classes the model was trained on
-                t = load_checkpoint(args.predictions).get("taxonomy")
-                taxonomy = Taxonomy(t["name"], dict(t["mapping"])) if t else taxonomy
+                taxonomy = checkpoint_taxonomy(load_checkpoint(args.predictions))
 
             predictions = predict_dataset(args.predictions, args.dataset, split=split, imgsz=args.imgsz,
                                           batch=args.batch)

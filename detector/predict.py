@@ -20,7 +20,6 @@ from detector.data import KeypointDataset, Letterbox, letterbox, read_image, spl
 from detector.model import KeypointDetector
 from detector.nms import Detections, postprocess
 from omnigen.conventions import NUM_KEYPOINTS
-from omnigen.taxonomy import Taxonomy
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
 
@@ -101,13 +100,11 @@ def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | 
                     imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF) -> list[dict[str, Any]]:
     """Detections of a checkpoint on a dataset split, ready for `omnigen eval` (at the training
     input size unless `imgsz` says otherwise)."""
-    from detector.checkpoint import load_model
-    from omnigen.taxonomy import load_taxonomy
+    from detector.checkpoint import checkpoint_taxonomy, load_model
 
     model, state = load_model(weights)
     imgsz = imgsz or trained_imgsz(state)
-    taxonomy = Taxonomy(state["taxonomy"]["name"], dict(state["taxonomy"]["mapping"])) if "taxonomy" in state \
-        else load_taxonomy("fine")
+    taxonomy = checkpoint_taxonomy(state)
     data = KeypointDataset(dataset_root, taxonomy, imgsz, split_frames(dataset_root, split))
     return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=1000),
                           show_progress=True)

@@ -28,7 +28,7 @@ from typing import Any, Callable
 import torch
 import torch.distributed as dist
 
-from detector.checkpoint import load_checkpoint, save_checkpoint
+from detector.checkpoint import checkpoint_taxonomy, load_checkpoint, save_checkpoint
 from detector.data import Augment, KeypointDataset, collate, split_frames
 from detector.loss import OKS_SIGMA as KPT_SIGMA
 from detector.loss import DetectionLoss
@@ -36,7 +36,7 @@ from detector.model import DetectorConfig, KeypointDetector
 from detector.predict import EVAL_CONF, PredictOptions, predict_frames
 from omnigen.files import atomic_write_text, dumps_json
 from omnigen.splits import TEST, split_names
-from omnigen.taxonomy import Taxonomy, load_taxonomy
+from omnigen.taxonomy import load_taxonomy
 
 
 @dataclass
@@ -180,7 +180,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     if state is not None:
         # the run's own settings; where it runs and with how many loader processes may change
         cfg = replace(TrainConfig(**state["train_config"]), out=cfg.out, device=cfg.device, workers=cfg.workers)
-        taxonomy = Taxonomy(state["taxonomy"]["name"], dict(state["taxonomy"]["mapping"]))
+        taxonomy = checkpoint_taxonomy(state)
     else:
         taxonomy = load_taxonomy(cfg.taxonomy)
     torch.manual_seed(cfg.seed)

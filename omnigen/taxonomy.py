@@ -38,6 +38,11 @@ class Taxonomy:
     def to_dict(self) -> dict:
         return {"name": self.name, "classes": self.classes, "mapping": dict(self.mapping)}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "Taxonomy":
+        """The inverse of to_dict (classes follow from the mapping): what checkpoints store."""
+        return cls(d["name"], dict(d["mapping"]))
+
 
 def load_taxonomy(name_or_path: str | Path = "fine") -> Taxonomy:
     """A preset by name (fine, coarse) or a TOML file; errors name the file and the field."""
