@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Hashable, Iterable, Iterator, Sequence
 
-from omnigen.dataset import DatasetWriter
+from omnigen.dataset import DatasetWriter, IndexRows
 from omnigen.files import LINK_MODES, atomic_write_bytes, link_file
 from omnigen.progress import print_table, progress
 from omnigen.record import FrameRecord, RecordError
@@ -152,11 +152,11 @@ def run_conversion(
             exc = outcome
             report.skips.append(exc if isinstance(exc, SourceError) else SourceError(exc.file or str(key), exc.field, exc.message))
             continue
-        writer.adopt(outcome.record)
+        writer.adopt(outcome.rows)
         report.link_modes[outcome.link_mode] += 1
         report.written += 1
-        report.objects += len(outcome.record.objects)
-        report.ignore_regions += len(outcome.record.ignore_regions)
+        report.objects += len(outcome.rows.objects)
+        report.ignore_regions += len(outcome.rows.frame.ignore_regions)
         report.stats.update(outcome.stats)
     extra = dict(manifest_extra or {})
     if report.stats:
@@ -170,9 +170,9 @@ def run_conversion(
 
 @dataclass
 class _Written:
-    """What a written frame reports back: its record (for the index), link mode and counts."""
+    """What a written frame reports back: its index rows, link mode and counts."""
 
-    record: FrameRecord
+    rows: IndexRows
     link_mode: str
     stats: dict[str, int]
 
@@ -195,12 +195,12 @@ def _convert_and_write(key: Hashable, convert_one: Callable[[Any], ConvertedFram
         frame = convert_one(key)
         image_dst = out / frame.record.image
         mode = frame.image.place(image_dst, link)
-        writer.write(frame.record)  # validates first; the record lands last, as the commit marker
+        rows = writer.write(frame.record)  # validates first; the record lands last, as the commit marker
     except (SourceError, RecordError) as exc:
         if image_dst is not None and frame is not None and not writer.has(frame.record.frame_id):
             image_dst.unlink(missing_ok=True)
         return exc
-    return _Written(frame.record, mode, frame.stats)
+    return _Written(rows, mode, frame.stats)
 
 
 def _outcomes(keys: Sequence[Hashable], convert_one: Callable[[Any], ConvertedFrame], writer: DatasetWriter,
@@ -210,7 +210,7 @@ def _outcomes(keys: Sequence[Hashable], convert_one: Callable[[Any], ConvertedFr
         for key in keys:
             yield key, _convert_and_write(key, convert_one, writer, out, link)
         return
-    writer.keep_written = False  # seen by the forked copies; this process keeps records via adopt()
+    writer.keep_written = False  # seen by the forked copies; this process keeps their rows via adopt()
     try:
         yield from _parallel_outcomes(keys, functools.partial(
             _convert_and_write, convert_one=convert_one, writer=writer, out=out, link=link), workers)

@@ -120,3 +120,58 @@ def test_visibility_follows_coco():
         else:
             assert v[j] == (V_OCCLUDED if obj.occluded[j] else V_VISIBLE)
     assert (v == V_OUTSIDE).any() and (v > 0).any()
+
+
+def _mutations(good: dict):
+    """Copies of `good` with one object field broken (or oddly typed but valid) in many ways."""
+    values = [None, "x", "0.5", True, 1, 0, -1, 2.0, 0.5, float("nan"), float("inf"), [], [1, 2], {},
+              np.bool_(True), np.float64(0.5), (1.0, 2.0)]
+    obj = good["objects"][1]
+    for key in list(obj):
+        for v in values:
+            d = copy.deepcopy(good)
+            d["objects"][1][key] = v
+            yield d
+        if isinstance(obj[key], list):
+            for j in range(len(obj[key])):
+                for v in values:
+                    d = copy.deepcopy(good)
+                    d["objects"][1][key][j] = v
+                    yield d
+    for part in ("center", "dims", "rotation"):
+        for v in values + [[1.0, 2.0, 3.0, 4.0]]:
+            d = copy.deepcopy(good)
+            d["objects"][1]["box3d"][part] = v
+            yield d
+    for scale in (1.0 + 0.5e-4, 1.0 + 2e-4, -1.0):  # inside, just outside, and far outside the tolerance
+        d = copy.deepcopy(good)
+        d["objects"][1]["box3d"]["rotation"][0] = [x * scale for x in d["objects"][1]["box3d"]["rotation"][0]]
+        yield d
+    d = copy.deepcopy(good)
+    d["objects"][1] = "not an object"
+    yield d
+
+
+def test_objects_checked_at_once_agree_with_one_by_one(good):
+    """The stacked check never accepts what the per-object check refuses, and builds the same objects."""
+    from omnigen.record import _FrameParser
+
+    accepted = refused = 0
+    for d in [good, *_mutations(good)]:
+        parser = _FrameParser(d, None)
+        try:
+            expected = [parser.object(o, f"objects[{i}]") for i, o in enumerate(d["objects"])]
+        except RecordError:
+            expected = None
+        at_once = parser.objects_at_once(d["objects"])
+        if expected is None:
+            assert at_once is None, d
+            refused += 1
+            continue
+        if at_once is not None:
+            accepted += 1
+            assert [o.to_dict() for o in at_once] == [o.to_dict() for o in expected]
+            for a, b in zip(at_once, expected):
+                assert np.array_equal(a.keypoints, b.keypoints, equal_nan=True)
+                assert a.bbox_source is None and b.bbox_source is None or np.array_equal(a.bbox_source, b.bbox_source)
+    assert accepted > 20 and refused > 100  # both branches really exercised
