@@ -16,10 +16,13 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import hashlib
 import json
 import os
 import platform
+import re
 import shlex
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -50,6 +53,11 @@ class Runner:
     def seconds(self, prefix: str) -> float:
         return sum(c["seconds"] for c in self.log if c["command"].startswith(prefix))
 
+    def forget(self, folder: Path) -> None:
+        """Drop the records of commands that wrote into or read from `folder` (it is being redone)."""
+        self.log = [c for c in self.log if not mentions(c["command"], folder)]
+        atomic_write_json(self.path, self.log, indent=1)
+
     def __call__(self, argv: list[str], done: Path | None = None) -> float:
         cmd = "omnigen " + shlex.join(argv)
         if done is not None and done.exists():
@@ -63,6 +71,16 @@ class Runner:
             raise SystemExit(f"validate: '{cmd}' exited with {rc}")
         self.record(cmd, dt)
         return dt
+
+
+def mentions(command: str, folder: Path) -> bool:
+    """Whether a recorded command names `folder` or a file in it (not a sibling sharing its prefix)."""
+    return re.search(re.escape(str(folder)) + r"(?=[/ ,)]|$)", command) is not None
+
+
+def stale(marker: Path, stamp: str) -> bool:
+    """A done-marker left by a run with other arguments (or other inputs): its work is redone."""
+    return marker.exists() and marker.read_text().strip() != stamp
 
 
 def machine() -> str:
@@ -124,10 +142,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--backend", default="raster", choices=["raster", "cycles"])
     ap.add_argument("--jobs", type=int, default=2, help="concurrent render processes")
     ap.add_argument("--imgsz", type=int, default=320)
-    ap.add_argument("--epochs", type=int, default=30)
+    ap.add_argument("--epochs", type=int, default=100)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--device", default=None)
+    ap.add_argument("--kpt-sigma-end", type=float, default=0.25,
+                    help="keypoint-loss sigma after the anneal: 0.25 trains on the kernel of the OKS metric "
+                         "reported here (pycocotools, sigma 0.125); 0.125 is the design's formula read literally")
     ap.add_argument("--val-every", type=int, default=5, help="validate every N epochs (and at the end)")
     ap.add_argument("--scales", nargs="+", default=["n"], help="model scales to train with P2 (n first)")
     ap.add_argument("--ablations", nargs="*", default=[], choices=["no-p2", "hires", "no-synthetic"],
@@ -139,7 +160,6 @@ def main(argv: list[str] | None = None) -> int:
 
     work = args.work
     if args.fresh and work.exists():
-        import shutil
         shutil.rmtree(work)
     work.mkdir(parents=True, exist_ok=True)
     run = Runner(work)
@@ -156,15 +176,20 @@ def main(argv: list[str] | None = None) -> int:
         uov / "manifest.json")
 
     common = ["--imgsz", str(args.imgsz), "--epochs", str(args.epochs), "--batch", str(args.batch),
-              "--workers", str(args.workers), "--seed", str(args.seed), "--val-every", str(args.val_every)] + (["--device", args.device] if args.device else [])
+              "--workers", str(args.workers), "--seed", str(args.seed), "--val-every", str(args.val_every),
+              "--kpt-sigma-end", str(args.kpt_sigma_end)] + (["--device", args.device] if args.device else [])
     runs: list[dict[str, Any]] = []
 
     def train_eval(name: str, extra: list[str], dataset: Path = uov, imgsz: int | None = None) -> dict[str, Any]:
         out = work / "runs" / name
         opts = common if imgsz is None else ["--imgsz", str(imgsz), *common[2:]]  # common starts with --imgsz
         train_cmd = ["train", str(dataset), "--out", str(out), *opts, *extra]
+        if stale(out / "done", shlex.join(train_cmd)):  # e.g. more --epochs than last time: train again
+            print(f"[stale] {out} was trained with other arguments: training again", flush=True)
+            shutil.rmtree(out)
+            run.forget(out)
         if run(train_cmd, out / "done"):
-            (out / "done").write_text("ok\n")
+            atomic_write_text(out / "done", shlex.join(train_cmd) + "\n")
         t = run.seconds("omnigen " + shlex.join(train_cmd))
         from detector.predict import predict_dataset
 
@@ -200,10 +225,14 @@ def main(argv: list[str] | None = None) -> int:
         train_eval("n-p2-no-synthetic", ["--model", "n", "--p2", "--val-split", "train"], dataset=merged_real)
 
     bev_dir = work / "bev"
-    run(["bev", str(work / "runs" / "n-p2" / "test-predictions.json"), "--out", str(bev_dir), "--score-thr", "0.3",
-         "--no-draw"], bev_dir / "done")
+    predictions = work / "runs" / "n-p2" / "test-predictions.json"
+    bev_stamp = hashlib.sha256(predictions.read_bytes()).hexdigest()  # the BEV of these predictions
+    if stale(bev_dir / "done", bev_stamp):
+        shutil.rmtree(bev_dir)
+        run.forget(bev_dir)
+    run(["bev", str(predictions), "--out", str(bev_dir), "--score-thr", "0.3", "--no-draw"], bev_dir / "done")
     bev_dir.mkdir(parents=True, exist_ok=True)
-    (bev_dir / "done").write_text("ok\n")
+    atomic_write_text(bev_dir / "done", bev_stamp + "\n")
 
     counts = json.loads((uov / "manifest.json").read_text())
     wall = sum(c["seconds"] for c in run.log)  # every stage, over resumed invocations too

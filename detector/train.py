@@ -60,8 +60,9 @@ class TrainConfig:
     warmup_iters: int = 100
     ema_decay: float = 0.9999
     ema_tau: float = 2000.0  # EMA ramp: decay * (1 - exp(-updates / tau)) lets early weights move
-    kpt_sigma_start: float = 0.5  # keypoint-loss sigma annealed to the design's 0.125 (see kpt_sigma)
+    kpt_sigma_start: float = 0.5  # keypoint-loss sigma annealed to kpt_sigma_end (see kpt_sigma)
     kpt_sigma_anneal: float = 0.3  # fraction of the iterations over which it is annealed
+    kpt_sigma_end: float = KPT_SIGMA  # the design's 0.125; 0.25 is the kernel of the OKS metric itself
     taxonomy: str = "fine"
     train_split: str = "train"
     val_split: str | None = None  # None: 'val' if the dataset has it, else 'test', else all frames
@@ -119,17 +120,21 @@ def learning_rate(cfg: TrainConfig, it: int, total: int) -> float:
 
 
 def kpt_sigma(cfg: TrainConfig, it: int, total: int) -> float:
-    """Sigma of the keypoint loss at iteration `it`: geometric from kpt_sigma_start to 0.125.
+    """Sigma of the keypoint loss at iteration `it`: geometric from kpt_sigma_start to kpt_sigma_end.
 
     The design's kernel exp(-d / (2 sigma^2 a)) with sigma = 0.125 is so narrow that a corner
     predicted where a fresh head puts it (at the anchor, about 0.7 sqrt(a) away) gets a gradient
     scaled by exp(-16): far corners would never move. A wider sigma early gives them a slope; from
-    kpt_sigma_anneal of the run on, the loss is exactly the design's formula.
+    kpt_sigma_anneal of the run on, the loss is the design's formula with sigma = kpt_sigma_end.
+    The default end is the design's 0.125. pycocotools' OKS, which `omnigen eval` reports, reads
+    the same sigma as exp(-d / (8 sigma^2 a)): the loss's kernel with sigma 0.25 (what
+    Ultralytics' keypoint loss uses), twice as wide as the design's in distance. End there
+    (`--kpt-sigma-end 0.25`) to train on the metric's own kernel.
     """
     end = cfg.kpt_sigma_anneal * total
-    if it >= end or cfg.kpt_sigma_start <= KPT_SIGMA:
-        return KPT_SIGMA
-    return cfg.kpt_sigma_start * (KPT_SIGMA / cfg.kpt_sigma_start) ** (it / end)
+    if it >= end or cfg.kpt_sigma_start <= cfg.kpt_sigma_end:
+        return cfg.kpt_sigma_end
+    return cfg.kpt_sigma_start * (cfg.kpt_sigma_end / cfg.kpt_sigma_start) ** (it / end)
 
 
 def resolve_val_split(root: str, name: str | None) -> str | None:

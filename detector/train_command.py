@@ -29,6 +29,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="data loader processes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")
+    p.add_argument("--kpt-sigma-start", type=float, default=0.5, help="keypoint-loss sigma at the start")
+    p.add_argument("--kpt-sigma-end", type=float, default=0.125,
+                   help="keypoint-loss sigma after the anneal: the design's 0.125; 0.25 is the OKS metric's kernel")
+    p.add_argument("--kpt-sigma-anneal", type=float, default=0.3, help="fraction of the run the anneal takes")
     p.add_argument("--resume", action="store_true", help="continue OUT/last.pt")
 
 
@@ -44,7 +48,8 @@ def run(args: argparse.Namespace) -> int:
         p6=args.p6, imgsz=args.imgsz, epochs=args.epochs, batch=args.batch, lr0=args.lr0, lrf=args.lrf,
         taxonomy=args.taxonomy, train_split=args.train_split, val_split=args.val_split,
         out_of_image=args.out_of_image, augment=asdict(Augment.off() if args.no_augment else Augment()),
-        workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every)
+        workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every,
+        kpt_sigma_start=args.kpt_sigma_start, kpt_sigma_end=args.kpt_sigma_end, kpt_sigma_anneal=args.kpt_sigma_anneal)
     start = time.perf_counter()
 
     def report(epoch: int, row: dict) -> None:

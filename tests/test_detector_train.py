@@ -199,3 +199,15 @@ def test_tiny_model_overfits_four_rendered_frames(rendered, tmp_path):
     elapsed = time.perf_counter() - start
     assert last["oks_map50_95"] >= 0.9, last
     assert elapsed < 180, f"{elapsed:.0f} s"
+
+
+def test_kpt_sigma_anneals_geometrically_to_its_end():
+    from detector.train import TrainConfig, kpt_sigma
+
+    for end in (0.125, 0.25):
+        cfg = TrainConfig(dataset="d", out="o", kpt_sigma_start=0.5, kpt_sigma_end=end, kpt_sigma_anneal=0.5)
+        assert kpt_sigma(cfg, 0, 100) == 0.5
+        assert kpt_sigma(cfg, 25, 100) == pytest.approx((0.5 * end) ** 0.5)  # halfway: the geometric mean
+        assert kpt_sigma(cfg, 50, 100) == end and kpt_sigma(cfg, 99, 100) == end
+    flat = TrainConfig(dataset="d", out="o", kpt_sigma_start=0.25, kpt_sigma_end=0.25)
+    assert kpt_sigma(flat, 0, 100) == 0.25
