@@ -37,3 +37,22 @@ def test_forget_drops_only_the_redone_folder(tmp_path):
     run.forget(Path("w/runs/n-p2"))
     assert [c["command"] for c in run.log] == ["omnigen train uov --out w/runs/n-p2-480 --epochs 30"]
     assert Runner(tmp_path).log == run.log  # the log on disk says the same
+
+
+def test_object_sizes_per_view_of_a_split(tmp_path):
+    import numpy as np
+
+    from benchmarks.validate import object_sizes
+    from omnigen.fakes import write_fake_dataset
+    from omnigen.splits import write_split
+
+    ds = write_fake_dataset(tmp_path / "ds", n_frames=6, seed=3)
+    test = ds.frame_ids[:3]
+    write_split(ds.root, "test", test)
+    sizes = object_sizes(ds.root, "test")
+    rows = [ds.index_of(f) for f in test]
+    o = ds.objects
+    keep = np.isin(o.frame, rows)
+    assert sum(v["objects"] for v in sizes.values()) == int(keep.sum())
+    for view, v in sizes.items():
+        assert v["p10_px"] <= v["p50_px"] <= v["p90_px"]
