@@ -544,10 +544,16 @@ class BlenderScene:
         c.use_light_tree = False  # only depth and ids are kept: no need for a good light choice
         hidden = []
         for obj in self.bscene.objects:
-            if obj.type != "MESH":
+            if obj.type == "LIGHT":
+                # Depth and ids need no light: without the sun and lamps Cycles traces no shadow
+                # rays for them, a large part of this one-sample pass. Showing them again costs
+                # the next beauty render only a light-table update, not a BVH rebuild.
+                hide = True
+            elif obj.type != "MESH":
                 continue
-            hide = obj.get("omnigen_weather") is not None
-            if only_ids is not None:
+            else:
+                hide = obj.get("omnigen_weather") is not None
+            if only_ids is not None and obj.type == "MESH":
                 hide = int(obj.get("omnigen_instance_id", 0)) not in only_ids
             if hide and not obj.hide_render:
                 obj.hide_render = True

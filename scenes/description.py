@@ -318,14 +318,33 @@ class Scene:
 # ---------------------------------------------------------------------------------------------
 
 
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+
+
 def _plain(value: Any) -> Any:
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, float):
+    # Exact built-in types first (most values): cheaper than the generic checks below, same result.
+    t = type(value)
+    if t is float:
         if not math.isfinite(value):
             raise ValueError(f"non-finite float in a scene description: {value}")
         r = round(value, FLOAT_DECIMALS)
         return 0.0 if r == 0 else r  # no "-0.0"
+    if t is str or t is int or t is bool or value is None:
+        return value
+    if t is tuple or t is list:
+        return [_plain(v) for v in value]
+    if t is dict:
+        return {str(k): _plain(v) for k, v in value.items()}
+    names = _FIELD_NAMES.get(t)
+    if names is None and dataclasses.is_dataclass(value) and not isinstance(value, type):
+        names = _FIELD_NAMES[t] = tuple(f.name for f in dataclasses.fields(value))
+    if names is not None:
+        return {name: _plain(getattr(value, name)) for name in names}
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ValueError(f"non-finite float in a scene description: {value}")
+        r = round(value, FLOAT_DECIMALS)
+        return 0.0 if r == 0 else r
     if isinstance(value, bool) or value is None or isinstance(value, (int, str)):
         return value
     if isinstance(value, (list, tuple)):
@@ -358,10 +377,19 @@ def _hints(cls: type) -> dict[str, Any]:
     return _HINTS[cls]
 
 
+_DATACLASS_INFO: dict[type, tuple[dict[str, Any], frozenset[str]]] = {}
+
+
 def _build(tp: Any, data: Any) -> Any:
+    if tp is float:
+        return float(data)
+    if tp is str or tp is int:
+        return data
     if dataclasses.is_dataclass(tp):
-        hints = _hints(tp)
-        names = {f.name for f in dataclasses.fields(tp)}
+        info = _DATACLASS_INFO.get(tp)
+        if info is None:  # type hints resolved once per class (they were a third of `canonical`)
+            info = _DATACLASS_INFO[tp] = (_hints(tp), frozenset(f.name for f in dataclasses.fields(tp)))
+        hints, names = info
         unknown = set(data) - names
         if unknown:
             raise ValueError(f"{tp.__name__}: unknown fields {sorted(unknown)}")
@@ -378,8 +406,6 @@ def _build(tp: Any, data: Any) -> Any:
         return {k: _build(args[1], v) for k, v in data.items()}
     if origin in (typing.Union, types.UnionType):
         return data
-    if tp is float:
-        return float(data)
     if tp is Any:
         return _freeze(data)
     return data

@@ -59,8 +59,23 @@ def pose_matrix(center, yaw: float) -> np.ndarray:
 _STATIC_CACHE: dict[str, tuple[City, list[RenderObject]]] = {}
 
 
+_LAST_CITY: list = [None, None, None]  # [city, its key, its (buildings, furniture) by id]
+
+
 def _city_key(city: City) -> str:
-    return f"{city.preset}:{city.seed}:{hash(to_json(city))}"
+    """The cache key of a city; the JSON hash (~0.1 s for downtown) is kept for the last city seen,
+    since every frame of a run asks about the same City object."""
+    if _LAST_CITY[0] is not city:
+        _LAST_CITY[:] = [city, f"{city.preset}:{city.seed}:{hash(to_json(city))}", None]
+    return _LAST_CITY[1]
+
+
+def _by_id(city: City) -> tuple[dict, dict]:
+    """The city's buildings and furniture by id (static_materials looked each up linearly)."""
+    _city_key(city)
+    if _LAST_CITY[2] is None:
+        _LAST_CITY[2] = ({b.building_id: b for b in city.buildings}, {f.furniture_id: f for f in city.furniture})
+    return _LAST_CITY[2]
 
 
 def static_objects(city: City) -> list[RenderObject]:
@@ -88,10 +103,11 @@ def static_materials(scene: Scene, obj: RenderObject) -> dict[str, Material]:
     city, w, light = scene.city, scene.weather, scene.lighting
     if obj.kind in ("ground", "markings"):
         return {role: ground_material(role, city, w) for role in obj.parts}
+    buildings, furniture = _by_id(city)
     if obj.kind == "building":
-        b = next(b for b in city.buildings if b.building_id == obj.name)
+        b = buildings[obj.name]
         return {role: building_material(role, b, w, light) for role in obj.parts}
-    f = next(f for f in city.furniture if f.furniture_id == obj.name)
+    f = furniture[obj.name]
     return {role: furniture_material(role, f, w, light) for role in obj.parts}
 
 

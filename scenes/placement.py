@@ -27,6 +27,7 @@ from shapely.geometry import Polygon
 from scenes.assets.catalog import draw_asset
 from scenes.description import Agent, AssetSpec, City, Lane
 from scenes.preset import AgentSpec
+from scenes.seeding import choice_index
 from scenes.shapes import Occupancy, rect_polygon, to_world
 from scenes.weather import pick
 
@@ -108,7 +109,7 @@ class _Placer:
 
     def pick_lane(self, lanes: list[Lane]) -> Lane:
         lengths = np.array([lane.length for lane in lanes])
-        return lanes[int(self.rng.choice(len(lanes), p=lengths / lengths.sum()))]
+        return lanes[choice_index(self.rng, lengths / lengths.sum())]
 
     # -- kinds of placement -----------------------------------------------------------------
 
@@ -167,7 +168,7 @@ class _Placer:
         state = "walking" if walking else "standing"
         dims, spec = self.asset("pedestrian", state)
         for _ in range(TRIES):
-            s = strips[int(self.rng.choice(len(strips), p=areas / areas.sum()))]
+            s = strips[choice_index(self.rng, areas / areas.sum())]
             along = float(self.rng.uniform(-s.length / 2 + 0.5, s.length / 2 - 0.5))
             across = float(self.rng.uniform(-s.width / 2 + 0.5, s.width / 2 - 0.5)) if s.width > 1.0 else 0.0
             xy = to_world(s.center, s.yaw, along, across)

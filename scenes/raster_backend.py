@@ -1,13 +1,20 @@
-"""The raster backend: the fast preview. RenderObjects drawn by pyrender, offscreen on EGL.
+"""The raster backend: the fast preview. RenderObjects rasterised offscreen on EGL (scenes/gl_raster.py).
 
-Headless GL: pyrender is pointed at EGL (PYOPENGL_PLATFORM=egl unless already set) and Mesa's
-software EGL (Debian: libegl1, libegl-mesa0, libgl1-mesa-dri; llvmpipe, no GPU needed) draws.
+Headless GL: PyOpenGL is pointed at EGL (PYOPENGL_PLATFORM=egl unless already set) and Mesa's
+software EGL (Debian: libegl1, libegl-mesa0, libgl1-mesa-dri; llvmpipe, no GPU needed) draws,
+with pyrender's EGL context and pyrender's shading (see gl_raster.py for why not its renderer).
+
+What a frame costs is kept small on two CPU cores by drawing few, large vertex buffers: the static
+city is built into one buffer once per process (restyled per frame through a material table, not
+rebuilt), and the frame's agents into another, built only for the agents whose cuboid reaches the
+camera's view (nothing outside the view can change a pixel: no shadows, no reflections here).
 What it is not: no shadows, no global illumination, no volumes. What it adds so previews still
-look like the weather (all documented approximations, done on the image):
-- fog and haze: a depth-based atmosphere, c = c_surface T + c_fog (1 - T), T = exp(-density d)
-  with d the ray length (from the depth and K), computed in linear colour; the sky is at 2 km;
-- the sky: a vertical gradient by ray elevation, tinted by time of day and cloud cover;
-- rain and snow: screen-space streaks and flakes drawn from the frame's own generator.
+look like the weather (all documented approximations):
+- fog and haze: c = c_surface T + c_fog (1 - T), T = exp(-density d) with d the ray length,
+  in linear colour, per fragment in the colour pass; the sky is at 2 km;
+- the sky: a vertical gradient by ray elevation, tinted by time of day and cloud cover, drawn
+  where no geometry is;
+- rain and snow: screen-space streaks and flakes over the image, from the frame's own generator.
 
 Pixel convention: pyrender's IntrinsicsCamera measures the principal point from the image's
 corner, so it is given cx + 0.5, cy + 0.5 (conventions.md, "Measured facts about the renderers").
@@ -22,14 +29,14 @@ from dataclasses import dataclass
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import numpy as np  # noqa: E402
-import pyrender  # noqa: E402
 
 from scenes.description import Material, Scene  # noqa: E402
-from scenes.meshes import RenderObject, compile_scene, world_box  # noqa: E402
+from scenes.gl_raster import ZFAR, ZNEAR, GLRaster, projection, view_matrix  # noqa: E402
+from scenes.meshes import agent_object, compile_scene, static_materials, static_objects, world_box  # noqa: E402
 from scenes.seeding import frame_streams  # noqa: E402
 
-ZNEAR, ZFAR = 0.25, 3000.0
 SKY_DISTANCE = 2000.0
+CULL_MARGIN = 0.25  # metres added to an agent's bounding sphere when testing it against the view
 
 
 @dataclass
@@ -39,243 +46,218 @@ class RasterFrame:
     instance: np.ndarray  # (H, W) uint16, 0 background, k = instance id
 
 
-def _pr_material(m: Material) -> pyrender.MetallicRoughnessMaterial:
-    # pyrender multiplies the emissive factor in twice; pass its square root.
-    strength = min(m.emission_strength / 10.0, 1.0)
-    emissive = np.sqrt(np.clip(np.asarray(m.emission_color) * strength, 0.0, 1.0))
-    return pyrender.MetallicRoughnessMaterial(
-        baseColorFactor=[*m.base_color, 1.0], metallicFactor=float(m.metallic), roughnessFactor=float(max(m.roughness, 0.04)),
-        emissiveFactor=emissive,
-    )
+def material_table(materials) -> np.ndarray:
+    """Materials as the shader's table, (S, 8) float32: base rgb, metallic, emission rgb, roughness.
 
-
-def _set_material(pm: pyrender.MetallicRoughnessMaterial, m: Material) -> None:
-    fresh = _pr_material(m)
-    pm.baseColorFactor, pm.metallicFactor, pm.roughnessFactor = fresh.baseColorFactor, fresh.metallicFactor, fresh.roughnessFactor
-    pm.emissiveFactor = fresh.emissiveFactor
+    Emission as pyrender drew it (its emissive factor is applied twice, so the previous backend
+    passed a square root): clip(emission_color * min(strength / 10, 1), 0, 1).
+    """
+    rows = [(*m.base_color, m.metallic, *m.emission_color, min(m.emission_strength / 10.0, 1.0), m.roughness) for m in materials]
+    if not rows:
+        return np.zeros((0, 8), dtype=np.float32)
+    r = np.array(rows, dtype=np.float64)
+    out = np.empty((len(r), 8), dtype=np.float32)
+    out[:, :4] = r[:, :4]
+    out[:, 4:7] = np.clip(r[:, 4:7] * r[:, 7:8], 0.0, 1.0)
+    out[:, 7] = np.maximum(r[:, 8], 0.04)
+    return out
 
 
 def id_color(instance_id: int) -> tuple[int, int, int]:
-    """The flat colour (0-255; pyrender divides by 255) of an instance in the segmentation pass:
-    the 16-bit id in red (low byte) and green (high byte)."""
+    """The 16-bit id as (red = low byte, green = high byte, 0): how ids look in 8-bit images."""
     return (instance_id & 255, (instance_id >> 8) & 255, 0)
 
 
-def _material_key(m: Material) -> tuple:
-    """What pyrender draws of a material: parts with equal keys can share one draw call."""
-    return (tuple(m.base_color), float(m.metallic), float(m.roughness), tuple(m.emission_color), float(m.emission_strength))
+def _soup(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles as a flat-shaded soup: (positions, per-face normals), float32, 3 vertices a face.
 
-
-def _triangles(mesh, matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A mesh as a flat-shaded triangle soup placed by `matrix`: (positions, per-face normals).
-
-    Flat shading needs vertices split per face; the soup is in the frame `matrix` maps to, so
-    parts of many objects can be concatenated into one draw call.
+    Flat shading needs vertices split per face; soups of many parts and objects concatenate into
+    one vertex buffer, so this runs once over all of them.
     """
-    v = np.asarray(mesh.vertices, dtype=np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
-    tri = v[np.asarray(mesh.faces)]
+    tri = vertices[faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     length = np.linalg.norm(n, axis=1, keepdims=True)
     n = np.where(length > 0, n / np.where(length > 0, length, 1.0), 0.0)
     return tri.reshape(-1, 3).astype(np.float32), np.repeat(n, 3, axis=0).astype(np.float32)
 
 
-def _merged_mesh(soups: list[tuple[np.ndarray, np.ndarray]], materials: list[Material], name: str,
-                 origin: np.ndarray) -> tuple[pyrender.Mesh | None, list[pyrender.MetallicRoughnessMaterial]]:
-    """One primitive per distinct material (first-appearance order, so the same frame always
-    gives the same draw order), positions relative to `origin`. Why: pyrender's cost is per draw
-    call, not per triangle, and a city has ~1,100 static parts but ~440 distinct materials."""
-    groups: dict[tuple, list[int]] = {}
-    for i, m in enumerate(materials):
-        groups.setdefault(_material_key(m), []).append(i)
-    prims, pms = [], []
-    for idx in groups.values():
-        pm = _pr_material(materials[idx[0]])
-        pos = np.concatenate([soups[i][0] for i in idx]) - origin.astype(np.float32)
-        nrm = np.concatenate([soups[i][1] for i in idx])
-        prims.append(pyrender.Primitive(positions=pos, normals=nrm, material=pm))
-        pms.append(pm)
-    return (pyrender.Mesh(prims, name=name) if prims else None), pms
+def visible_agents(agents, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> list[int]:
+    """Indices of the agents whose bounding sphere (plus CULL_MARGIN) reaches the view frustum.
+
+    Conservative: every agent that can colour a pixel is kept (its mesh lies inside its cuboid).
+    """
+    if not agents:
+        return []
+    c = np.array([a.center for a in agents], dtype=np.float64) @ R.T + t.reshape(3)
+    r = np.linalg.norm(np.array([a.dims for a in agents], dtype=np.float64), axis=1) / 2.0 + CULL_MARGIN
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    planes = np.array([[fx, 0.0, cx + 0.5], [-fx, 0.0, width - 0.5 - cx], [0.0, fy, cy + 0.5], [0.0, -fy, height - 0.5 - cy]])
+    planes /= np.linalg.norm(planes, axis=1, keepdims=True)
+    inside = (c @ planes.T >= -r[:, None]).all(axis=1) & (c[:, 2] + r >= ZNEAR) & (c[:, 2] - r <= ZFAR)
+    return np.nonzero(inside)[0].tolist()
 
 
-def _translation(origin: np.ndarray) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, 3] = origin
-    return pose
+def unoccluded_agents(agents, chosen: list[int], K: np.ndarray, R: np.ndarray, t: np.ndarray, static_z: np.ndarray) -> list[int]:
+    """Those of `chosen` not wholly hidden by the static city (camera z `static_z`, inf for sky).
+
+    An agent's mesh lies inside its cuboid, so it can only cover pixels whose centres lie in the
+    box of the cuboid's projected corners, no nearer than the cuboid's nearest corner. If the city
+    is nearer than that (less a depth-precision margin) at every such pixel, no pixel shows the
+    agent and it is skipped. Agents reaching behind the near plane are always kept.
+    """
+    if not chosen:
+        return []
+    H, W = static_z.shape
+    l_, w_, h_ = (np.array([agents[k].dims[i] for k in chosen]) / 2.0 for i in range(3))
+    sx = np.array([-1, 1, 1, -1, -1, 1, 1, -1], dtype=np.float64)
+    sy = np.array([-1, -1, 1, 1, -1, -1, 1, 1], dtype=np.float64)
+    sz = np.array([-1, -1, -1, -1, 1, 1, 1, 1], dtype=np.float64)
+    yaw = np.array([agents[k].yaw for k in chosen])
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    local_x, local_y = l_[:, None] * sx, w_[:, None] * sy
+    centre = np.array([agents[k].center for k in chosen], dtype=np.float64)
+    world = np.stack([centre[:, 0:1] + c * local_x - s * local_y, centre[:, 1:2] + s * local_x + c * local_y,
+                      centre[:, 2:3] + h_[:, None] * sz], axis=-1)  # (N, 8, 3)
+    cam = world @ R.T + t.reshape(3)
+    z = cam[..., 2]
+    keep = []
+    for i, k in enumerate(chosen):
+        zmin = float(z[i].min())
+        if zmin <= ZNEAR * 2:
+            keep.append(k)
+            continue
+        u = K[0, 0] * cam[i, :, 0] / z[i] + K[0, 2]
+        v = K[1, 1] * cam[i, :, 1] / z[i] + K[1, 2]
+        i0, i1 = max(int(math.floor(u.min())), 0), min(int(math.ceil(u.max())), W - 1)
+        j0, j1 = max(int(math.floor(v.min())), 0), min(int(math.ceil(v.max())), H - 1)
+        if i0 > i1 or j0 > j1:
+            keep.append(k)  # nothing to test against (the frustum test kept it): keep, to be safe
+            continue
+        if not float(static_z[j0:j1 + 1, i0:i1 + 1].max()) < zmin - (0.05 + 0.002 * zmin):
+            keep.append(k)
+    return keep
 
 
 class RasterScene:
-    """A pyrender scene kept in step with a Scene; `update` swaps agents and restyles the rest.
+    """A GL scene kept in step with a Scene; `update` swaps agents and restyles the rest.
 
-    Draw calls are what a frame costs (pyrender binds uniforms per primitive), so geometry is
-    merged: the colour pass draws the static city as one node with one primitive per distinct
-    material (kept between frames while the grouping is unchanged; only materials are restyled)
-    and all agents as one node grouped the same way (rebuilt per frame). The segmentation pass
-    needs per-agent ids, so it draws other nodes: the whole static city as one id-0 primitive and
-    each agent as one primitive in its own frame. Segmentation-only nodes are hidden during the
-    colour pass; colour-only nodes are simply left out of the segmentation map.
+    The static city's triangles are uploaded once (one vertex buffer, a material slot per part);
+    per frame only the material table changes. Agents are built when a camera asks for them, for
+    the agents in view only, into one vertex buffer carrying material slots and instance ids, so a
+    colour pass is two draw calls, the id/depth pass two, and a silhouette pass one.
     """
 
     def __init__(self, scene: Scene) -> None:
-        self.pr = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[0.2, 0.2, 0.2])
-        self.objects: dict[str, RenderObject] = {}
-        self._renderer: pyrender.OffscreenRenderer | None = None
-        self._sun: pyrender.Node | None = None
-        self._static_soups: list[tuple[np.ndarray, np.ndarray]] = []
-        self._static_roles: list[tuple[str, str]] = []
-        self._static_color: pyrender.Node | None = None
-        self._static_pms: list[pyrender.MetallicRoughnessMaterial] = []
-        self._static_partition: tuple | None = None
-        self._agent_color: pyrender.Node | None = None
-        self._seg_nodes: dict[str, pyrender.Node] = {}
         self.scene = scene
-        objs = compile_scene(scene)
-        self._build_static([o for o in objs if o.kind != "agent"])
-        self._restyle_static([o for o in objs if o.kind != "agent"])
-        self._set_agents([o for o in objs if o.kind == "agent"])
-        self._light(scene)
+        self.gl = GLRaster()
+        self._statics = static_objects(scene.city)
+        verts, faces, face_slots, n_verts = [], [], [], 0
+        for obj in self._statics:
+            rot, shift = obj.matrix_world[:3, :3], obj.matrix_world[:3, 3]
+            for mesh in obj.parts.values():
+                verts.append(np.asarray(mesh.vertices, dtype=np.float64) @ rot.T + shift)
+                faces.append(np.asarray(mesh.faces) + n_verts)
+                face_slots.append(np.full(len(mesh.faces), len(face_slots), dtype=np.float32))
+                n_verts += len(mesh.vertices)
+        pos, nrm = _soup(np.concatenate(verts), np.concatenate(faces))
+        self._n_static_slots = len(face_slots)
+        self.gl.static.upload(pos, nrm, np.repeat(np.concatenate(face_slots), 3), None)
+        self._static_table = self._static_materials(scene)
+        self._agents_key: tuple | None = None
+        self._ranges: dict[int, tuple[int, int]] = {}
 
-    # -- building ---------------------------------------------------------------------------
-
-    def _build_static(self, statics: list[RenderObject]) -> None:
-        """World-space soups of every static part (once per city) and the id-0 segmentation node."""
-        for obj in statics:
-            self.objects[obj.name] = obj
-            for role, mesh in obj.parts.items():
-                self._static_soups.append(_triangles(mesh, obj.matrix_world))
-                self._static_roles.append((obj.name, role))
-        pos = np.concatenate([s[0] for s in self._static_soups])
-        seg = pyrender.Mesh([pyrender.Primitive(positions=pos, material=_pr_material(Material((0.0, 0.0, 0.0))))], name="static")
-        self._seg_nodes["static"] = self.pr.add(seg, name="static_seg")
-
-    def _restyle_static(self, statics: list[RenderObject]) -> None:
-        """This frame's static materials: restyle in place, or regroup when equal materials changed."""
-        by_name = {o.name: o for o in statics}
-        for obj in statics:
-            self.objects[obj.name] = obj
-        materials = [by_name[name].materials[role] for name, role in self._static_roles]
-        keys = [_material_key(m) for m in materials]
-        first: dict[tuple, int] = {}
-        partition = tuple(first.setdefault(k, len(first)) for k in keys)
-        if partition == self._static_partition:
-            reps = {}
-            for i, g in enumerate(partition):
-                reps.setdefault(g, materials[i])
-            for g, pm in enumerate(self._static_pms):
-                _set_material(pm, reps[g])
-            return
-        if self._static_color is not None:
-            self.pr.remove_node(self._static_color)
-        mesh, self._static_pms = _merged_mesh(self._static_soups, materials, "static", np.zeros(3))
-        self._static_color = self.pr.add(mesh, name="static_color")
-        self._static_partition = partition
-
-    def _set_agents(self, agents: list[RenderObject]) -> None:
-        """Replace the agents: one merged colour node, one segmentation node per agent."""
-        for name in [n for n, o in self.objects.items() if o.kind == "agent"]:
-            self.pr.remove_node(self._seg_nodes.pop(name))
-            del self.objects[name]
-        if self._agent_color is not None:
-            self.pr.remove_node(self._agent_color)
-            self._agent_color = None
-        soups, materials = [], []
-        for obj in agents:
-            self.objects[obj.name] = obj
-            local = [_triangles(mesh, np.eye(4)) for mesh in obj.parts.values()]
-            seg = pyrender.Primitive(positions=np.concatenate([p for p, _ in local]), material=_pr_material(Material((0.0, 0.0, 0.0))))
-            self._seg_nodes[obj.name] = self.pr.add(pyrender.Mesh([seg], name=obj.name), name=obj.name, pose=obj.matrix_world)
-            for role, mesh in obj.parts.items():
-                soups.append(_triangles(mesh, obj.matrix_world))
-                materials.append(obj.materials[role])
-        if soups:
-            # A pose away from the origin keeps pyrender's distance sort of the two colour nodes
-            # free of ties (ties fall back to set order, which differs between processes).
-            origin = np.mean([o.matrix_world[:3, 3] for o in agents], axis=0) + np.array([0.0, 0.0, 0.5])
-            mesh, _ = _merged_mesh(soups, materials, "agents", origin)
-            self._agent_color = self.pr.add(mesh, name="agents_color", pose=_translation(origin))
-
-    def _light(self, scene: Scene) -> None:
-        light = scene.lighting
-        if self._sun is not None:
-            self.pr.remove_node(self._sun)
-        d = np.asarray(light.sun_direction)
-        # A directional light shines along its node's -z: point -z away from the sun.
-        z = d / np.linalg.norm(d)
-        x = np.cross([0.0, 0.0, 1.0], z)
-        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0.0, 0.0])
-        pose = np.eye(4)
-        pose[:3, 0], pose[:3, 1], pose[:3, 2] = x, np.cross(z, x), z
-        sun = max(light.sun_strength, 0.0) * (1.0 if light.sun_elevation > 0 else 0.0)
-        self._sun = self.pr.add(pyrender.DirectionalLight(color=_sun_color(light.sun_elevation), intensity=1.2 * sun), pose=pose)
-        amb = 0.05 + 0.45 * light.sky_strength
-        if light.street_lights_on and light.sky_strength < 0.3:
-            amb += 0.08  # street lighting, approximated as ambient in the preview
-        self.pr.ambient_light = np.array(_sky_colors(scene)[1]) * amb * 1.6
+    def _static_materials(self, scene: Scene) -> np.ndarray:
+        return material_table([m for obj in self._statics for m in static_materials(scene, obj).values()])
 
     def update(self, scene: Scene) -> None:
         """Next frame: new agents, new weather and lighting, same city."""
         if scene.city is not self.scene.city and scene.city != self.scene.city:
             raise ValueError("RasterScene.update needs the same city; build a new RasterScene for another")
-        objs = compile_scene(scene)
-        self._restyle_static([o for o in objs if o.kind != "agent"])
-        self._set_agents([o for o in objs if o.kind == "agent"])
+        if scene.weather != self.scene.weather or scene.lighting != self.scene.lighting:
+            self._static_table = self._static_materials(scene)
         self.scene = scene
-        self._light(scene)
+        self._agents_key = None
+
+    # -- agents -------------------------------------------------------------------------------
+
+    def _prepare_agents(self, K, R, t, width: int, height: int, static_z: np.ndarray | None = None) -> None:
+        """The agent buffer for this camera: the agents in view, in scene order, and the material table.
+
+        With `static_z` (the static city's camera z), agents wholly behind it are left out too.
+        """
+        key = (id(self.scene), K.tobytes(), R.tobytes(), t.tobytes(), width, height)
+        if key == self._agents_key:
+            return
+        agents = self.scene.agents
+        chosen = visible_agents(agents, K, R, t, width, height)
+        if static_z is not None:
+            chosen = unoccluded_agents(agents, chosen, K, R, t, static_z)
+        verts, faces, face_slots, face_ids, materials = [], [], [], [], []
+        self._ranges = {}
+        n_verts = n_faces = 0
+        for k in chosen:
+            obj = agent_object(agents[k], self.scene)
+            rot, shift = obj.matrix_world[:3, :3], obj.matrix_world[:3, 3]
+            begin = n_faces
+            for role, mesh in obj.parts.items():
+                verts.append(np.asarray(mesh.vertices) @ rot.T + shift)
+                faces.append(np.asarray(mesh.faces) + n_verts)
+                face_slots.append(np.full(len(mesh.faces), self._n_static_slots + len(materials), dtype=np.float32))
+                materials.append(obj.materials[role])
+                n_verts += len(mesh.vertices)
+                n_faces += len(mesh.faces)
+            face_ids.append(np.full(n_faces - begin, obj.instance_id, dtype=np.float32))
+            self._ranges[obj.instance_id] = (3 * begin, 3 * (n_faces - begin))
+        if faces:
+            pos, nrm = _soup(np.concatenate(verts), np.concatenate(faces))
+            slots, ids = np.repeat(np.concatenate(face_slots), 3), np.repeat(np.concatenate(face_ids), 3)
+        else:
+            pos = nrm = np.zeros((0, 3))
+            slots = ids = np.zeros(0)
+        self.gl.make_current()
+        self.gl.agents.upload(pos, nrm, slots, ids)
+        table = np.concatenate([self._static_table, material_table(materials)])
+        self.gl.set_materials(table)
+        self._agents_key = key
 
     # -- inspection -------------------------------------------------------------------------
 
     def objects_summary(self) -> list[dict]:
         """Name, instance id, class and world box of every object (from the geometry drawn)."""
         out = []
-        for name, obj in self.objects.items():
+        for obj in compile_scene(self.scene):
             center, dims, yaw = world_box(obj)
-            out.append({"name": name, "instance_id": obj.instance_id, "category": obj.category,
+            out.append({"name": obj.name, "instance_id": obj.instance_id, "category": obj.category,
                         "center": center.tolist(), "dims": dims.tolist(), "yaw": yaw})
         return out
 
-    def _seg_map(self, wanted: set[int] | None = None) -> dict:
-        """Segmentation colours of the segmentation nodes (all, or only the agents in `wanted`)."""
-        out = {}
-        for name, node in self._seg_nodes.items():
-            iid = self.objects[name].instance_id if name in self.objects else 0
-            if wanted is None or (iid in wanted and iid != 0):
-                out[node] = id_color(iid)
-        return out
-
-    def _show_seg_nodes(self, visible: bool) -> None:
-        for node in self._seg_nodes.values():
-            node.mesh.is_visible = visible
-
     # -- rendering --------------------------------------------------------------------------
+
+    def _camera(self, K, R, t, width: int, height: int, prepare: bool = True):
+        K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
+        t = t.reshape(3)
+        self.gl.make_current()
+        if prepare:
+            self._prepare_agents(K, R, t, width, height)
+        return K, R, t, projection(K, width, height) @ view_matrix(R, t)
 
     def render(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int, effects: bool = True) -> RasterFrame:
         """Render with an OpenCV camera: X_cam = R X_world + t, pixels as in the contract."""
-        K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
-        cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=ZNEAR, zfar=ZFAR)
-        pose = np.eye(4)
-        pose[:3, :3] = R.T @ np.diag([1.0, -1.0, -1.0])  # OpenCV -> OpenGL camera axes
-        pose[:3, 3] = -R.T @ t.reshape(3)
-        cam_node = self.pr.add(cam, pose=pose)
-        try:
-            r = self._get_renderer(width, height)
-            self._show_seg_nodes(False)
-            try:
-                color, _ = r.render(self.pr)
-            finally:
-                self._show_seg_nodes(True)
-            # Masks and depth come from the segmentation pass, which pyrender draws without
-            # multisampling: ids are exact (never averaged at edges) and each pixel's depth
-            # belongs to the object its id names. The colour pass keeps its antialiasing.
-            seg, depth = r.render(self.pr, flags=pyrender.RenderFlags.SEG, seg_node_map=self._seg_map())
-        finally:
-            self.pr.remove_node(cam_node)
-        seg = seg.astype(np.uint16)
-        instance = (seg[..., 0] | (seg[..., 1] << 8)).astype(np.uint16)
-        depth = depth.astype(np.float32)
-        depth[depth <= 0] = np.inf
-        rgb = color[..., :3].copy()
-        if effects:
-            rgb = self._atmosphere(rgb, depth, K, R, width, height)
+        K, R, t, VP = self._camera(K, R, t, width, height, prepare=False)
+        # Masks and depth come from the id pass, drawn without multisampling: ids are exact (never
+        # averaged at edges) and each pixel's depth belongs to the object its id names. The
+        # colour pass keeps its antialiasing. The id pass draws the static city first, so agents
+        # wholly behind it are not even built.
+        static_z = self.gl.id_static(VP, width, height)
+        self._prepare_agents(K, R, t, width, height, static_z)
+        instance, depth = self.gl.id_agents(VP, width, height)
+        light_dir, radiance, ambient = self._light()
+        rgb = self.gl.color_pass(VP, -R.T @ t, light_dir, radiance, ambient, width, height,
+                                 self._atmosphere(K, R, width, height) if effects else None)
+        rgb = np.ascontiguousarray(rgb)
+        weather = self.scene.weather
+        if effects and weather.precipitation > 0 and weather.kind in ("rain", "snow"):
+            rgb = _precipitation(rgb, self.scene)
         return RasterFrame(rgb, depth, instance)
 
     def render_instances(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int,
@@ -285,53 +267,43 @@ class RasterScene:
         Used for silhouettes "drawn alone": when the given agents' projections do not overlap, each
         one's pixels here are exactly its full silhouette (rigs/annotate.py).
         """
-        K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
-        cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=ZNEAR, zfar=ZFAR)
-        pose = np.eye(4)
-        pose[:3, :3] = R.T @ np.diag([1.0, -1.0, -1.0])
-        pose[:3, 3] = -R.T @ t.reshape(3)
-        seg_map = self._seg_map({int(i) for i in instance_ids})
-        cam_node = self.pr.add(cam, pose=pose)
-        try:
-            seg, _ = self._get_renderer(width, height).render(self.pr, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)
-        finally:
-            self.pr.remove_node(cam_node)
-        seg = seg.astype(np.uint16)
-        return (seg[..., 0] | (seg[..., 1] << 8)).astype(np.uint16)
+        K, R, t, VP = self._camera(K, R, t, width, height)
+        ranges = [self._ranges[int(i)] for i in sorted({int(i) for i in instance_ids}) if int(i) in self._ranges]
+        first = np.array([r[0] for r in ranges], dtype=np.int32)
+        count = np.array([r[1] for r in ranges], dtype=np.int32)
+        return self.gl.ids_of_ranges(VP, width, height, first, count)
 
-    def _get_renderer(self, width: int, height: int) -> pyrender.OffscreenRenderer:
-        r = self._renderer
-        if r is None or r.viewport_width != width or r.viewport_height != height:
-            if r is not None:
-                r.delete()
-            r = self._renderer = pyrender.OffscreenRenderer(width, height)
-        return r
-
-    def _atmosphere(self, rgb: np.ndarray, depth: np.ndarray, K, R, width: int, height: int) -> np.ndarray:
+    def _light(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(direction the sunlight travels, sun radiance, ambient) of the current scene."""
         scene = self.scene
-        u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-        rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
-        ray_len = np.linalg.norm(rays, axis=-1)
-        world_dir = (rays / ray_len[..., None]) @ R  # R^T applied to each ray: camera -> world
-        zenith, horizon = (np.asarray(c) for c in _sky_colors(scene))
-        elev = np.clip(world_dir[..., 2], 0.0, 1.0)[..., None]
-        sky = horizon * (1 - elev) ** 2 + zenith * (1 - (1 - elev) ** 2)
-        lin = (rgb.astype(np.float64) / 255.0) ** 2.2
-        hit = np.isfinite(depth)
-        lin = np.where(hit[..., None], lin, sky)
-        dist = np.where(hit, depth * ray_len, SKY_DISTANCE)
-        trans = np.exp(-scene.weather.fog_density * dist)[..., None]
-        fog_col = horizon * 0.9
-        lin = lin * trans + fog_col * (1 - trans)
-        out = (np.clip(lin, 0, 1) ** (1 / 2.2) * 255.0 + 0.5).astype(np.uint8)
-        if scene.weather.precipitation > 0 and scene.weather.kind in ("rain", "snow"):
-            out = _precipitation(out, scene)
-        return out
+        light = scene.lighting
+        d = np.asarray(light.sun_direction, dtype=np.float64)
+        n = np.linalg.norm(d)
+        direction = -d / n if n > 0 else np.array([0.0, 0.0, -1.0])
+        sun = max(light.sun_strength, 0.0) * (1.0 if light.sun_elevation > 0 else 0.0)
+        radiance = np.asarray(_sun_color(light.sun_elevation)) * 1.2 * sun
+        amb = 0.05 + 0.45 * light.sky_strength
+        if light.street_lights_on and light.sky_strength < 0.3:
+            amb += 0.08  # street lighting, approximated as ambient in the preview
+        return direction, radiance, np.array(_sky_colors(scene)[1]) * amb * 1.6
+
+    def _atmosphere(self, K: np.ndarray, R: np.ndarray, width: int, height: int) -> dict:
+        """What the colour pass needs for fog, haze and sky (gl_raster.GLRaster.color_pass).
+
+        The model (module doc): c = c_surface T + c_fog (1 - T), T = exp(-density d), d the ray
+        length, in linear colour; the sky, at SKY_DISTANCE, a gradient by the ray's elevation.
+        """
+        zenith, horizon = _sky_colors(self.scene)
+        # NDC (x, y) -> pixel (u, v) = ((x + 1) W / 2 - 0.5, (1 - y) H / 2 - 0.5) -> camera ray
+        # ((u - cx) / fx, (v - cy) / fy, 1) -> world ray R^T ray.
+        A = np.array([[width / (2 * K[0, 0]), 0.0, (width / 2 - 0.5 - K[0, 2]) / K[0, 0]],
+                      [0.0, -height / (2 * K[1, 1]), (height / 2 - 0.5 - K[1, 2]) / K[1, 1]],
+                      [0.0, 0.0, 1.0]])
+        return {"fog_density": float(self.scene.weather.fog_density), "fog_color": np.asarray(horizon) * 0.9,
+                "zenith": zenith, "horizon": horizon, "sky_distance": SKY_DISTANCE, "ndc_to_world": R.T @ A}
 
     def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.delete()
-            self._renderer = None
+        self.gl.close()
 
 
 def _sun_color(elevation: float) -> list[float]:

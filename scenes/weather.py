@@ -21,6 +21,7 @@ import math
 import numpy as np
 
 from scenes.description import Lighting, Weather
+from scenes.seeding import choice_index
 
 WEATHER_KINDS = ("clear", "overcast", "rain", "snow", "fog")
 TIMES_OF_DAY = ("dawn", "morning", "noon", "afternoon", "dusk", "night")
@@ -39,7 +40,7 @@ def pick(rng: np.random.Generator, weights: dict[str, float]) -> str:
     """A key drawn with probability proportional to its weight (keys sorted: order-proof)."""
     keys = sorted(k for k, w in weights.items() if w > 0)
     p = np.array([weights[k] for k in keys], dtype=np.float64)
-    return keys[int(rng.choice(len(keys), p=p / p.sum()))]
+    return keys[choice_index(rng, p / p.sum())]
 
 
 def draw_weather(rng: np.random.Generator, kinds: dict[str, float], kind: str | None = None,

@@ -29,7 +29,9 @@ AGENT_BUILDERS = {
 }
 
 _CACHE: OrderedDict[str, tuple[dict[str, trimesh.Trimesh], np.ndarray]] = OrderedDict()
-_CACHE_SIZE = 512
+# One frame's agents (~160 downtown) fit, so a frame never builds an agent twice; more would only
+# hold meshes of past frames (agents are redrawn every frame) and grow resident memory.
+_CACHE_SIZE = 256
 
 
 def _cached(key: str, make):

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from scenes.description import AssetSpec
+from scenes.seeding import choice_index
 
 
 @dataclass(frozen=True)
@@ -68,21 +69,25 @@ PROCEDURAL_FAMILIES = ("car", "van", "truck", "bus", "pedestrian", "cyclist", "m
 
 def truncated_normal(rng: np.random.Generator, mean, std, lo, hi) -> np.ndarray:
     """Per-axis normal draws redrawn until inside [lo, hi] (exact truncation, deterministic)."""
-    mean, std, lo, hi = (np.asarray(v, dtype=np.float64) for v in (mean, std, lo, hi))
-    out = rng.normal(mean, std)
+    # The same draws as the array form (one rng.normal over all axes per round, redrawn axes
+    # replaced); the checks in plain floats, which cost less than numpy's per-call overhead here.
+    mean, std = np.asarray(mean, dtype=np.float64), np.asarray(std, dtype=np.float64)
+    lo, hi = [float(v) for v in lo], [float(v) for v in hi]
+    out = rng.normal(mean, std).tolist()
     for _ in range(100):
-        bad = (out < lo) | (out > hi)
-        if not bad.any():
+        bad = [v < a or v > b for v, a, b in zip(out, lo, hi)]
+        if not any(bad):
             break
-        out = np.where(bad, rng.normal(mean, std), out)
-    return np.clip(out, lo, hi)
+        new = rng.normal(mean, std).tolist()
+        out = [n if x else v for v, n, x in zip(out, new, bad)]
+    return np.array([min(max(v, a), b) for v, a, b in zip(out, lo, hi)], dtype=np.float64)
 
 
 def draw_dims(rng: np.random.Generator, family: str, state: str = "") -> tuple[float, float, float]:
     if family == "traffic_cone":
         heights = sorted(CONE_HEIGHTS)
         p = np.array([CONE_HEIGHTS[h] for h in heights])
-        h = heights[int(rng.choice(len(heights), p=p / p.sum()))] + float(rng.normal(0, 0.02))
+        h = heights[choice_index(rng, p / p.sum())] + float(rng.normal(0, 0.02))
         base = CONE_BASE_RATIO * h
         return (base, base, h)
     key = "pedestrian_standing" if family == "pedestrian" and state == "standing" else family
@@ -92,14 +97,16 @@ def draw_dims(rng: np.random.Generator, family: str, state: str = "") -> tuple[f
 
 
 def _color(rng: np.random.Generator, palette, amount: float = 0.1) -> tuple[float, float, float]:
-    c = np.asarray(palette[int(rng.integers(len(palette)))], dtype=np.float64)
-    c = np.clip(c * (1.0 + rng.uniform(-amount, amount, 3)), 0.0, 1.0)
-    return (float(c[0]), float(c[1]), float(c[2]))
+    c = palette[int(rng.integers(len(palette)))]
+    u = rng.uniform(-amount, amount, 3).tolist()
+    # Scalar arithmetic, same IEEE operations as numpy's c * (1 + u) clipped to [0, 1] (cheaper).
+    r, g, b = (min(max(float(ci) * (1.0 + ui), 0.0), 1.0) for ci, ui in zip(c, u))
+    return (r, g, b)
 
 
 def _weighted_color(rng: np.random.Generator, table) -> tuple[float, float, float]:
     p = np.array([w for _, w in table])
-    return _color(rng, [table[int(rng.choice(len(table), p=p / p.sum()))][0]], 0.06)
+    return _color(rng, [table[choice_index(rng, p / p.sum())][0]], 0.06)
 
 
 def _person(rng: np.random.Generator) -> dict:
@@ -158,6 +165,9 @@ def draw_asset(rng: np.random.Generator, family: str, state: str = "") -> tuple[
 
 
 def _freeze(value):
+    t = type(value)
+    if t is float or t is bool or t is int or t is str:  # most values: skip the isinstance chain
+        return value
     if isinstance(value, dict):
         return {k: _freeze(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

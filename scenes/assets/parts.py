@@ -1,8 +1,11 @@
 """Mesh primitives and the parts container the asset builders share.
 
-A built asset is a dict role -> trimesh.Trimesh ("paint", "glass", "tyre", "skin", ...): one mesh
-per material role, so that a backend makes one object with one material slot per role. Meshes
-are made with process=False: trimesh's vertex merging costs time and changes nothing we draw.
+A built asset is a dict role -> mesh ("paint", "glass", "tyre", "skin", ...): one mesh per
+material role, so that a backend makes one object with one material slot per role. A mesh is a
+`Piece` (bare `vertices` and `faces` arrays, all any consumer reads), not a trimesh.Trimesh: the
+raster preview builds every agent in view every frame, and constructing two Trimesh objects per
+role (assembly, then the fit) was a third of that. Meshes made with `_mesh` (some static pieces)
+and user assets are trimesh objects; consumers read only `vertices` and `faces` either way.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ class Piece:
 
     Why not a trimesh: an agent is built from dozens of primitives every frame, and constructing
     (and transforming) a Trimesh per primitive cost most of a frame's re-randomisation. Parts
-    makes one Trimesh per role from these.
+    concatenates them into one Piece per role.
     """
 
     __slots__ = ("vertices", "faces")
@@ -48,18 +51,16 @@ class Piece:
 
 def box(lo, hi) -> Piece:
     """Axis-aligned box between corners lo and hi."""
-    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
-    return hexahedron(
-        [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])], lo[2],
-        [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])], hi[2],
-    )
+    (x0, y0, z0), (x1, y1, z1) = (float(c) for c in lo), (float(c) for c in hi)
+    quad = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    return hexahedron(quad, z0, quad, z1)
 
 
 def hexahedron(bottom, z0: float, top, z1: float) -> Piece:
     """Solid between a bottom quad at z0 and a top quad at z1 (xy corners, counter-clockwise)."""
-    b = np.asarray(bottom, dtype=np.float64)
-    t = np.asarray(top, dtype=np.float64)
-    v = np.vstack([np.column_stack([b, np.full(4, z0)]), np.column_stack([t, np.full(4, z1)])])
+    v = np.empty((8, 3))
+    v[:4, :2], v[:4, 2] = bottom, z0
+    v[4:, :2], v[4:, 2] = top, z1
     return Piece(v, _HEX_FACES)
 
 
@@ -73,12 +74,23 @@ def trapezoid_x(x0b: float, x1b: float, x0t: float, x1t: float, wb: float, wt: f
 
 def frustum(center_xy, z0: float, z1: float, r0: float, r1: float, sections: int = 16) -> Piece:
     """A capped cone segment about a vertical axis (a cylinder when r0 == r1)."""
-    a = np.linspace(0, 2 * math.pi, sections, endpoint=False)
+    cos_a, sin_a = _ring(sections)
     cx, cy = center_xy
-    ring0 = np.column_stack([cx + r0 * np.cos(a), cy + r0 * np.sin(a), np.full(sections, z0)])
-    ring1 = np.column_stack([cx + r1 * np.cos(a), cy + r1 * np.sin(a), np.full(sections, z1)])
-    v = np.vstack([ring0, ring1, [[cx, cy, z0], [cx, cy, z1]]])
+    v = np.empty((2 * sections + 2, 3))
+    v[:sections, 0], v[:sections, 1], v[:sections, 2] = cx + r0 * cos_a, cy + r0 * sin_a, z0
+    v[sections:2 * sections, 0], v[sections:2 * sections, 1], v[sections:2 * sections, 2] = cx + r1 * cos_a, cy + r1 * sin_a, z1
+    v[2 * sections:] = [[cx, cy, z0], [cx, cy, z1]]
     return Piece(v, _frustum_faces(sections))
+
+
+@lru_cache(maxsize=None)
+def _ring(sections: int) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of `sections` angles evenly spaced from 0 (frustum's rings)."""
+    a = np.linspace(0, 2 * math.pi, sections, endpoint=False)
+    c, s = np.cos(a), np.sin(a)
+    c.flags.writeable = False
+    s.flags.writeable = False
+    return c, s
 
 
 @lru_cache(maxsize=None)
@@ -124,8 +136,17 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def wheel(center, radius: float, width: float, sections: int = 16) -> Piece:
     """A disc-like wheel whose axle is the y axis."""
+    # cylinder_between(c - (0, w/2, 0), c + (0, w/2, 0), radius) with its frame written out: the
+    # axis y, local x -> world z, local y -> world x (what _align_z gives for +y), same vertices.
     c = np.asarray(center, dtype=np.float64)
-    return cylinder_between(c - [0, width / 2, 0], c + [0, width / 2, 0], radius, sections)
+    cos_a, sin_a = _ring(sections)
+    n = sections
+    v = np.empty((2 * n + 2, 3))
+    v[:n, 0] = v[n:2 * n, 0] = c[0] + radius * sin_a
+    v[:n, 2] = v[n:2 * n, 2] = c[2] + radius * cos_a
+    v[:n, 1], v[n:2 * n, 1] = c[1] - width / 2, c[1] - width / 2 + width
+    v[2 * n:] = [[c[0], c[1] - width / 2, c[2]], [c[0], c[1] - width / 2 + width, c[2]]]
+    return Piece(v, _frustum_faces(n))
 
 
 def ring_y(center, r_in: float, r_out: float, width: float, sections: int = 20) -> Piece:
@@ -162,31 +183,31 @@ class Parts:
     """Meshes grouped by material role; `add` accumulates, `meshes()` concatenates per role."""
 
     def __init__(self) -> None:
-        self._items: dict[str, list[trimesh.Trimesh]] = {}
+        self._items: dict[str, list[Piece]] = {}
 
-    def add(self, role: str, *meshes: trimesh.Trimesh) -> None:
+    def add(self, role: str, *meshes: Piece) -> None:
         self._items.setdefault(role, []).extend(meshes)
 
-    def meshes(self) -> dict[str, trimesh.Trimesh]:
+    def meshes(self) -> dict[str, Piece]:
         out = {}
         for role in sorted(self._items):
             items = self._items[role]
             v, f, n = [], [], 0
             for m in items:
-                v.append(np.asarray(m.vertices))
-                f.append(np.asarray(m.faces) + n)
+                v.append(m.vertices)
+                f.append(m.faces + n)
                 n += len(m.vertices)
-            out[role] = _mesh(np.vstack(v), np.vstack(f))
+            out[role] = Piece(np.concatenate(v), np.concatenate(f))
         return out
 
 
-def bounds_of(meshes: dict[str, trimesh.Trimesh]) -> np.ndarray:
+def bounds_of(meshes: dict) -> np.ndarray:
     """(2, 3) min and max over all parts."""
     v = np.vstack([m.vertices for m in meshes.values()])
     return np.stack([v.min(axis=0), v.max(axis=0)])
 
 
-def fit_to_dims(meshes: dict[str, trimesh.Trimesh], dims) -> tuple[dict[str, trimesh.Trimesh], np.ndarray]:
+def fit_to_dims(meshes: dict, dims) -> tuple[dict[str, Piece], np.ndarray]:
     """Scale each axis and centre so the parts' bounds are exactly the cuboid of `dims`.
 
     Returns the fitted parts and the raw extents (to check the design was close: builders make
@@ -198,5 +219,5 @@ def fit_to_dims(meshes: dict[str, trimesh.Trimesh], dims) -> tuple[dict[str, tri
     mid = (b[0] + b[1]) / 2.0
     out = {}
     for role, m in meshes.items():
-        out[role] = _mesh((np.asarray(m.vertices) - mid) * scale, m.faces)
+        out[role] = Piece((np.asarray(m.vertices) - mid) * scale, m.faces)
     return out, raw
