@@ -281,6 +281,10 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--precipitation", type=float, default=None, help="fix rain or snow intensity (0-1); default: drawn")
     p.add_argument("--save-blend", type=Path, default=None,
                    help="Cycles: also write the first rendered frame's scene as a .blend to open in Blender")
+    p.add_argument("--labels", choices=("auto", "gl", "cycles"), default="auto",
+                   help="Cycles: where depth, instance ids and silhouettes come from: gl (the raster id pass over "
+                        "the same geometry, milliseconds), cycles (one-sample Cycles passes), auto (gl when a "
+                        "headless OpenGL context can be made)")
     p.add_argument("--shard", default=None, metavar="K/N",
                    help="render only frames with index %% N == K-1 (1 <= K <= N) into the shared --out; the shard "
                         "that finds every frame of the run written finalizes (docs/rendering-at-scale.md)")
@@ -327,7 +331,7 @@ def _run_render(args: argparse.Namespace) -> int:
                                precipitation=args.precipitation)
     job = RenderJob(rig=args.rig, frames=args.frames, out=args.out, seed=args.seed, scene=args.scene,
                     width=args.width, height=args.height, backend=args.backend, quality=args.quality, start=args.start,
-                    shard=shard, overrides=overrides, save_blend=args.save_blend)
+                    shard=shard, overrides=overrides, save_blend=args.save_blend, labels=args.labels)
     if args.finalize_only:
         missing = missing_frames(job)
         if missing or not finalize_run(job):

@@ -140,16 +140,39 @@ class RasterBackend:
         self.rs.close()
 
 
+LABEL_SOURCES = ("auto", "gl", "cycles")
+
+
 class CyclesBackend:
-    """Blender Cycles for RGB; depth and instance ids from Blender (scenes/blender_backend.py)."""
+    """Blender Cycles for RGB; depth, instance ids and silhouettes from a label renderer.
+
+    Labels come from the raster backend's id pass over the very same geometry (compile_scene's
+    objects, the same camera; `labels="gl"`) or from Cycles' own one-sample label passes
+    (`labels="cycles"`). Both sample each pixel at its centre, so they agree but for ties on
+    exact edges (tests/test_render_cycles.py checks the two against each other). The GL passes
+    cost milliseconds where each Cycles pass costs a render session; "auto" uses GL when a
+    headless context can be made, else Cycles.
+    """
 
     name = "cycles"
 
-    def __init__(self, scene: Scene, quality: str = "fast") -> None:
+    def __init__(self, scene: Scene, quality: str = "fast", labels: str = "auto") -> None:
         from scenes.blender_backend import BlenderScene
 
+        if labels not in LABEL_SOURCES:
+            raise ValueError(f"unknown label source {labels!r}; choose from {', '.join(LABEL_SOURCES)}")
         self.bs = BlenderScene(scene)
         self.bs.set_quality(quality)
+        self.rs = None
+        if labels != "cycles":
+            try:
+                from scenes.raster_backend import RasterScene
+
+                self.rs = RasterScene(scene)
+            except Exception as exc:  # no headless GL here (EGL, PyOpenGL): Cycles draws the labels
+                if labels == "gl":
+                    raise RuntimeError(f"--labels gl: no headless OpenGL context ({exc})") from exc
+        self.labels = "cycles" if self.rs is None else "gl"
         self._first = True
 
     def update(self, scene: Scene) -> None:
@@ -157,12 +180,18 @@ class CyclesBackend:
             return
         self._first = False
         self.bs.update(scene)
+        if self.rs is not None:
+            self.rs.update(scene)
 
     def render(self, cam: Camera) -> Rendered:
-        out = self.bs.render(cam.K, cam.R, cam.t, cam.width, cam.height)
+        out = self.bs.render(cam.K, cam.R, cam.t, cam.width, cam.height, labels=self.rs is None)
+        if self.rs is not None:
+            out["depth"], out["instance"] = self.rs.labels(cam.K, cam.R, cam.t, cam.width, cam.height)
         return Rendered(out["rgb"], out["depth"], out["instance"], out["seconds"])
 
     def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
+        if self.rs is not None:
+            return self.rs.render_instances(cam.K, cam.R, cam.t, cam.width, cam.height, ids)
         return self.bs.render_instances(cam.K, cam.R, cam.t, cam.width, cam.height, ids)
 
     def save_blend(self, path: Path) -> Path:
@@ -172,16 +201,19 @@ class CyclesBackend:
     def close(self) -> None:
         import shutil
 
+        if self.rs is not None:
+            self.rs.close()
+            self.rs = None
         tmp = getattr(self.bs, "_tmp", None)
         if tmp:
             shutil.rmtree(tmp, ignore_errors=True)
 
 
-def make_backend(name: str, scene: Scene, quality: str):
+def make_backend(name: str, scene: Scene, quality: str, labels: str = "auto"):
     if name == "raster":
         return RasterBackend(scene, quality)
     if name == "cycles":
-        return CyclesBackend(scene, quality)
+        return CyclesBackend(scene, quality, labels)
     raise ValueError(f"unknown backend {name!r}; choose from {', '.join(BACKENDS)}")
 
 
@@ -206,6 +238,7 @@ class RenderJob:
     shard: tuple[int, int] = (1, 1)  # (K, N): this process renders the frames with index % N == K - 1
     overrides: FrameOverrides | None = None  # weather / time of day fixed on the command line
     save_blend: Path | None = None  # Cycles: write the first rendered frame's scene as a .blend
+    labels: str = "auto"  # Cycles: depth, ids and silhouettes from GL (auto, gl) or Cycles' own passes
 
     def indices(self) -> range:
         """Every frame index of the run (all shards)."""
@@ -301,7 +334,7 @@ class Renderer:
         t1 = time.perf_counter()
         tm["scene"] += t1 - t0
         if self.backend is None:
-            self.backend = make_backend(job.backend, scene, job.quality)
+            self.backend = make_backend(job.backend, scene, job.quality, job.labels)
             tm["build"] += time.perf_counter() - t1
         else:
             self.backend.update(scene)

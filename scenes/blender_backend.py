@@ -482,9 +482,10 @@ class BlenderScene:
         with _quiet_native_output():
             bpy.ops.render.render(write_still=False)
 
-    def render(self, K, R, t, width: int, height: int) -> dict:
+    def render(self, K, R, t, width: int, height: int, labels: bool = True) -> dict:
         """Cycles RGB (uint8 sRGB through the view transform) plus the label pass's depth (camera z,
-        inf where nothing was hit) and instance ids; `seconds` is the beauty render's time."""
+        inf where nothing was hit) and instance ids (None with labels=False: the caller draws them
+        another way); `seconds` is the beauty render's time."""
         import time as _time
 
         from PIL import Image
@@ -505,7 +506,7 @@ class BlenderScene:
             # The label pass runs before the fog comes back: with the same objects visible as in
             # the beauty render, Cycles (persistent data) reuses the beauty render's BVH instead
             # of building the city's again (about 2 s at 640 x 640 on the 2-core machine).
-            depth, instance = self._labels(None)
+            depth, instance = self._labels(None) if labels else (None, None)
         finally:
             if skip_fog:
                 fog.hide_render = False

@@ -260,6 +260,15 @@ class RasterScene:
             rgb = _precipitation(rgb, self.scene)
         return RasterFrame(rgb, depth, instance)
 
+    def labels(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """(depth, instance) of the id pass alone, no colour: labels for another renderer's image
+        of the same geometry (the Cycles backend's)."""
+        K, R, t, VP = self._camera(K, R, t, width, height, prepare=False)
+        static_z = self.gl.id_static(VP, width, height)
+        self._prepare_agents(K, R, t, width, height, static_z)
+        instance, depth = self.gl.id_agents(VP, width, height)
+        return depth, instance
+
     def render_instances(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int,
                          instance_ids: list[int]) -> np.ndarray:
         """The instance image of only the agents in `instance_ids`, nothing else drawn (uint16).
