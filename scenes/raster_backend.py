@@ -244,13 +244,7 @@ class RasterScene:
     def render(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int, effects: bool = True) -> RasterFrame:
         """Render with an OpenCV camera: X_cam = R X_world + t, pixels as in the contract."""
         K, R, t, VP = self._camera(K, R, t, width, height, prepare=False)
-        # Masks and depth come from the id pass, drawn without multisampling: ids are exact (never
-        # averaged at edges) and each pixel's depth belongs to the object its id names. The
-        # colour pass keeps its antialiasing. The id pass draws the static city first, so agents
-        # wholly behind it are not even built.
-        static_z = self.gl.id_static(VP, width, height)
-        self._prepare_agents(K, R, t, width, height, static_z)
-        instance, depth = self.gl.id_agents(VP, width, height)
+        depth, instance = self._id_pass(K, R, t, VP, width, height)
         light_dir, radiance, ambient = self._light()
         rgb = self.gl.color_pass(VP, -R.T @ t, light_dir, radiance, ambient, width, height,
                                  self._atmosphere(K, R, width, height) if effects else None)
@@ -264,6 +258,13 @@ class RasterScene:
         """(depth, instance) of the id pass alone, no colour: labels for another renderer's image
         of the same geometry (the Cycles backend's)."""
         K, R, t, VP = self._camera(K, R, t, width, height, prepare=False)
+        return self._id_pass(K, R, t, VP, width, height)
+
+    def _id_pass(self, K, R, t, VP, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Masks and depth from the id pass, drawn without multisampling: ids are exact (never
+        averaged at edges) and each pixel's depth belongs to the object its id names (the colour
+        pass keeps its antialiasing). The static city is drawn first, so agents wholly behind it
+        are not even built."""
         static_z = self.gl.id_static(VP, width, height)
         self._prepare_agents(K, R, t, width, height, static_z)
         instance, depth = self.gl.id_agents(VP, width, height)
