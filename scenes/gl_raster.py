@@ -391,11 +391,6 @@ class GLRaster:
         ids = _read_pixels(width, height, gl.GL_RED_INTEGER, gl.GL_UNSIGNED_INT, np.uint32, 1)
         return ids[::-1, :, 0].astype(np.uint16)
 
-    def id_pass(self, VP: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-        """(instance ids uint16, camera z float32 with inf where nothing was hit), top row first."""
-        self.id_static(VP, width, height)
-        return self.id_agents(VP, width, height)
-
     def id_static(self, VP: np.ndarray, width: int, height: int) -> np.ndarray:
         """First half of the id pass: clear, draw the static city; its camera z (what hides agents)."""
         self._id_setup(VP, width, height)

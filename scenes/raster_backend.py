@@ -63,11 +63,6 @@ def material_table(materials) -> np.ndarray:
     return out
 
 
-def id_color(instance_id: int) -> tuple[int, int, int]:
-    """The 16-bit id as (red = low byte, green = high byte, 0): how ids look in 8-bit images."""
-    return (instance_id & 255, (instance_id >> 8) & 255, 0)
-
-
 def _soup(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Triangles as a flat-shaded soup: (positions, per-face normals), float32, 3 vertices a face.
 
