@@ -17,6 +17,10 @@ counted. Choices, and why:
   an accumulate() over the group's slice of the per-image results (evalImgs), which is exact:
   pycocotools' accumulate only concatenates per-image results, so running it on a slice gives what
   a separate COCOeval restricted to those images (params.imgIds) gives, without re-matching.
+- Per class ('class=car'), over the whole split: the same accumulate() over the class's slice of
+  evalImgs (pycocotools' params.catIds = [class]). mAP50:95 is the mean of these rows, so one
+  class the model misses costs as much as cars do; the rows show which. Classes without ground
+  truth in the split get no row (and do not enter the mean).
 - Precision, recall and F1 are micro-averaged over classes at OKS 0.5: every non-ignored detection
   of the group (class-aware matches, as in AP) is pooled and sorted by score; the threshold is
   swept only between distinct scores (a threshold keeps every detection scoring >= it), and the
@@ -63,7 +67,7 @@ class PredictionError(ValueError):
 
 @dataclass
 class EvalRow:
-    group: str  # 'overall', 'source=kitti', 'view=aerial', ...
+    group: str  # 'overall', 'source=kitti', 'view=aerial', 'class=car' (images: those with the class), ...
     images: int
     objects: int  # non-ignored ground truth
     oks_map50_95: float
@@ -266,6 +270,19 @@ def evalimgs_subset(e: COCOeval, img_ids: Iterable[int]) -> tuple[list, COCOeval
     return sub_imgs, sub
 
 
+def evalimgs_category(e: COCOeval, k: int) -> tuple[list, COCOeval]:
+    """A shallow COCOeval whose evalImgs and parameters cover only the k-th category (evaluated)."""
+    pe = e._paramsEval
+    n_img, n_area = len(pe.imgIds), len(pe.areaRng)
+    sub_imgs = e.evalImgs[k * n_area * n_img:(k + 1) * n_area * n_img]
+    sub = copy.copy(e)
+    sub._paramsEval = copy.copy(pe)
+    sub._paramsEval.catIds = [pe.catIds[k]]
+    sub.params = copy.copy(sub._paramsEval)
+    sub.evalImgs = sub_imgs
+    return sub_imgs, sub
+
+
 def ap_numbers(precision: np.ndarray) -> tuple[float, float]:
     """mAP over OKS 0.50:0.95 and AP at OKS 0.50 from eval['precision'] (T, R, K, A=1, M=1)."""
     s = precision[:, :, :, 0, -1]
@@ -448,6 +465,25 @@ def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | No
         report.rows.append(EvalRow(
             group=name, images=len(ids), objects=f.objects, oks_map50_95=m, ap_oks50=ap50,
             precision=f.precision, recall=f.recall, f1=f.f1, conf_threshold=f.conf_threshold,
+            ground_adherence_deg=float(np.mean(group_angles)) if group_angles else math.nan,
+            adherence_objects=len(group_angles)))
+    # Per class over the whole split: mAP is the mean of these, so a rare class the model misses
+    # weighs as much as cars do; classes without ground truth in the split are left out (as in
+    # pycocotools' mean).
+    names = {c["id"]: c["name"] for c in gt_dict["categories"]}
+    for k, cat_id in enumerate(e._paramsEval.catIds):
+        sub_imgs, sub = evalimgs_category(e, k)
+        group = Matches.from_eval_imgs(sub_imgs)
+        if len(group.gt_image) == 0:
+            continue
+        run_quietly(sub.accumulate)
+        m, ap50 = ap_numbers(sub.eval["precision"])
+        f = best_f1(group)
+        group_angles = [angles[d] for d in group.matched_ids() if d in angles]
+        report.rows.append(EvalRow(
+            group=f"class={names[cat_id]}", images=len(np.unique(group.gt_image)), objects=f.objects,
+            oks_map50_95=m, ap_oks50=ap50, precision=f.precision, recall=f.recall, f1=f.f1,
+            conf_threshold=f.conf_threshold,
             ground_adherence_deg=float(np.mean(group_angles)) if group_angles else math.nan,
             adherence_objects=len(group_angles)))
     if outside:

@@ -73,6 +73,7 @@ class TrainConfig:
     val_every: int = 1
     save_interval: float = 60.0  # seconds between last.pt writes (also written after validation and at the end)
     device: str | None = None
+    amp: str = "auto"  # mixed precision: auto (fp16 on CUDA, off on the CPU), bf16, fp16 or off
 
     def model_config(self, num_classes: int) -> DetectorConfig:
         return DetectorConfig(scale=self.model, backbone=self.backbone, p2=self.p2, p6=self.p6,
@@ -135,6 +136,47 @@ def kpt_sigma(cfg: TrainConfig, it: int, total: int) -> float:
     if it >= end or cfg.kpt_sigma_start <= cfg.kpt_sigma_end:
         return cfg.kpt_sigma_end
     return cfg.kpt_sigma_start * (cfg.kpt_sigma_end / cfg.kpt_sigma_start) ** (it / end)
+
+
+AMP_MODES = ("auto", "bf16", "fp16", "off")
+
+
+def fast_bf16(device: torch.device) -> bool:
+    """Whether `device` runs bfloat16 convolutions natively (CUDA Ampere and later; CPUs with
+    AVX512-BF16 or AMX). Elsewhere bf16 is emulated and slower than float32."""
+    if device.type == "cuda":
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    if device.type == "cpu":
+        return any(getattr(torch.cpu, probe, lambda: False)()
+                   for probe in ("_is_avx512_bf16_supported", "_is_amx_tile_supported"))
+    return False
+
+
+def autocast_dtype(amp: str, device: torch.device) -> torch.dtype | None:
+    """The autocast dtype of the forward pass, or None for float32.
+
+    'auto' is fp16 on CUDA (with a gradient scaler, as Ultralytics trains) and float32 on the CPU.
+    bf16 is a choice, not the CPU default: on a 2-core CPU with AVX512-BF16 a step of the nano P2
+    model at batch 16 and 320 px takes about 0.65 of a float32 one, but bf16 keeps 8 bits of
+    mantissa, and the four-frame overfit run ends well short of float32's fit
+    (benchmarks/bench_train_step.py --overfit prints both). For runs far from that precision (any
+    run short of convergence) the speed is worth it. The loss always runs in float32
+    (DetectionLoss casts the head's outputs).
+    """
+    if amp not in AMP_MODES:
+        raise ValueError(f"TrainConfig.amp: {amp!r} is not one of {', '.join(AMP_MODES)}")
+    if amp == "auto":
+        return torch.float16 if device.type == "cuda" else None
+    if amp == "off":
+        return None
+    if amp == "fp16":
+        if device.type != "cuda":
+            raise ValueError(f"TrainConfig.amp: fp16 needs a CUDA device, this run trains on {device}")
+        return torch.float16
+    if not fast_bf16(device):
+        print(f"warning: --amp bf16 on {device}, which emulates bfloat16: slower than float32",
+              file=sys.stderr)
+    return torch.bfloat16
 
 
 def resolve_val_split(root: str, name: str | None) -> str | None:
@@ -209,6 +251,11 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
         optimizer.load_state_dict(state["optimizer"])
         start_epoch, best, history = int(state["epoch"]) + 1, float(state["best_fitness"]), list(state["history"])
     criterion = DetectionLoss(model.cfg.num_classes)
+    amp_dtype = autocast_dtype(cfg.amp, device)
+    # fp16 gradients underflow without scaling; bf16 has float32's range and needs none
+    scaler = torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16)
+    if state is not None and state.get("scaler"):
+        scaler.load_state_dict(state["scaler"])
     ddp = torch.nn.parallel.DistributedDataParallel(model, device_ids=[local_rank] if device.type == "cuda" else None) \
         if world > 1 else model
 
@@ -244,11 +291,15 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
             criterion.kpt_sigma = kpt_sigma(cfg, it, total)
             images = images.to(device, non_blocking=True)
             targets = {k: v.to(device) for k, v in targets.items()}
-            loss, parts = criterion(ddp(images), targets)
+            with torch.autocast(device.type, dtype=amp_dtype or torch.float32, enabled=amp_dtype is not None):
+                out_step = ddp(images)
+            loss, parts = criterion(out_step, targets)
             optimizer.zero_grad(set_to_none=True)
-            loss.backward()
+            scaler.scale(loss).backward()
+            scaler.unscale_(optimizer)
             torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-            optimizer.step()
+            scaler.step(optimizer)
+            scaler.update()
             ema.update(model)
             for k, v in parts.items():
                 sums[k] = sums.get(k, 0.0) + float(v)
@@ -269,7 +320,8 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
                 last_save = time.perf_counter()
                 ckpt = {"config": model.cfg.to_dict(), "classes": taxonomy.classes, "taxonomy": taxonomy.to_dict(),
                         "model": ema.ema.state_dict(), "raw_model": model.state_dict(), "ema_updates": ema.updates,
-                        "optimizer": optimizer.state_dict(), "epoch": epoch, "best_fitness": max(best, fitness),
+                        "optimizer": optimizer.state_dict(), "scaler": scaler.state_dict(),
+                        "epoch": epoch, "best_fitness": max(best, fitness),
                         "history": history, "train_config": asdict(cfg)}
                 save_checkpoint(out / "last.pt", ckpt)
                 if fitness > best:

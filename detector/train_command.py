@@ -33,6 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kpt-sigma-end", type=float, default=0.125,
                    help="keypoint-loss sigma after the anneal: the design's 0.125; 0.25 is the OKS metric's kernel")
     p.add_argument("--kpt-sigma-anneal", type=float, default=0.3, help="fraction of the run the anneal takes")
+    p.add_argument("--amp", default="auto", choices=["auto", "bf16", "fp16", "off"],
+                   help="mixed precision of the forward pass (auto: fp16 on CUDA, off on the CPU; bf16 "
+                        "steps take about 0.65 of the time on CPUs with AVX512-BF16, less precisely)")
     p.add_argument("--resume", action="store_true", help="continue OUT/last.pt")
 
 
@@ -49,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
         taxonomy=args.taxonomy, train_split=args.train_split, val_split=args.val_split,
         out_of_image=args.out_of_image, augment=asdict(Augment.off() if args.no_augment else Augment()),
         workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every,
-        kpt_sigma_start=args.kpt_sigma_start, kpt_sigma_end=args.kpt_sigma_end, kpt_sigma_anneal=args.kpt_sigma_anneal)
+        kpt_sigma_start=args.kpt_sigma_start, kpt_sigma_end=args.kpt_sigma_end, kpt_sigma_anneal=args.kpt_sigma_anneal,
+        amp=args.amp)
     start = time.perf_counter()
 
     def report(epoch: int, row: dict) -> None:

@@ -27,10 +27,13 @@ def progress(items: Iterable[T], desc: str, total: int | None = None, disable: b
 def print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
     """Print a summary table (right-aligned numbers) to stdout."""
     table = Table(title=title, title_justify="left", show_edge=False, header_style="bold")
+    cells = [[_fmt(v) for v in row] for row in rows]
+    # The first column names the row ('source=synthetic'): narrow consoles shrink the numbers first.
+    first = max([len(columns[0])] + [len(r[0]) for r in cells if r]) if columns else 0
     for i, c in enumerate(columns):
-        table.add_column(c, justify="left" if i == 0 else "right")
-    for row in rows:
-        table.add_row(*(_fmt(v) for v in row))
+        table.add_column(c, justify="left" if i == 0 else "right", min_width=first if i == 0 else None)
+    for row in cells:
+        table.add_row(*row)
     console.print(table)
 
 

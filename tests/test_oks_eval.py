@@ -64,16 +64,27 @@ def noisy(preds: list[dict], rng: np.random.Generator, px: float) -> list[dict]:
     return out
 
 
-def plain_cocoeval(gt, dt, img_ids):
+def plain_cocoeval(gt, dt, img_ids=None, cat_ids=None):
     """pycocotools' own COCOeval (no subclass) with the module's parameters: the reference."""
     e = COCOeval(gt, dt, iouType="keypoints")
     e.params.kpt_oks_sigmas = np.full(8, oks_eval.OKS_SIGMA)
     e.params.maxDets = [oks_eval.MAX_DETS]
     e.params.areaRng, e.params.areaRngLbl = [list(oks_eval.AREA_ALL)], ["all"]
-    e.params.imgIds = sorted(img_ids)
+    if img_ids is not None:
+        e.params.imgIds = sorted(img_ids)
+    if cat_ids is not None:
+        e.params.catIds = list(cat_ids)
     run_quietly(e.evaluate)
     run_quietly(e.accumulate)
     return e
+
+
+def coco_pair(ds: Dataset, preds: list[dict]):
+    """The whole dataset's ground truth (dict and COCO) and the predictions as a COCO results object."""
+    gt_dict = to_coco(ds)
+    gt = _coco_from_dict(gt_dict)
+    anns, _ = normalize_predictions(preds, ds, {im["id"] for im in gt_dict["images"]}, len(gt_dict["categories"]))
+    return gt_dict, gt, _results_coco(gt, anns)
 
 
 def test_perfect_predictions_score_one_in_every_group(ds):
@@ -130,10 +141,7 @@ def test_confident_false_positive_sets_precision_as_by_hand(ds):
 def test_groups_equal_a_separate_restricted_cocoeval(ds):
     preds = noisy(perfect(ds, split=None), np.random.default_rng(3), 3.0)
     report = evaluate(ds, preds, split=None, adherence=False)
-    gt_dict = to_coco(ds)
-    gt = _coco_from_dict(gt_dict)
-    anns, _ = normalize_predictions(preds, ds, {im["id"] for im in gt_dict["images"]}, len(gt_dict["categories"]))
-    dt = _results_coco(gt, anns)
+    gt_dict, gt, dt = coco_pair(ds, preds)
     checked = 0
     for key in ("source", "view"):
         for name in {im[key] for im in gt_dict["images"]}:
@@ -150,12 +158,27 @@ def test_groups_equal_a_separate_restricted_cocoeval(ds):
     assert checked >= 5
 
 
+def test_class_rows_equal_pycocotools_per_category_and_average_to_the_map(ds):
+    preds = noisy(perfect(ds, split=None), np.random.default_rng(5), 3.0)
+    report = evaluate(ds, preds, split=None, adherence=False)
+    gt_dict, gt, dt = coco_pair(ds, preds)
+    rows = [r for r in report.rows if r.group.startswith("class=")]
+    assert len(rows) >= 3
+    for row in rows:
+        cat = next(c["id"] for c in gt_dict["categories"] if f"class={c['name']}" == row.group)
+        e = plain_cocoeval(gt, dt, cat_ids=[cat])
+        assert (row.oks_map50_95, row.ap_oks50) == pytest.approx(ap_numbers(e.eval["precision"]), abs=1e-12)
+        f = best_f1(e.evalImgs)
+        assert (row.objects, row.precision, row.recall) == (f.objects, pytest.approx(f.precision), pytest.approx(f.recall))
+        assert row.images == len({a["image_id"] for a in gt.loadAnns(gt.getAnnIds(catIds=[cat])) if a["num_keypoints"]})
+    overall = report.row("overall")
+    assert sum(r.objects for r in rows) == overall.objects
+    assert np.mean([r.oks_map50_95 for r in rows]) == pytest.approx(overall.oks_map50_95, abs=1e-12)
+
+
 def test_subset_accumulate_matches_pycocotools_precision_array(ds):
     preds = noisy(perfect(ds, split=None), np.random.default_rng(4), 2.0)
-    gt_dict = to_coco(ds)
-    gt = _coco_from_dict(gt_dict)
-    anns, _ = normalize_predictions(preds, ds, {im["id"] for im in gt_dict["images"]}, len(gt_dict["categories"]))
-    dt = _results_coco(gt, anns)
+    gt_dict, gt, dt = coco_pair(ds, preds)
     full = make_cocoeval(gt, dt)
     run_quietly(full.evaluate)
     ids = [im["id"] for im in gt_dict["images"] if im["view"] == "aerial"]

@@ -1,4 +1,4 @@
-"""benchmarks/validate.py's resume rules: what a done-marker means and which records a redo drops."""
+"""benchmarks/validate.py: what a done-marker means, which records a redo drops, what RESULTS.md shows."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.validate import Runner, mentions, stale  # noqa: E402
+from benchmarks.validate import Runner, mentions, results_markdown, stale  # noqa: E402
 
 
 def test_mentions_names_a_folder_and_its_files_not_its_siblings():
@@ -56,3 +56,28 @@ def test_object_sizes_per_view_of_a_split(tmp_path):
     assert sum(v["objects"] for v in sizes.values()) == int(keep.sum())
     for view, v in sizes.items():
         assert v["p10_px"] <= v["p50_px"] <= v["p90_px"]
+
+
+def test_results_markdown_names_the_command_and_every_class_row():
+    row = {"oks_map50_95": 0.25, "ap_oks50": 0.5, "f1": 0.4, "ground_adherence_deg": 2.0, "precision": 0.5,
+           "recall": 0.3, "objects": 7}
+    r = {"arguments": {"kitti": "../shared/realdata/kitti", "epochs": 3, "jobs": 2, "scales": ["n"], "ablations": [],
+                       "fresh": False, "amp": None},
+         "machine": "x86_64, 2 CPUs", "date": "2026-11-21 12:00 UTC", "wall_seconds": 120.0,
+         "frames": {"total": 10, "by_source": {"synthetic": 9, "kitti": 1}, "objects": 50, "splits": None},
+         "oks_map50_95": 0.25, "ap_oks50": 0.5, "precision": 0.5, "recall": 0.3, "f1": 0.4, "bev_adherence_deg": 2.0,
+         "targets": {"oks_map50_95": 0.55, "bev_adherence_deg": 3.57},
+         "test_object_sizes": {"ego": {"objects": 7, "p10_px": 5.0, "p50_px": 9.0, "p90_px": 20.0}},
+         "by_view": [{**row, "group": "view=ego"}],
+         "by_class": [{**row, "group": "class=car"}, {**row, "group": "class=motorcyclist", "oks_map50_95": 0.0}],
+         "runs": [{"name": "n-p2", "train_args": ["--model", "n"], "imgsz": 320, "train_seconds": 60.0,
+                   "synthetic_test": row, "overall_test": row}],
+         "commands": [{"command": "omnigen merge a --out b", "seconds": 1.5}]}
+    md = results_markdown(r)
+    assert "`python benchmarks/validate.py --kitti ../shared/realdata/kitti --epochs 3 --jobs 2 --scales n`" in md
+    assert "| car | 7 | 0.250 | 0.500 | 0.500 | 0.300 | 0.400 |" in md
+    assert "| motorcyclist | 7 | 0.000 |" in md
+    assert "| ego | 0.250 | 0.500 | 0.400 | 7 | 5.0 / 9.0 / 20.0 |" in md
+    # every table says what made it, where and when
+    tables = sum(line.startswith("|---") for line in md.splitlines())
+    assert tables == 5 and md.count("on x86_64, 2 CPUs, 2026-11-21 12:00 UTC.") == tables
