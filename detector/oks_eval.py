@@ -419,6 +419,22 @@ def adherence_per_detection(ds: Dataset, gt: COCO, anns: list[dict[str, Any]], m
 # ---------------------------------------------------------------------------------------------
 
 
+def _row(name: str, images: int, sub_imgs: list, sub: COCOeval, group: Matches,
+         angles: dict[int, float]) -> EvalRow:
+    """One row of the report from a group's slice of the evaluation and of the matches."""
+    if any(r is not None for r in sub_imgs):
+        run_quietly(sub.accumulate)
+        m, ap50 = ap_numbers(sub.eval["precision"])
+    else:
+        m, ap50 = math.nan, math.nan
+    f = best_f1(group)
+    group_angles = [angles[d] for d in group.matched_ids() if d in angles]
+    return EvalRow(group=name, images=images, objects=f.objects, oks_map50_95=m, ap_oks50=ap50,
+                   precision=f.precision, recall=f.recall, f1=f.f1, conf_threshold=f.conf_threshold,
+                   ground_adherence_deg=float(np.mean(group_angles)) if group_angles else math.nan,
+                   adherence_objects=len(group_angles))
+
+
 def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | None = None,
              taxonomy: Taxonomy | str = "fine", adherence: bool = True,
              source: str = "<predictions>") -> EvalReport:
@@ -454,19 +470,7 @@ def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | No
             report.notes.append("ground-plane adherence not computed: detector.lift is not installed")
     for name, ids in groups.items():
         sub_imgs, sub = evalimgs_subset(e, ids)
-        if any(r is not None for r in sub_imgs):
-            run_quietly(sub.accumulate)
-            m, ap50 = ap_numbers(sub.eval["precision"])
-        else:
-            m, ap50 = math.nan, math.nan
-        group = matches.subset(ids)
-        f = best_f1(group)
-        group_angles = [angles[d] for d in group.matched_ids() if d in angles]
-        report.rows.append(EvalRow(
-            group=name, images=len(ids), objects=f.objects, oks_map50_95=m, ap_oks50=ap50,
-            precision=f.precision, recall=f.recall, f1=f.f1, conf_threshold=f.conf_threshold,
-            ground_adherence_deg=float(np.mean(group_angles)) if group_angles else math.nan,
-            adherence_objects=len(group_angles)))
+        report.rows.append(_row(name, len(ids), sub_imgs, sub, matches.subset(ids), angles))
     # Per class over the whole split: mAP is the mean of these, so a rare class the model misses
     # weighs as much as cars do; classes without ground truth in the split are left out (as in
     # pycocotools' mean).
@@ -474,18 +478,9 @@ def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | No
     for k, cat_id in enumerate(e._paramsEval.catIds):
         sub_imgs, sub = evalimgs_category(e, k)
         group = Matches.from_eval_imgs(sub_imgs)
-        if len(group.gt_image) == 0:
-            continue
-        run_quietly(sub.accumulate)
-        m, ap50 = ap_numbers(sub.eval["precision"])
-        f = best_f1(group)
-        group_angles = [angles[d] for d in group.matched_ids() if d in angles]
-        report.rows.append(EvalRow(
-            group=f"class={names[cat_id]}", images=len(np.unique(group.gt_image)), objects=f.objects,
-            oks_map50_95=m, ap_oks50=ap50, precision=f.precision, recall=f.recall, f1=f.f1,
-            conf_threshold=f.conf_threshold,
-            ground_adherence_deg=float(np.mean(group_angles)) if group_angles else math.nan,
-            adherence_objects=len(group_angles)))
+        if len(group.gt_image):
+            report.rows.append(_row(f"class={names[cat_id]}", len(np.unique(group.gt_image)), sub_imgs, sub,
+                                    group, angles))
     if outside:
         report.notes.append(f"{outside} predictions on frames outside split {split!r} were left out")
     if report.lift_failures:
