@@ -62,8 +62,10 @@ def main() -> None:
     criterion = DetectionLoss(model.cfg.num_classes)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
 
+    dtypes = {amp: autocast_dtype(amp, device) for amp in MODES}  # once: bf16 warns where it is emulated
+
     def step(amp: str) -> float:
-        dtype = autocast_dtype(amp, device)
+        dtype = dtypes[amp]
         start = time.perf_counter()
         with torch.autocast("cpu", dtype=dtype or torch.float32, enabled=dtype is not None):
             out = model(images)

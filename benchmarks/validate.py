@@ -172,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--results", type=Path, default=Path("docs"), help="where RESULTS.md and results.json go")
     ap.add_argument("--fresh", action="store_true", help="delete the working folder first")
     args = ap.parse_args(argv)
+    args.amp = args.amp or default_amp(args.device)  # resolved, so RESULTS.md's command line says which
 
     work = args.work
     if args.fresh and work.exists():
@@ -192,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
 
     common = ["--imgsz", str(args.imgsz), "--epochs", str(args.epochs), "--batch", str(args.batch),
               "--workers", str(args.workers), "--seed", str(args.seed), "--val-every", str(args.val_every),
-              "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp or default_amp(args.device)
+              "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp
               ] + (["--device", args.device] if args.device else [])
     runs: list[dict[str, Any]] = []
 

@@ -254,6 +254,17 @@ def run_quietly(fn, *args):
         return fn(*args)
 
 
+def _sliced(e: COCOeval, sub_imgs: list, **params: Any) -> tuple[list, COCOeval]:
+    """A shallow COCOeval over `sub_imgs` (a slice of e.evalImgs) with `params` narrowed to match."""
+    sub = copy.copy(e)
+    sub._paramsEval = copy.copy(e._paramsEval)
+    for name, value in params.items():
+        setattr(sub._paramsEval, name, value)
+    sub.params = copy.copy(sub._paramsEval)
+    sub.evalImgs = sub_imgs
+    return sub_imgs, sub
+
+
 def evalimgs_subset(e: COCOeval, img_ids: Iterable[int]) -> tuple[list, COCOeval]:
     """A shallow COCOeval whose evalImgs and parameters cover only `img_ids` (already evaluated)."""
     pe = e._paramsEval
@@ -262,25 +273,14 @@ def evalimgs_subset(e: COCOeval, img_ids: Iterable[int]) -> tuple[list, COCOeval
     n_img, n_area = len(pe.imgIds), len(pe.areaRng)
     sub_imgs = [e.evalImgs[k * n_area * n_img + a * n_img + i]
                 for k in range(len(pe.catIds)) for a in range(n_area) for i in keep]
-    sub = copy.copy(e)
-    sub._paramsEval = copy.copy(pe)
-    sub._paramsEval.imgIds = [pe.imgIds[i] for i in keep]
-    sub.params = copy.copy(sub._paramsEval)
-    sub.evalImgs = sub_imgs
-    return sub_imgs, sub
+    return _sliced(e, sub_imgs, imgIds=[pe.imgIds[i] for i in keep])
 
 
 def evalimgs_category(e: COCOeval, k: int) -> tuple[list, COCOeval]:
     """A shallow COCOeval whose evalImgs and parameters cover only the k-th category (evaluated)."""
     pe = e._paramsEval
     n_img, n_area = len(pe.imgIds), len(pe.areaRng)
-    sub_imgs = e.evalImgs[k * n_area * n_img:(k + 1) * n_area * n_img]
-    sub = copy.copy(e)
-    sub._paramsEval = copy.copy(pe)
-    sub._paramsEval.catIds = [pe.catIds[k]]
-    sub.params = copy.copy(sub._paramsEval)
-    sub.evalImgs = sub_imgs
-    return sub_imgs, sub
+    return _sliced(e, e.evalImgs[k * n_area * n_img:(k + 1) * n_area * n_img], catIds=[pe.catIds[k]])
 
 
 def ap_numbers(precision: np.ndarray) -> tuple[float, float]:
