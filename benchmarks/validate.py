@@ -2,16 +2,21 @@
 
     make validate                                   # the default below, sized for a 2-core machine
     .venv/bin/python benchmarks/validate.py --kitti ../shared/realdata/kitti --ablations no-p2
-    .venv/bin/python benchmarks/validate.py --frames 2000 --imgsz 640 --epochs 100 --ablations --device cuda
+    .venv/bin/python benchmarks/validate.py --frames 2000 --crop 0 --epochs 100 --scales n s m --device cuda
 
 Every stage is a command of the toolkit, run in this process and recorded with its wall time; a
-stage whose output already exists is skipped, so an interrupted run resumes (`--fresh` starts over).
-Scaling up: more frames per rig (`--frames`), a larger input (`--imgsz 640`), more epochs, Cycles
-instead of the raster preview (`--backend cycles`), the ablations of the design's Table 8
-(`--ablations`: without synthetic data, without P2, a higher resolution) and the other scales
-(`--scales n s m`) where a GPU makes them affordable; see docs/RESULTS.md for what ran here.
-On a CPU that runs bfloat16 natively the training steps run in bf16 (`--amp`, about 0.65 of a
-float32 step by benchmarks/bench_train_step.py), which is what lets 150 epochs fit the budget.
+stage whose output already exists is skipped, so an interrupted run resumes (`--fresh` starts over;
+a working folder rendered with other data arguments is refused rather than silently reused).
+
+The default fits a 2-core CPU: 600 raster frames at 640 x 640, and training on random 320 x 320
+windows of the 640-pixel input (`--crop 320`): a step costs what a 320-pixel input costs while
+every object keeps the scale it has when the model predicts on the whole 640-pixel image. On a
+CPU that runs bfloat16 natively the steps run in bf16 (`--amp`, about 0.65 of a float32 step by
+benchmarks/bench_train_step.py). Scaling up: more frames per rig (`--frames`), whole images
+(`--crop 0`), more epochs, Cycles instead of the raster preview (`--backend cycles`), the
+ablations of the design's Table 8 (`--ablations`: without synthetic data, without P2, a 1.5x
+larger input) and the other scales (`--scales n s m`) where a GPU makes them affordable; see
+docs/RESULTS.md for what ran here.
 """
 
 from __future__ import annotations
@@ -104,6 +109,29 @@ def default_amp(device: str | None) -> str:
     return "bf16" if on_cpu and fast_bf16(torch.device("cpu")) else "auto"
 
 
+DATA_ARGUMENTS = ("frames", "cities", "size", "backend", "seed", "kitti", "dair")
+
+
+def check_data_arguments(work: Path, args: argparse.Namespace) -> None:
+    """Refuse to resume a working folder whose renders and merge were made with other arguments.
+
+    Stages are skipped when their output exists, so reusing a folder rendered at another --size
+    would silently train on the old data; the arguments that shape the data are kept in
+    WORK/data.json and compared.
+    """
+    wanted = {k: str(getattr(args, k)) if isinstance(getattr(args, k), Path) else getattr(args, k)
+              for k in DATA_ARGUMENTS}
+    path = work / "data.json"
+    if path.exists():
+        had = json.loads(path.read_text())
+        diff = [f"--{k} {had.get(k)} (now {v})" for k, v in wanted.items() if had.get(k) != v]
+        if diff:
+            raise SystemExit(f"validate: {work} holds data made with {', '.join(diff)}: "
+                             f"pass --fresh to start over, or another --work")
+    else:
+        atomic_write_json(path, wanted, indent=1)
+
+
 def render_all(run: Runner, work: Path, args: argparse.Namespace) -> list[Path]:
     """Each rig renders --cities cities (one seed each: frames of one city form one split group, so
     several are needed for a group-aware test split), --jobs renders at a time."""
@@ -150,10 +178,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dair", type=Path, help="a DAIR-V2X tree to convert and merge (real data)")
     ap.add_argument("--frames", type=int, default=200, help="frames per rig")
     ap.add_argument("--cities", type=int, default=5, help="cities (seeds) per rig: the split groups")
-    ap.add_argument("--size", type=int, default=320, help="rendered image width and height")
+    ap.add_argument("--size", type=int, default=640, help="rendered image width and height")
     ap.add_argument("--backend", default="raster", choices=["raster", "cycles"])
     ap.add_argument("--jobs", type=int, default=2, help="concurrent render processes")
-    ap.add_argument("--imgsz", type=int, default=320)
+    ap.add_argument("--imgsz", type=int, default=640, help="network input: images are letterboxed to it")
+    ap.add_argument("--crop", type=int, default=320,
+                    help="train on random CROP x CROP windows of the input (objects keep their scale, a step "
+                         "costs what a CROP-pixel input costs); 0: whole images")
     ap.add_argument("--epochs", type=int, default=150)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--workers", type=int, default=1)
@@ -164,10 +195,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
                          "natively, a step in about 0.65 of the time by benchmarks/bench_train_step.py; else auto)")
-    ap.add_argument("--val-every", type=int, default=5, help="validate every N epochs (and at the end)")
+    ap.add_argument("--val-every", type=int, default=10,
+                    help="validate every N epochs (and at the end): the curve in results.csv; the test split is "
+                         "evaluated with the last weights, never the best-validated ones")
     ap.add_argument("--scales", nargs="+", default=["n"], help="model scales to train with P2 (n first)")
     ap.add_argument("--ablations", nargs="*", default=[], choices=["no-p2", "hires", "no-synthetic"],
-                    help="also train: without P2, at 1.5x the input size, on the real sources alone")
+                    help="also train: without P2, at 1.5x the input size (same crop), on the real sources alone")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--results", type=Path, default=Path("docs"), help="where RESULTS.md and results.json go")
     ap.add_argument("--fresh", action="store_true", help="delete the working folder first")
@@ -178,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.fresh and work.exists():
         shutil.rmtree(work)
     work.mkdir(parents=True, exist_ok=True)
+    check_data_arguments(work, args)
     run = Runner(work)
     sources = render_all(run, work, args)
     real = []
@@ -191,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     run(["merge", *map(str, sources + real), "--out", str(uov), "--test-fraction", "0.2", "--seed", str(args.seed)],
         uov / "manifest.json")
 
+    crop = ["--crop", str(args.crop)] if args.crop else []
     common = ["--imgsz", str(args.imgsz), "--epochs", str(args.epochs), "--batch", str(args.batch),
               "--workers", str(args.workers), "--seed", str(args.seed), "--val-every", str(args.val_every),
               "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp
@@ -200,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     def train_eval(name: str, extra: list[str], dataset: Path = uov, imgsz: int | None = None) -> dict[str, Any]:
         out = work / "runs" / name
         opts = common if imgsz is None else ["--imgsz", str(imgsz), *common[2:]]  # common starts with --imgsz
-        train_cmd = ["train", str(dataset), "--out", str(out), *opts, *extra]
+        train_cmd = ["train", str(dataset), "--out", str(out), *opts, *crop, *extra]
         if stale(out / "done", shlex.join(train_cmd)):  # e.g. more --epochs than last time: train again
             print(f"[stale] {out} was trained with other arguments: training again", flush=True)
             shutil.rmtree(out)
@@ -213,15 +248,18 @@ def main(argv: list[str] | None = None) -> int:
         preds = out / "test-predictions.json"
         if not preds.exists():
             t0 = time.perf_counter()
-            results = predict_dataset(out / "best.pt", uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch)
+            # last.pt, not best.pt: without a val split, train validates on the test split, and
+            # choosing the checkpoint by its test score would flatter the number reported here
+            results = predict_dataset(out / "last.pt", uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch)
             atomic_write_text(preds, json.dumps(results))
-            run.record(f"predict_dataset({out / 'best.pt'}, {uov}, split='test')", time.perf_counter() - t0)
+            run.record(f"predict_dataset({out / 'last.pt'}, {uov}, split='test')", time.perf_counter() - t0)
         report_path = out / "eval.json"
         run(["eval", str(preds), str(uov), "--split", "test", "--out", str(report_path)], report_path)
         report = json.loads(report_path.read_text())
         row = synthetic_row(report)
         hist = (out / "results.csv").read_text().splitlines()
-        entry = {"name": name, "train_args": extra, "imgsz": imgsz or args.imgsz, "train_seconds": round(t, 1),
+        entry = {"name": name, "train_args": extra, "imgsz": imgsz or args.imgsz, "crop": args.crop or None,
+                 "train_seconds": round(t, 1),
                  "synthetic_test": row, "overall_test": report["report"]["rows"][0], "epochs_logged": len(hist) - 1,
                  "report_rows": report["report"]["rows"]}
         runs.append(entry)
@@ -279,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def object_sizes(root: Path, split: str = "test") -> dict[str, dict[str, float]]:
-    """Per view of `split`: objects and the 10th/50th/90th percentile of sqrt(box area) in pixels.
+    """Per view of `split`: objects, the 10th/50th/90th percentile of sqrt(box area) in pixels and
+    the median distance from the camera to the box centre in metres.
 
     Why in the report: OKS judges a corner against the object's scale, so the same model scores
     far lower on 12-pixel objects than on 60-pixel ones; these say how hard the test split is.
@@ -295,12 +334,14 @@ def object_sizes(root: Path, split: str = "test") -> dict[str, dict[str, float]]
     o = ds.objects
     keep = frames[o.frame]
     size = np.sqrt((o.bbox[:, 2] - o.bbox[:, 0]) * (o.bbox[:, 3] - o.bbox[:, 1]))[keep]
+    distance = np.linalg.norm(o.center, axis=1)[keep]
     views = np.asarray(ds.table.view, dtype=object)[o.frame][keep]
     out = {}
     for view in sorted(set(views.tolist())):
         v = size[views == view]
         p10, p50, p90 = np.percentile(v, [10, 50, 90]).tolist()
-        out[view] = {"objects": int(len(v)), "p10_px": round(p10, 1), "p50_px": round(p50, 1), "p90_px": round(p90, 1)}
+        out[view] = {"objects": int(len(v)), "p10_px": round(p10, 1), "p50_px": round(p50, 1), "p90_px": round(p90, 1),
+                     "p50_m": round(float(np.median(distance[views == view])), 1)}
     return out
 
 
@@ -346,12 +387,12 @@ def results_markdown(r: dict[str, Any]) -> str:
         "OKS measures a corner's error against the object's scale (sqrt of its box area), so small",
         "objects need near-pixel-exact corners; the sizes are those of the test split's boxes.",
         "",
-        "| view | mAP50:95 | AP50 | F1 | test objects | sqrt(area) px: 10th / median / 90th percentile |",
-        "|---|---|---|---|---|---|",
+        "| view | mAP50:95 | AP50 | F1 | test objects | sqrt(area) px: 10th / median / 90th percentile | median distance (m) |",
+        "|---|---|---|---|---|---|---|",
         *[f"| {g['group'][5:]} | {_f(g['oks_map50_95'])} | {_f(g['ap_oks50'])} | {_f(g['f1'])} | "
           f"{r['test_object_sizes'].get(g['group'][5:], {}).get('objects', '-')} | "
           + " / ".join(str(r['test_object_sizes'].get(g['group'][5:], {}).get(k, '-')) for k in ("p10_px", "p50_px", "p90_px"))
-          + " |" for g in r.get("by_view", [])],
+          + f" | {r['test_object_sizes'].get(g['group'][5:], {}).get('p50_m', '-')} |" for g in r.get("by_view", [])],
         "", made, "",
         "## By class",
         "",
@@ -368,12 +409,17 @@ def results_markdown(r: dict[str, Any]) -> str:
         f"Scales trained: {', '.join(a['scales'])}; ablations: {', '.join(a['ablations']) or 'none in this run'} "
         "(`--ablations no-p2 hires no-synthetic`, `--scales n s m` add the others).",
         "",
-        "| run | train args | input | train time (s) | synthetic mAP50:95 | AP50 | F1 | adherence (deg) | overall mAP50:95 |",
+        "Each run is evaluated on the test split with its last weights (`last.pt`): without a val split",
+        "the training's periodic validation reads the test split, so picking its best checkpoint would",
+        "flatter the number.",
+        "",
+        "| run | train args | input (training crop) | train time (s) | synthetic mAP50:95 | AP50 | F1 | adherence (deg) | overall mAP50:95 |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for run in r["runs"]:
         s, o = run["synthetic_test"], run["overall_test"]
-        lines.append(f"| {run['name']} | `{' '.join(run['train_args'])}` | {run['imgsz']} | {run['train_seconds']} | "
+        size = f"{run['imgsz']} ({run['crop']})" if run.get("crop") else str(run["imgsz"])
+        lines.append(f"| {run['name']} | `{' '.join(run['train_args'])}` | {size} | {run['train_seconds']} | "
                      f"{_f(s['oks_map50_95'])} | {_f(s['ap_oks50'])} | {_f(s['f1'])} | {_f(s['ground_adherence_deg'], 2)} | "
                      f"{_f(o['oks_map50_95'])} |")
     lines += ["", made, "", "## Commands and their wall times", "", "| command | seconds |", "|---|---|"]

@@ -52,6 +52,7 @@ class TrainConfig:
     width: float | None = None  # overrides of the scale's width and depth (tiny models for tests)
     depth: float | None = None
     imgsz: int = 640
+    crop: int | None = None  # train on random crop x crop windows of the imgsz input (data.random_crop)
     epochs: int = 100
     batch: int = 16
     lr0: float = 1e-2
@@ -179,6 +180,18 @@ def autocast_dtype(amp: str, device: torch.device) -> torch.dtype | None:
     return torch.bfloat16
 
 
+def check_sizes(cfg: TrainConfig) -> None:
+    """The input and the crop window must be multiples of the largest stride (the feature maps of
+    the levels must line up in the neck), and the window no larger than the input."""
+    stride = 64 if cfg.p6 else 32
+    for name in ("imgsz", "crop"):
+        value = getattr(cfg, name)
+        if value is not None and (value <= 0 or value % stride):
+            raise ValueError(f"TrainConfig.{name}: {value} is not a positive multiple of {stride}")
+    if cfg.crop is not None and cfg.crop > cfg.imgsz:
+        raise ValueError(f"TrainConfig.crop: {cfg.crop} is larger than imgsz {cfg.imgsz}")
+
+
 def resolve_val_split(root: str, name: str | None) -> str | None:
     if name is not None:
         return name
@@ -234,8 +247,9 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
 
     train_ids = split_frames(cfg.dataset, cfg.train_split)
     val_name = resolve_val_split(cfg.dataset, cfg.val_split)
+    check_sizes(cfg)
     data = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, train_ids, Augment(**cfg.augment),
-                           cfg.out_of_image, cfg.seed)
+                           cfg.out_of_image, cfg.seed, crop=cfg.crop)
     if len(data) == 0:
         raise ValueError(f"{cfg.dataset}: split {cfg.train_split!r} has no frames")
     val = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, split_frames(cfg.dataset, val_name))

@@ -14,7 +14,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backbone", default="c3k2", help="backbone family: c3k2 (YOLO11-style) or c2f (YOLOv8-style)")
     p.add_argument("--p2", action=argparse.BooleanOptionalAction, default=True, help="stride-4 level for small objects")
     p.add_argument("--p6", action="store_true", help="add a stride-64 level")
-    p.add_argument("--imgsz", type=int, default=640)
+    p.add_argument("--imgsz", type=int, default=640, help="input size: images are letterboxed to it (validation and prediction too)")
+    p.add_argument("--crop", type=int, default=None,
+                   help="train on random CROP x CROP windows of the IMGSZ input: objects keep the scale they are "
+                        "predicted at, for (CROP/IMGSZ)^2 of the pixels per step")
     p.add_argument("--epochs", type=int, default=100)
     p.add_argument("--batch", type=int, default=16, help="total batch over all processes")
     p.add_argument("--lr0", type=float, default=1e-2, help="Adam learning rate (cosine decay to lr0 * lrf)")
@@ -48,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = TrainConfig(
         dataset=str(args.dataset), out=str(args.out), model=args.model, backbone=args.backbone, p2=args.p2,
-        p6=args.p6, imgsz=args.imgsz, epochs=args.epochs, batch=args.batch, lr0=args.lr0, lrf=args.lrf,
+        p6=args.p6, imgsz=args.imgsz, crop=args.crop, epochs=args.epochs, batch=args.batch, lr0=args.lr0, lrf=args.lrf,
         taxonomy=args.taxonomy, train_split=args.train_split, val_split=args.val_split,
         out_of_image=args.out_of_image, augment=asdict(Augment.off() if args.no_augment else Augment()),
         workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every,

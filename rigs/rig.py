@@ -18,7 +18,7 @@ from typing import Any
 from omnigen.conventions import VIEWS
 
 PRESET_DIR = Path(__file__).parent / "presets"
-ANCHORS = ("lane", "intersection", "roadside", "anywhere")
+ANCHORS = ("traffic", "lane", "intersection", "roadside", "anywhere")
 
 
 class RigError(ValueError):
@@ -31,8 +31,9 @@ class RigError(ValueError):
 class Rig:
     """A camera distribution (all ranges [lo, hi], uniform).
 
-    anchor: where the camera stands, with weights: `lane` (over a driving lane's centreline,
-    looking along the traffic), `intersection` (at a corner of an intersection, looking at its
+    anchor: where the camera stands, with weights: `traffic` (in the lane behind one of the
+    frame's moving vehicles, 4-30 m back, looking along its heading: a dashcam in traffic),
+    `lane` (over a driving lane's centreline, looking along the traffic), `intersection` (at a corner of an intersection, looking at its
     centre), `roadside` (at the kerb, looking along the road and in towards it), `anywhere`
     (uniform over the city's bounds, any heading).
     height: metres above the road surface (world z = 0). pitch: degrees below the horizon.

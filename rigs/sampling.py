@@ -34,6 +34,10 @@ _RIG_SPAWN_KEY = (0x0416,)
 MIN_BOX_PIXELS = 6.0
 MAX_DISTANCE = 250.0
 CLEARANCE = 0.5
+TRAFFIC_GAP = (4.0, 30.0)
+"""Metres from the `traffic` anchor's camera to the rear of the vehicle it follows: city
+following distances, from queueing at a light to a couple of seconds at 50 km/h."""
+FOLLOWED = ("car", "van", "truck", "bus")
 
 
 def rig_rng(dataset_seed: int, frame_index: int) -> np.random.Generator:
@@ -92,9 +96,21 @@ def _weighted(rng: np.random.Generator, items: list, weights: list[float]):
     return items[int(rng.choice(len(items), p=w / w.sum()))]
 
 
+def leaders(scene: Scene) -> list:
+    """The moving vehicles a `traffic` camera may follow."""
+    return [a for a in scene.agents if a.state == "moving" and a.category in FOLLOWED]
+
+
 def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, float]:
     """(x, y) and a base heading for the anchor kind."""
     city = scene.city
+    if anchor == "traffic":
+        lead = leaders(scene)
+        a = lead[int(rng.integers(len(lead)))]
+        d = np.array([math.cos(a.yaw), math.sin(a.yaw)])
+        back = a.dims[0] / 2 + rng.uniform(*TRAFFIC_GAP)
+        p = np.asarray(a.center[:2]) - back * d + np.array([-d[1], d[0]]) * rng.normal(0.0, 0.2)
+        return p, a.yaw
     if anchor == "lane":
         lanes = [ln for r in city.roads for ln in r.lanes if ln.kind == "driving"]
         lane = _weighted(rng, lanes, [ln.length for ln in lanes])
@@ -172,6 +188,8 @@ def draw_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, he
     """One candidate camera from the rig's distribution (no rejection)."""
     kinds = list(rig.anchor)
     anchor = _weighted(rng, kinds, [rig.anchor[k] for k in kinds])
+    if anchor == "traffic" and not leaders(scene):
+        anchor = "lane"  # no traffic in this frame: a camera in an empty lane, and the record says so
     xy, heading = _anchor_pose(rig, anchor, scene, rng)
     z = rng.uniform(*rig.height)
     yaw = heading + math.radians(rng.uniform(*rig.yaw_jitter))

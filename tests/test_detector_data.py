@@ -9,7 +9,7 @@ import torch
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
 from detector.data import (Augment, KeypointDataset, Sample, clip_to_canvas, collate, flip_horizontal, letterbox,
-                           random_affine)
+                           random_affine, random_crop)
 from detector.nms import box_iou, nms, postprocess
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
 from omnigen.fakes import write_fake_dataset
@@ -105,6 +105,52 @@ def test_out_of_image_corners_learned_or_dropped():
     assert not drop.kpt_mask[0, :4].any() and drop.kpt_mask[0, 4:].all()
     assert not learn.kpt_visible[0, :4].any()  # outside corners are never 'visible'
     np.testing.assert_allclose(learn.bboxes[0], [-0.5, 10, 30, 40])
+
+
+def test_crop_keeps_the_scale_and_moves_targets_with_the_pixels():
+    rng = np.random.default_rng(3)
+    s = _sample(rng, n=4, size=64)
+    t = random_crop(s, 32, rng)
+    assert t.image.shape == (32, 32, 3)
+    # the window is a slice of the canvas: find where it came from and check the corners moved with it
+    windows = np.lib.stride_tricks.sliding_window_view(s.image, (32, 32, 3))[..., 0, :, :, :]
+    hits = np.argwhere((windows == t.image).all(axis=(-1, -2, -3)))
+    assert len(hits) == 1
+    y0, x0 = hits[0]
+    np.testing.assert_allclose(t.keypoints, s.keypoints - [x0, y0])
+    np.testing.assert_allclose(t.bboxes, s.bboxes - [x0, y0, x0, y0])
+    assert random_crop(s, 64, rng) is s  # a window as large as the canvas is the canvas
+
+
+def test_crop_stays_in_the_letterboxed_content():
+    from detector.data import Letterbox
+    rng = np.random.default_rng(0)
+    image = np.full((64, 64, 3), 114, np.uint8)
+    image[16:48] = 7  # a 64 x 32 image letterboxed into 64 x 64: content rows 16..47
+    s = Sample(image, np.zeros(0, np.int64), np.zeros((0, 4)), np.zeros((0, 8, 2)), np.zeros((0, 8), bool),
+               np.zeros((0, 8), np.float32), 0, Letterbox(1.0, (0.0, 16.0)))
+    for _ in range(20):
+        assert (random_crop(s, 32, rng).image == 7).all()  # 32 rows of content: never the padding
+    for _ in range(20):  # a taller window than the content holds all of it
+        assert (random_crop(s, 48, rng).image == 7).sum(axis=(1, 2)).astype(bool).sum() == 32
+
+
+def test_cropped_samples_are_windows_of_the_full_input(fake):
+    tax = load_taxonomy("fine")
+    full = KeypointDataset(fake, tax, 128)
+    crop = KeypointDataset(fake, tax, 128, augment=Augment.off(), crop=64, seed=1)
+    found = 0
+    for i in range(len(crop)):
+        s, whole = crop[i], full.raw(i)[1]
+        assert s.image.shape == (64, 64, 3)
+        for k in s.keypoints:  # every kept object is one of the full input's, shifted by the window
+            d = whole.keypoints - k
+            match = np.flatnonzero(np.abs(d - d[:, :1]).max(axis=(1, 2)) < 1e-6)
+            assert len(match) >= 1
+            found += 1
+    assert found > 0
+    with pytest.raises(ValueError, match="crop"):
+        KeypointDataset(fake, tax, 64, crop=96)
 
 
 def test_dataset_targets_match_records(fake):

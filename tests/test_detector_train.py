@@ -21,6 +21,7 @@ import torch
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
 from detector.checkpoint import load_checkpoint, load_model
+from detector.predict import trained_imgsz
 from detector.data import Augment, KeypointDataset, collate
 from detector.loss import DetectionLoss
 from detector.model import DetectorConfig, KeypointDetector
@@ -63,6 +64,24 @@ def test_train_writes_checkpoints_loadable_with_weights_only(fake, tmp_path):
     assert "oks_map50_95" in last and np.isfinite(last["kpt"])
     model, _ = load_model(tmp_path / "run" / "best.pt")
     assert not model.training
+
+
+def test_crop_trains_on_windows_and_validates_on_the_whole_input(fake, tmp_path, monkeypatch):
+    import detector.train as train_module
+
+    seen = []
+    real_collate = train_module.collate
+    monkeypatch.setattr(train_module, "collate", lambda samples: seen.append(samples[0].image.shape) or real_collate(samples))
+    sizes = []
+    real_validate = train_module.validate
+    monkeypatch.setattr(train_module, "validate", lambda model, data, *a: sizes.append(data.size) or real_validate(model, data, *a))
+    last = train(_cfg(fake, tmp_path / "run", imgsz=96, crop=64, epochs=1))
+    assert seen and set(seen) == {(64, 64, 3)} and sizes == [96]
+    assert np.isfinite(last["oks_map50_95"])
+    assert trained_imgsz(load_checkpoint(tmp_path / "run" / "best.pt")) == 96  # predictions see the whole input
+    for bad in (dict(crop=128), dict(crop=48), dict(imgsz=100)):
+        with pytest.raises(ValueError, match="crop|imgsz"):
+            train(_cfg(fake, tmp_path / "bad", **bad))
 
 
 def test_resume_equals_uninterrupted_run(fake, tmp_path):

@@ -7,6 +7,7 @@ validation, resume and determinism, over frames from all three rigs.
 
 from __future__ import annotations
 
+from dataclasses import replace
 import json
 import math
 import shutil
@@ -107,6 +108,32 @@ def test_camera_rotation_pitch_and_ground_plane():
     a = sample_camera(load_rig("drone"), scene, rig_rng(2, 3), 160, 120, obstacles)
     b = sample_camera(load_rig("drone"), scene, rig_rng(2, 3), 160, 120, obstacles)
     assert np.array_equal(a.R, b.R) and np.array_equal(a.K, b.K)
+
+
+def test_traffic_anchor_follows_a_moving_vehicle():
+    from rigs.sampling import TRAFFIC_GAP, leaders
+
+    scene = SceneGenerator("tiny", 2).frame(2, 0)
+    lead = leaders(scene)
+    assert lead, "the tiny city's frame has moving vehicles"
+    rig = rig_from_dict({"view": "ego", "anchor": {"traffic": 1.0}, "height": [1.5, 1.5], "pitch": [0.0, 0.0],
+                         "yaw_jitter": [0.0, 0.0], "hfov": [60.0, 60.0], "resolution": [160, 120],
+                         "min_objects": 0}, "follow.toml")
+    obstacles = Obstacles(scene)
+    for i in range(8):
+        cam = sample_camera(rig, scene, rig_rng(2, i), 160, 120, obstacles)
+        assert cam.anchor == "traffic"
+        followed = []
+        for a in lead:  # the vehicle it stands behind: ahead along its heading, in its lane, same heading
+            d = np.array([math.cos(a.yaw), math.sin(a.yaw)])
+            rel = np.asarray(a.center[:2]) - cam.position[:2]
+            gap = rel @ d - a.dims[0] / 2
+            if TRAFFIC_GAP[0] - 1e-9 <= gap <= TRAFFIC_GAP[1] + 1e-9 and abs(rel @ [-d[1], d[0]]) < 1.0 \
+                    and abs(math.remainder(cam.yaw - a.yaw, math.tau)) < 1e-9:
+                followed.append(a)
+        assert followed, f"camera {i} follows no moving vehicle"
+    empty = replace(scene, agents=tuple(a for a in scene.agents if a not in lead))
+    assert sample_camera(rig, empty, rig_rng(2, 0), 160, 120).anchor == "lane"  # nothing to follow
 
 
 # --- annotation against the masks -------------------------------------------------------------

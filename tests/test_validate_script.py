@@ -7,7 +7,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.validate import Runner, mentions, results_markdown, stale  # noqa: E402
+import argparse  # noqa: E402
+
+import pytest  # noqa: E402
+
+from benchmarks.validate import Runner, check_data_arguments, mentions, results_markdown, stale  # noqa: E402
 
 
 def test_mentions_names_a_folder_and_its_files_not_its_siblings():
@@ -27,6 +31,15 @@ def test_a_marker_from_other_arguments_is_stale(tmp_path):
     assert stale(marker, "train --epochs 60")
     marker.write_text("train --epochs 60\n")
     assert not stale(marker, "train --epochs 60")
+
+
+def test_a_folder_rendered_with_other_data_arguments_is_refused(tmp_path):
+    args = argparse.Namespace(frames=200, cities=5, size=640, backend="raster", seed=0,
+                              kitti=Path("../shared/realdata/kitti"), dair=None, epochs=150)
+    check_data_arguments(tmp_path, args)  # first run: recorded
+    check_data_arguments(tmp_path, argparse.Namespace(**{**vars(args), "epochs": 30}))  # training may change
+    with pytest.raises(SystemExit, match=r"--size 640 \(now 320\).*--fresh"):
+        check_data_arguments(tmp_path, argparse.Namespace(**{**vars(args), "size": 320}))
 
 
 def test_forget_drops_only_the_redone_folder(tmp_path):
@@ -55,7 +68,7 @@ def test_object_sizes_per_view_of_a_split(tmp_path):
     keep = np.isin(o.frame, rows)
     assert sum(v["objects"] for v in sizes.values()) == int(keep.sum())
     for view, v in sizes.items():
-        assert v["p10_px"] <= v["p50_px"] <= v["p90_px"]
+        assert v["p10_px"] <= v["p50_px"] <= v["p90_px"] and v["p50_m"] > 0
 
 
 def test_results_markdown_names_the_command_and_every_class_row():
@@ -67,17 +80,18 @@ def test_results_markdown_names_the_command_and_every_class_row():
          "frames": {"total": 10, "by_source": {"synthetic": 9, "kitti": 1}, "objects": 50, "splits": None},
          "oks_map50_95": 0.25, "ap_oks50": 0.5, "precision": 0.5, "recall": 0.3, "f1": 0.4, "bev_adherence_deg": 2.0,
          "targets": {"oks_map50_95": 0.55, "bev_adherence_deg": 3.57},
-         "test_object_sizes": {"ego": {"objects": 7, "p10_px": 5.0, "p50_px": 9.0, "p90_px": 20.0}},
+         "test_object_sizes": {"ego": {"objects": 7, "p10_px": 5.0, "p50_px": 9.0, "p90_px": 20.0, "p50_m": 17.5}},
          "by_view": [{**row, "group": "view=ego"}],
          "by_class": [{**row, "group": "class=car"}, {**row, "group": "class=motorcyclist", "oks_map50_95": 0.0}],
-         "runs": [{"name": "n-p2", "train_args": ["--model", "n"], "imgsz": 320, "train_seconds": 60.0,
+         "runs": [{"name": "n-p2", "train_args": ["--model", "n"], "imgsz": 640, "crop": 320, "train_seconds": 60.0,
                    "synthetic_test": row, "overall_test": row}],
          "commands": [{"command": "omnigen merge a --out b", "seconds": 1.5}]}
     md = results_markdown(r)
     assert "`python benchmarks/validate.py --kitti ../shared/realdata/kitti --epochs 3 --jobs 2 --scales n`" in md
     assert "| car | 7 | 0.250 | 0.500 | 0.500 | 0.300 | 0.400 |" in md
     assert "| motorcyclist | 7 | 0.000 |" in md
-    assert "| ego | 0.250 | 0.500 | 0.400 | 7 | 5.0 / 9.0 / 20.0 |" in md
+    assert "| ego | 0.250 | 0.500 | 0.400 | 7 | 5.0 / 9.0 / 20.0 | 17.5 |" in md
+    assert "| n-p2 | `--model n` | 640 (320) | 60.0 |" in md
     # every table says what made it, where and when
     tables = sum(line.startswith("|---") for line in md.splitlines())
     assert tables == 5 and md.count("on x86_64, 2 CPUs, 2026-11-21 12:00 UTC.") == tables
