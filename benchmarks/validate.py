@@ -257,11 +257,17 @@ def main(argv: list[str] | None = None) -> int:
         run(["eval", str(preds), str(uov), "--split", "test", "--out", str(report_path)], report_path)
         report = json.loads(report_path.read_text())
         row = synthetic_row(report)
+        from dataclasses import asdict
+
+        from detector.corner_order import corner_order_counts
+        from omnigen.dataset import Dataset
+
+        orders = asdict(corner_order_counts(Dataset.open(uov, show_progress=False), json.loads(preds.read_text())))
         hist = (out / "results.csv").read_text().splitlines()
         entry = {"name": name, "train_args": extra, "imgsz": imgsz or args.imgsz, "crop": args.crop or None,
                  "train_seconds": round(t, 1),
                  "synthetic_test": row, "overall_test": report["report"]["rows"][0], "epochs_logged": len(hist) - 1,
-                 "report_rows": report["report"]["rows"]}
+                 "report_rows": report["report"]["rows"], "corner_order": orders}
         runs.append(entry)
         return entry
 
@@ -422,6 +428,22 @@ def results_markdown(r: dict[str, Any]) -> str:
         lines.append(f"| {run['name']} | `{' '.join(run['train_args'])}` | {size} | {run['train_seconds']} | "
                      f"{_f(s['oks_map50_95'])} | {_f(s['ap_oks50'])} | {_f(s['f1'])} | {_f(s['ground_adherence_deg'], 2)} | "
                      f"{_f(o['oks_map50_95'])} |")
+    lines += ["", made, "", "## Front or back: which corner order fits the predictions",
+              "",
+              "Each test object is matched to the best-scoring prediction (score >= 0.2) whose 2D box",
+              "overlaps its own by IoU >= 0.5, blind to the corners; then the order of the eight corners",
+              "that brings the prediction closest is counted (detector/corner_order.py). `turned 180`",
+              "means front and rear swapped: the object was found, its heading was not.",
+              "",
+              "| run | matched objects | unmatched | as labelled | turned 180 | mirrored | turned +90 | turned -90 |",
+              "|---|---|---|---|---|---|---|---|"]
+    for run in r["runs"]:
+        c = run.get("corner_order")
+        if c:
+            share = lambda n: f"{c['best'][n]} ({c['best'][n] / c['matched']:.0%})" if c["matched"] else "-"  # noqa: E731
+            lines.append(f"| {run['name']} | {c['matched']} | {c['unmatched']} | "
+                         + " | ".join(share(n) for n in ("as labelled", "turned 180", "mirrored", "turned +90", "turned -90"))
+                         + " |")
     lines += ["", made, "", "## Commands and their wall times", "", "| command | seconds |", "|---|---|"]
     lines += [f"| `{c['command']}` | {c['seconds']} |" for c in r["commands"]]
     lines += ["", made, ""]

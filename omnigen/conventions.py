@@ -50,6 +50,10 @@ BOTTOM_CORNERS = (4, 5, 6, 7)
 FLIP_IDX: tuple[int, ...] = (1, 0, 3, 2, 5, 4, 7, 6)
 """Permutation of the corners under a horizontal image flip (left and right swap)."""
 
+TURN_IDX: tuple[int, ...] = (2, 3, 0, 1, 6, 7, 4, 5)
+"""The same cuboid turned 180 degrees about its vertical axis: front and rear swap (and with them
+left and right). A detector that cannot tell an object's front from its back predicts this order."""
+
 SKELETON: tuple[tuple[int, int], ...] = (
     (0, 1), (1, 2), (2, 3), (3, 0),  # top face
     (4, 5), (5, 6), (6, 7), (7, 4),  # bottom face

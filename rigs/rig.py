@@ -33,9 +33,9 @@ class Rig:
 
     anchor: where the camera stands, with weights: `traffic` (in the lane behind one of the
     frame's moving vehicles, 4-30 m back, looking along its heading: a dashcam in traffic),
-    `lane` (over a driving lane's centreline, looking along the traffic), `intersection` (at a corner of an intersection, looking at its
-    centre), `roadside` (at the kerb, looking along the road and in towards it), `anywhere`
-    (uniform over the city's bounds, any heading).
+    `lane` (over a driving lane's centreline, looking along the traffic), `intersection` (at a
+    corner of an intersection, looking at its centre), `roadside` (at the kerb, looking along the
+    road and in towards it), `anywhere` (uniform over the city's bounds, any heading).
     height: metres above the road surface (world z = 0). pitch: degrees below the horizon.
     yaw_jitter: degrees added to the anchor's heading. hfov: horizontal field of view, degrees.
     resolution: default (width, height). min_objects: fewest annotated objects a frame must

@@ -84,7 +84,9 @@ def test_results_markdown_names_the_command_and_every_class_row():
          "by_view": [{**row, "group": "view=ego"}],
          "by_class": [{**row, "group": "class=car"}, {**row, "group": "class=motorcyclist", "oks_map50_95": 0.0}],
          "runs": [{"name": "n-p2", "train_args": ["--model", "n"], "imgsz": 640, "crop": 320, "train_seconds": 60.0,
-                   "synthetic_test": row, "overall_test": row}],
+                   "synthetic_test": row, "overall_test": row,
+                   "corner_order": {"matched": 10, "unmatched": 2, "best": {"as labelled": 6, "turned 180": 4, "mirrored": 0,
+                                                                           "turned +90": 0, "turned -90": 0}}}],
          "commands": [{"command": "omnigen merge a --out b", "seconds": 1.5}]}
     md = results_markdown(r)
     assert "`python benchmarks/validate.py --kitti ../shared/realdata/kitti --epochs 3 --jobs 2 --scales n`" in md
@@ -92,6 +94,7 @@ def test_results_markdown_names_the_command_and_every_class_row():
     assert "| motorcyclist | 7 | 0.000 |" in md
     assert "| ego | 0.250 | 0.500 | 0.400 | 7 | 5.0 / 9.0 / 20.0 | 17.5 |" in md
     assert "| n-p2 | `--model n` | 640 (320) | 60.0 |" in md
+    assert "| n-p2 | 10 | 2 | 6 (60%) | 4 (40%) | 0 (0%) | 0 (0%) | 0 (0%) |" in md
     # every table says what made it, where and when
     tables = sum(line.startswith("|---") for line in md.splitlines())
-    assert tables == 5 and md.count("on x86_64, 2 CPUs, 2026-11-21 12:00 UTC.") == tables
+    assert tables == 6 and md.count("on x86_64, 2 CPUs, 2026-11-21 12:00 UTC.") == tables

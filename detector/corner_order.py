@@ -1,0 +1,87 @@
+"""Which order of the eight corners fits a detector's predictions best: heading confusion.
+
+OKS compares corner k of a prediction with corner k of the ground truth, so a box predicted in
+the right place but turned 180 degrees (front and rear swapped, `TURN_IDX`) scores as badly as a
+box in the wrong place. This module says how often that happens. Each ground-truth object of the
+split (with no corner behind the camera) is matched to the highest-scoring prediction of the same
+frame whose 2D box overlaps its own by IoU >= `min_iou` (box overlap, blind to the corners'
+order); the mean corner distance is then computed under each candidate order and the object is
+counted under the order that fits best (ties go to the first listed). A detector that learned headings is `as labelled` almost
+always; one that guesses them splits between `as labelled` and `turned 180`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from omnigen.conventions import FLIP_IDX, TURN_IDX
+from omnigen.dataset import Dataset
+from omnigen.splits import read_split
+
+ORDERS: dict[str, tuple[int, ...]] = {
+    "as labelled": tuple(range(8)),
+    "turned 180": TURN_IDX,
+    "mirrored": FLIP_IDX,
+    "turned +90": (1, 2, 3, 0, 5, 6, 7, 4),
+    "turned -90": (3, 0, 1, 2, 7, 4, 5, 6),
+}
+"""Candidate orders: prediction corner ORDERS[k][i] is compared with ground-truth corner i."""
+
+
+@dataclass
+class CornerOrderCounts:
+    matched: int  # ground-truth objects with a box-matched prediction
+    unmatched: int
+    best: dict[str, int]  # order name -> objects it fits best
+
+    def fraction(self, name: str) -> float:
+        return self.best[name] / self.matched if self.matched else float("nan")
+
+
+def _iou(boxes: np.ndarray, box: np.ndarray) -> np.ndarray:
+    lt = np.maximum(boxes[:, :2], box[:2])
+    rb = np.minimum(boxes[:, 2:], box[2:])
+    inter = np.clip(rb - lt, 0, None).prod(1)
+    area = lambda b: np.clip(b[..., 2:] - b[..., :2], 0, None).prod(-1)  # noqa: E731
+    return inter / (area(boxes) + area(box) - inter + 1e-9)
+
+
+def corner_order_counts(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | None = "test",
+                        min_iou: float = 0.5, min_score: float = 0.2) -> CornerOrderCounts:
+    """Count, over the split's objects, the corner order that fits each one's matched prediction.
+
+    `predictions` are COCO results with `frame_id`, `bbox` (x, y, w, h) and `keypoints`, as
+    `omnigen predict` and detector.predict.predict_dataset write them.
+    """
+    frames = read_split(ds.root, split) if split else list(ds.table.frame_id)
+    by_frame: dict[str, list[dict[str, Any]]] = {}
+    for p in predictions:
+        if p["score"] >= min_score:
+            by_frame.setdefault(str(p["frame_id"]), []).append(p)
+    o = ds.objects
+    best = {name: 0 for name in ORDERS}
+    matched = unmatched = 0
+    for fid in frames:
+        f = ds.index_of(fid)
+        rows = [r for r in range(int(ds.offsets[f]), int(ds.offsets[f + 1])) if not o.behind_camera[r].any()]
+        preds = by_frame.get(fid, [])
+        if not preds:
+            unmatched += len(rows)
+            continue
+        scores = np.array([p["score"] for p in preds])
+        boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in (p["bbox"] for p in preds)], dtype=np.float64)
+        corners = np.array([p["keypoints"] for p in preds], dtype=np.float64).reshape(len(preds), 8, 3)[..., :2]
+        for r in rows:
+            ok = np.flatnonzero(_iou(boxes, o.bbox[r]) >= min_iou)
+            if not len(ok):
+                unmatched += 1
+                continue
+            j = ok[np.argmax(scores[ok])]
+            err = {name: float(np.linalg.norm(corners[j][list(order)] - o.keypoints[r], axis=1).mean())
+                   for name, order in ORDERS.items()}
+            best[min(err, key=err.get)] += 1
+            matched += 1
+    return CornerOrderCounts(matched, unmatched, best)
