@@ -84,8 +84,8 @@ bench: $(STAMP)
 
 # End to end on a 2-core machine (under 2 hours): render all three rigs, merge with the real KITTI
 # sample frames, train nano+P2, evaluate, run the BEV head; writes docs/RESULTS.md and
-# docs/results.json. Resumable; VALIDATE_ARGS scales it (benchmarks/validate.py): each of
-# '--ablations no-p2 hires no-synthetic' is one more training run, too long for the 2-hour budget.
+# docs/results.json. Resumable; VALIDATE_ARGS scales it (benchmarks/validate.py): '--ablations
+# no-synthetic' adds minutes (3 KITTI frames); no-p2 and hires each train about as long as the main run.
 VALIDATE_ARGS ?=
 validate: $(STAMP) system
 	$(BIN)/python benchmarks/validate.py $$( [ -d "$(SHARED)/realdata/kitti/training" ] && echo --kitti "$(SHARED)/realdata/kitti" ) $(VALIDATE_ARGS)

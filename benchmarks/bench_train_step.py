@@ -106,7 +106,7 @@ def overfit() -> None:
     torch.set_num_threads(1)  # as the test: the trajectory then does not depend on the thread count
     with tempfile.TemporaryDirectory() as tmp:
         frames = Path(tmp) / "ego"
-        rc = omnigen(["render", "--rig", "ego", "--frames", "4", "--out", str(frames), "--seed", "3", "--scene", "tiny",
+        rc = omnigen(["render", "--rig", "ego-lane", "--frames", "4", "--out", str(frames), "--seed", "3", "--scene", "tiny",
                       "--width", "256", "--height", "192", "--backend", "raster"])
         if rc != 0:
             raise SystemExit("bench_train_step: the overfit frames did not render")

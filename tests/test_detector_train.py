@@ -237,9 +237,9 @@ OVERFIT_EPOCHS = 700  # one batch of the four frames per epoch: 700 Adam steps
 
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory):
-    """Four frames of the tiny city from the ego rig (raster when EGL works, else Cycles preview)."""
+    """Four frames of the tiny city from the ego-lane rig (raster when EGL works, else Cycles preview)."""
     out = tmp_path_factory.mktemp("overfit") / "ego"
-    args = ["render", "--rig", "ego", "--frames", "4", "--out", str(out), "--seed", "3", "--scene", "tiny",
+    args = ["render", "--rig", "ego-lane", "--frames", "4", "--out", str(out), "--seed", "3", "--scene", "tiny",
             "--width", str(OVERFIT_SIZE[0]), "--height", str(OVERFIT_SIZE[1])]
     try:
         rc = main(args + ["--backend", "raster"])
