@@ -101,30 +101,33 @@ def leaders(scene: Scene) -> list:
     return [a for a in scene.agents if a.state == "moving" and a.category in FOLLOWED]
 
 
-def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, float]:
-    """(x, y) and a base heading for the anchor kind."""
+def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, float, str]:
+    """(x, y), a base heading and the anchor kind used: `traffic` without moving vehicles in the
+    frame falls back to `lane` (a camera in an empty lane), and the record then says so."""
     city = scene.city
     if anchor == "traffic":
         lead = leaders(scene)
-        a = lead[int(rng.integers(len(lead)))]
-        d = np.array([math.cos(a.yaw), math.sin(a.yaw)])
-        back = a.dims[0] / 2 + rng.uniform(*TRAFFIC_GAP)
-        p = np.asarray(a.center[:2]) - back * d + np.array([-d[1], d[0]]) * rng.normal(0.0, 0.2)
-        return p, a.yaw
+        if lead:
+            a = lead[int(rng.integers(len(lead)))]
+            d = np.array([math.cos(a.yaw), math.sin(a.yaw)])
+            back = a.dims[0] / 2 + rng.uniform(*TRAFFIC_GAP)
+            p = np.asarray(a.center[:2]) - back * d + np.array([-d[1], d[0]]) * rng.normal(0.0, 0.2)
+            return p, a.yaw, anchor
+        anchor = "lane"
     if anchor == "lane":
         lanes = [ln for r in city.roads for ln in r.lanes if ln.kind == "driving"]
         lane = _weighted(rng, lanes, [ln.length for ln in lanes])
         s = rng.uniform(0.05, 0.95)
         d = np.subtract(lane.end, lane.start) / lane.length
         p = np.asarray(lane.start) + s * lane.length * d + np.array([-d[1], d[0]]) * rng.normal(0.0, 0.2)
-        return p, lane.heading
+        return p, lane.heading, anchor
     if anchor == "intersection":
         inter = city.intersections[int(rng.integers(len(city.intersections)))]
         sx, sy = rng.choice([-1.0, 1.0], size=2)
         off = rng.uniform(1.0, 3.0, size=2)
         c = np.asarray(inter.center)
         p = c + np.array([sx * (inter.size[0] / 2 + off[0]), sy * (inter.size[1] / 2 + off[1])])
-        return p, math.atan2(c[1] - p[1], c[0] - p[0])
+        return p, math.atan2(c[1] - p[1], c[0] - p[0]), anchor
     if anchor == "roadside":
         road = _weighted(rng, list(city.roads), [math.dist(r.start, r.end) for r in city.roads])
         length = math.dist(road.start, road.end)
@@ -138,10 +141,10 @@ def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator) 
         inward = -side * n
         turn = math.radians(rng.uniform(10.0, 40.0))
         cross = along[0] * inward[1] - along[1] * inward[0]
-        return p, base + math.copysign(turn, cross)
+        return p, base + math.copysign(turn, cross), anchor
     xmin, ymin, xmax, ymax = city.bounds
     mx, my = 0.1 * (xmax - xmin), 0.1 * (ymax - ymin)
-    return np.array([rng.uniform(xmin + mx, xmax - mx), rng.uniform(ymin + my, ymax - my)]), 0.0
+    return np.array([rng.uniform(xmin + mx, xmax - mx), rng.uniform(ymin + my, ymax - my)]), 0.0, anchor
 
 
 class Obstacles:
@@ -188,9 +191,7 @@ def draw_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, he
     """One candidate camera from the rig's distribution (no rejection)."""
     kinds = list(rig.anchor)
     anchor = _weighted(rng, kinds, [rig.anchor[k] for k in kinds])
-    if anchor == "traffic" and not leaders(scene):
-        anchor = "lane"  # no traffic in this frame: a camera in an empty lane, and the record says so
-    xy, heading = _anchor_pose(rig, anchor, scene, rng)
+    xy, heading, anchor = _anchor_pose(rig, anchor, scene, rng)
     z = rng.uniform(*rig.height)
     yaw = heading + math.radians(rng.uniform(*rig.yaw_jitter))
     pitch = math.radians(rng.uniform(*rig.pitch))
