@@ -32,13 +32,17 @@ import shlex
 import shutil
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from omnigen.cli import main as omnigen  # noqa: E402
 from omnigen.files import atomic_write_json, atomic_write_text  # noqa: E402
+
+if TYPE_CHECKING:
+    from omnigen.dataset import Dataset
 
 RIGS = ("ego", "pole", "drone")
 TARGET_MAP = 0.55  # the design's nano reaches 0.559 on its mixed data
@@ -225,6 +229,10 @@ def main(argv: list[str] | None = None) -> int:
     run(["merge", *map(str, sources + real), "--out", str(uov), "--test-fraction", "0.2", "--seed", str(args.seed)],
         uov / "manifest.json")
 
+    from detector.corner_order import corner_order_counts
+    from omnigen.dataset import Dataset
+
+    uov_ds = Dataset.open(uov, show_progress=False)  # read once: the heading table and the object sizes
     crop = ["--crop", str(args.crop)] if args.crop else []
     common = ["--imgsz", str(args.imgsz), "--epochs", str(args.epochs), "--batch", str(args.batch),
               "--workers", str(args.workers), "--seed", str(args.seed), "--val-every", str(args.val_every),
@@ -257,12 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         run(["eval", str(preds), str(uov), "--split", "test", "--out", str(report_path)], report_path)
         report = json.loads(report_path.read_text())
         row = synthetic_row(report)
-        from dataclasses import asdict
-
-        from detector.corner_order import corner_order_counts
-        from omnigen.dataset import Dataset
-
-        orders = asdict(corner_order_counts(Dataset.open(uov, show_progress=False), json.loads(preds.read_text())))
+        orders = asdict(corner_order_counts(uov_ds, json.loads(preds.read_text())))
         hist = (out / "results.csv").read_text().splitlines()
         entry = {"name": name, "train_args": extra, "imgsz": imgsz or args.imgsz, "crop": args.crop or None,
                  "train_seconds": round(t, 1),
@@ -309,7 +312,7 @@ def main(argv: list[str] | None = None) -> int:
         "wall_seconds": round(wall, 1), "machine": machine(),
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "arguments": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-        "runs": runs, "commands": run.log, "test_object_sizes": object_sizes(uov),
+        "runs": runs, "commands": run.log, "test_object_sizes": object_sizes(uov_ds),
         "by_view": [g for g in main_run["report_rows"] if g["group"].startswith("view=")],
         "by_class": [g for g in main_run["report_rows"] if g["group"].startswith("class=")],
     }
@@ -322,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def object_sizes(root: Path, split: str = "test") -> dict[str, dict[str, float]]:
+def object_sizes(ds: Dataset, split: str = "test") -> dict[str, dict[str, float]]:
     """Per view of `split`: objects, the 10th/50th/90th percentile of sqrt(box area) in pixels and
     the median distance from the camera to the box centre in metres.
 
@@ -331,12 +334,10 @@ def object_sizes(root: Path, split: str = "test") -> dict[str, dict[str, float]]
     """
     import numpy as np
 
-    from omnigen.dataset import Dataset
     from omnigen.splits import read_split
 
-    ds = Dataset.open(root, show_progress=False)
     frames = np.zeros(len(ds), dtype=bool)
-    frames[[ds.index_of(f) for f in read_split(root, split)]] = True
+    frames[[ds.index_of(f) for f in read_split(ds.root, split)]] = True
     o = ds.objects
     keep = frames[o.frame]
     size = np.sqrt((o.bbox[:, 2] - o.bbox[:, 0]) * (o.bbox[:, 3] - o.bbox[:, 1]))[keep]
@@ -353,6 +354,13 @@ def object_sizes(root: Path, split: str = "test") -> dict[str, dict[str, float]]
 
 def _f(v: Any, digits: int = 3) -> str:
     return "-" if v is None else f"{v:.{digits}f}" if isinstance(v, float) else str(v)
+
+
+def _view_line(g: dict[str, Any], sizes: dict[str, Any]) -> str:
+    """One row of the by-view table: the view's metrics and how large its test objects are."""
+    px = " / ".join(str(sizes.get(k, "-")) for k in ("p10_px", "p50_px", "p90_px"))
+    return (f"| {g['group'][5:]} | {_f(g['oks_map50_95'])} | {_f(g['ap_oks50'])} | {_f(g['f1'])} | "
+            f"{sizes.get('objects', '-')} | {px} | {sizes.get('p50_m', '-')} |")
 
 
 def results_markdown(r: dict[str, Any]) -> str:
@@ -395,10 +403,7 @@ def results_markdown(r: dict[str, Any]) -> str:
         "",
         "| view | mAP50:95 | AP50 | F1 | test objects | sqrt(area) px: 10th / median / 90th percentile | median distance (m) |",
         "|---|---|---|---|---|---|---|",
-        *[f"| {g['group'][5:]} | {_f(g['oks_map50_95'])} | {_f(g['ap_oks50'])} | {_f(g['f1'])} | "
-          f"{r['test_object_sizes'].get(g['group'][5:], {}).get('objects', '-')} | "
-          + " / ".join(str(r['test_object_sizes'].get(g['group'][5:], {}).get(k, '-')) for k in ("p10_px", "p50_px", "p90_px"))
-          + f" | {r['test_object_sizes'].get(g['group'][5:], {}).get('p50_m', '-')} |" for g in r.get("by_view", [])],
+        *[_view_line(g, r["test_object_sizes"].get(g["group"][5:], {})) for g in r.get("by_view", [])],
         "", made, "",
         "## By class",
         "",

@@ -16,7 +16,9 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
+import torch
 
+from detector.nms import box_iou
 from omnigen.conventions import FLIP_IDX, TURN_IDX
 from omnigen.dataset import Dataset
 from omnigen.splits import read_split
@@ -39,14 +41,6 @@ class CornerOrderCounts:
 
     def fraction(self, name: str) -> float:
         return self.best[name] / self.matched if self.matched else float("nan")
-
-
-def _iou(boxes: np.ndarray, box: np.ndarray) -> np.ndarray:
-    lt = np.maximum(boxes[:, :2], box[:2])
-    rb = np.minimum(boxes[:, 2:], box[2:])
-    inter = np.clip(rb - lt, 0, None).prod(1)
-    area = lambda b: np.clip(b[..., 2:] - b[..., :2], 0, None).prod(-1)  # noqa: E731
-    return inter / (area(boxes) + area(box) - inter + 1e-9)
 
 
 def corner_order_counts(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | None = "test",
@@ -74,8 +68,9 @@ def corner_order_counts(ds: Dataset, predictions: Sequence[dict[str, Any]], spli
         scores = np.array([p["score"] for p in preds])
         boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in (p["bbox"] for p in preds)], dtype=np.float64)
         corners = np.array([p["keypoints"] for p in preds], dtype=np.float64).reshape(len(preds), 8, 3)[..., :2]
-        for r in rows:
-            ok = np.flatnonzero(_iou(boxes, o.bbox[r]) >= min_iou)
+        iou = box_iou(torch.from_numpy(o.bbox[rows].reshape(-1, 4)), torch.from_numpy(boxes)).numpy()  # (objects, preds)
+        for n, r in enumerate(rows):
+            ok = np.flatnonzero(iou[n] >= min_iou)
             if not len(ok):
                 unmatched += 1
                 continue

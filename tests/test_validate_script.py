@@ -62,7 +62,7 @@ def test_object_sizes_per_view_of_a_split(tmp_path):
     ds = write_fake_dataset(tmp_path / "ds", n_frames=6, seed=3)
     test = ds.frame_ids[:3]
     write_split(ds.root, "test", test)
-    sizes = object_sizes(ds.root, "test")
+    sizes = object_sizes(ds, "test")
     rows = [ds.index_of(f) for f in test]
     o = ds.objects
     keep = np.isin(o.frame, rows)
