@@ -113,8 +113,8 @@ def overfit() -> None:
         rows = []
         for amp in MODES:
             cfg = TrainConfig(dataset=str(frames), out=str(Path(tmp) / amp), imgsz=256, batch=4, workers=0,
-                              augment=asdict(Augment.off()), epochs=700, val_every=700, warmup_iters=20, lr0=2e-2,
-                              amp=amp, model="n", width=0.125, depth=0.34)
+                              augment=asdict(Augment.off()), epochs=700, val_every=700, warmup_iters=20,
+                              optimizer="adam", lr0=2e-2, amp=amp, model="n", width=0.125, depth=0.34)
             start = time.perf_counter()
             last = train(cfg)
             rows.append((amp, last, time.perf_counter() - start))

@@ -192,6 +192,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--epochs", type=int, default=150)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--cache", action="store_true", help="train with the images decoded once, in memory (train --cache)")
+    ap.add_argument("--optimizer", default="adamw", choices=["adamw", "adam"])
+    ap.add_argument("--lr0", type=float, default=2e-3, help="peak learning rate")
     ap.add_argument("--device", default=None)
     ap.add_argument("--kpt-sigma-end", type=float, default=0.25,
                     help="keypoint-loss sigma after the anneal: 0.25 trains on the kernel of the OKS metric "
@@ -235,9 +238,10 @@ def main(argv: list[str] | None = None) -> int:
     uov_ds = Dataset.open(uov, show_progress=False)  # read once: the heading table and the object sizes
     crop = ["--crop", str(args.crop)] if args.crop else []
     common = ["--imgsz", str(args.imgsz), "--epochs", str(args.epochs), "--batch", str(args.batch),
-              "--workers", str(args.workers), "--seed", str(args.seed), "--val-every", str(args.val_every),
+              "--workers", str(args.workers), "--seed", str(args.seed),
+              "--optimizer", args.optimizer, "--lr0", str(args.lr0), "--val-every", str(args.val_every),
               "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp
-              ] + (["--device", args.device] if args.device else [])
+              ] + (["--device", args.device] if args.device else []) + (["--cache"] if args.cache else [])
     runs: list[dict[str, Any]] = []
 
     def train_eval(name: str, extra: list[str], dataset: Path = uov, imgsz: int | None = None) -> dict[str, Any]:

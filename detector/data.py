@@ -88,6 +88,17 @@ def read_image(path: Path) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+def available_memory() -> int | None:
+    """Bytes of memory the kernel says can be had now (Linux MemAvailable); None where unknown."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
 def hsv_jitter(image: np.ndarray, gains: tuple[float, float, float], rng: np.random.Generator) -> np.ndarray:
     """Colour jitter in HSV with lookup tables (cheap on large images)."""
     if not any(gains):
@@ -224,6 +235,7 @@ class KeypointDataset(torch.utils.data.Dataset):
             self.indices = np.array([self.ds.index_of(f) for f in frame_ids], dtype=np.int64)
         lookup = [taxonomy.class_id(c) for c in FINE_CLASSES]
         self.class_of_fine = np.array([-1 if c is None else c for c in lookup], dtype=np.int64)
+        self._cache: list[tuple[np.ndarray, Letterbox]] | None = None  # cache_images()
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -231,12 +243,47 @@ class KeypointDataset(torch.utils.data.Dataset):
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
 
+    def cache_images(self, show_progress: bool = False) -> int:
+        """Decode and letterbox every image once and keep it in memory; returns the bytes held.
+
+        Why: decoding a PNG costs as much CPU as a good part of a training step on a small machine,
+        and every epoch decodes every image again. Call it before the loader starts its worker
+        processes, which then share the cache (fork, copy-on-write). The arrays are read-only,
+        so an augmentation that wrote into its input would fail instead of corrupting the cache.
+        Refuses, naming the sizes, when the cache would not fit in the memory now available.
+        """
+        from omnigen.progress import progress
+
+        need = len(self) * self.size * self.size * 3
+        free = available_memory()
+        if free is not None and need > 0.8 * free:
+            raise MemoryError(f"{self.ds.root}: caching {len(self)} images at {self.size} px needs "
+                              f"{need / 2**30:.1f} GiB, {free / 2**30:.1f} GiB is available; train without the cache")
+        cache = []
+        for i in progress(range(len(self)), "cache images", total=len(self), disable=not show_progress):
+            boxed, lb = letterbox(read_image(self._image_path(i)), self.size)
+            boxed.setflags(write=False)
+            cache.append((boxed, lb))
+        self._cache = cache
+        return need
+
+    def _image_path(self, i: int) -> Path:
+        return self.ds.path(self.ds.table.image[int(self.indices[i])])
+
     def raw(self, i: int) -> tuple[np.ndarray, Sample]:
         """The original image and the letterboxed sample, before augmentation."""
+        image = read_image(self._image_path(i))
+        return image, self._targets(i, *letterbox(image, self.size))
+
+    def sample(self, i: int) -> Sample:
+        """The letterboxed sample before augmentation, from the cache when there is one."""
+        if self._cache is not None:
+            return self._targets(i, *self._cache[i])
+        return self._targets(i, *letterbox(read_image(self._image_path(i)), self.size))
+
+    def _targets(self, i: int, boxed: np.ndarray, lb: Letterbox) -> Sample:
         f = int(self.indices[i])
         ds, t = self.ds, self.ds.objects
-        image = read_image(ds.path(ds.table.image[f]))
-        boxed, lb = letterbox(image, self.size)
         rows = np.arange(int(ds.offsets[f]), int(ds.offsets[f + 1]))
         rows = rows[self.class_of_fine[t.category[rows]] >= 0] if len(rows) else rows
         kp = lb.to_input(t.keypoints[rows]) if len(rows) else np.zeros((0, NUM_KEYPOINTS, 2))
@@ -245,11 +292,10 @@ class KeypointDataset(torch.utils.data.Dataset):
         visible = (t.in_image[rows] & ~t.occluded[rows] & front).astype(np.float32)
         # 'drop' masks corners outside the original image, not only outside the (padded) canvas
         mask = front & t.in_image[rows] if self.out_of_image == "drop" else front
-        sample = Sample(boxed, self.class_of_fine[t.category[rows]], bb, np.nan_to_num(kp), mask, visible, f, lb)
-        return image, sample
+        return Sample(boxed, self.class_of_fine[t.category[rows]], bb, np.nan_to_num(kp), mask, visible, f, lb)
 
     def __getitem__(self, i: int) -> Sample:
-        _, sample = self.raw(i)
+        sample = self.sample(i)
         rng = np.random.default_rng([self.seed, self.epoch, int(self.indices[i])])
         a = self.augment
         if self.crop is not None:

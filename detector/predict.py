@@ -83,7 +83,7 @@ def predict_frames(model: KeypointDetector, data: KeypointDataset, opts: Predict
     results: list[dict[str, Any]] = []
     ds = data.ds
     for chunk in progress(list(batches(list(range(len(data))), opts.batch)), "predict", disable=not show_progress):
-        samples = [data.raw(i)[1] for i in chunk]
+        samples = [data.sample(i) for i in chunk]
         dets = infer_batch(model, [s.image for s in samples], [s.letterbox for s in samples], opts)
         for s, d in zip(samples, dets):
             results.extend(coco_results(d, s.frame_index + 1, ds.table.frame_id[s.frame_index]))

@@ -1,4 +1,4 @@
-"""Training: Adam with cosine decay, EMA weights, validation by OKS mAP each epoch, resumable.
+"""Training: AdamW with cosine decay, EMA weights, validation by OKS mAP each epoch, resumable.
 
 One process trains on the CPU or one GPU; under torchrun (WORLD_SIZE > 1) each process takes a
 shard of every epoch (DistributedSampler) and DistributedDataParallel averages the gradients, with
@@ -53,9 +53,11 @@ class TrainConfig:
     depth: float | None = None
     imgsz: int = 640
     crop: int | None = None  # train on random crop x crop windows of the imgsz input (data.random_crop)
+    cache: bool = False  # decode and letterbox every image once, into memory (KeypointDataset.cache_images)
     epochs: int = 100
     batch: int = 16
-    lr0: float = 1e-2
+    optimizer: str = "adamw"  # adamw (decoupled weight decay) or adam (L2 decay in the gradient)
+    lr0: float = 2e-3
     lrf: float = 0.01  # final learning rate = lr0 * lrf (cosine)
     weight_decay: float = 5e-4
     warmup_iters: int = 100
@@ -110,6 +112,20 @@ def param_groups(model: torch.nn.Module, weight_decay: float) -> list[dict[str, 
             (decay if name == "weight" and not isinstance(module, torch.nn.modules.batchnorm._BatchNorm)
              else no_decay).append(p)
     return [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+
+
+OPTIMIZERS = {"adam": torch.optim.Adam, "adamw": torch.optim.AdamW}
+
+
+def make_optimizer(cfg: TrainConfig, model: torch.nn.Module) -> torch.optim.Optimizer:
+    """Adam or AdamW with YOLO's first-moment decay 0.937, weight decay on the weights of param_groups.
+
+    Adam adds the decay to the gradient, where its normalisation scales it like any other gradient;
+    AdamW shrinks the weights directly by lr * weight_decay (Loshchilov & Hutter), the usual choice.
+    """
+    if cfg.optimizer not in OPTIMIZERS:
+        raise ValueError(f"optimizer: {cfg.optimizer!r} is not one of {sorted(OPTIMIZERS)}")
+    return OPTIMIZERS[cfg.optimizer](param_groups(model, cfg.weight_decay), lr=cfg.lr0, betas=(0.937, 0.999))
 
 
 def learning_rate(cfg: TrainConfig, it: int, total: int) -> float:
@@ -238,8 +254,10 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     out = Path(cfg.out)
     state = load_checkpoint(out / "last.pt") if resume else None
     if state is not None:
-        # the run's own settings; where it runs and with how many loader processes may change
-        cfg = replace(TrainConfig(**state["train_config"]), out=cfg.out, device=cfg.device, workers=cfg.workers)
+        # the run's own settings; where it runs, its loader processes and its image cache may change;
+        # checkpoints from before the optimizer was a choice trained with Adam
+        saved = {"optimizer": "adam", **state["train_config"]}
+        cfg = replace(TrainConfig(**saved), out=cfg.out, device=cfg.device, workers=cfg.workers, cache=cfg.cache)
         taxonomy = checkpoint_taxonomy(state)
     else:
         taxonomy = load_taxonomy(cfg.taxonomy)
@@ -253,10 +271,13 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     if len(data) == 0:
         raise ValueError(f"{cfg.dataset}: split {cfg.train_split!r} has no frames")
     val = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, split_frames(cfg.dataset, val_name))
+    if cfg.cache:  # before the loader forks its workers, which then share it
+        for d in (data, val):
+            d.cache_images(show_progress=rank == 0)
 
     model = KeypointDetector(cfg.model_config(len(taxonomy.classes))).to(device)
     ema = ModelEMA(model, cfg.ema_decay, cfg.ema_tau)
-    optimizer = torch.optim.Adam(param_groups(model, cfg.weight_decay), lr=cfg.lr0, betas=(0.937, 0.999))
+    optimizer = make_optimizer(cfg, model)
     start_epoch, best, history = 0, -1.0, []
     if state is not None:
         model.load_state_dict(state["raw_model"])

@@ -18,9 +18,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--crop", type=int, default=None,
                    help="train on random CROP x CROP windows of the IMGSZ input: objects keep the scale they are "
                         "predicted at, for (CROP/IMGSZ)^2 of the pixels per step")
+    p.add_argument("--cache", action="store_true",
+                   help="decode and letterbox every image once and keep it in memory (train and val splits; "
+                        "refused when it would not fit)")
     p.add_argument("--epochs", type=int, default=100)
     p.add_argument("--batch", type=int, default=16, help="total batch over all processes")
-    p.add_argument("--lr0", type=float, default=1e-2, help="Adam learning rate (cosine decay to lr0 * lrf)")
+    p.add_argument("--optimizer", default="adamw", choices=["adamw", "adam"],
+                   help="adamw (decoupled weight decay) or adam (weight decay in the gradient)")
+    p.add_argument("--lr0", type=float, default=2e-3, help="peak learning rate (cosine decay to lr0 * lrf)")
     p.add_argument("--lrf", type=float, default=0.01)
     p.add_argument("--taxonomy", default="fine", help="class taxonomy preset or TOML file")
     p.add_argument("--train-split", default="train")
@@ -51,7 +56,8 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = TrainConfig(
         dataset=str(args.dataset), out=str(args.out), model=args.model, backbone=args.backbone, p2=args.p2,
-        p6=args.p6, imgsz=args.imgsz, crop=args.crop, epochs=args.epochs, batch=args.batch, lr0=args.lr0, lrf=args.lrf,
+        p6=args.p6, imgsz=args.imgsz, crop=args.crop, cache=args.cache, epochs=args.epochs, batch=args.batch,
+        optimizer=args.optimizer, lr0=args.lr0, lrf=args.lrf,
         taxonomy=args.taxonomy, train_split=args.train_split, val_split=args.val_split,
         out_of_image=args.out_of_image, augment=asdict(Augment.off() if args.no_augment else Augment()),
         workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every,

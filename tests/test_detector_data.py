@@ -186,6 +186,27 @@ def test_augmentation_is_seeded_per_frame_and_epoch(fake):
     assert not np.array_equal(a[2].keypoints, b[2].keypoints)
 
 
+def test_cached_images_give_the_same_samples_and_stay_read_only(fake, monkeypatch):
+    import detector.data as data_mod
+
+    tax = load_taxonomy("fine")
+    disk = KeypointDataset(fake, tax, 96, augment=Augment(), seed=7, crop=64)
+    ram = KeypointDataset(fake, tax, 96, augment=Augment(), seed=7, crop=64)
+    assert ram.cache_images() == len(ram) * 96 * 96 * 3
+    for i in range(len(disk)):
+        a, b = disk[i], ram[i]
+        np.testing.assert_array_equal(a.image, b.image)
+        np.testing.assert_array_equal(a.keypoints, b.keypoints)
+        np.testing.assert_array_equal(a.kpt_mask, b.kpt_mask)
+    cached = ram.sample(0).image
+    assert not cached.flags.writeable  # an augmentation writing into its input fails, never corrupts
+    with pytest.raises(ValueError):
+        cached[0, 0, 0] = 0
+    monkeypatch.setattr(data_mod, "available_memory", lambda: 1000)
+    with pytest.raises(MemoryError, match=r"caching 6 images at 96 px needs"):
+        KeypointDataset(fake, tax, 96).cache_images()
+
+
 def test_coarse_taxonomy_drops_classes(fake):
     fine = KeypointDataset(fake, load_taxonomy("fine"), 96)
     coarse = KeypointDataset(fake, load_taxonomy("coarse"), 96)

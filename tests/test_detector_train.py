@@ -20,12 +20,12 @@ import torch
 
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
-from detector.checkpoint import load_checkpoint, load_model
+from detector.checkpoint import load_checkpoint, load_model, save_checkpoint
 from detector.predict import trained_imgsz
 from detector.data import Augment, KeypointDataset, collate
 from detector.loss import DetectionLoss
 from detector.model import DetectorConfig, KeypointDetector
-from detector.train import TrainConfig, autocast_dtype, learning_rate, train
+from detector.train import TrainConfig, autocast_dtype, learning_rate, make_optimizer, train
 from omnigen.cli import main
 from omnigen.fakes import write_fake_dataset
 from omnigen.taxonomy import load_taxonomy
@@ -53,6 +53,26 @@ def test_learning_rate_warms_up_then_decays_by_cosine():
     assert lrs[0] == pytest.approx(1e-3) and lrs[9] == pytest.approx(1e-2)
     assert all(a >= b for a, b in zip(lrs[10:], lrs[11:]))
     assert lrs[-1] == pytest.approx(1e-4, rel=0.05)
+
+
+def test_adamw_decays_the_weights_apart_from_the_gradient_and_adam_inside_it():
+    # With a zero gradient AdamW's step is the decay alone, w * (1 - lr * wd); Adam sees wd * w as
+    # its gradient and normalises it into a step of about lr, whatever the decay. Biases never decay.
+    def one_step(name):
+        torch.manual_seed(0)
+        model = torch.nn.Conv2d(2, 2, 1)
+        before = model.weight.detach().clone(), model.bias.detach().clone()
+        opt = make_optimizer(TrainConfig(dataset="d", out="o", optimizer=name, lr0=1e-2, weight_decay=0.1), model)
+        for p in model.parameters():
+            p.grad = torch.zeros_like(p)
+        opt.step()
+        return before, (model.weight.detach(), model.bias.detach())
+    (w0, b0), (w1, b1) = one_step("adamw")
+    assert torch.allclose(w1, w0 * (1 - 1e-2 * 0.1)) and torch.equal(b1, b0)
+    (w0, b0), (w1, b1) = one_step("adam")
+    assert torch.allclose((w0 - w1).abs(), torch.full_like(w0, 1e-2), rtol=1e-3) and torch.equal(b1, b0)
+    with pytest.raises(ValueError, match="optimizer: 'sgd'"):
+        make_optimizer(TrainConfig(dataset="d", out="o", optimizer="sgd"), torch.nn.Conv2d(2, 2, 1))
 
 
 def test_train_writes_checkpoints_loadable_with_weights_only(fake, tmp_path):
@@ -96,6 +116,25 @@ def test_resume_equals_uninterrupted_run(fake, tmp_path):
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=1e-6, msg=k)
 
 
+def test_cached_images_train_the_same_weights(fake, tmp_path):
+    # --cache changes where the pixels come from, not what they are: same weights after two epochs
+    train(_cfg(fake, tmp_path / "disk", epochs=2, val_every=100, augment=asdict(Augment())))
+    train(_cfg(fake, tmp_path / "ram", epochs=2, val_every=100, augment=asdict(Augment()), cache=True, workers=1))
+    a = load_checkpoint(tmp_path / "disk" / "last.pt")["model"]
+    b = load_checkpoint(tmp_path / "ram" / "last.pt")["model"]
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=1e-6, msg=k)
+
+
+def test_resuming_a_checkpoint_from_before_the_optimizer_choice_keeps_adam(fake, tmp_path):
+    train(_cfg(fake, tmp_path / "run", epochs=2, val_every=100, optimizer="adam"), stop_after=1)
+    state = load_checkpoint(tmp_path / "run" / "last.pt")
+    del state["train_config"]["optimizer"]  # as checkpoints written before it existed
+    save_checkpoint(tmp_path / "run" / "last.pt", state)
+    train(_cfg(fake, tmp_path / "run", epochs=2, val_every=100), resume=True)
+    assert json.loads((tmp_path / "run" / "args.json").read_text())["optimizer"] == "adam"
+
+
 def test_amp_modes_resolve_per_device():
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
     assert autocast_dtype("auto", cpu) is None and autocast_dtype("off", cpu) is None
@@ -113,7 +152,7 @@ def test_bf16_training_learns_and_keeps_float32_weights(rendered, tmp_path):
     runs = {}
     for amp in ("off", "bf16"):
         cfg = TrainConfig(dataset=str(rendered), out=str(tmp_path / amp), imgsz=OVERFIT_SIZE[0], batch=4, workers=0,
-                          augment=asdict(Augment.off()), epochs=40, val_every=1000, warmup_iters=10, lr0=2e-2,
+                          augment=asdict(Augment.off()), epochs=40, val_every=1000, warmup_iters=10, optimizer="adam", lr0=2e-2,
                           amp=amp, **TINY)
         train(cfg)
         history = load_checkpoint(tmp_path / amp / "last.pt")["history"]
@@ -258,7 +297,7 @@ def test_tiny_model_overfits_four_rendered_frames(rendered, tmp_path):
     start = time.perf_counter()
     cfg = TrainConfig(dataset=str(rendered), out=str(tmp_path / "run"), imgsz=OVERFIT_SIZE[0], batch=4, workers=0,
                       augment=asdict(Augment.off()), epochs=OVERFIT_EPOCHS, val_every=OVERFIT_EPOCHS,
-                      warmup_iters=20, lr0=2e-2, amp="off", **TINY)
+                      warmup_iters=20, optimizer="adam", lr0=2e-2, amp="off", **TINY)
     try:
         last = train(cfg)
     finally:
