@@ -12,7 +12,9 @@ The default fits a 2-core CPU: 600 raster frames at 640 x 640, and training on r
 windows of the 640-pixel input (`--crop 320`): a step costs what a 320-pixel input costs while
 every object keeps the scale it has when the model predicts on the whole 640-pixel image. On a
 CPU that runs bfloat16 natively the steps run in bf16 (`--amp`, about 0.65 of a float32 step by
-benchmarks/bench_train_step.py). Scaling up: more frames per rig (`--frames`), whole images
+benchmarks/bench_train_step.py). Training uses AdamW at 2e-3 (docs/detector-training.md says why).
+`--cache` keeps the decoded images in memory (565 MiB here; a few seconds of CPU an epoch by
+benchmarks/bench_cache.py). Scaling up: more frames per rig (`--frames`), whole images
 (`--crop 0`), more epochs, Cycles instead of the raster preview (`--backend cycles`), the
 ablations of the design's Table 8 (`--ablations`: without synthetic data, without P2, a 1.5x
 larger input) and the other scales (`--scales n s m`) where a GPU makes them affordable; see

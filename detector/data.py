@@ -246,8 +246,8 @@ class KeypointDataset(torch.utils.data.Dataset):
     def cache_images(self, show_progress: bool = False) -> int:
         """Decode and letterbox every image once and keep it in memory; returns the bytes held.
 
-        Why: decoding a PNG costs as much CPU as a good part of a training step on a small machine,
-        and every epoch decodes every image again. Call it before the loader starts its worker
+        Why: every epoch decodes every image again, and on a machine with few cores the loader's
+        work takes CPU from the training step (benchmarks/bench_cache.py measures it). Call it before the loader starts its worker
         processes, which then share the cache (fork, copy-on-write). The arrays are read-only,
         so an augmentation that wrote into its input would fail instead of corrupting the cache.
         Refuses, naming the sizes, when the cache would not fit in the memory now available.
