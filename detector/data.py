@@ -277,9 +277,7 @@ class KeypointDataset(torch.utils.data.Dataset):
 
     def sample(self, i: int) -> Sample:
         """The letterboxed sample before augmentation, from the cache when there is one."""
-        if self._cache is not None:
-            return self._targets(i, *self._cache[i])
-        return self._targets(i, *letterbox(read_image(self._image_path(i)), self.size))
+        return self._targets(i, *self._cache[i]) if self._cache is not None else self.raw(i)[1]
 
     def _targets(self, i: int, boxed: np.ndarray, lb: Letterbox) -> Sample:
         f = int(self.indices[i])
