@@ -272,8 +272,9 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
         raise ValueError(f"{cfg.dataset}: split {cfg.train_split!r} has no frames")
     val = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, split_frames(cfg.dataset, val_name))
     if cfg.cache:  # before the loader forks its workers, which then share it
-        for d in (data, val):
-            d.cache_images(show_progress=rank == 0)
+        data.cache_images(show_progress=rank == 0)
+        if rank == 0:  # only rank 0 validates
+            val.cache_images(show_progress=True)
 
     model = KeypointDetector(cfg.model_config(len(taxonomy.classes))).to(device)
     ema = ModelEMA(model, cfg.ema_decay, cfg.ema_tau)
