@@ -14,8 +14,8 @@ every object keeps the scale it has when the model predicts on the whole 640-pix
 CPU that runs bfloat16 natively the steps run in bf16 (`--amp`, about 0.65 of a float32 step by
 benchmarks/bench_train_step.py). Training uses AdamW at 2e-3 (docs/detector-training.md says why).
 `--cache` keeps the decoded images in memory (565 MiB here; a few seconds of CPU an epoch by
-benchmarks/bench_cache.py). Scaling up: more frames per rig (`--frames`), whole images
-(`--crop 0`), more epochs, Cycles instead of the raster preview (`--backend cycles`), the
+benchmarks/bench_cache.py); it trains the same weights, so runs done without it are kept.
+Scaling up: more frames per rig (`--frames`), whole images (`--crop 0`), more epochs, Cycles instead of the raster preview (`--backend cycles`), the
 ablations of the design's Table 8 (`--ablations`: without synthetic data, without P2, a 1.5x
 larger input) and the other scales (`--scales n s m`) where a GPU makes them affordable; see
 docs/RESULTS.md for what ran here.
@@ -64,7 +64,8 @@ class Runner:
         atomic_write_json(self.path, self.log, indent=1)
 
     def seconds(self, prefix: str) -> float:
-        return sum(c["seconds"] for c in self.log if c["command"].startswith(prefix))
+        """Wall time of the recorded commands that start with `prefix`, --cache or not (see train_stamp)."""
+        return sum(c["seconds"] for c in self.log if train_stamp(c["command"]).startswith(train_stamp(prefix)))
 
     def forget(self, folder: Path) -> None:
         """Drop the records of commands that wrote into or read from `folder` (it is being redone)."""
@@ -89,6 +90,16 @@ class Runner:
 def mentions(command: str, folder: Path) -> bool:
     """Whether a recorded command names `folder` or a file in it (not a sibling sharing its prefix)."""
     return re.search(re.escape(str(folder)) + r"(?=[/ ,)]|$)", command) is not None
+
+
+# train flags that change how fast a run learns, not what it learns (tests/test_detector_train.py
+# checks that the image cache trains the same weights): a run done without them is not redone with them
+SAME_WEIGHTS = ("--cache",)
+
+
+def train_stamp(command: str) -> str:
+    """A training command without the flags that leave its weights alone: what its done-marker holds."""
+    return " ".join(t for t in command.split(" ") if t not in SAME_WEIGHTS)
 
 
 def stale(marker: Path, stamp: str) -> bool:
@@ -250,12 +261,13 @@ def main(argv: list[str] | None = None) -> int:
         out = work / "runs" / name
         opts = common if imgsz is None else ["--imgsz", str(imgsz), *common[2:]]  # common starts with --imgsz
         train_cmd = ["train", str(dataset), "--out", str(out), *opts, *crop, *extra]
-        if stale(out / "done", shlex.join(train_cmd)):  # e.g. more --epochs than last time: train again
+        stamp = train_stamp(shlex.join(train_cmd))
+        if stale(out / "done", stamp):  # e.g. more --epochs than last time: train again
             print(f"[stale] {out} was trained with other arguments: training again", flush=True)
             shutil.rmtree(out)
             run.forget(out)
         if run(train_cmd, out / "done"):
-            atomic_write_text(out / "done", shlex.join(train_cmd) + "\n")
+            atomic_write_text(out / "done", stamp + "\n")
         t = run.seconds("omnigen " + shlex.join(train_cmd))
         from detector.predict import predict_dataset
 
@@ -369,6 +381,19 @@ def _view_line(g: dict[str, Any], sizes: dict[str, Any]) -> str:
             f"{sizes.get('objects', '-')} | {px} | {sizes.get('p50_m', '-')} |")
 
 
+def upsampled_note(r: dict[str, Any]) -> list[str]:
+    """The lines that say so when a run's input is larger than the rendered frames: the hires
+    ablation then magnifies the objects relative to the strides, but adds no detail."""
+    size = r["arguments"].get("size")
+    bigger = [run for run in r["runs"] if size and run["imgsz"] > size]
+    if not bigger:
+        return []
+    names = ", ".join(run["name"] for run in bigger)
+    return [f"The frames were rendered at {size} x {size}; {names} letterboxed them to a larger input, so its",
+            "objects cover more cells of each stride, upsampled: it gains no detail a larger render would have.",
+            ""]
+
+
 def results_markdown(r: dict[str, Any]) -> str:
     """RESULTS.md: every number below is read from results.json, written by this script."""
     a = r["arguments"]
@@ -428,8 +453,9 @@ def results_markdown(r: dict[str, Any]) -> str:
         "",
         "Each run is evaluated on the test split with its last weights (`last.pt`): without a val split",
         "the training's periodic validation reads the test split, so picking its best checkpoint would",
-        "flatter the number.",
+        "flatter the number. Each row is one training with one seed.",
         "",
+        *upsampled_note(r),
         "| run | train args | input (training crop) | train time (s) | synthetic mAP50:95 | AP50 | F1 | adherence (deg) | overall mAP50:95 |",
         "|---|---|---|---|---|---|---|---|---|",
     ]

@@ -11,7 +11,7 @@ import argparse  # noqa: E402
 
 import pytest  # noqa: E402
 
-from benchmarks.validate import Runner, check_data_arguments, mentions, results_markdown, stale  # noqa: E402
+from benchmarks.validate import Runner, check_data_arguments, mentions, results_markdown, stale, train_stamp  # noqa: E402
 
 
 def test_mentions_names_a_folder_and_its_files_not_its_siblings():
@@ -31,6 +31,19 @@ def test_a_marker_from_other_arguments_is_stale(tmp_path):
     assert stale(marker, "train --epochs 60")
     marker.write_text("train --epochs 60\n")
     assert not stale(marker, "train --epochs 60")
+
+
+def test_a_run_trained_without_the_image_cache_is_not_redone_with_it(tmp_path):
+    # the cache changes the speed, not the weights: the marker of a run without it still stands
+    marker = tmp_path / "done"
+    marker.write_text("train uov --out runs/n-p2 --epochs 60\n")
+    assert not stale(marker, train_stamp("train uov --out runs/n-p2 --epochs 60 --cache"))
+    assert stale(marker, train_stamp("train uov --out runs/n-p2 --epochs 90 --cache"))
+    run = Runner(tmp_path)
+    run.record("omnigen train uov --out runs/n-p2 --epochs 60", 30.0)
+    run.record("omnigen train uov --out runs/n-p2-960 --epochs 60 --cache", 50.0)
+    assert run.seconds("omnigen train uov --out runs/n-p2 --epochs 60 --cache") == 30.0
+    assert run.seconds("omnigen train uov --out runs/n-p2-960 --epochs 60") == 50.0
 
 
 def test_a_folder_rendered_with_other_data_arguments_is_refused(tmp_path):
@@ -98,3 +111,17 @@ def test_results_markdown_names_the_command_and_every_class_row():
     # every table says what made it, where and when
     tables = sum(line.startswith("|---") for line in md.splitlines())
     assert tables == 6 and md.count("on x86_64, 2 CPUs, 2026-11-21 12:00 UTC.") == tables
+    assert "upsampled" not in md  # no run's input exceeds the renders
+
+
+def test_results_markdown_says_a_larger_input_than_the_renders_is_upsampled():
+    row = {"oks_map50_95": 0.1, "ap_oks50": 0.2, "f1": 0.3, "ground_adherence_deg": None}
+    runs = [{"name": name, "train_args": [], "imgsz": imgsz, "crop": 320, "train_seconds": 1.0,
+             "synthetic_test": row, "overall_test": row} for name, imgsz in (("n-p2", 640), ("n-p2-960", 960))]
+    r = {"arguments": {"size": 640, "jobs": 2, "scales": ["n"], "ablations": ["hires"]}, "machine": "m", "date": "d",
+         "wall_seconds": 60.0, "frames": {"total": 1, "by_source": {}, "objects": 1, "splits": None},
+         "oks_map50_95": 0.1, "ap_oks50": 0.2, "precision": 0.3, "recall": 0.3, "f1": 0.3, "bev_adherence_deg": None,
+         "targets": {"oks_map50_95": 0.55, "bev_adherence_deg": 3.57}, "test_object_sizes": {}, "runs": runs,
+         "commands": []}
+    md = results_markdown(r)
+    assert "rendered at 640 x 640; n-p2-960 letterboxed them" in md and "| n-p2-960 | `` | 960 (320) |" in md
