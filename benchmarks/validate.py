@@ -15,10 +15,10 @@ CPU that runs bfloat16 natively the steps run in bf16 (`--amp`, about 0.65 of a 
 benchmarks/bench_train_step.py). Training uses AdamW at 2e-3 (docs/detector-training.md says why).
 `--cache` keeps the decoded images in memory (565 MiB here; a few seconds of CPU an epoch by
 benchmarks/bench_cache.py); it trains the same weights, so runs done without it are kept.
-Scaling up: more frames per rig (`--frames`), whole images (`--crop 0`), more epochs, Cycles instead of the raster preview (`--backend cycles`), the
-ablations of the design's Table 8 (`--ablations`: without synthetic data, without P2, a 1.5x
-larger input) and the other scales (`--scales n s m`) where a GPU makes them affordable; see
-docs/RESULTS.md for what ran here.
+Scaling up: more frames per rig (`--frames`), whole images (`--crop 0`), more epochs, Cycles
+instead of the raster preview (`--backend cycles`), the ablations of the design's Table 8
+(`--ablations`: without synthetic data, without P2, a 1.5x larger input) and the other scales
+(`--scales n s m`) where a GPU makes them affordable; see docs/RESULTS.md for what ran here.
 """
 
 from __future__ import annotations
