@@ -105,7 +105,7 @@ def test_results_markdown_names_the_command_and_every_class_row():
     assert "`python benchmarks/validate.py --kitti ../shared/realdata/kitti --epochs 3 --jobs 2 --scales n`" in md
     assert "| car | 7 | 0.250 | 0.500 | 0.500 | 0.300 | 0.400 |" in md
     assert "| motorcyclist | 7 | 0.000 |" in md
-    assert "| ego | 0.250 | 0.500 | 0.400 | 7 | 5.0 / 9.0 / 20.0 | 17.5 |" in md
+    assert "| ego | 0.250 | 0.500 | 0.400 | 2.00 (0) | 7 | 5.0 / 9.0 / 20.0 | 17.5 |" in md
     assert "| n-p2 | `--model n` | 640 (320) | 60.0 |" in md
     assert "| n-p2 | 10 | 2 | 6 (60%) | 4 (40%) | 0 (0%) | 0 (0%) | 0 (0%) |" in md
     # every table says what made it, where and when
