@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from detector.oks_eval import SIZE_BINS  # noqa: E402
 from omnigen.cli import main as omnigen  # noqa: E402
 from omnigen.files import atomic_write_json, atomic_write_text  # noqa: E402
 
@@ -60,6 +61,8 @@ class Runner:
         self.log: list[dict[str, Any]] = json.loads(self.path.read_text()) if self.path.exists() else []
 
     def record(self, command: str, seconds: float) -> None:
+        """Log a finished command; one run again (its output deleted to redo it) replaces its record."""
+        self.log = [c for c in self.log if c["command"] != command]
         self.log.append({"command": command, "seconds": round(seconds, 1)})
         atomic_write_json(self.path, self.log, indent=1)
 
@@ -333,6 +336,7 @@ def main(argv: list[str] | None = None) -> int:
         "runs": runs, "commands": run.log, "test_object_sizes": object_sizes(uov_ds),
         "by_view": [g for g in main_run["report_rows"] if g["group"].startswith("view=")],
         "by_class": [g for g in main_run["report_rows"] if g["group"].startswith("class=")],
+        "size_bins_px": SIZE_BINS,
     }
     args.results.mkdir(parents=True, exist_ok=True)
     atomic_write_json(args.results / "results.json", results, indent=2)
@@ -380,6 +384,29 @@ def _view_line(g: dict[str, Any], sizes: dict[str, Any]) -> str:
     adherence = f"{_f(g.get('ground_adherence_deg'), 2)} ({g.get('adherence_objects', 0)})"
     return (f"| {g['group'][5:]} | {_f(g['oks_map50_95'])} | {_f(g['ap_oks50'])} | {_f(g['f1'])} | {adherence} | "
             f"{sizes.get('objects', '-')} | {px} | {sizes.get('p50_m', '-')} |")
+
+
+def size_table(r: dict[str, Any]) -> list[str]:
+    """Every run's mAP per object size: the P2 level (stride 4) is there for the smallest objects."""
+    bins = r.get("size_bins_px") or {}
+    rows = {run["name"]: {g["group"][5:]: g for g in run.get("report_rows", []) if g["group"].startswith("size=")}
+            for run in r["runs"]}
+    names = [b for b in bins if any(b in by for by in rows.values())]
+    if not names:
+        return []
+    label = {b: f"< {hi:g}" if lo == 0 else f">= {lo:g}" if hi >= 1e4 else f"{lo:g}-{hi:g}"
+             for b, (lo, hi) in bins.items()}
+    objects = {b: next((by[b]["objects"] for by in rows.values() if b in by), "-") for b in names}
+    lines = ["## By object size, every run", "",
+             "Over the whole test split; size is the square root of the 2D box area in pixels, in bins",
+             "evaluated as pycocotools' own area ranges (detector/oks_eval.py). Each cell: mAP50:95 / AP50.",
+             "",
+             "| run | " + " | ".join(f"{b}: {label[b]} px ({objects[b]} objects)" for b in names) + " |",
+             "|---|" + "---|" * len(names)]
+    for name, by in rows.items():
+        cells = [f"{_f(by[b]['oks_map50_95'])} / {_f(by[b]['ap_oks50'])}" if b in by else "-" for b in names]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def upsampled_note(r: dict[str, Any]) -> list[str]:
@@ -468,6 +495,9 @@ def results_markdown(r: dict[str, Any]) -> str:
         lines.append(f"| {run['name']} | `{' '.join(run['train_args'])}` | {size} | {run['train_seconds']} | "
                      f"{_f(s['oks_map50_95'])} | {_f(s['ap_oks50'])} | {_f(s['f1'])} | {_f(s['ground_adherence_deg'], 2)} | "
                      f"{_f(o['oks_map50_95'])} |")
+    sizes = size_table(r)
+    if sizes:
+        lines += ["", made, "", *sizes]
     lines += ["", made, "", "## Front or back: which corner order fits the predictions",
               "",
               "Each test object is matched to the best-scoring prediction (score >= 0.2) whose 2D box",

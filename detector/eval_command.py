@@ -1,7 +1,7 @@
-"""Keypoint metrics of a checkpoint or a predictions file, per source, per view and overall.
+"""Keypoint metrics of a checkpoint or a predictions file: overall, per source, view, class and size.
 
     omnigen eval WEIGHTS_OR_PREDICTIONS DATASET [--split test] [--out FILE.json] [--taxonomy fine]
-                 [--imgsz SIZE] [--batch 8]
+                 [--imgsz SIZE] [--batch 8] [--no-adherence] [--no-sizes]
 
 A .json argument is a list of predictions in COCO-results form (image_id or frame_id,
 category_id, keypoints: 24 numbers, score); a .pt argument is a checkpoint, run first over the
@@ -34,6 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="network input size, with a checkpoint (default: its training size)")
     p.add_argument("--batch", type=int, default=8, help="images per batch, with a checkpoint")
     p.add_argument("--no-adherence", action="store_true", help="skip the ground-plane adherence (no 3D lifting)")
+    p.add_argument("--no-sizes", action="store_true",
+                   help="skip the rows per object size (a second matching pass: about as long as the first)")
 
 
 def load_predictions(path: Path) -> list[dict[str, Any]]:
@@ -76,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             raise ValueError(f"{args.predictions}: expected weights (.pt) or predictions (.json)")
         report = evaluate(ds, predictions, split=split, taxonomy=taxonomy, adherence=not args.no_adherence,
-                          source=str(args.predictions))
+                          source=str(args.predictions), sizes=not args.no_sizes)
     except (ValueError, KeyError, DatasetError, OSError) as exc:
         print(f"omnigen eval: {exc}", file=sys.stderr)
         return 2

@@ -27,6 +27,11 @@ counted. Choices, and why:
   one with the highest F1 is reported (the highest such threshold on ties).
 - `objects` counts the non-ignored ground truth (at least one corner in the image): the recall's
   denominator.
+- Per object size ('size=tiny', ..., over the whole split): pycocotools' own area ranges, as its
+  small/medium/large are made, in a second COCOeval over the same matching inputs: ground truth
+  outside the range is ignored, and so is an unmatched detection outside it. The bins (SIZE_BINS,
+  in sqrt of the 2D box area) split COCO's 'small' at 16 px because most objects of a 640-pixel
+  drone or pole view are smaller than 32 px, and those are what the stride-4 P2 level is for.
 - Ground-plane adherence (the mean angle between a lifted predicted box's ground-contact edges and
   the true ground plane): for predictions matched to non-ignored ground truth at OKS >= 0.5 in
   frames whose ground plane is known. Each is lifted to 3D from its eight predicted corners, the
@@ -59,6 +64,8 @@ from omnigen.taxonomy import Taxonomy, load_taxonomy
 OKS_SIGMA = 0.125
 MAX_DETS = 1000
 AREA_ALL = [0.0, 1e5 ** 2]  # pycocotools' 'all' range
+# object size bins: name -> (lower, upper) sqrt of the 2D box area in pixels (pycocotools compares areas)
+SIZE_BINS = {"tiny": (0.0, 16.0), "small": (16.0, 32.0), "medium": (32.0, 96.0), "large": (96.0, 1e5)}
 
 
 class PredictionError(ValueError):
@@ -229,12 +236,18 @@ class KeypointEval(COCOeval):
 
     pycocotools visits every image for every category (120,000 pairs for 10,000 frames and 12
     classes, most of them empty) and sorts the detections before noticing that a side is empty.
-    Returning the same [] first changes no number and saves seconds.
+    Returning the same [] first changes no number and saves seconds. The per-size evaluation
+    matches the same objects and predictions under other area ranges; the OKS between them does
+    not depend on the range, so it takes them from the first evaluation (`known_oks`).
     """
+
+    known_oks: dict | None = None  # another evaluation's ious over the same gt, dt and maxDets: reused
 
     def computeOks(self, imgId, catId):  # noqa: N802 (pycocotools' name)
         if not self._gts[imgId, catId] or not self._dts[imgId, catId]:
             return []
+        if self.known_oks is not None:
+            return self.known_oks[imgId, catId]
         return super().computeOks(imgId, catId)
 
 
@@ -246,6 +259,14 @@ def make_cocoeval(gt: COCO, dt: COCO, img_ids: Iterable[int] | None = None) -> C
     e.params.areaRng = [list(AREA_ALL)]
     e.params.areaRngLbl = ["all"]
     e.params.imgIds = sorted(gt.getImgIds()) if img_ids is None else sorted(img_ids)
+    return e
+
+
+def make_size_cocoeval(gt: COCO, dt: COCO) -> COCOeval:
+    """make_cocoeval with one area range per SIZE_BINS entry instead of 'all'."""
+    e = make_cocoeval(gt, dt)
+    e.params.areaRng = [[lo ** 2, hi ** 2] for lo, hi in SIZE_BINS.values()]
+    e.params.areaRngLbl = list(SIZE_BINS)
     return e
 
 
@@ -281,6 +302,14 @@ def evalimgs_category(e: COCOeval, k: int) -> tuple[list, COCOeval]:
     pe = e._paramsEval
     n_img, n_area = len(pe.imgIds), len(pe.areaRng)
     return _sliced(e, e.evalImgs[k * n_area * n_img:(k + 1) * n_area * n_img], catIds=[pe.catIds[k]])
+
+
+def evalimgs_area(e: COCOeval, a: int) -> tuple[list, COCOeval]:
+    """A shallow COCOeval whose evalImgs and parameters cover only the a-th area range (evaluated)."""
+    pe = e._paramsEval
+    n_img, n_area = len(pe.imgIds), len(pe.areaRng)
+    sub_imgs = [e.evalImgs[k * n_area * n_img + a * n_img + i] for k in range(len(pe.catIds)) for i in range(n_img)]
+    return _sliced(e, sub_imgs, areaRng=[pe.areaRng[a]])
 
 
 def ap_numbers(precision: np.ndarray) -> tuple[float, float]:
@@ -437,8 +466,9 @@ def _row(name: str, images: int, sub_imgs: list, sub: COCOeval, group: Matches,
 
 def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | None = None,
              taxonomy: Taxonomy | str = "fine", adherence: bool = True,
-             source: str = "<predictions>") -> EvalReport:
-    """Evaluate COCO-results predictions on `split` of `ds` (None: all frames) per source, view and overall."""
+             source: str = "<predictions>", sizes: bool = True) -> EvalReport:
+    """Evaluate COCO-results predictions on `split` of `ds` (None: all frames): overall, per source,
+    view and class, and (`sizes`) per object size."""
     taxonomy = load_taxonomy(taxonomy) if isinstance(taxonomy, str) else taxonomy
     gt_dict = to_coco(ds, split, taxonomy)
     image_ids = {im["id"] for im in gt_dict["images"]}
@@ -481,9 +511,25 @@ def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | No
         if len(group.gt_image):
             report.rows.append(_row(f"class={names[cat_id]}", len(np.unique(group.gt_image)), sub_imgs, sub,
                                     group, angles))
+    if sizes:
+        report.rows += _size_rows(gt, dt, angles, e.ious)
     if outside:
         report.notes.append(f"{outside} predictions on frames outside split {split!r} were left out")
     if report.lift_failures:
         report.notes.append(f"{report.lift_failures} matched predictions could not be lifted to 3D "
                             f"(left out of the ground-plane adherence)")
     return report
+
+
+def _size_rows(gt: COCO, dt: COCO, angles: dict[int, float], known_oks: dict | None = None) -> list[EvalRow]:
+    """One row per SIZE_BINS entry that holds ground truth, over every evaluated image."""
+    e = make_size_cocoeval(gt, dt)
+    e.known_oks = known_oks
+    run_quietly(e.evaluate)
+    rows = []
+    for a, name in enumerate(SIZE_BINS):
+        sub_imgs, sub = evalimgs_area(e, a)
+        group = Matches.from_eval_imgs(sub_imgs)
+        if len(group.gt_image):
+            rows.append(_row(f"size={name}", len(np.unique(group.gt_image)), sub_imgs, sub, group, angles))
+    return rows

@@ -231,7 +231,7 @@ def validate(model: KeypointDetector, data: KeypointDataset, split: str | None, 
     from detector.oks_eval import evaluate
 
     preds = predict_frames(model, data, PredictOptions(imgsz=data.size, conf=EVAL_CONF, batch=batch, max_det=1000))
-    row = evaluate(data.ds, preds, split=split, taxonomy=data.taxonomy, adherence=False).row("overall")
+    row = evaluate(data.ds, preds, split=split, taxonomy=data.taxonomy, adherence=False, sizes=False).row("overall")
     return {"oks_map50_95": row.oks_map50_95, "ap_oks50": row.ap_oks50, "precision": row.precision,
             "recall": row.recall, "f1": row.f1}
 

@@ -176,6 +176,38 @@ def test_class_rows_equal_pycocotools_per_category_and_average_to_the_map(ds):
     assert np.mean([r.oks_map50_95 for r in rows]) == pytest.approx(overall.oks_map50_95, abs=1e-12)
 
 
+def test_size_rows_equal_pycocotools_area_ranges_and_cover_every_object(ds):
+    preds = noisy(perfect(ds, split=None), np.random.default_rng(6), 3.0)
+    report = evaluate(ds, preds, split=None, adherence=False)
+    gt_dict, gt, dt = coco_pair(ds, preds)
+    rows = [r for r in report.rows if r.group.startswith("size=")]
+    assert len(rows) >= 2
+    for row in rows:
+        lo, hi = oks_eval.SIZE_BINS[row.group[5:]]
+        e = COCOeval(gt, dt, iouType="keypoints")  # pycocotools' own, with the bin as its only area range
+        e.params.kpt_oks_sigmas = np.full(8, oks_eval.OKS_SIGMA)
+        e.params.maxDets = [oks_eval.MAX_DETS]
+        e.params.areaRng, e.params.areaRngLbl = [[lo ** 2, hi ** 2]], [row.group]
+        run_quietly(e.evaluate)
+        run_quietly(e.accumulate)
+        assert (row.oks_map50_95, row.ap_oks50) == pytest.approx(ap_numbers(e.eval["precision"]), abs=1e-12)
+        f = best_f1(e.evalImgs)
+        assert (row.objects, row.precision, row.recall) == (f.objects, pytest.approx(f.precision), pytest.approx(f.recall))
+        sizes = [math.sqrt(a["area"]) for a in gt_dict["annotations"] if a["num_keypoints"]]
+        assert row.objects == sum(lo <= v <= hi for v in sizes)
+    assert sum(r.objects for r in rows) == report.row("overall").objects  # the bins part every object
+    # a prediction of every small object alone: the tiny and small rows are perfect, the others empty-handed
+    small = [p for p, a in zip(perfect(ds, split=None), [a for a in gt_dict["annotations"] if a["num_keypoints"]])
+             if math.sqrt(a["area"]) < 32]
+    by_size = {r.group: r for r in evaluate(ds, small, split=None, adherence=False).rows}
+    assert by_size["size=tiny"].oks_map50_95 == pytest.approx(1.0) and by_size["size=small"].recall == pytest.approx(1.0)
+    assert by_size["size=medium"].recall == 0.0 and by_size["size=medium"].precision != by_size["size=medium"].precision
+
+
+def test_training_validation_skips_the_size_rows(ds):
+    assert all(not r.group.startswith("size=") for r in evaluate(ds, perfect(ds), "test", adherence=False, sizes=False).rows)
+
+
 def test_subset_accumulate_matches_pycocotools_precision_array(ds):
     preds = noisy(perfect(ds, split=None), np.random.default_rng(4), 2.0)
     gt_dict, gt, dt = coco_pair(ds, preds)
@@ -305,6 +337,10 @@ def test_command_writes_json_and_prints_a_table(ds, tmp_path, capsys, monkeypatc
     assert doc["arguments"]["split"] == "test" and doc["wall_s"] >= 0
     rows = {r["group"]: r for r in doc["report"]["rows"]}
     assert rows["overall"]["f1"] == pytest.approx(1.0)
+    assert "size=small" in rows and "size=small" in out
+    assert eval_command.run(_args(tmp_path, path, ds.root, no_adherence=True, no_sizes=True)) == 0
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert not any(r["group"].startswith("size=") for r in doc["report"]["rows"])
 
 
 def test_command_runs_weights_through_predict(ds, tmp_path, monkeypatch):

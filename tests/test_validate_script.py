@@ -11,7 +11,8 @@ import argparse  # noqa: E402
 
 import pytest  # noqa: E402
 
-from benchmarks.validate import Runner, check_data_arguments, mentions, results_markdown, stale, train_stamp  # noqa: E402
+from benchmarks.validate import (Runner, check_data_arguments, mentions, results_markdown, size_table, stale,  # noqa: E402
+                                 train_stamp)
 
 
 def test_mentions_names_a_folder_and_its_files_not_its_siblings():
@@ -44,6 +45,14 @@ def test_a_run_trained_without_the_image_cache_is_not_redone_with_it(tmp_path):
     run.record("omnigen train uov --out runs/n-p2-960 --epochs 60 --cache", 50.0)
     assert run.seconds("omnigen train uov --out runs/n-p2 --epochs 60 --cache") == 30.0
     assert run.seconds("omnigen train uov --out runs/n-p2-960 --epochs 60") == 50.0
+
+
+def test_a_command_run_again_replaces_its_record(tmp_path):
+    run = Runner(tmp_path)
+    run.record("omnigen eval p.json uov --out runs/n-p2/eval.json", 9.0)
+    run.record("omnigen train uov --out runs/n-p2", 60.0)
+    run.record("omnigen eval p.json uov --out runs/n-p2/eval.json", 12.0)  # eval.json deleted, evaluated again
+    assert [c["seconds"] for c in Runner(tmp_path).log] == [60.0, 12.0]
 
 
 def test_a_folder_rendered_with_other_data_arguments_is_refused(tmp_path):
@@ -112,6 +121,23 @@ def test_results_markdown_names_the_command_and_every_class_row():
     tables = sum(line.startswith("|---") for line in md.splitlines())
     assert tables == 6 and md.count("on x86_64, 2 CPUs, 2026-11-21 12:00 UTC.") == tables
     assert "upsampled" not in md  # no run's input exceeds the renders
+    assert "By object size" not in md  # no run has size rows
+
+
+def test_results_markdown_compares_every_run_by_object_size():
+    def row(group, m, objects):
+        return {"group": group, "oks_map50_95": m, "ap_oks50": 2 * m, "objects": objects}
+
+    bins = {"tiny": [0.0, 16.0], "small": [16.0, 32.0], "large": [96.0, 1e5]}
+    runs = [{"name": "n-p2", "report_rows": [row("overall", 0.2, 9), row("size=tiny", 0.1, 5), row("size=large", 0.3, 4)]},
+            {"name": "n-no-p2", "report_rows": [row("size=tiny", 0.05, 5), row("size=large", 0.4, 4)]},
+            {"name": "n-p2-no-synthetic", "report_rows": []}]
+    lines = size_table({"size_bins_px": bins, "runs": runs})
+    assert "| run | tiny: < 16 px (5 objects) | large: >= 96 px (4 objects) |" in lines  # no small objects: no column
+    assert "| n-p2 | 0.100 / 0.200 | 0.300 / 0.600 |" in lines
+    assert "| n-no-p2 | 0.050 / 0.100 | 0.400 / 0.800 |" in lines
+    assert "| n-p2-no-synthetic | - | - |" in lines
+    assert size_table({"runs": runs}) == []  # results.json from before the size rows
 
 
 def test_results_markdown_says_a_larger_input_than_the_renders_is_upsampled():
