@@ -4,7 +4,7 @@ Three fake sources (synthetic in all three views, kitti, dair-v2x-i; cached in t
 are joined in memory into one 10,000-frame dataset, so the per-source and per-view groups all
 exist. Predictions are the ground-truth corners with Gaussian pixel noise, a few dropped objects
 and a few false positives, with random scores. Times `detector.oks_eval.evaluate` end to end
-(COCO view, matching, every group and class, ground-plane adherence with detector.lift): median of
+(COCO view, matching, every group, class and size, ground-plane adherence with detector.lift): median of
 --repeats runs.
 
     .venv/bin/python benchmarks/bench_eval.py
