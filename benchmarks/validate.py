@@ -68,7 +68,8 @@ class Runner:
 
     def seconds(self, prefix: str) -> float:
         """Wall time of the recorded commands that start with `prefix`, --cache or not (see train_stamp)."""
-        return sum(c["seconds"] for c in self.log if train_stamp(c["command"]).startswith(train_stamp(prefix)))
+        prefix = train_stamp(prefix)
+        return sum(c["seconds"] for c in self.log if train_stamp(c["command"]).startswith(prefix))
 
     def forget(self, folder: Path) -> None:
         """Drop the records of commands that wrote into or read from `folder` (it is being redone)."""

@@ -158,18 +158,26 @@ def test_groups_equal_a_separate_restricted_cocoeval(ds):
     assert checked >= 5
 
 
-def test_class_rows_equal_pycocotools_per_category_and_average_to_the_map(ds):
-    preds = noisy(perfect(ds, split=None), np.random.default_rng(5), 3.0)
+def noisy_report_rows(ds: Dataset, seed: int, prefix: str):
+    """Noisy predictions on every frame, their report's rows starting with `prefix`, and the COCO pair."""
+    preds = noisy(perfect(ds, split=None), np.random.default_rng(seed), 3.0)
     report = evaluate(ds, preds, split=None, adherence=False)
-    gt_dict, gt, dt = coco_pair(ds, preds)
-    rows = [r for r in report.rows if r.group.startswith("class=")]
+    return report, [r for r in report.rows if r.group.startswith(prefix)], *coco_pair(ds, preds)
+
+
+def assert_row_equals_reference(row, e: COCOeval) -> None:
+    """mAP, AP50, objects, precision and recall of a report row equal those of a reference COCOeval."""
+    assert (row.oks_map50_95, row.ap_oks50) == pytest.approx(ap_numbers(e.eval["precision"]), abs=1e-12)
+    f = best_f1(e.evalImgs)
+    assert (row.objects, row.precision, row.recall) == (f.objects, pytest.approx(f.precision), pytest.approx(f.recall))
+
+
+def test_class_rows_equal_pycocotools_per_category_and_average_to_the_map(ds):
+    report, rows, gt_dict, gt, dt = noisy_report_rows(ds, 5, "class=")
     assert len(rows) >= 3
     for row in rows:
         cat = next(c["id"] for c in gt_dict["categories"] if f"class={c['name']}" == row.group)
-        e = plain_cocoeval(gt, dt, cat_ids=[cat])
-        assert (row.oks_map50_95, row.ap_oks50) == pytest.approx(ap_numbers(e.eval["precision"]), abs=1e-12)
-        f = best_f1(e.evalImgs)
-        assert (row.objects, row.precision, row.recall) == (f.objects, pytest.approx(f.precision), pytest.approx(f.recall))
+        assert_row_equals_reference(row, plain_cocoeval(gt, dt, cat_ids=[cat]))
         assert row.images == len({a["image_id"] for a in gt.loadAnns(gt.getAnnIds(catIds=[cat])) if a["num_keypoints"]})
     overall = report.row("overall")
     assert sum(r.objects for r in rows) == overall.objects
@@ -177,18 +185,12 @@ def test_class_rows_equal_pycocotools_per_category_and_average_to_the_map(ds):
 
 
 def test_size_rows_equal_pycocotools_area_ranges_and_cover_every_object(ds):
-    preds = noisy(perfect(ds, split=None), np.random.default_rng(6), 3.0)
-    report = evaluate(ds, preds, split=None, adherence=False)
-    gt_dict, gt, dt = coco_pair(ds, preds)
-    rows = [r for r in report.rows if r.group.startswith("size=")]
+    report, rows, gt_dict, gt, dt = noisy_report_rows(ds, 6, "size=")
     assert len(rows) >= 2
+    sizes = [math.sqrt(a["area"]) for a in gt_dict["annotations"] if a["num_keypoints"]]
     for row in rows:
         lo, hi = oks_eval.SIZE_BINS[row.group[5:]]
-        e = plain_cocoeval(gt, dt, area_rng=[lo ** 2, hi ** 2])  # the bin as its only area range
-        assert (row.oks_map50_95, row.ap_oks50) == pytest.approx(ap_numbers(e.eval["precision"]), abs=1e-12)
-        f = best_f1(e.evalImgs)
-        assert (row.objects, row.precision, row.recall) == (f.objects, pytest.approx(f.precision), pytest.approx(f.recall))
-        sizes = [math.sqrt(a["area"]) for a in gt_dict["annotations"] if a["num_keypoints"]]
+        assert_row_equals_reference(row, plain_cocoeval(gt, dt, area_rng=[lo ** 2, hi ** 2]))  # the bin alone
         assert row.objects == sum(lo <= v <= hi for v in sizes)
     assert sum(r.objects for r in rows) == report.row("overall").objects  # the bins part every object
     # a prediction of every small object alone: the tiny and small rows are perfect, the others empty-handed
