@@ -423,6 +423,23 @@ def upsampled_note(r: dict[str, Any]) -> list[str]:
             ""]
 
 
+def window_note(r: dict[str, Any]) -> list[str]:
+    """The lines that say so when runs trained on windows of the same size cut from inputs of
+    different sizes: each step then shows a run with a larger input less of each image, so it sees
+    fewer objects in as many steps, a difference beside the resolution (`--crop 0` has none)."""
+    shares: dict[float, list[str]] = {}
+    for run in r["runs"]:
+        if run.get("crop"):
+            shares.setdefault(min(1.0, (run["crop"] / run["imgsz"]) ** 2), []).append(run["name"])
+    if len(shares) < 2:
+        return []
+    parts = "; ".join(f"{', '.join(names)}: {share:.0%}" for share, names in sorted(shares.items(), reverse=True))
+    return ["Every run trained for as many steps on windows of its input (`--crop`), so a larger input",
+            f"showed fewer objects a step; the share of the input a window holds: {parts}.",
+            "The comparison mixes resolution with objects seen; `--crop 0` (whole images) has no such difference.",
+            ""]
+
+
 def results_markdown(r: dict[str, Any]) -> str:
     """RESULTS.md: every number below is read from results.json, written by this script."""
     a = r["arguments"]
@@ -487,6 +504,7 @@ def results_markdown(r: dict[str, Any]) -> str:
         "flatter the number. Each row is one training with one seed.",
         "",
         *upsampled_note(r),
+        *window_note(r),
         "| run | train args | input (training crop) | train time (s) | synthetic mAP50:95 | AP50 | F1 | adherence (deg) | overall mAP50:95 |",
         "|---|---|---|---|---|---|---|---|---|",
     ]

@@ -121,6 +121,7 @@ def test_results_markdown_names_the_command_and_every_class_row():
     tables = sum(line.startswith("|---") for line in md.splitlines())
     assert tables == 6 and md.count("on x86_64, 2 CPUs, 2026-11-21 12:00 UTC.") == tables
     assert "upsampled" not in md  # no run's input exceeds the renders
+    assert "share of the input" not in md  # one run: no windows to compare
     assert "By object size" not in md  # no run has size rows
 
 
@@ -151,3 +152,8 @@ def test_results_markdown_says_a_larger_input_than_the_renders_is_upsampled():
          "commands": []}
     md = results_markdown(r)
     assert "rendered at 640 x 640; n-p2-960 letterboxed them" in md and "| n-p2-960 | `` | 960 (320) |" in md
+    # the same 320 window holds a quarter of the 640 input, a ninth of the 960 one
+    assert "the share of the input a window holds: n-p2: 25%; n-p2-960: 11%." in md
+    for run in runs:
+        run["crop"] = None  # whole images: nothing to say
+    assert "share of the input" not in results_markdown(r)
