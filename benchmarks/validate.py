@@ -434,7 +434,7 @@ def window_note(r: dict[str, Any]) -> list[str]:
     if len(shares) < 2:
         return []
     parts = "; ".join(f"{', '.join(names)}: {share:.0%}" for share, names in sorted(shares.items(), reverse=True))
-    return ["Every run trained for as many steps on windows of its input (`--crop`), so a larger input",
+    return ["The runs trained on windows of one size cut from their inputs (`--crop`), so a larger input",
             f"showed fewer objects a step; the share of the input a window holds: {parts}.",
             "The comparison mixes resolution with objects seen; `--crop 0` (whole images) has no such difference.",
             ""]

@@ -141,7 +141,7 @@ def test_results_markdown_compares_every_run_by_object_size():
     assert size_table({"runs": runs}) == []  # results.json from before the size rows
 
 
-def test_results_markdown_says_a_larger_input_than_the_renders_is_upsampled():
+def test_results_markdown_says_a_larger_input_is_upsampled_and_its_training_windows_hold_less():
     row = {"oks_map50_95": 0.1, "ap_oks50": 0.2, "f1": 0.3, "ground_adherence_deg": None}
     runs = [{"name": name, "train_args": [], "imgsz": imgsz, "crop": 320, "train_seconds": 1.0,
              "synthetic_test": row, "overall_test": row} for name, imgsz in (("n-p2", 640), ("n-p2-960", 960))]
