@@ -35,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=8, help="images per batch, with a checkpoint")
     p.add_argument("--no-adherence", action="store_true", help="skip the ground-plane adherence (no 3D lifting)")
     p.add_argument("--no-sizes", action="store_true",
-                   help="skip the rows per object size (a second matching pass: about as long as the first)")
+                   help="skip the rows per object size (a second COCOeval pass, reusing the first one's OKS)")
 
 
 def load_predictions(path: Path) -> list[dict[str, Any]]:
