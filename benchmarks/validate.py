@@ -5,8 +5,10 @@
     .venv/bin/python benchmarks/validate.py --frames 2000 --crop 0 --epochs 100 --scales n s m --device cuda
 
 Every stage is a command of the toolkit, run in this process and recorded with its wall time; a
-stage whose output already exists is skipped, so an interrupted run resumes (`--fresh` starts over;
-a working folder rendered with other data arguments is refused rather than silently reused).
+stage whose output already exists is skipped, so an interrupted run resumes, and a training cut off
+midway (a kill, a time-boxed job) goes on from its last checkpoint with its time so far counted
+(`--fresh` starts over; a working folder rendered with other data arguments is refused rather than
+silently reused).
 
 The default fits a 2-core CPU: 600 raster frames at 640 x 640, and training on random 320 x 320
 windows of the 640-pixel input (`--crop 320`): a step costs what a 320-pixel input costs while
@@ -24,6 +26,7 @@ instead of the raster preview (`--backend cycles`), the ablations of the design'
 from __future__ import annotations
 
 import argparse
+import csv
 import datetime
 import hashlib
 import json
@@ -76,18 +79,21 @@ class Runner:
         self.log = [c for c in self.log if not mentions(c["command"], folder)]
         atomic_write_json(self.path, self.log, indent=1)
 
-    def __call__(self, argv: list[str], done: Path | None = None) -> float:
+    def __call__(self, argv: list[str], done: Path | None = None, resume_from: float | None = None) -> float:
+        """Run `omnigen ARGV` unless `done` exists; `resume_from` (a training's seconds before it was
+        cut off) runs it with --resume and records it under ARGV with those seconds added."""
         cmd = "omnigen " + shlex.join(argv)
         if done is not None and done.exists():
             print(f"[skip, done] {cmd}", flush=True)
             return 0.0
-        print(f"[run] {cmd}", flush=True)
+        invoked = argv if resume_from is None else [*argv, "--resume"]
+        print(f"[run] omnigen {shlex.join(invoked)}", flush=True)
         t = time.perf_counter()
-        rc = omnigen(argv)
+        rc = omnigen(invoked)
         dt = time.perf_counter() - t
         if rc != 0:
-            raise SystemExit(f"validate: '{cmd}' exited with {rc}")
-        self.record(cmd, dt)
+            raise SystemExit(f"validate: 'omnigen {shlex.join(invoked)}' exited with {rc}")
+        self.record(cmd, (resume_from or 0.0) + dt)
         return dt
 
 
@@ -109,6 +115,44 @@ def train_stamp(command: str) -> str:
 def stale(marker: Path, stamp: str) -> bool:
     """A done-marker left by a run with other arguments (or other inputs): its work is redone."""
     return marker.exists() and marker.read_text().strip() != stamp
+
+
+def trained_seconds(out: Path) -> float:
+    """The seconds a run's saved epochs took, over all its invocations (results.csv's `time`)."""
+    path = out / "results.csv"
+    rows = list(csv.DictReader(path.read_text().splitlines())) if path.exists() else []
+    return float(rows[-1].get("time") or 0.0) if rows else 0.0
+
+
+def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
+    """Train into `out` unless its done-marker says it was trained with these arguments; returns
+    the training's seconds, over all the invocations it took.
+
+    A run cut off midway (its `started` marker holds these arguments and it has a last.pt) goes on
+    from that checkpoint; a folder from other arguments, or cut off before its first checkpoint,
+    is trained again from the start.
+    """
+    stamp = train_stamp(shlex.join(train_cmd))
+    done, started = out / "done", out / "started"
+    if stale(done, stamp):  # e.g. more --epochs than last time: train again
+        print(f"[stale] {out} was trained with other arguments: training again", flush=True)
+        shutil.rmtree(out)
+        run.forget(out)
+    if done.exists():
+        run(train_cmd, done)  # says it skips
+    else:
+        resumable = (out / "last.pt").exists() and started.exists() and not stale(started, stamp)
+        if resumable:
+            print(f"[resume] {out} goes on from its last.pt", flush=True)
+        else:
+            if out.exists():
+                shutil.rmtree(out)
+                run.forget(out)
+            out.mkdir(parents=True)
+            atomic_write_text(started, stamp + "\n")
+        run(train_cmd, done, resume_from=trained_seconds(out) if resumable else None)
+        atomic_write_text(done, stamp + "\n")
+    return run.seconds("omnigen " + shlex.join(train_cmd))
 
 
 def machine() -> str:
@@ -264,15 +308,7 @@ def main(argv: list[str] | None = None) -> int:
     def train_eval(name: str, extra: list[str], dataset: Path = uov, imgsz: int | None = None) -> dict[str, Any]:
         out = work / "runs" / name
         opts = common if imgsz is None else ["--imgsz", str(imgsz), *common[2:]]  # common starts with --imgsz
-        train_cmd = ["train", str(dataset), "--out", str(out), *opts, *crop, *extra]
-        stamp = train_stamp(shlex.join(train_cmd))
-        if stale(out / "done", stamp):  # e.g. more --epochs than last time: train again
-            print(f"[stale] {out} was trained with other arguments: training again", flush=True)
-            shutil.rmtree(out)
-            run.forget(out)
-        if run(train_cmd, out / "done"):
-            atomic_write_text(out / "done", stamp + "\n")
-        t = run.seconds("omnigen " + shlex.join(train_cmd))
+        t = train_stage(run, ["train", str(dataset), "--out", str(out), *opts, *crop, *extra], out)
         from detector.predict import predict_dataset
 
         preds = out / "test-predictions.json"

@@ -11,6 +11,9 @@ epoch), `best.pt` (the best validation OKS mAP so far), `args.json` and `results
 `--resume` continues from `last.pt` with the optimiser, EMA, schedule and history, and gives the
 same weights as an uninterrupted run on the CPU (each sample's augmentation is seeded from
 (seed, epoch, frame), the shuffling from (seed, epoch)).
+results.csv has a row per epoch; its `time` column is the seconds the run's epochs have taken so
+far, validation included, summed over resumed invocations (the work a kill threw away is not in
+it), so a run cut into time-boxed jobs still says what it cost.
 """
 
 from __future__ import annotations
@@ -306,7 +309,8 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     from tqdm import tqdm
 
     end_epoch = cfg.epochs if stop_after is None else min(cfg.epochs, stop_after)
-    last_save = time.perf_counter()
+    last_save = started = time.perf_counter()
+    time_before = float(history[-1].get("time", 0.0)) if history else 0.0  # the resumed invocations' share
     for epoch in range(start_epoch, end_epoch):
         data.set_epoch(epoch)
         if sampler is not None:
@@ -347,6 +351,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
             validated = len(val) > 0 and ((epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.epochs)
             if validated:
                 row.update(validate(ema.ema, val, val_name if val_name != 'all' else None, per_step))
+            row["time"] = time_before + time.perf_counter() - started
             history.append(row)
             fitness = row.get("oks_map50_95", -1.0)
             due = validated or epoch + 1 == end_epoch or time.perf_counter() - last_save >= cfg.save_interval

@@ -7,6 +7,7 @@ EGL is there and with Cycles otherwise.
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import socket
@@ -109,7 +110,12 @@ def test_resume_equals_uninterrupted_run(fake, tmp_path):
     train(_cfg(fake, tmp_path / "cut", epochs=3, val_every=100, taxonomy="coarse"), stop_after=2)  # as if killed
     assert load_checkpoint(tmp_path / "cut" / "last.pt")["epoch"] == 1
     # `omnigen train D --out R --resume` passes default settings: the run's own (coarse, 3 epochs) win
+    cut_time = load_checkpoint(tmp_path / "cut" / "last.pt")["history"][-1]["time"]
     train(_cfg(fake, tmp_path / "cut", epochs=50, val_every=100), resume=True)
+    # results.csv's time column goes on from where the cut run stopped, not from zero
+    rows = list(csv.DictReader((tmp_path / "cut" / "results.csv").open()))
+    times = [float(r["time"]) for r in rows]
+    assert len(rows) == 3 and times[1] == pytest.approx(cut_time, rel=1e-5) and times[0] < times[1] < times[2]
     a = load_checkpoint(tmp_path / "full" / "last.pt")["model"]
     b = load_checkpoint(tmp_path / "cut" / "last.pt")["model"]
     for k in a:

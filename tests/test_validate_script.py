@@ -11,8 +11,9 @@ import argparse  # noqa: E402
 
 import pytest  # noqa: E402
 
+import benchmarks.validate as validate  # noqa: E402
 from benchmarks.validate import (Runner, check_data_arguments, mentions, results_markdown, size_table, stale,  # noqa: E402
-                                 train_stamp)
+                                 train_stage, train_stamp)
 
 
 def test_mentions_names_a_folder_and_its_files_not_its_siblings():
@@ -53,6 +54,55 @@ def test_a_command_run_again_replaces_its_record(tmp_path):
     run.record("omnigen train uov --out runs/n-p2", 60.0)
     run.record("omnigen eval p.json uov --out runs/n-p2/eval.json", 12.0)  # eval.json deleted, evaluated again
     assert [c["seconds"] for c in Runner(tmp_path).log] == [60.0, 12.0]
+
+
+class FakeTrain:
+    """Stands in for `omnigen train`: writes a checkpoint whose epochs took 40 s and, while `kill` is
+    set, dies after it as a killed job would."""
+
+    def __init__(self) -> None:
+        self.calls: list[list[str]] = []
+        self.kill = False
+
+    def __call__(self, argv: list[str]) -> int:
+        self.calls.append(argv)
+        out = Path(argv[argv.index("--out") + 1])
+        (out / "last.pt").write_bytes(b"checkpoint")
+        (out / "results.csv").write_text("epoch,seconds,time\n1,20,20\n2,20,40\n")
+        if self.kill:
+            raise KeyboardInterrupt
+        return 0
+
+
+def test_a_training_cut_off_midway_goes_on_from_its_checkpoint_and_counts_its_time(tmp_path, monkeypatch):
+    fake = FakeTrain()
+    monkeypatch.setattr(validate, "omnigen", fake)
+    run, out = Runner(tmp_path), tmp_path / "runs" / "s-p2"
+    cmd = ["train", "uov", "--out", str(out), "--epochs", "150"]
+    fake.kill = True
+    with pytest.raises(KeyboardInterrupt):
+        train_stage(run, cmd, out)
+    assert not (out / "done").exists() and run.log == []  # nothing recorded for the killed invocation
+    fake.kill = False
+    seconds = train_stage(run, [*cmd, "--cache"], out)  # the cache changes no weights: the same run
+    assert fake.calls[-1] == [*cmd, "--cache", "--resume"]
+    assert 40.0 <= seconds < 45.0  # the 40 s before the kill, plus this invocation's
+    assert [c["command"] for c in run.log] == ["omnigen " + " ".join(cmd) + " --cache"]
+    assert train_stage(run, cmd, out) == seconds and len(fake.calls) == 2  # done: skipped, same seconds
+
+
+def test_a_training_cut_off_with_other_arguments_starts_over(tmp_path, monkeypatch):
+    fake = FakeTrain()
+    monkeypatch.setattr(validate, "omnigen", fake)
+    run, out = Runner(tmp_path), tmp_path / "runs" / "n-p2"
+    fake.kill = True
+    with pytest.raises(KeyboardInterrupt):
+        train_stage(run, ["train", "uov", "--out", str(out), "--epochs", "150"], out)
+    (out / "stray").write_text("from the cut-off run")
+    fake.kill = False
+    train_stage(run, ["train", "uov", "--out", str(out), "--epochs", "100"], out)
+    assert "--resume" not in fake.calls[-1] and not (out / "stray").exists()
+    assert (out / "started").read_text() == (out / "done").read_text()
 
 
 def test_a_folder_rendered_with_other_data_arguments_is_refused(tmp_path):
