@@ -343,7 +343,8 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
             ema.update(model)
             for k, v in parts.items():
                 sums[k] = sums.get(k, 0.0) + float(v)
-            bar.set_postfix({k: f"{v / (i + 1):.3f}" for k, v in sums.items()})
+            # refresh=False: a redraw per step would defeat the log's one line a minute
+            bar.set_postfix({k: f"{v / (i + 1):.3f}" for k, v in sums.items()}, refresh=False)
         row: dict[str, float] = {"epoch": epoch + 1, "lr": optimizer.param_groups[0]["lr"],
                                  "seconds": time.perf_counter() - t0}
         row.update({k: v / max(1, len(loader)) for k, v in sums.items()})

@@ -23,7 +23,7 @@ pytest.importorskip("cv2", reason="opencv-python-headless is part of the train e
 
 from detector.checkpoint import load_checkpoint, load_model, save_checkpoint
 from detector.predict import trained_imgsz
-from detector.data import Augment, KeypointDataset, collate
+from detector.data import Augment, KeypointDataset, collate, split_frames
 from detector.loss import DetectionLoss
 from detector.model import DetectorConfig, KeypointDetector
 from detector.train import TrainConfig, autocast_dtype, learning_rate, make_optimizer, train
@@ -103,6 +103,14 @@ def test_crop_trains_on_windows_and_validates_on_the_whole_input(fake, tmp_path,
     for bad in (dict(crop=128), dict(crop=48), dict(imgsz=100)):
         with pytest.raises(ValueError, match="crop|imgsz"):
             train(_cfg(fake, tmp_path / "bad", **bad))
+
+
+def test_a_log_gets_the_progress_bar_rarely_not_a_line_per_step(fake, tmp_path, capsys):
+    # stderr to a file (a cluster job's log) is no terminal: the bar redraws at most once a minute
+    train(_cfg(fake, tmp_path / "run", epochs=1, batch=1, val_every=100))
+    steps = len(KeypointDataset(str(fake), load_taxonomy("fine"), 64, split_frames(str(fake), "train")))  # batch 1
+    err = capsys.readouterr().err
+    assert steps >= 3 and 1 <= err.count("epoch 1/1:") < steps
 
 
 def test_resume_equals_uninterrupted_run(fake, tmp_path):
