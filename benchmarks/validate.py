@@ -324,10 +324,13 @@ def main(argv: list[str] | None = None) -> int:
         report = json.loads(report_path.read_text())
         row = synthetic_row(report)
         orders = asdict(corner_order_counts(uov_ds, json.loads(preds.read_text())))
-        hist = (out / "results.csv").read_text().splitlines()
+        hist = list(csv.DictReader((out / "results.csv").read_text().splitlines()))
+        curve = [{"epoch": int(float(h["epoch"])), "oks_map50_95": float(h["oks_map50_95"]), "ap_oks50": float(h["ap_oks50"])}
+                 for h in hist if h.get("oks_map50_95") not in (None, "", "nan")]
         entry = {"name": name, "train_args": extra, "imgsz": imgsz or args.imgsz, "crop": args.crop or None,
                  "train_seconds": round(t, 1),
-                 "synthetic_test": row, "overall_test": report["report"]["rows"][0], "epochs_logged": len(hist) - 1,
+                 "synthetic_test": row, "overall_test": report["report"]["rows"][0], "epochs_logged": len(hist),
+                 "curve": curve, "validated_on": val_split(extra),
                  "report_rows": report["report"]["rows"], "corner_order": orders}
         runs.append(entry)
         return entry
@@ -446,6 +449,35 @@ def size_table(r: dict[str, Any]) -> list[str]:
     return lines
 
 
+def val_split(train_args: list[str]) -> str:
+    """The split a run's periodic validation read: --val-split's, else the merged dataset's test."""
+    return train_args[train_args.index("--val-split") + 1] if "--val-split" in train_args else "test"
+
+
+def curve_table(r: dict[str, Any]) -> list[str]:
+    """The test split's OKS mAP50:95 at each periodic validation of the runs that validated on it:
+    whether a run had stopped improving when its schedule ended, or more steps would lift it."""
+    runs = [run for run in r["runs"] if run.get("curve") and run.get("validated_on") == "test"]
+    if not runs:
+        return []
+    epochs = sorted({c["epoch"] for run in runs for c in run["curve"]})
+    at = {run["name"]: {c["epoch"]: c for c in run["curve"]} for run in runs}
+    left = [run["name"] for run in r["runs"] if run not in runs]
+    lines = ["## How the test score grew while training", "",
+             "The training validated its EMA weights on the test split every `--val-every` epochs; each cell:",
+             "mAP50:95 / AP50 over the whole test split. The learning rate decays along a cosine to",
+             "1% of its peak, so a curve flat at its end had settled within this schedule, not converged",
+             "for good: a longer schedule (more steps) starts that decay later."
+             + (f" Left out: {', '.join(left)} (validated on another split)." if left else ""),
+             "",
+             "| epoch | " + " | ".join(run["name"] for run in runs) + " |",
+             "|---|" + "---|" * len(runs)]
+    for e in epochs:
+        cells = [f"{_f(at[n][e]['oks_map50_95'])} / {_f(at[n][e]['ap_oks50'])}" if e in at[n] else "-" for n in at]
+        lines.append(f"| {e} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def upsampled_note(r: dict[str, Any]) -> list[str]:
     """The lines that say so when a run's input is larger than the rendered frames: the hires
     ablation then magnifies the objects relative to the strides, but adds no detail."""
@@ -553,6 +585,9 @@ def results_markdown(r: dict[str, Any]) -> str:
     sizes = size_table(r)
     if sizes:
         lines += ["", made, "", *sizes]
+    curves = curve_table(r)
+    if curves:
+        lines += ["", made, "", *curves]
     lines += ["", made, "", "## Front or back: which corner order fits the predictions",
               "",
               "Each test object is matched to the best-scoring prediction (score >= 0.2) whose 2D box",

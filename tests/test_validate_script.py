@@ -13,7 +13,7 @@ import pytest  # noqa: E402
 
 import benchmarks.validate as validate  # noqa: E402
 from benchmarks.validate import (Runner, check_data_arguments, mentions, results_markdown, size_table, stale,  # noqa: E402
-                                 train_stage, train_stamp)
+                                 curve_table, train_stage, train_stamp, val_split)
 
 
 def test_mentions_names_a_folder_and_its_files_not_its_siblings():
@@ -207,3 +207,19 @@ def test_results_markdown_says_a_larger_input_is_upsampled_and_its_training_wind
     for run in runs:
         run["crop"] = None  # whole images: nothing to say
     assert "share of the input" not in results_markdown(r)
+
+
+def test_results_markdown_shows_how_the_test_score_grew_in_the_runs_that_validated_on_it():
+    def curve(*maps):
+        return [{"epoch": 10 * (i + 1), "oks_map50_95": m, "ap_oks50": 2 * m} for i, m in enumerate(maps)]
+
+    runs = [{"name": "n-p2", "curve": curve(0.01, 0.02, 0.025), "validated_on": "test"},
+            {"name": "n-no-p2", "curve": curve(0.01, 0.03), "validated_on": "test"},
+            {"name": "n-p2-no-synthetic", "curve": curve(0.0, 0.0, 0.0), "validated_on": "train"}]
+    lines = curve_table({"runs": runs})
+    assert "| epoch | n-p2 | n-no-p2 |" in lines  # the run validated on its train split has no column
+    assert "| 10 | 0.010 / 0.020 | 0.010 / 0.020 |" in lines
+    assert "| 30 | 0.025 / 0.050 | - |" in lines  # a shorter history leaves its cell empty
+    assert any("Left out: n-p2-no-synthetic" in line for line in lines)
+    assert curve_table({"runs": [{"name": "n-p2"}]}) == []  # results.json from before the curves
+    assert val_split(["--model", "n", "--val-split", "train"]) == "train" and val_split(["--model", "n"]) == "test"
