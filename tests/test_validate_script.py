@@ -156,6 +156,7 @@ def test_results_markdown_names_the_command_and_every_class_row():
          "by_view": [{**row, "group": "view=ego"}],
          "by_class": [{**row, "group": "class=car"}, {**row, "group": "class=motorcyclist", "oks_map50_95": 0.0}],
          "runs": [{"name": "n-p2", "train_args": ["--model", "n"], "imgsz": 640, "crop": 320, "train_seconds": 60.0,
+                   "median_epoch_seconds": 0.4,
                    "synthetic_test": row, "overall_test": row,
                    "corner_order": {"matched": 10, "unmatched": 2, "best": {"as labelled": 6, "turned 180": 4, "mirrored": 0,
                                                                            "turned +90": 0, "turned -90": 0}}}],
@@ -165,7 +166,7 @@ def test_results_markdown_names_the_command_and_every_class_row():
     assert "| car | 7 | 0.250 | 0.500 | 0.500 | 0.300 | 0.400 |" in md
     assert "| motorcyclist | 7 | 0.000 |" in md
     assert "| ego | 0.250 | 0.500 | 0.400 | 2.00 (0) | 7 | 5.0 / 9.0 / 20.0 | 17.5 |" in md
-    assert "| n-p2 | `--model n` | 640 (320) | 60.0 |" in md
+    assert "| n-p2 | `--model n` | 640 (320) | 60.0 | 0.4 | 0.250 |" in md
     assert "| n-p2 | 10 | 2 | 6 (60%) | 4 (40%) | 0 (0%) | 0 (0%) | 0 (0%) |" in md
     # every table says what made it, where and when
     tables = sum(line.startswith("|---") for line in md.splitlines())
@@ -201,7 +202,7 @@ def test_results_markdown_says_a_larger_input_is_upsampled_and_its_training_wind
          "targets": {"oks_map50_95": 0.55, "bev_adherence_deg": 3.57}, "test_object_sizes": {}, "runs": runs,
          "commands": []}
     md = results_markdown(r)
-    assert "rendered at 640 x 640; n-p2-960 letterboxed them" in md and "| n-p2-960 | `` | 960 (320) |" in md
+    assert "rendered at 640 x 640; n-p2-960 letterboxed them" in md and "| n-p2-960 | `` | 960 (320) | 1.0 | - |" in md
     # the same 320 window holds a quarter of the 640 input, a ninth of the 960 one
     assert "the share of the input a window holds: n-p2: 25%; n-p2-960: 11%." in md
     for run in runs:
