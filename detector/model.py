@@ -114,7 +114,8 @@ class KeypointDetector(nn.Module):
 
     def forward(self, images: torch.Tensor) -> HeadOutput:
         top = self.strides[-1]
-        if images.shape[-1] % top or images.shape[-2] % top:
+        # not while an ONNX export traces: its fixed input was checked, and the test would only warn
+        if not torch.jit.is_tracing() and (images.shape[-1] % top or images.shape[-2] % top):
             raise ValueError(f"KeypointDetector: image size {tuple(images.shape[-2:])} is not a multiple "
                              f"of the largest stride {top}")
         return self.head(self.neck(self.backbone(images)))
