@@ -6,9 +6,9 @@
 
 Every stage is a command of the toolkit, run in this process and recorded with its wall time; a
 stage whose output already exists is skipped, so an interrupted run resumes, and a training cut off
-midway (a kill, a time-boxed job) goes on from its last checkpoint with its time so far counted
-(`--fresh` starts over; a working folder rendered with other data arguments is refused rather than
-silently reused).
+midway (a kill, a time-boxed job) goes on from its last checkpoint, the time of the epochs it kept
+counted (`--fresh` starts over; a working folder rendered with other data arguments is refused
+rather than silently reused).
 
 The default fits a 2-core CPU: 600 raster frames at 640 x 640, and training on random 320 x 320
 windows of the 640-pixel input (`--crop 320`): a step costs what a 320-pixel input costs while
@@ -333,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
                  # robust to a busy machine where the total is not: the training part of an epoch
                  "median_epoch_seconds": round(statistics.median(float(h["seconds"]) for h in hist), 1),
                  "synthetic_test": row, "overall_test": report["report"]["rows"][0], "epochs_logged": len(hist),
-                 "curve": curve, "validated_on": val_split(extra),
+                 "curve": curve, "validated_on": validated_on(dataset, extra, uov),
                  "report_rows": report["report"]["rows"], "corner_order": orders}
         runs.append(entry)
         return entry
@@ -452,9 +452,14 @@ def size_table(r: dict[str, Any]) -> list[str]:
     return lines
 
 
-def val_split(train_args: list[str]) -> str:
-    """The split a run's periodic validation read: --val-split's, else the merged dataset's test."""
-    return train_args[train_args.index("--val-split") + 1] if "--val-split" in train_args else "test"
+def validated_on(dataset: Path, train_args: list[str], merged: Path) -> str:
+    """The split a run's periodic validation read, as train resolves it (--val-split, else val,
+    else test); named with its dataset when that is not `merged`, whose test split the tables use."""
+    from detector.train import resolve_val_split
+
+    given = train_args[train_args.index("--val-split") + 1] if "--val-split" in train_args else None
+    split = resolve_val_split(str(dataset), given) or "all"
+    return split if dataset == merged else f"{split} of {dataset.name}"
 
 
 def curve_table(r: dict[str, Any]) -> list[str]:
@@ -465,7 +470,7 @@ def curve_table(r: dict[str, Any]) -> list[str]:
         return []
     epochs = sorted({c["epoch"] for run in runs for c in run["curve"]})
     at = {run["name"]: {c["epoch"]: c for c in run["curve"]} for run in runs}
-    left = [run["name"] for run in r["runs"] if run not in runs]
+    left = [run["name"] for run in r["runs"] if run.get("curve") and run not in runs]
     lines = ["## How the test score grew while training", "",
              "The training validated its EMA weights on the test split every `--val-every` epochs; each cell:",
              "mAP50:95 / AP50 over the whole test split. The learning rate decays along a cosine to",
@@ -576,7 +581,8 @@ def results_markdown(r: dict[str, Any]) -> str:
         "",
         *upsampled_note(r),
         *window_note(r),
-        "Train time is the wall time of the whole training; the median epoch is that of an epoch's",
+        "Train time is the training's wall time (a run cut off and resumed counts the epochs it kept",
+        "from before the cut, not the work the cut threw away); the median epoch is that of an epoch's",
         "steps alone (no validation), the figure to compare when the machine was busy at times.",
         "",
         "| run | train args | input (training crop) | train time (s) | median epoch (s) | synthetic mAP50:95 | AP50 | F1 | adherence (deg) | overall mAP50:95 |",

@@ -18,6 +18,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def export(model, path: Path, imgsz: int) -> None:
     """Trace `model.infer` at a fixed 1x3xSxS input named `images`, output `output0` (1, 4+nc+24, A)."""
+    top = model.strides[-1]
+    if imgsz <= 0 or imgsz % top:  # checked here: the model skips its own check while it is traced
+        raise ValueError(f"--imgsz {imgsz}: the ONNX input must be a positive multiple of the largest stride {top}")
     import io
 
     import torch

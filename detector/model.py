@@ -114,7 +114,7 @@ class KeypointDetector(nn.Module):
 
     def forward(self, images: torch.Tensor) -> HeadOutput:
         top = self.strides[-1]
-        # not while an ONNX export traces: its fixed input was checked, and the test would only warn
+        # not while traced (detector/export_onnx.py checks the fixed input first): the test would only warn
         if not torch.jit.is_tracing() and (images.shape[-1] % top or images.shape[-2] % top):
             raise ValueError(f"KeypointDetector: image size {tuple(images.shape[-2:])} is not a multiple "
                              f"of the largest stride {top}")

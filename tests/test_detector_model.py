@@ -185,6 +185,11 @@ def test_onnx_export_matches_pytorch(tmp_path):
                           input_names=["images"], output_names=["output"])
     # the graph holds no Python-side decision frozen at the traced size
     assert not [w for w in caught if issubclass(w.category, torch.jit.TracerWarning)], [str(w.message) for w in caught]
+    from detector.export_onnx import export
+
+    with pytest.raises(ValueError, match="--imgsz 72: .* multiple of the largest stride 32"):
+        export(model, tmp_path / "bad.onnx", 72)  # the size the model no longer checks while traced
+    assert not (tmp_path / "bad.onnx").exists()
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     got = sess.run(None, {"images": x.numpy()})[0]
     with torch.no_grad():

@@ -13,7 +13,7 @@ import pytest  # noqa: E402
 
 import benchmarks.validate as validate  # noqa: E402
 from benchmarks.validate import (Runner, check_data_arguments, mentions, results_markdown, size_table, stale,  # noqa: E402
-                                 curve_table, train_stage, train_stamp, val_split)
+                                 curve_table, train_stage, train_stamp, validated_on)
 
 
 def test_mentions_names_a_folder_and_its_files_not_its_siblings():
@@ -223,4 +223,16 @@ def test_results_markdown_shows_how_the_test_score_grew_in_the_runs_that_validat
     assert "| 30 | 0.025 / 0.050 | - |" in lines  # a shorter history leaves its cell empty
     assert any("Left out: n-p2-no-synthetic" in line for line in lines)
     assert curve_table({"runs": [{"name": "n-p2"}]}) == []  # results.json from before the curves
-    assert val_split(["--model", "n", "--val-split", "train"]) == "train" and val_split(["--model", "n"]) == "test"
+
+
+def test_a_run_is_said_to_validate_on_the_split_train_picks(tmp_path):
+    from omnigen.fakes import write_fake_dataset
+    from omnigen.splits import write_split
+
+    merged, real = (write_fake_dataset(tmp_path / name, n_frames=4, seed=3) for name in ("uov", "uov-real"))
+    write_split(merged.root, "test", merged.frame_ids[:1])
+    assert validated_on(merged.root, ["--model", "n"], merged.root) == "test"  # no val split: test
+    write_split(merged.root, "val", merged.frame_ids[1:2])
+    assert validated_on(merged.root, ["--model", "n"], merged.root) == "val"
+    assert validated_on(real.root, ["--model", "n", "--val-split", "train"], merged.root) == "train of uov-real"
+    assert validated_on(real.root, ["--model", "n"], merged.root) == "all of uov-real"  # no splits at all
