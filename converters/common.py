@@ -24,6 +24,7 @@ from typing import Any, Callable, Hashable, Iterable, Iterator, Sequence
 
 from omnigen.dataset import DatasetWriter, IndexRows
 from omnigen.files import LINK_MODES, atomic_write_bytes, link_file
+from omnigen.ownership import claim_output, manifest_of
 from omnigen.progress import print_table, progress
 from omnigen.record import FrameRecord, RecordError
 
@@ -76,6 +77,7 @@ class ConversionReport:
     link_modes: Counter = field(default_factory=Counter)
     seconds: float = 0.0
     stats: Counter = field(default_factory=Counter)  # sum of ConvertedFrame.stats over written frames
+    stale: list[str] = field(default_factory=list)  # frames an earlier run into --out left, removed
 
 
 def add_common_arguments(p: argparse.ArgumentParser) -> None:
@@ -142,6 +144,9 @@ def run_conversion(
     "conversion_stats".
     """
     start = time.perf_counter()
+    converter = (manifest_extra or {}).get("conversion", {}).get("converter", "")
+    job = f"convert {converter}".strip()
+    claim_output(out, job, lambda folder: manifest_of(folder).get("conversion", {}).get("converter", "") == converter)
     writer = DatasetWriter(out, durable=durable)
     report = ConversionReport()
     outcomes = _outcomes(keys, convert_one, writer, Path(out), link, workers)
@@ -161,6 +166,7 @@ def run_conversion(
     extra = dict(manifest_extra or {})
     if report.stats:
         extra["conversion_stats"] = dict(sorted(report.stats.items()))
+    report.stale = writer.drop_unwritten()  # the dataset holds this run's frames, no earlier run's
     if not durable:
         os.sync()  # one flush for every record, before the manifest seals them
     writer.finalize(extra)
@@ -269,6 +275,9 @@ def print_report(title: str, report: ConversionReport) -> int:
     print_table(title, ["frames", "objects", "ignore regions", "skipped", "images", "seconds", "frames/s"],
                 [[report.written, report.objects, report.ignore_regions, len(report.skips), links,
                   round(report.seconds, 2), round(rate, 1)]])
+    if report.stale:
+        print(f"  removed {len(report.stale)} frames an earlier run left in the output and this one did not "
+              f"write: {', '.join(report.stale[:5])}{' ...' if len(report.stale) > 5 else ''}")
     for s in report.skips:
         print(f"  skipped: {s}")
     return 1 if report.skips else 0

@@ -551,6 +551,30 @@ class DatasetWriter:
         """Index a frame that another process wrote (and validated) from memory."""
         self._written[rows.frame_id] = rows
 
+    def drop_unwritten(self) -> list[str]:
+        """Delete the records this writer neither wrote nor adopted, and their images; their ids.
+
+        For jobs that rewrite a whole dataset (a conversion): a record an earlier run left, of a
+        frame now skipped or past --limit, would otherwise be indexed as if this run had made it.
+        The record goes first, so a kill in between leaves an unused image, never a record
+        without its image.
+        """
+        dropped = []
+        for e in record_files(self.root):
+            frame_id = e.name[:-5]
+            if frame_id in self._written:
+                continue
+            try:
+                image = json.loads(Path(e.path).read_bytes()).get("image")
+            except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+                image = None
+            Path(e.path).unlink()
+            parts = Path(image).parts if isinstance(image, str) else ()
+            if len(parts) == 2 and parts[0] == "images":  # nothing outside the dataset's images/
+                (self.root / image).unlink(missing_ok=True)
+            dropped.append(frame_id)
+        return dropped
+
     def finalize(self, extra: dict[str, Any] | None = None, show_progress: bool = True) -> Dataset:
         """Index every record in records/ and write manifest.json; returns the opened dataset."""
         entries = record_files(self.root)

@@ -18,8 +18,21 @@ import orjson
 
 TMP_PREFIX = ".tmp-"
 
+# The process's umask, read once at import (reading it means setting it): files written through a
+# temporary name get the mode open() would have given them, not mkstemp's owner-only 0600.
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+
 LinkMode = Literal["hardlink", "symlink", "copy"]
 LINK_MODES: tuple[str, ...] = ("hardlink", "symlink", "copy")
+
+
+def make_temp(folder: str | os.PathLike, suffix: str = "") -> tuple[int, str]:
+    """A new temporary file in `folder` (its descriptor and name), named so readers skip it and
+    readable as a file open() would create is: on a shared cluster other users read the dataset."""
+    fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=suffix, dir=folder)
+    os.fchmod(fd, 0o666 & ~_UMASK)
+    return fd, tmp
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, durable: bool = True) -> None:
@@ -31,7 +44,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, durable: bool = Tru
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, dir=path.parent)
+    fd, tmp = make_temp(path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
@@ -93,6 +106,8 @@ def link_file(src: str | os.PathLike, dst: str | os.PathLike, mode: LinkMode = "
                 else:
                     shutil.copyfile(src, tmp)
                 os.replace(tmp, dst)
+                if how == "hardlink":  # rename() does nothing when both names already link one file (a rerun)
+                    _remove_if_present(tmp)
                 return how
             except FileNotFoundError as exc:
                 if attempt == 0 and not os.path.isdir(folder or "."):

@@ -45,9 +45,10 @@ from omnigen.dataset import (
     write_index,
 )
 from omnigen.files import atomic_write_bytes, atomic_write_json, dumps_json, link_file
+from omnigen.ownership import claim_output, manifest_of
 from omnigen.progress import progress
 from omnigen.splits import SPLITS_DIR, assign_test_split, read_assignments, read_id_list, write_split
-from omnigen.taxonomy import Taxonomy, load_taxonomy
+from omnigen.taxonomy import Taxonomy, load_taxonomy, recorded_taxonomy
 
 
 @dataclass
@@ -60,6 +61,7 @@ class MergeReport:
     by_split: Counter = field(default_factory=Counter)
     link_modes: Counter = field(default_factory=Counter)
     seconds: float = 0.0
+    unmatched_lines: Counter = field(default_factory=Counter)  # split file -> lines naming no frame
 
 
 @dataclass(frozen=True)
@@ -94,33 +96,35 @@ def _file_sha256(path: Path) -> str:
         return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
-def _prepare_out(out: Path, update: bool) -> list[str]:
-    """Check the output folder; returns the source paths of the earlier merge under --update."""
+def _prepare_out(out: Path, update: bool) -> dict[str, Any]:
+    """Check and claim the output folder; returns the earlier merge's manifest under --update."""
     manifest_path = out / MANIFEST
-    previous: dict[str, Any] = {}
-    if manifest_path.exists():
-        previous = json.loads(manifest_path.read_text())
-        if "merge" not in previous:
-            raise DatasetError(f"{out}: holds a dataset that 'omnigen merge' did not make; refusing to overwrite it")
-    elif update:
+    if update and not manifest_path.exists():
         raise DatasetError(f"{out}: --update needs a finished merged dataset there (no {MANIFEST})")
-    return [s["path"] for s in previous.get("merge", {}).get("sources", [])] if update else []
+    claim_output(out, "merge", lambda folder: "merge" in manifest_of(folder))  # before anything there is deleted
+    return json.loads(manifest_path.read_text()) if update else {}
 
 
 def merge(
     sources: list[Path],
     out: Path,
     taxonomy: Taxonomy | None = None,
-    test_fraction: float = 0.10,
-    seed: int = 0,
+    test_fraction: float | None = None,
+    seed: int | None = None,
     split_files: list[Path] | None = None,
     update: bool = False,
     link: str = "hardlink",
 ) -> MergeReport:
+    """Merge `sources` into `out`. Unset options default to fine, 0.10 and 0; under `update`, to the
+    earlier merge's, so that adding a source does not change the classes or the draw of the rest."""
     start = time.perf_counter()
     out = Path(out)
-    taxonomy = taxonomy or load_taxonomy("fine")
-    earlier = _prepare_out(out, update)
+    previous = _prepare_out(out, update)
+    earlier_merge = previous.get("merge", {})
+    taxonomy = taxonomy or (recorded_taxonomy(previous) if update else load_taxonomy("fine"))
+    test_fraction = earlier_merge.get("test_fraction", 0.10) if test_fraction is None else test_fraction
+    seed = earlier_merge.get("seed", 0) if seed is None else seed
+    earlier = [s["path"] for s in earlier_merge.get("sources", [])]
     fixed: dict[str, str] = read_assignments(out) if update else {}
     paths = list(dict.fromkeys([*earlier, *(str(Path(s).resolve()) for s in sources)]))
     if not paths:
@@ -181,7 +185,13 @@ def merge(
     for path in split_files or []:
         name = Path(path).stem
         for line in read_id_list(path):
-            for frame_id in by_suffix.get(line, [line] if line in frames else []):
+            named = [line] if line in frames else by_suffix.get(line, [])
+            if len({frames[f].source_index for f in named}) > 1:
+                raise ValueError(f"{path}: {line!r} names a frame of more than one source ({', '.join(named[:3])}); "
+                                 "write full frame ids (e.g. kitti-000123)")
+            if not named:
+                report.unmatched_lines[str(path)] += 1  # e.g. a split file of the whole source, merged in part
+            for frame_id in named:
                 fixed[frame_id] = name
     strata = {fid: f"{datasets[f.source_index].table.source[f.row]}/{datasets[f.source_index].table.view[f.row]}"
               for fid, f in frames.items()}

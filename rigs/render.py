@@ -72,7 +72,7 @@ def write_depth_exr(path: str | os.PathLike, depth: np.ndarray) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=".exr", dir=path.parent)
+    fd, tmp = make_temp(path.parent, ".exr")
     os.close(fd)
     try:
         with OpenEXR.File(header, {"Z": np.ascontiguousarray(depth, dtype=np.float32)}) as f:

@@ -17,7 +17,7 @@ from omnigen.conventions import FLIP_IDX, SKELETON
 from omnigen.dataset import INDEX_FILE, MANIFEST, Dataset, DatasetWriter, record_path
 from omnigen.splits import write_split
 from omnigen.fakes import random_frame, write_fake_dataset
-from omnigen.files import TMP_PREFIX, atomic_write_bytes
+from omnigen.files import TMP_PREFIX, atomic_write_bytes, link_file
 from omnigen.record import RecordError
 from omnigen.taxonomy import load_taxonomy
 
@@ -69,6 +69,20 @@ def test_interrupted_writes_leave_no_file_a_reader_accepts(tmp_path: Path, monke
     write_fake_dataset(ds_root, n_frames=3, objects_per_frame=2)
     (ds_root / "records" / f"{TMP_PREFIX}junk").write_text('{"half": ')
     assert len(Dataset.open(ds_root)) == 3
+
+
+def test_written_files_are_as_readable_as_open_makes_them_and_relinking_leaves_no_temporary(tmp_path: Path):
+    # mkstemp alone gives 0600: other users of a shared cluster could not read the dataset
+    atomic_write_bytes(tmp_path / "a.json", b"{}")
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o666 & ~umask != 0o600
+    # placing an image again where a rerun already hard-linked it: rename() keeps both names then
+    src = tmp_path / "src.png"
+    src.write_bytes(b"png")
+    for _ in range(2):
+        assert link_file(src, tmp_path / "images" / "f.png") == "hardlink"
+    assert sorted(p.name for p in (tmp_path / "images").iterdir()) == ["f.png"]
 
 
 def test_bad_record_file_is_named(dataset: Dataset):

@@ -187,7 +187,7 @@ def test_export_then_convert_gives_the_same_records(tree, converted, tmp_path):
     assert convert(src, tmp_path / "a") == 0
     assert main(["export", "kitti", str(tmp_path / "a"), "--out", str(tmp_path / "exp")]) == 0
     exp = tmp_path / "exp"
-    assert sorted(p.name for p in exp.iterdir()) == ["calib", "image_2", "label_2", "mapping.txt"]
+    assert sorted(p.name for p in exp.iterdir()) == [".omnigen-job", "calib", "image_2", "label_2", "mapping.txt"]
     assert (exp / "mapping.txt").read_text().splitlines()[1] == "000001 kitti-000001"
     calib = kitti.parse_calib((exp / "calib/000001.txt").read_text(), "calib")
     assert set(calib.values) == {"P0", "P1", "P2", "P3", "R0_rect", "Tr_velo_to_cam", "Tr_imu_to_velo"}
@@ -260,6 +260,34 @@ def test_interrupted_run_then_rerun_gives_the_same_dataset(tree, converted, tmp_
     assert convert(tree, out) == 0
     assert record_texts(out) == record_texts(converted)
     assert (out / "manifest.json").read_bytes() == (converted / "manifest.json").read_bytes()
+
+
+def test_a_rerun_keeps_no_frame_an_earlier_run_left(tree, converted, tmp_path, capsys):
+    # a smaller --limit, then a frame whose label turned bad: the dataset holds this run's frames only
+    out = tmp_path / "ds"
+    shutil.copytree(converted, out)
+    assert convert(tree, out, "--limit", "3") == 0
+    assert "removed 9 frames an earlier run left" in capsys.readouterr().out
+    ds = Dataset.open(out)
+    assert len(ds) == 3 and ds.manifest["counts"]["frames"] == 3
+    assert sorted(p.name for p in (out / "images").iterdir()) == sorted(Path(r.image).name for r in ds)
+    src = tmp_path / "src"
+    shutil.copytree(tree, src)
+    (src / "training" / "label_2" / "000002.txt").write_text("Car 0.0 0 not-a-number\n")
+    assert convert(src, out, "--limit", "3") == 1  # the bad frame is skipped ...
+    assert sorted(Dataset.open(out).frame_ids) == ["kitti-000000", "kitti-000001"]  # ... and its old record gone
+    assert not (out / "images" / "kitti-000002.png").exists()
+
+
+def test_convert_refuses_an_output_folder_it_did_not_make(tree, tmp_path, capsys):
+    from omnigen.fakes import write_fake_dataset
+
+    unfinished = write_fake_dataset(tmp_path / "render", n_frames=3, seed=1).root  # say, a render's output
+    (unfinished / "manifest.json").unlink()
+    before = record_texts(unfinished)
+    assert convert(tree, unfinished) == 1
+    assert "did not make; refusing to overwrite" in capsys.readouterr().err
+    assert record_texts(unfinished) == before and not (unfinished / ".omnigen-job").exists()
 
 
 def test_interruption_inside_run_conversion_propagates(tree, tmp_path):
