@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import shutil
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ from omnigen.dataset import Dataset
 from omnigen.splits import read_split
 from omnigen.files import LINK_MODES, atomic_write_bytes, atomic_write_text, link_file
 from omnigen.geometry import box_to_kitti, kitti_alpha
+from omnigen.ownership import claim_output
 from omnigen.progress import print_table, progress
 from omnigen.record import FrameRecord, ObjectRecord
 from omnigen.splits import read_split
@@ -128,9 +130,17 @@ class ExportReport:
 
 def export_kitti(ds: Dataset, out: str | Path, split: str | None = None, link: str = "hardlink",
                  derived: bool = False) -> ExportReport:
-    """Write out/{label_2,calib,image_2}/<number>.* and, last, out/mapping.txt; returns the counts."""
+    """Write out/{label_2,calib,image_2}/<number>.* and, last, out/mapping.txt; returns the counts.
+
+    A re-export into the same folder starts from nothing: the numbers are given afresh each time,
+    so a file left from an earlier export would label another frame. mapping.txt goes first.
+    """
     start = time.perf_counter()
     out = Path(out)
+    claim_output(out, "export kitti", lambda folder: (folder / MAPPING_FILE).exists())
+    (out / MAPPING_FILE).unlink(missing_ok=True)
+    for folder in ("label_2", "calib", "image_2"):
+        shutil.rmtree(out / folder, ignore_errors=True)
     keep = None if split is None else set(read_split(ds.root, split))
     frame_ids = ds.frame_ids
     indices = [i for i, f in enumerate(frame_ids) if keep is None or f in keep]

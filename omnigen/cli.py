@@ -107,9 +107,9 @@ def _run_export_coco(args: argparse.Namespace) -> int:
 
 def _taxonomy_for(ds, name: str | None):
     """The taxonomy asked for, else the one the dataset's manifest records, else fine."""
-    from omnigen.taxonomy import load_taxonomy
+    from omnigen.taxonomy import load_taxonomy, recorded_taxonomy
 
-    return load_taxonomy(name or ds.manifest.get("taxonomy", {}).get("name", "fine"))
+    return load_taxonomy(name) if name else recorded_taxonomy(ds.manifest)
 
 
 def _run_export_yolo(args: argparse.Namespace) -> int:
@@ -135,9 +135,12 @@ def _add_merge(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("merge", help="merge source datasets into UrbanOmniView with a held-out test split")
     p.add_argument("sources", type=Path, nargs="*", help="source datasets (render and convert outputs)")
     p.add_argument("--out", type=Path, required=True, help="output dataset folder")
-    p.add_argument("--taxonomy", default="fine", help="fine, coarse or a TOML file; recorded in the manifest")
-    p.add_argument("--test-fraction", type=float, default=0.10, help="share of each source and view held out")
-    p.add_argument("--seed", type=int, default=0, help="seed of the test-split draw")
+    p.add_argument("--taxonomy", default=None,
+                   help="fine, coarse or a TOML file; recorded in the manifest (default: fine; with --update, the earlier merge's)")
+    p.add_argument("--test-fraction", type=float, default=None,
+                   help="share of each source and view held out (default: 0.10; with --update, the earlier merge's)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="seed of the test-split draw (default: 0; with --update, the earlier merge's)")
     p.add_argument("--split-file", type=Path, action="append", default=[],
                    help="a list of frame ids (or source ids such as KITTI's 000123); the file's stem names "
                         "the split; repeatable (e.g. train.txt and val.txt)")
@@ -154,10 +157,12 @@ def _run_merge(args: argparse.Namespace) -> int:
     if not args.sources and not args.update:
         print("omnigen merge: give at least one source dataset", file=sys.stderr)
         return 2
-    r = merge(args.sources, args.out, load_taxonomy(args.taxonomy), args.test_fraction, args.seed,
-              args.split_file, args.update, args.link)
+    r = merge(args.sources, args.out, load_taxonomy(args.taxonomy) if args.taxonomy else None, args.test_fraction,
+              args.seed, args.split_file, args.update, args.link)
     print_table(f"merge -> {args.out}", ["source", "frames"], sorted(r.by_source.items()))
     print_table("splits", ["split", "frames"], sorted(r.by_split.items()))
+    for path, n in sorted(r.unmatched_lines.items()):
+        print(f"  {path}: {n} lines name no frame of these sources (left out)")
     links = ", ".join(f"{k} {v}" for k, v in sorted(r.link_modes.items())) or "-"
     print_table("summary", ["frames", "objects", "unique images", "images placed", "seconds"],
                 [[r.frames, r.objects, r.unique_images, links, round(r.seconds, 2)]])

@@ -90,7 +90,13 @@ def assign_test_split(
         if not pinned:
             free.append(g)
             continue
-        side = TEST if TEST in pinned else pinned[0]
+        if len(set(pinned)) > 1:  # one side each, or a scene (or an image) would sit in two splits
+            a = next(f for f in frames if f in fixed)
+            b = next(f for f in frames if f in fixed and fixed[f] != fixed[a])
+            raise ValueError(f"frames {a} ({fixed[a]}) and {b} ({fixed[b]}) are one group (one scene, or the "
+                             "same pixels) but are pinned to different splits; a group keeps to one split: "
+                             "change the split files")
+        side = pinned[0]
         for f in frames:
             out[f] = fixed.get(f, side)
             in_test[strata[f]] += out[f] == TEST

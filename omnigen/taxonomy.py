@@ -44,6 +44,15 @@ class Taxonomy:
         return cls(d["name"], dict(d["mapping"]))
 
 
+def recorded_taxonomy(manifest: dict) -> Taxonomy:
+    """The taxonomy a dataset's manifest records, else fine: read from its whole mapping, so that a
+    merge made with a custom TOML exports the same classes without that file at hand."""
+    recorded = manifest.get("taxonomy") or {}
+    if "mapping" in recorded:
+        return Taxonomy.from_dict(recorded)
+    return load_taxonomy(recorded.get("name", "fine"))
+
+
 def load_taxonomy(name_or_path: str | Path = "fine") -> Taxonomy:
     """A preset by name (fine, coarse) or a TOML file; errors name the file and the field."""
     path = Path(name_or_path)

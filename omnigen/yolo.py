@@ -15,6 +15,7 @@ are left out. Ultralytics needs a `val` entry: it points at our `test` split whe
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +24,9 @@ from omnigen.conventions import FINE_CLASSES, FLIP_IDX, NUM_KEYPOINTS, V_OUTSIDE
 from omnigen.dataset import Dataset
 from omnigen.files import atomic_write_bytes, atomic_write_text, link_file
 from omnigen.progress import progress
+from omnigen.ownership import claim_output
 from omnigen.splits import read_assignments
-from omnigen.taxonomy import Taxonomy, load_taxonomy
+from omnigen.taxonomy import Taxonomy, recorded_taxonomy
 
 
 LABEL_FORMAT = "%d" + " %.6f" * 4 + " %.6f %.6f %d" * NUM_KEYPOINTS + "\n"
@@ -70,9 +72,18 @@ def data_yaml(out: Path, names: list[str], splits: list[str]) -> str:
 
 
 def export_yolo(ds: Dataset, out: str | Path, taxonomy: Taxonomy | None = None, link: str = "hardlink") -> dict[str, int]:
-    """Write the layout; returns counts for the summary. Frames in no split go to `train`."""
+    """Write the layout; returns counts for the summary. Frames in no split go to `train`.
+
+    A re-export into the same folder starts from nothing: a frame an earlier export put in another
+    split (the splits changed) would otherwise sit in both, a test frame among the training ones.
+    data.yaml goes first and comes back last, so an interrupted export is no dataset to a reader.
+    """
     out = Path(out)
-    taxonomy = taxonomy or load_taxonomy(ds.manifest.get("taxonomy", {}).get("name", "fine"))
+    claim_output(out, "export yolo", lambda folder: (folder / "data.yaml").exists())
+    (out / "data.yaml").unlink(missing_ok=True)
+    for folder in ("images", "labels"):
+        shutil.rmtree(out / folder, ignore_errors=True)
+    taxonomy = taxonomy or recorded_taxonomy(ds.manifest)
     class_ids = np.array([(-1 if taxonomy.class_id(c) is None else taxonomy.class_id(c)) for c in FINE_CLASSES])
     assignment = read_assignments(ds.root)
     rows = label_rows(ds, class_ids)

@@ -92,10 +92,46 @@ def test_update_keeps_existing_assignments(sources, tmp_path):
     assert len(Dataset.open(out).manifest["merge"]["sources"]) == 2
 
 
+def test_update_keeps_the_earlier_merges_taxonomy_and_draw(sources, tmp_path):
+    syn, kit = sources
+    mine = tmp_path / "mine.toml"  # a custom taxonomy, gone by the time the dataset is updated and exported
+    mine.write_text('name = "mine"\n[classes]\ncar = "vehicle"\nvan = "vehicle"\npedestrian = "person"\n')
+    out = tmp_path / "uov"
+    assert cli(["merge", str(syn), "--out", str(out), "--taxonomy", str(mine), "--test-fraction", "0.3",
+                "--seed", "5"]) == 0
+    mine.unlink()
+    assert cli(["merge", str(kit), "--out", str(out), "--update"]) == 0
+    manifest = Dataset.open(out).manifest
+    assert manifest["taxonomy"]["name"] == "mine" and manifest["taxonomy"]["classes"] == ["vehicle", "person"]
+    assert (manifest["merge"]["seed"], manifest["merge"]["test_fraction"]) == (5, 0.3)
+    assert cli(["export", "yolo", str(out), "--out", str(tmp_path / "yolo")]) == 0
+    assert '0: "vehicle"' in (tmp_path / "yolo" / "data.yaml").read_text()
+    assert cli(["export", "coco", str(out), "--out", str(tmp_path / "coco.json")]) == 0
+    cats = json.loads((tmp_path / "coco.json").read_text())["categories"]
+    assert [c["name"] for c in cats] == ["vehicle", "person"]
+
+
+def test_a_bare_id_of_two_sources_is_refused_and_unmatched_lines_are_counted(tmp_path):
+    kit = write_fake_dataset(tmp_path / "kit", n_frames=3, objects_per_frame=1, seed=2, source="kitti").root
+    dair = write_fake_dataset(tmp_path / "dair", n_frames=3, objects_per_frame=1, seed=3, source="dair-v2x-i").root
+    val = tmp_path / "val.txt"
+    val.write_text("000001\n")  # kitti-000001 or dair-v2x-i-000001?
+    with pytest.raises(ValueError, match="val.txt: '000001' names a frame of more than one source"):
+        merge([kit, dair], tmp_path / "uov", split_files=[val])
+    val.write_text("kitti-000001\n000099\n")
+    report = merge([kit, dair], tmp_path / "uov", split_files=[val])
+    in_val = read_split(tmp_path / "uov", "val")  # kitti-000001 and the frames of its group
+    assert "kitti-000001" in in_val and not any(f.startswith("dair") for f in in_val)
+    assert report.unmatched_lines == {str(val): 1}
+
+
 def test_split_files_are_honoured(sources, tmp_path):
     syn, kit = sources
     val = tmp_path / "val.txt"
-    val.write_text("000001\n000002\nsynthetic-000005\n")  # KITTI-style bare ids and a full id
+    val.write_text("000001\n000002\n")  # KITTI-style bare ids: the only source with these suffixes
+    merge([kit], tmp_path / "kitti-only", split_files=[val])
+    assert set(read_split(tmp_path / "kitti-only", "val")) >= {"kitti-000001", "kitti-000002"}
+    val.write_text("kitti-000001\nkitti-000002\nsynthetic-000005\n")  # beside synthetic-000001: full ids
     merge([syn, kit], tmp_path / "uov", split_files=[val])
     assert set(read_split(tmp_path / "uov", "val")) >= {"kitti-000001", "kitti-000002", "synthetic-000005"}
 
@@ -133,6 +169,18 @@ def test_refuses_to_overwrite_a_dataset_it_did_not_make(sources, tmp_path):
     syn, _ = sources
     with pytest.raises(DatasetError, match="did not make"):
         merge([sources[1]], syn)
+    # an unfinished render (no manifest yet) mistyped as --out: nothing of it is deleted
+    unfinished = write_fake_dataset(tmp_path / "render", n_frames=3, seed=7).root
+    (unfinished / "manifest.json").unlink()
+    before = sorted(p.name for p in unfinished.rglob("*"))
+    with pytest.raises(DatasetError, match="did not make"):
+        merge([sources[1]], unfinished)
+    assert sorted(p.name for p in unfinished.rglob("*")) == before
+    # a folder a converter claimed is not merge's either
+    (tmp_path / "conv").mkdir()
+    (tmp_path / "conv" / ".omnigen-job").write_text("convert kitti\n")
+    with pytest.raises(DatasetError, match="made by 'omnigen convert kitti'"):
+        merge([sources[1]], tmp_path / "conv")
 
 
 def test_coco_ground_truth_scores_one_against_itself(sources, tmp_path):
@@ -152,6 +200,25 @@ def test_coco_ground_truth_scores_one_against_itself(sources, tmp_path):
     ev.accumulate()
     ev.summarize()
     assert ev.stats[0] == pytest.approx(1.0)
+
+
+def test_a_yolo_export_again_after_the_splits_changed_keeps_each_frame_in_one_split(sources, tmp_path):
+    out, yolo = tmp_path / "uov", tmp_path / "yolo"
+    merge(list(sources), out, seed=0)
+    assert cli(["export", "yolo", str(out), "--out", str(yolo)]) == 0
+    merge(list(sources), out, seed=1)  # another draw: frames change sides
+    assert cli(["export", "yolo", str(out), "--out", str(yolo)]) == 0
+    placed = defaultdict(list)
+    for label in (yolo / "labels").rglob("*.txt"):
+        placed[label.stem].append(label.parent.name)
+    assignments = read_assignments(out)
+    assert placed == {f: [assignments[f]] for f in assignments}
+    assert sorted(p.name for p in (yolo / "images").rglob("*.*")) == sorted(f"{f}.png" for f in assignments)
+    # a folder with files of its own is not an export's to clear
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep me")
+    assert cli(["export", "yolo", str(out), "--out", str(tmp_path / "mine")]) == 1
+    assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]
 
 
 def test_yolo_labels_pass_ultralytics_checks(sources, tmp_path):
@@ -216,3 +283,7 @@ def test_assign_test_split_properties():
         assert share == pytest.approx(0.1, abs=0.02), stratum
     pinned = assign_test_split(groups, strata, 0.1, seed=1, fixed={frames[0]: "test"})
     assert all(pinned[f] == "test" for f in frames if groups[f] == groups[frames[0]])
+    # two frames of one group pinned to two splits: that group would leak, so it is refused
+    mate = next(f for f in frames[1:] if groups[f] == groups[frames[0]])
+    with pytest.raises(ValueError, match=f"{frames[0]} \\(test\\) and {mate} \\(train\\) are one group"):
+        assign_test_split(groups, strata, 0.1, seed=1, fixed={frames[0]: "test", mate: "train"})
