@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from omnigen.dataset import DatasetWriter
-from omnigen.files import TMP_PREFIX, atomic_write_bytes
+from omnigen.files import atomic_write_bytes, make_temp
 from omnigen.record import FrameRecord, SyntheticInfo
 from rigs.annotate import annotate
 from rigs.rig import Rig, load_rig
