@@ -201,10 +201,17 @@ def as_matrix(value: Any, shape: tuple[int, ...], file: Path, where: str) -> np.
 
 @dataclass(frozen=True)
 class Extrinsics:
-    """Virtual LiDAR to camera: X_cam = rotation @ X_lidar + translation."""
+    """Virtual LiDAR to camera: X_cam = calibrated @ X_lidar + translation.
+
+    Points (box centres, a point of the ground plane) go through the matrix as calibrated, as the
+    dataset's own tools map them; directions that must stay a proper rotation (a box's axes, the
+    plane's normal) go through `rotation`, its nearest rotation. The two differ only as much as
+    the calibration is not orthonormal (ROTATION_TOLERANCE at most).
+    """
 
     rotation: np.ndarray
     translation: np.ndarray
+    calibrated: np.ndarray
 
     def up_in_camera(self) -> np.ndarray:
         """The virtual LiDAR's +z (up) seen from the camera."""
@@ -240,7 +247,7 @@ def parse_extrinsics(data: Any, file: Path) -> Extrinsics:
         rotation_field = "Tr_velo_to_cam"
     else:
         raise SourceError(file, "rotation", "missing: expected rotation and translation, or Tr_velo_to_cam")
-    return Extrinsics(nearest_rotation(rotation, file, rotation_field), translation)
+    return Extrinsics(nearest_rotation(rotation, file, rotation_field), translation, rotation)
 
 
 def _split_transform(value: Any, file: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -428,7 +435,7 @@ def bottom_corners(objects: Sequence[LabelObject]) -> np.ndarray:
 def plane_to_camera(plane: Plane, ext: Extrinsics) -> Plane:
     """The same plane in the camera frame (n' = R n, through R p + t for a point p on it)."""
     normal = ext.rotation @ plane.normal
-    point = ext.rotation @ (-plane.offset * plane.normal) + ext.translation
+    point = ext.calibrated @ (-plane.offset * plane.normal) + ext.translation
     return Plane(normal, -float(normal @ point))
 
 
@@ -735,7 +742,7 @@ def make_object(o: LabelObject, K: np.ndarray, ext: Extrinsics, width: int, heig
 
     The reference for make_objects, which the converter uses (tests check they agree).
     """
-    box = box_from_dair(o.center, o.lwh, o.yaw, ext.rotation, ext.translation)
+    box = box_from_dair(o.center, o.lwh, o.yaw, ext.rotation, ext.translation, ext.calibrated)
     attributes = dict(o.attributes)
     attributes["label_set"] = label_set
     return ObjectRecord.from_box(o.category, o.index + 1, box, K, width, height,
@@ -755,7 +762,7 @@ def make_objects(objects: Sequence[LabelObject], K: np.ndarray, ext: Extrinsics,
         return []
     lwh = np.array([o.lwh for o in objects])
     centers, rotations = boxes_from_dair(np.array([o.center for o in objects]), np.array([o.yaw for o in objects]),
-                                         ext.rotation, ext.translation)
+                                         ext.rotation, ext.translation, ext.calibrated)
     proj = project_boxes(boxes_corners(centers, lwh, rotations), K, width, height)
     occluded = self_occluded_corners_batch(centers, lwh, rotations)
     has_bbox = proj.has_bbox().tolist()

@@ -457,19 +457,24 @@ def wrap_angle(a: float) -> float:
 
 
 def box_from_dair(center_lidar: np.ndarray, lwh: np.ndarray, yaw: float,
-                  lidar_to_camera_rotation: np.ndarray, lidar_to_camera_translation: np.ndarray) -> Box3D:
+                  lidar_to_camera_rotation: np.ndarray, lidar_to_camera_translation: np.ndarray,
+                  center_transform: np.ndarray | None = None) -> Box3D:
     """A DAIR-V2X box (virtual-LiDAR centre, [l, w, h], yaw about +z, 0 along +x) in the camera.
 
     The object frame's axes coincide with the virtual LiDAR's (x forward, y left, z up) rotated by
     the yaw, so the object-to-LiDAR rotation is rot_z(yaw); X_cam = R X_lidar + t then carries
-    the camera's pitch into the box's rotation.
+    the camera's pitch into the box's rotation. `center_transform` (default R) maps the centre:
+    the calibrated matrix, where R is its nearest proper rotation.
     """
-    in_lidar = Box3D(center_lidar, lwh, rot_z(yaw))
-    return in_lidar.transformed(lidar_to_camera_rotation, np.asarray(lidar_to_camera_translation).reshape(3))
+    m = lidar_to_camera_rotation if center_transform is None else center_transform
+    center = np.asarray(m, dtype=np.float64) @ np.asarray(center_lidar, dtype=np.float64) \
+        + np.asarray(lidar_to_camera_translation, dtype=np.float64).reshape(3)
+    return Box3D(center, lwh, np.asarray(lidar_to_camera_rotation, dtype=np.float64) @ rot_z(yaw))
 
 
 def boxes_from_dair(centers_lidar: np.ndarray, yaws: np.ndarray, lidar_to_camera_rotation: np.ndarray,
-                    lidar_to_camera_translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                    lidar_to_camera_translation: np.ndarray,
+                    center_transform: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(centers (N, 3), rotations (N, 3, 3)) in the camera of N DAIR-V2X boxes; dims are unchanged.
 
     Bit for bit box_from_dair's center and rotation: the yaw's cosine and sine come from math (as
@@ -477,6 +482,7 @@ def boxes_from_dair(centers_lidar: np.ndarray, yaws: np.ndarray, lidar_to_camera
     """
     centers_lidar = np.asarray(centers_lidar, dtype=np.float64).reshape(-1, 3)
     r = np.asarray(lidar_to_camera_rotation, dtype=np.float64)
+    m = r if center_transform is None else np.asarray(center_transform, dtype=np.float64)
     t = np.asarray(lidar_to_camera_translation, dtype=np.float64).reshape(3)
     yaws = np.asarray(yaws, dtype=np.float64).reshape(-1).tolist()
     c = [math.cos(a) for a in yaws]
@@ -487,7 +493,7 @@ def boxes_from_dair(centers_lidar: np.ndarray, yaws: np.ndarray, lidar_to_camera
     rz[:, 1, 0] = s
     rz[:, 1, 1] = c
     rz[:, 2, 2] = 1.0
-    centers = (r @ centers_lidar[:, :, None])[:, :, 0] + t
+    centers = (m @ centers_lidar[:, :, None])[:, :, 0] + t
     return centers, r @ rz
 
 

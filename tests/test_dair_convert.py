@@ -537,3 +537,19 @@ def test_batch_objects_equal_one_at_a_time(tree_i):
                 kinds["behind" if want.behind_camera.any() else "inside" if want.truncation == 0 else "cut"] += 1
     assert min(kinds.values()) >= 10, kinds
     assert dair.make_objects([], K, ext, 96, 54, "camera") == []
+
+
+def test_a_calibration_not_quite_orthonormal_maps_centres_as_calibrated_and_axes_as_a_rotation(tmp_path):
+    # R scaled by 1.02 passes the tolerance; its nearest rotation would move a car 60 m away by 1.2 m
+    c, s = math.cos(0.3), math.sin(0.3)
+    level = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])  # LiDAR x forward -> camera z
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    rotation, t = 1.02 * tilt @ level, np.array([0.1, 5.0, 0.2])
+    ext = dair.parse_extrinsics({"rotation": rotation.tolist(), "translation": t.tolist()}, tmp_path / "calib.json")
+    obj = dair.LabelObject(0, "car", np.array([60.0, 2.0, -4.0]), np.array([4.5, 1.8, 1.5]), 0.4,
+                           np.array([0.0, 0.0, 10.0, 10.0]), 0, {})
+    K = np.array([[2100.0, 0.0, 960.0], [0.0, 2100.0, 540.0], [0.0, 0.0, 1.0]])
+    rec = dair.make_objects([obj], K, ext, 1920, 1080, "camera")[0]
+    np.testing.assert_allclose(rec.box.center, rotation @ obj.center + t, atol=1e-9)  # as calibrated
+    assert is_rotation(rec.box.rotation) and not np.allclose(rec.box.center, ext.rotation @ obj.center + t, atol=0.5)
+    assert rec.to_dict() == dair.make_object(obj, K, ext, 1920, 1080, "camera").to_dict()  # batch = reference
