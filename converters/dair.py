@@ -789,7 +789,7 @@ def read_image_size(path: Path) -> tuple[int, int]:
             return im.size
     except FileNotFoundError:
         raise SourceError(path, "", "missing image") from None
-    except (OSError, UnidentifiedImageError, SyntaxError) as exc:
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
         raise SourceError(path, "", f"not a readable image: {exc}") from None
 
 

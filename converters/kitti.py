@@ -234,7 +234,7 @@ def image_size(data: bytes | Path, file: str) -> tuple[int, int]:
             return im.size
     except UnidentifiedImageError:
         raise SourceError(file, "", "unreadable image: not a format PIL can identify") from None
-    except (OSError, ValueError, SyntaxError) as exc:  # PIL's other ways of saying "not an image"
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:  # PIL's other ways of saying "not an image"
         raise SourceError(file, "", f"unreadable image: {exc}") from None
 
 

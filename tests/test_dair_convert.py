@@ -553,3 +553,18 @@ def test_a_calibration_not_quite_orthonormal_maps_centres_as_calibrated_and_axes
     np.testing.assert_allclose(rec.box.center, rotation @ obj.center + t, atol=1e-9)  # as calibrated
     assert is_rotation(rec.box.rotation) and not np.allclose(rec.box.center, ext.rotation @ obj.center + t, atol=0.5)
     assert rec.to_dict() == dair.make_object(obj, K, ext, 1920, 1080, "camera").to_dict()  # batch = reference
+
+
+def test_an_image_whose_header_claims_too_many_pixels_is_a_skip_not_a_crash(tmp_path, monkeypatch):
+    from PIL import Image as PILImage
+
+    from converters import kitti
+    from converters.common import SourceError
+
+    path = tmp_path / "big.png"
+    PILImage.new("RGB", (64, 48)).save(path)
+    monkeypatch.setattr(PILImage, "MAX_IMAGE_PIXELS", 100)  # 64 x 48 is now a decompression bomb
+    with pytest.raises(SourceError, match="big.png.*not a readable image"):
+        dair.read_image_size(path)
+    with pytest.raises(SourceError, match="big.png.*unreadable image"):
+        kitti.image_size(path, str(path))
