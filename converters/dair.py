@@ -498,7 +498,7 @@ def read_tree(src: Path) -> SourceTree:
     root = locate_root(src)
     path = root / DATA_INFO
     if not path.is_file():
-        return SourceTree(root, None, _frames_from_layout(root), {})
+        return SourceTree(root, None, *_frames_from_layout(root))
     data = read_json(path)
     if not isinstance(data, list):
         raise SourceError(path, "", f"expected a JSON list of frames, got {type(data).__name__}")
@@ -530,11 +530,25 @@ def _frame_info(entry: Any, i: int, path: Path) -> FrameInfo:
     return FrameInfo(i, key, entry)
 
 
-def _frames_from_layout(root: Path) -> list[FrameInfo]:
-    """Without data_info.json, every image/{id}.jpg is a frame and the other files follow the layout."""
+def _frames_from_layout(root: Path) -> tuple[list[FrameInfo], dict[str, SourceError]]:
+    """Without data_info.json, every image/{id}.jpg is a frame and the other files follow the layout.
+
+    An image whose name is no frame id, or a second image of one id (X.jpg and X.png), is returned
+    as an error, reported as a skip by name, as data_info.json's entries are.
+    """
     images = sorted(p for p in (root / "image").iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    return [FrameInfo(i, p.stem, {"image_path": f"image/{p.name}"}) for i, p in enumerate(images)
-            if FRAME_ID_PATTERN.match(p.stem)]
+    frames: list[FrameInfo] = []
+    errors: dict[str, SourceError] = {}
+    first: dict[str, Path] = {}
+    for p in images:
+        if not FRAME_ID_PATTERN.match(p.stem):
+            errors[f"image/{p.name}"] = SourceError(p, "", f"frame id {p.stem!r} must be letters, digits, '.', '_' or '-'")
+        elif p.stem in first:
+            errors[f"image/{p.name}"] = SourceError(p, "", f"frame {p.stem} already has an image, {first[p.stem].name}")
+        else:
+            first[p.stem] = p
+            frames.append(FrameInfo(len(frames), p.stem, {"image_path": f"image/{p.name}"}))
+    return frames, errors
 
 
 def detect_source(tree: SourceTree) -> str:

@@ -345,6 +345,13 @@ def test_folder_layout_without_data_info(tmp_path, capsys):
     ds = Dataset.open(tmp_path / "out")
     assert ds.frame_ids == ["dair-v2x-i-000000", "dair-v2x-i-000001", "dair-v2x-i-000002"]
     assert [r.group for r in ds] == [None, None, None]
+    # a second image of one frame, and an image whose name is no frame id: skips naming the file
+    shutil.copy(root / "image/000001.jpg", root / "image/000001.png")
+    shutil.copy(root / "image/000002.jpg", root / "image/bad name.jpg")
+    code, out, _ = convert(root, tmp_path / "again", capsys)
+    assert code == 1 and "000001.png" in out and "already has an image, 000001.jpg" in out
+    assert "bad name.jpg" in out and "must be letters, digits" in out
+    assert len(Dataset.open(tmp_path / "again")) == 3
 
 
 def test_image_size_is_read_from_each_image(tmp_path, capsys):
