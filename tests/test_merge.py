@@ -146,12 +146,13 @@ def test_conflicting_frame_ids_are_refused(tmp_path):
 
 def test_interrupted_merge_never_validates(sources, tmp_path, monkeypatch):
     out = tmp_path / "uov"
+    merge([sources[0]], out)  # a finished merge; then a re-merge with one more source dies in its records
     real = merge_module.link_file
     calls = {"n": 0}
 
     def dying(src, dst, mode="hardlink"):
-        calls["n"] += 1
-        if calls["n"] == 200:  # past the pixels, in the middle of the records
+        calls["n"] += "records" in str(dst)
+        if calls["n"] == 20:  # the pixels are placed; 19 records are
             raise KeyboardInterrupt
         return real(src, dst, mode)
 
@@ -159,6 +160,7 @@ def test_interrupted_merge_never_validates(sources, tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         merge(list(sources), out)
     monkeypatch.undo()
+    assert calls["n"] == 20 and not (out / "manifest.json").exists()  # unsealed before any record changed
     _, problems = check_dataset(out, show_progress=False)
     assert any(p.field == "manifest.json" for p in problems)
     merge(list(sources), out)  # a rerun finishes it
