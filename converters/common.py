@@ -146,7 +146,9 @@ def run_conversion(
     start = time.perf_counter()
     converter = (manifest_extra or {}).get("conversion", {}).get("converter", "")
     job = f"convert {converter}".strip()
-    claim_output(out, job, lambda folder: manifest_of(folder).get("conversion", {}).get("converter", "") == converter)
+    # an output from before the marker is recognised by its converter's name, never by a missing one
+    claim_output(out, job, lambda folder: bool(converter)
+                 and manifest_of(folder).get("conversion", {}).get("converter") == converter)
     writer = DatasetWriter(out, durable=durable)
     report = ConversionReport()
     outcomes = _outcomes(keys, convert_one, writer, Path(out), link, workers)

@@ -433,7 +433,8 @@ def bottom_corners(objects: Sequence[LabelObject]) -> np.ndarray:
 
 
 def plane_to_camera(plane: Plane, ext: Extrinsics) -> Plane:
-    """The same plane in the camera frame (n' = R n, through R p + t for a point p on it)."""
+    """The same plane in the camera frame: n' = R n with R the nearest rotation, through M p + t
+    for a point p on it, M the matrix as calibrated (see Extrinsics)."""
     normal = ext.rotation @ plane.normal
     point = ext.calibrated @ (-plane.offset * plane.normal) + ext.translation
     return Plane(normal, -float(normal @ point))

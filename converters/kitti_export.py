@@ -128,6 +128,15 @@ class ExportReport:
     seconds: float = 0.0
 
 
+def _exported_by_us(folder: Path) -> bool:
+    """A KITTI export from before the .omnigen-job marker: a mapping.txt of `<number> <frame_id>` lines."""
+    try:
+        first = (folder / MAPPING_FILE).read_text().split("\n", 1)[0]
+    except (OSError, UnicodeDecodeError):
+        return False
+    return re.fullmatch(r"\d{6} \S+", first) is not None
+
+
 def export_kitti(ds: Dataset, out: str | Path, split: str | None = None, link: str = "hardlink",
                  derived: bool = False) -> ExportReport:
     """Write out/{label_2,calib,image_2}/<number>.* and, last, out/mapping.txt; returns the counts.
@@ -137,11 +146,11 @@ def export_kitti(ds: Dataset, out: str | Path, split: str | None = None, link: s
     """
     start = time.perf_counter()
     out = Path(out)
-    claim_output(out, "export kitti", lambda folder: (folder / MAPPING_FILE).exists())
+    keep = None if split is None else set(read_split(ds.root, split))  # a bad --split fails before any deletion
+    claim_output(out, "export kitti", _exported_by_us)
     (out / MAPPING_FILE).unlink(missing_ok=True)
     for folder in ("label_2", "calib", "image_2"):
         shutil.rmtree(out / folder, ignore_errors=True)
-    keep = None if split is None else set(read_split(ds.root, split))
     frame_ids = ds.frame_ids
     indices = [i for i, f in enumerate(frame_ids) if keep is None or f in keep]
     names = kitti_file_names([frame_ids[i] for i in indices])

@@ -18,7 +18,7 @@ from omnigen.conventions import CORNER_NAMES, FINE_CLASSES, SKELETON, V_OUTSIDE,
 from omnigen.dataset import Dataset
 from omnigen.splits import read_split
 from omnigen.files import atomic_write_bytes
-from omnigen.taxonomy import Taxonomy, load_taxonomy
+from omnigen.taxonomy import Taxonomy, recorded_taxonomy
 
 
 def xyxy_to_xywh(b: np.ndarray) -> list[float]:
@@ -52,7 +52,7 @@ def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = N
     Per-object values are prepared for all objects at once (numpy, then one tolist per column),
     so that 300,000 annotations cost seconds, not minutes.
     """
-    taxonomy = taxonomy or load_taxonomy("fine")
+    taxonomy = taxonomy or recorded_taxonomy(ds.manifest)
     keep = None if split is None else set(read_split(ds.root, split))
     t = ds.objects
     vis = coco_visibility(t.in_image, t.behind_camera, t.occluded)

@@ -96,12 +96,17 @@ def _file_sha256(path: Path) -> str:
         return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
+def _made_by_merge(folder: Path) -> bool:
+    """A merged dataset from before the .omnigen-job marker: its manifest has a merge section."""
+    return "merge" in manifest_of(folder)
+
+
 def _prepare_out(out: Path, update: bool) -> dict[str, Any]:
     """Check and claim the output folder; returns the earlier merge's manifest under --update."""
     manifest_path = out / MANIFEST
     if update and not manifest_path.exists():
         raise DatasetError(f"{out}: --update needs a finished merged dataset there (no {MANIFEST})")
-    claim_output(out, "merge", lambda folder: "merge" in manifest_of(folder))  # before anything there is deleted
+    claim_output(out, "merge", _made_by_merge, mark=False)  # refused early; marked before the first deletion
     return json.loads(manifest_path.read_text()) if update else {}
 
 
@@ -199,6 +204,7 @@ def merge(
                                    {k: v for k, v in fixed.items() if k in frames})
 
     # 4. Records (paths rewritten), images, depth and instance files.
+    claim_output(out, "merge", _made_by_merge)
     (out / RECORDS_DIR).mkdir(parents=True, exist_ok=True)
     (out / MANIFEST).unlink(missing_ok=True)  # unsealed until the end
     keep_names = {f"{fid}.json" for fid in order}

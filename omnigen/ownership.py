@@ -27,12 +27,14 @@ def manifest_of(folder: Path) -> dict[str, Any]:
         return {}
 
 
-def claim_output(out: str | Path, job: str, made_by_job: Callable[[Path], bool]) -> None:
+def claim_output(out: str | Path, job: str, made_by_job: Callable[[Path], bool], mark: bool = True) -> None:
     """Mark `out` as the output of `job` (e.g. "merge", "convert kitti"), or refuse it.
 
     Claimed: a new or empty folder; one this job claimed before (a rerun, or the resumption of
     a run that was cut off); an output from before the marker existed that `made_by_job`
     recognises (by its manifest, say). Refused, with nothing touched: any other folder with files.
+    `mark=False` only checks: a job that may still fail on its inputs checks early and marks
+    just before its first deletion, so a failed run leaves no claim on an empty folder.
     """
     out = Path(out)
     marker = out / JOB_MARKER
@@ -46,4 +48,5 @@ def claim_output(out: str | Path, job: str, made_by_job: Callable[[Path], bool])
         if not made_by_job(out):
             raise DatasetError(f"{out}: holds files that 'omnigen {job}' did not make; refusing to overwrite "
                                "them (choose a new or empty folder)")
-    atomic_write_text(marker, job + "\n")
+    if mark:
+        atomic_write_text(marker, job + "\n")

@@ -94,8 +94,8 @@ def assign_test_split(
             a = next(f for f in frames if f in fixed)
             b = next(f for f in frames if f in fixed and fixed[f] != fixed[a])
             raise ValueError(f"frames {a} ({fixed[a]}) and {b} ({fixed[b]}) are one group (one scene, or the "
-                             "same pixels) but are pinned to different splits; a group keeps to one split: "
-                             "change the split files")
+                             "same pixels) but are pinned to different splits (by split files, or by an "
+                             "earlier merge under --update); a group keeps to one split")
         side = pinned[0]
         for f in frames:
             out[f] = fixed.get(f, side)

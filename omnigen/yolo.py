@@ -71,6 +71,15 @@ def data_yaml(out: Path, names: list[str], splits: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _exported_by_us(folder: Path) -> bool:
+    """A YOLO export from before the .omnigen-job marker: a data.yaml with our keypoint layout."""
+    try:
+        text = (folder / "data.yaml").read_text()
+    except (OSError, UnicodeDecodeError):
+        return False
+    return f"kpt_shape: [{NUM_KEYPOINTS}, 3]" in text and f"flip_idx: {json.dumps(list(FLIP_IDX))}" in text
+
+
 def export_yolo(ds: Dataset, out: str | Path, taxonomy: Taxonomy | None = None, link: str = "hardlink") -> dict[str, int]:
     """Write the layout; returns counts for the summary. Frames in no split go to `train`.
 
@@ -79,7 +88,7 @@ def export_yolo(ds: Dataset, out: str | Path, taxonomy: Taxonomy | None = None, 
     data.yaml goes first and comes back last, so an interrupted export is no dataset to a reader.
     """
     out = Path(out)
-    claim_output(out, "export yolo", lambda folder: (folder / "data.yaml").exists())
+    claim_output(out, "export yolo", _exported_by_us)
     (out / "data.yaml").unlink(missing_ok=True)
     for folder in ("images", "labels"):
         shutil.rmtree(out / folder, ignore_errors=True)

@@ -216,11 +216,19 @@ def test_a_yolo_export_again_after_the_splits_changed_keeps_each_frame_in_one_sp
     assignments = read_assignments(out)
     assert placed == {f: [assignments[f]] for f in assignments}
     assert sorted(p.name for p in (yolo / "images").rglob("*.*")) == sorted(f"{f}.png" for f in assignments)
+    (yolo / ".omnigen-job").unlink()  # an export from before the marker: known by its data.yaml
+    assert cli(["export", "yolo", str(out), "--out", str(yolo)]) == 0
     # a folder with files of its own is not an export's to clear
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep me")
     assert cli(["export", "yolo", str(out), "--out", str(tmp_path / "mine")]) == 1
     assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]
+    (tmp_path / "mine" / "data.yaml").write_text("path: .\nnames:\n  0: cat\n")  # someone else's YOLO dataset
+    assert cli(["export", "yolo", str(out), "--out", str(tmp_path / "mine")]) == 1
+    # a merge that fails on its sources leaves no claim on its (empty) output
+    with pytest.raises(DatasetError):
+        merge([tmp_path / "no-such-source"], tmp_path / "empty")
+    assert not (tmp_path / "empty" / ".omnigen-job").exists()
 
 
 def test_yolo_labels_pass_ultralytics_checks(sources, tmp_path):
