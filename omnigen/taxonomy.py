@@ -40,8 +40,11 @@ class Taxonomy:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Taxonomy":
-        """The inverse of to_dict (classes follow from the mapping): what checkpoints store."""
-        return cls(d["name"], dict(d["mapping"]))
+        """The inverse of to_dict: what checkpoints and manifests store. The class order is the
+        stored `classes`, not the mapping's: a manifest is written with sorted keys."""
+        rank = {c: i for i, c in enumerate(d.get("classes") or [])}
+        mapping = sorted(d["mapping"].items(), key=lambda kv: rank.get(kv[1], len(rank)))  # stable
+        return cls(d["name"], dict(mapping))
 
 
 def recorded_taxonomy(manifest: dict) -> Taxonomy:

@@ -297,3 +297,14 @@ def test_assign_test_split_properties():
     mate = next(f for f in frames[1:] if groups[f] == groups[frames[0]])
     with pytest.raises(ValueError, match=f"{frames[0]} \\(test\\) and {mate} \\(train\\) are one group"):
         assign_test_split(groups, strata, 0.1, seed=1, fixed={frames[0]: "test", mate: "train"})
+
+
+def test_a_taxonomy_read_back_from_a_manifest_keeps_its_class_order():
+    # manifests are written with sorted keys: the mapping comes back alphabetical, the ids must not
+    from omnigen.taxonomy import Taxonomy, recorded_taxonomy
+
+    for name in ("fine", "coarse"):
+        t = load_taxonomy(name)
+        stored = json.loads(json.dumps({"taxonomy": t.to_dict()}, sort_keys=True))
+        assert recorded_taxonomy(stored).classes == t.classes
+        assert Taxonomy.from_dict(stored["taxonomy"]).class_id("pedestrian") == t.class_id("pedestrian")
