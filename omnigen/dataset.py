@@ -327,7 +327,7 @@ class Dataset:
             raise DatasetError(f"{root}: not an UrbanOmniView dataset (no {RECORDS_DIR}/ folder)")
         entries = record_files(root)
         key = records_fingerprint(entries)
-        manifest = _read_manifest(root)
+        manifest = read_manifest(root)
         if not rebuild:
             loaded = _load_index(root, key, manifest)
             if loaded is not None:
@@ -411,7 +411,8 @@ def _frame_from_row(f: dict[str, Any], objects: list[ObjectRecord]) -> FrameReco
     )
 
 
-def _read_manifest(root: Path) -> dict[str, Any]:
+def read_manifest(root: Path) -> dict[str, Any]:
+    """A dataset folder's manifest.json, {} when it has none; a manifest that is no JSON is an error."""
     path = root / MANIFEST
     if not path.exists():
         return {}
@@ -504,7 +505,7 @@ def write_index(root: str | os.PathLike, table: FrameTable, offsets: np.ndarray,
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     atomic_write_bytes(root / INDEX_FILE, buf.getvalue())
-    return Dataset(root, table, offsets, objects, attributes_blob, manifest if manifest is not None else _read_manifest(root))
+    return Dataset(root, table, offsets, objects, attributes_blob, manifest if manifest is not None else read_manifest(root))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -9,21 +9,21 @@ naming the job, and refuses a folder that holds anything it cannot tell is its o
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Callable
 
-from omnigen.dataset import MANIFEST, DatasetError
+from omnigen.dataset import DatasetError, read_manifest
 from omnigen.files import atomic_write_text
 
 JOB_MARKER = ".omnigen-job"
 
 
 def manifest_of(folder: Path) -> dict[str, Any]:
-    """The folder's dataset manifest, or {} when it has none (or none that parses)."""
+    """The folder's dataset manifest, or {} when it has none or a broken one (then it is no
+    dataset this job can recognise as its own)."""
     try:
-        return json.loads((folder / MANIFEST).read_text())
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return read_manifest(folder)
+    except (DatasetError, OSError, UnicodeDecodeError):
         return {}
 
 
