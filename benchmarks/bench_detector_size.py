@@ -32,7 +32,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(2)
 
-    header = f"| backbone | scale | " + " | ".join(f"{k} params (M) | {k} GFLOPs" for k in LEVELS) + " |"
+    header = "| backbone | scale | " + " | ".join(f"{k} params (M) | {k} GFLOPs" for k in LEVELS) + " |"
     print(f"one class, input {args.imgsz}x{args.imgsz}")
     print(header)
     print("|" + "---|" * (2 + 2 * len(LEVELS)))

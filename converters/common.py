@@ -20,7 +20,7 @@ import traceback
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Hashable, Iterable, Iterator, Sequence
+from typing import Any, Callable, Hashable, Iterator, Sequence
 
 from omnigen.dataset import DatasetWriter, IndexRows
 from omnigen.files import LINK_MODES, atomic_write_bytes, link_file

@@ -22,7 +22,6 @@ import numpy as np
 
 from omnigen.conventions import KITTI_CLASSES
 from omnigen.dataset import Dataset
-from omnigen.splits import read_split
 from omnigen.files import LINK_MODES, atomic_write_bytes, atomic_write_text, link_file
 from omnigen.geometry import box_to_kitti, kitti_alpha
 from omnigen.ownership import claim_output

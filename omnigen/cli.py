@@ -95,7 +95,6 @@ def _run_export_coco(args: argparse.Namespace) -> int:
     from omnigen.coco import export_coco
     from omnigen.dataset import Dataset
     from omnigen.progress import print_table
-    from omnigen.taxonomy import load_taxonomy
 
     start = time.perf_counter()
     ds = Dataset.open(args.dataset)

@@ -305,7 +305,7 @@ class Renderer:
     """Holds the city, the backend and the rig; renders frames by index. Build once per process."""
 
     def __init__(self, job: RenderJob) -> None:
-        from scenes.generate import FrameOverrides, SceneGenerator
+        from scenes.generate import SceneGenerator
 
         if job.backend not in BACKENDS:
             raise ValueError(f"unknown backend {job.backend!r}; choose from {', '.join(BACKENDS)}")

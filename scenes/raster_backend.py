@@ -30,7 +30,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import numpy as np  # noqa: E402
 
-from scenes.description import Material, Scene  # noqa: E402
+from scenes.description import Scene  # noqa: E402
 from scenes.gl_raster import ZFAR, ZNEAR, GLRaster, projection, view_matrix  # noqa: E402
 from scenes.meshes import agent_object, compile_scene, static_materials, static_objects, world_box  # noqa: E402
 from scenes.seeding import frame_streams  # noqa: E402

@@ -13,7 +13,6 @@ import os
 import socket
 import time
 from dataclasses import asdict
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -18,7 +18,7 @@ from detector.lift import (DimensionPriors, LiftedBoxes, fit_dimension_priors, g
 from omnigen.coco import to_coco
 from omnigen.conventions import FINE_CLASSES
 from omnigen.fakes import write_fake_dataset
-from omnigen.geometry import Box3D, box_from_kitti, kitti_rotation, plane_from_height_pitch, project_points, rot_x, rot_z
+from omnigen.geometry import Box3D, box_from_kitti, plane_from_height_pitch, project_points, rot_x, rot_z
 from omnigen.priors import PRIORS
 from omnigen.splits import write_split
 from omnigen.taxonomy import load_taxonomy

@@ -38,7 +38,7 @@ def _tree_bytes(root: Path) -> dict[str, bytes]:
 
 def test_merge_is_valid_deterministic_and_keeps_groups(sources, tmp_path):
     a = merge(list(sources), tmp_path / "a" / "uov", seed=3)
-    b = merge(list(sources), tmp_path / "b" / "uov", seed=3)
+    merge(list(sources), tmp_path / "b" / "uov", seed=3)
     assert a.frames == 150 and a.objects == sum(len(Dataset.open(s).objects) for s in sources)
     n, problems = check_dataset(tmp_path / "a" / "uov", show_progress=False)
     assert n == 150 and not problems
