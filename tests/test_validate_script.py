@@ -176,6 +176,19 @@ def test_results_markdown_names_the_command_and_every_class_row():
     assert "By object size" not in md  # no run has size rows
 
 
+def test_results_markdown_shows_what_the_truths_own_corners_score():
+    from benchmarks.validate import floor_table
+
+    rows = [{"noise_px": n, "group": g, "oks_map50_95": m, "adherence_deg": a, "adherence_objects": 5, "lift_failures": 0}
+            for n, g, m, a in [(0.0, "source=synthetic", 0.99, 0.78), (0.0, "view=aerial", 1.0, 1.28),
+                               (2.0, "source=synthetic", 0.54, 4.63), (2.0, "view=aerial", 0.5, 6.74)]]
+    lines = floor_table({"adherence_floor": rows}, "Made by X.")
+    assert "| noise (px) | synthetic | aerial |" in lines
+    assert "| 0 | 0.990 / 0.78 | 1.000 / 1.28 |" in lines and "| 2 | 0.540 / 4.63 | 0.500 / 6.74 |" in lines
+    assert lines[-2] == "Made by X."
+    assert floor_table({}, "Made by X.") == []  # results.json from before the floor rows
+
+
 def test_results_markdown_compares_every_run_by_object_size():
     def row(group, m, objects):
         return {"group": group, "oks_map50_95": m, "ap_oks50": 2 * m, "objects": objects}
