@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import torch
 
-from omnigen.conventions import FINE_CLASSES, FLIP_IDX, NUM_KEYPOINTS
+from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
 from omnigen.dataset import Dataset
 from omnigen.splits import TRAIN, read_split, split_names
 from omnigen.taxonomy import Taxonomy
@@ -233,8 +233,7 @@ class KeypointDataset(torch.utils.data.Dataset):
             self.indices = np.arange(len(self.ds))
         else:
             self.indices = np.array([self.ds.index_of(f) for f in frame_ids], dtype=np.int64)
-        lookup = [taxonomy.class_id(c) for c in FINE_CLASSES]
-        self.class_of_fine = np.array([-1 if c is None else c for c in lookup], dtype=np.int64)
+        self.class_of_fine = taxonomy.fine_class_ids()
         self._cache: list[tuple[np.ndarray, Letterbox]] | None = None  # cache_images()
 
     def __len__(self) -> int:

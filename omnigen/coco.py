@@ -56,7 +56,7 @@ def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = N
     keep = None if split is None else set(read_split(ds.root, split))
     t = ds.objects
     vis = coco_visibility(t.in_image, t.behind_camera, t.occluded)
-    class_ids = np.array([(taxonomy.class_id(c) if taxonomy.class_id(c) is not None else -1) for c in FINE_CLASSES])
+    class_ids = taxonomy.fine_class_ids()
     cid = class_ids[t.category] if len(t) else np.zeros(0, int)
     bbox = _xywh(t.bbox).tolist()
     area = (np.diff(t.bbox[:, [0, 2]], axis=1) * np.diff(t.bbox[:, [1, 3]], axis=1)).ravel().tolist()

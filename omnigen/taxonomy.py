@@ -12,6 +12,8 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from omnigen.conventions import FINE_CLASSES
 
 PRESETS_DIR = Path(__file__).parent / "taxonomies"
@@ -34,6 +36,11 @@ class Taxonomy:
         """0-based index of the target class of `fine`, or None when the taxonomy drops it."""
         target = self.mapping.get(fine)
         return None if target is None else self.classes.index(target)
+
+    def fine_class_ids(self) -> np.ndarray:
+        """Class id of each fine class, indexed as FINE_CLASSES (a record's `category`), -1 where
+        the taxonomy drops it: the lookup every writer of class ids applies to whole columns."""
+        return np.array([-1 if (c := self.class_id(f)) is None else c for f in FINE_CLASSES], dtype=np.int64)
 
     def to_dict(self) -> dict:
         return {"name": self.name, "classes": self.classes, "mapping": dict(self.mapping)}

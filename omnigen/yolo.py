@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omnigen.conventions import FINE_CLASSES, FLIP_IDX, NUM_KEYPOINTS, V_OUTSIDE, coco_visibility
+from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS, V_OUTSIDE, coco_visibility
 from omnigen.dataset import Dataset
 from omnigen.files import atomic_write_bytes, atomic_write_text, link_file
 from omnigen.progress import progress
@@ -93,7 +93,7 @@ def export_yolo(ds: Dataset, out: str | Path, taxonomy: Taxonomy | None = None, 
     for folder in ("images", "labels"):
         shutil.rmtree(out / folder, ignore_errors=True)
     taxonomy = taxonomy or recorded_taxonomy(ds.manifest)
-    class_ids = np.array([(-1 if taxonomy.class_id(c) is None else taxonomy.class_id(c)) for c in FINE_CLASSES])
+    class_ids = taxonomy.fine_class_ids()
     assignment = read_assignments(ds.root)
     rows = label_rows(ds, class_ids)
     kept = rows[:, 0] >= 0

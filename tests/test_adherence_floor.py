@@ -12,15 +12,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.bench_adherence_floor import floor_rows, truth_as_predictions  # noqa: E402
 from omnigen.fakes import write_fake_dataset  # noqa: E402
+from omnigen.taxonomy import recorded_taxonomy  # noqa: E402
 
 
 def test_exact_corners_score_full_marks_and_noise_costs(tmp_path):
     ds = write_fake_dataset(tmp_path / "fake", 6, objects_per_frame=6, seed=4, images=False)
-    exact = truth_as_predictions(ds, None, 0.0, np.random.default_rng(0))
+    exact = truth_as_predictions(ds, None, 0.0, np.random.default_rng(0), recorded_taxonomy(ds.manifest))
     assert exact and all(p["score"] == 1.0 and len(p["keypoints"]) == 24 for p in exact)
-    first = exact[0]
-    j = int(ds.offsets[ds.index_of(first["frame_id"])])
-    assert np.allclose(np.asarray(first["keypoints"]).reshape(8, 3)[:, :2], ds.objects.keypoints[j])
+    for p in exact:  # each prediction is exactly one of its frame's objects
+        i = ds.index_of(p["frame_id"])
+        own = ds.objects.keypoints[int(ds.offsets[i]):int(ds.offsets[i + 1])]
+        assert np.isclose(own, np.asarray(p["keypoints"]).reshape(8, 3)[:, :2]).all(axis=(1, 2)).any()
 
     rows = {(r["noise_px"], r["group"]): r for r in floor_rows(ds, None, [0.0, 3.0], seed=0)}
     clean, noisy = rows[(0.0, "source=synthetic")], rows[(3.0, "source=synthetic")]

@@ -5,7 +5,6 @@ from __future__ import annotations
 import subprocess
 import sys
 
-
 from omnigen import __version__
 from omnigen.cli import build_parser, main
 
