@@ -39,6 +39,10 @@ counted. Choices, and why:
   prediction's own class under the fine taxonomy; its refinement under coarser ones). Priors come
   from the dataset's 'train' split when it has one, else from all frames (report.priors_from).
   Lifts that fail (ok = False) are left out and counted.
+- Corner errors (corner_error_px, corner_error_rel; per corner with per_corner=True): medians of
+  the distances between predicted and true corners of the objects matched to a prediction by 2D
+  box IoU >= 0.5, not by OKS, over their labelled corners (detector/corner_errors.py says why).
+  Per source, view and class the group's objects; per size, the objects whose box is in the bin.
 """
 
 from __future__ import annotations
@@ -55,6 +59,7 @@ import numpy as np
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
+from detector.corner_errors import BOX_MATCH_IOU, CornerErrors, corners_extent_boxes, matched_corners
 from omnigen.coco import to_coco
 from omnigen.conventions import NUM_KEYPOINTS
 from omnigen.dataset import Dataset
@@ -85,6 +90,12 @@ class EvalRow:
     conf_threshold: float
     ground_adherence_deg: float = math.nan  # NaN where no matched prediction has a known ground plane
     adherence_objects: int = 0
+    # medians over the labelled corners of the box-matched objects (detector/corner_errors.py); NaN: none
+    corner_error_px: float = math.nan
+    corner_error_rel: float = math.nan  # each corner's error / sqrt(the object's 2D box area)
+    corner_objects: int = 0  # box-matched objects with a labelled corner
+    corner_errors_per_corner: list[float] | None = None  # px medians per corner 0..7 (per_corner=True)
+    corner_errors_rel_per_corner: list[float] | None = None
 
 
 @dataclass
@@ -98,6 +109,7 @@ class EvalReport:
     oks_sigma: float = OKS_SIGMA
     priors_from: str | None = None  # 'train' or 'all frames'; None when adherence was not computed
     lift_failures: int = 0
+    box_match_iou: float = BOX_MATCH_IOU  # the corner errors' matching
     notes: list[str] = field(default_factory=list)
 
     def row(self, group: str) -> EvalRow:
@@ -132,7 +144,10 @@ def _is_number(v: Any) -> bool:
 
 def normalize_predictions(predictions: Sequence[dict[str, Any]], ds: Dataset, image_ids: set[int],
                           n_categories: int, source: str = "<predictions>") -> tuple[list[dict[str, Any]], int]:
-    """Checked copies {image_id, category_id, keypoints, score} of the predictions inside the split.
+    """Checked copies {image_id, category_id, keypoints, score, pred_box} of the predictions inside the split.
+
+    pred_box is the prediction's bbox as x1 y1 x2 y2, None when it has none (the corner errors'
+    box matching then uses its corners' extent).
 
     frame_id wins over image_id when both are given (image ids are positions in one dataset's
     frame order, frame ids survive re-merging). A frame of the dataset outside the evaluated split
@@ -173,10 +188,15 @@ def normalize_predictions(predictions: Sequence[dict[str, Any]], ds: Dataset, im
         score = p.get("score")
         if not _is_number(score):
             raise PredictionError(f"{where}: field 'score': missing or not a finite number")
+        box = p.get("bbox")
+        if box is not None and not (isinstance(box, list) and len(box) == 4 and all(_is_number(v) for v in box)
+                                    and box[2] >= 0 and box[3] >= 0):
+            raise PredictionError(f"{where}: field 'bbox': expected x, y, w, h (four finite numbers, w and h >= 0)")
         if image_id not in image_ids:
             outside += 1
             continue
-        out.append({"image_id": image_id, "category_id": cat, "keypoints": kp, "score": float(score)})
+        out.append({"image_id": image_id, "category_id": cat, "keypoints": kp, "score": float(score),
+                    "pred_box": None if box is None else [box[0], box[1], box[0] + box[2], box[1] + box[3]]})
         rows.append(i)
     _check_keypoint_values(out, rows, source)
     return out, outside
@@ -450,7 +470,7 @@ def adherence_per_detection(ds: Dataset, gt: COCO, anns: list[dict[str, Any]], m
 
 def _row(name: str, images: int, sub_imgs: list, sub: COCOeval, group: Matches,
          angles: dict[int, float]) -> EvalRow:
-    """One row of the report from a group's slice of the evaluation and of the matches."""
+    """One row of the report from a group's slice of the evaluation and of the matches (no corner errors)."""
     if any(r is not None for r in sub_imgs):
         run_quietly(sub.accumulate)
         m, ap50 = ap_numbers(sub.eval["precision"])
@@ -466,9 +486,9 @@ def _row(name: str, images: int, sub_imgs: list, sub: COCOeval, group: Matches,
 
 def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | None = None,
              taxonomy: Taxonomy | str = "fine", adherence: bool = True,
-             source: str = "<predictions>", sizes: bool = True) -> EvalReport:
+             source: str = "<predictions>", sizes: bool = True, per_corner: bool = False) -> EvalReport:
     """Evaluate COCO-results predictions on `split` of `ds` (None: all frames): overall, per source,
-    view and class, and (`sizes`) per object size."""
+    view and class, and (`sizes`) per object size; `per_corner` adds each row's medians per corner."""
     taxonomy = load_taxonomy(taxonomy) if isinstance(taxonomy, str) else taxonomy
     gt_dict = to_coco(ds, split, taxonomy)
     image_ids = {im["id"] for im in gt_dict["images"]}
@@ -513,6 +533,9 @@ def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | No
                                     group, angles))
     if sizes:
         report.rows += _size_rows(gt, dt, angles, e.ious)
+    corners = _corner_errors_by_group(ds, gt_dict, anns)
+    for row in report.rows:
+        _set_corner_errors(row, corners.get(row.group), per_corner)
     if outside:
         report.notes.append(f"{outside} predictions on frames outside split {split!r} were left out")
     if report.lift_failures:
@@ -533,3 +556,41 @@ def _size_rows(gt: COCO, dt: COCO, angles: dict[int, float], known_oks: dict | N
         if len(group.gt_image):
             rows.append(_row(f"size={name}", len(np.unique(group.gt_image)), sub_imgs, sub, group, angles))
     return rows
+
+
+def _corner_errors_by_group(ds: Dataset, gt_dict: dict[str, Any], anns: list[dict[str, Any]]) -> dict[str, CornerErrors]:
+    """Box-matched corner errors of every report group, keyed by the row's group name."""
+    if anns:
+        kp = np.asarray([a["keypoints"] for a in anns], dtype=np.float64).reshape(len(anns), NUM_KEYPOINTS, 3)
+        frames = np.fromiter((a["image_id"] for a in anns), np.int64, len(anns)) - 1
+        boxes = corners_extent_boxes(kp, ds.table.width[frames], ds.table.height[frames])
+        given = [i for i, a in enumerate(anns) if a["pred_box"] is not None]
+        if given:
+            boxes[given] = np.asarray([anns[i]["pred_box"] for i in given], dtype=np.float64)
+    else:
+        boxes = np.zeros((0, 4))
+    gt_anns = gt_dict["annotations"]
+    mc = matched_corners(gt_anns, anns, boxes, max_dets=MAX_DETS)
+    images = {im["id"]: im for im in gt_dict["images"]}
+    matched = [gt_anns[i] for i in mc.gt_index.tolist()]
+    out = {"overall": mc.summary()}
+    for key in ("source", "view"):
+        values = np.asarray([images[a["image_id"]][key] for a in matched], dtype=object)
+        for name in np.unique(values).tolist():
+            out[f"{key}={name}"] = mc.summary(values == name)
+    names = {c["id"]: c["name"] for c in gt_dict["categories"]}
+    cats = np.fromiter((a["category_id"] for a in matched), np.int64, len(matched))
+    for cat_id in np.unique(cats).tolist():
+        out[f"class={names[cat_id]}"] = mc.summary(cats == cat_id)
+    size = np.sqrt(np.fromiter((a["area"] for a in matched), np.float64, len(matched)))
+    for name, (lo, hi) in SIZE_BINS.items():  # inclusive at both ends, as pycocotools' area ranges
+        out[f"size={name}"] = mc.summary((size >= lo) & (size <= hi))
+    return out
+
+
+def _set_corner_errors(row: EvalRow, c: CornerErrors | None, per_corner: bool) -> None:
+    """A row's corner fields; a group without box-matched objects keeps NaN (and NaN per corner)."""
+    c = c or CornerErrors.none()
+    row.corner_error_px, row.corner_error_rel, row.corner_objects = c.px, c.rel, c.objects
+    if per_corner:
+        row.corner_errors_per_corner, row.corner_errors_rel_per_corner = c.per_corner_px, c.per_corner_rel

@@ -236,7 +236,8 @@ def validate(model: KeypointDetector, data: KeypointDataset, split: str | None, 
     preds = predict_frames(model, data, PredictOptions(imgsz=data.size, conf=EVAL_CONF, batch=batch, max_det=1000))
     row = evaluate(data.ds, preds, split=split, taxonomy=data.taxonomy, adherence=False, sizes=False).row("overall")
     return {"oks_map50_95": row.oks_map50_95, "ap_oks50": row.ap_oks50, "precision": row.precision,
-            "recall": row.recall, "f1": row.f1}
+            "recall": row.recall, "f1": row.f1, "corner_error_px": row.corner_error_px,
+            "corner_error_rel": row.corner_error_rel}
 
 
 def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[str, float]], None] | None = None,
