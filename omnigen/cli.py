@@ -1,7 +1,7 @@
 """The `omnigen` command: one entry point, short verbs, a summary table at the end.
 
 Exit codes: 0 success; 1 the command ran and found problems (bad frames skipped, invalid dataset);
-2 usage errors and commands that are not built yet.
+2 usage errors.
 
 The CLI sits on top of everything: it imports the parts (converters, scenes, detector) lazily,
 inside the command that needs them, so `omnigen --help` stays fast and the parts never import it.
@@ -88,7 +88,7 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     yolo.add_argument("--taxonomy", default=None, help="fine, coarse or a TOML file (default: the dataset's)")
     yolo.add_argument("--link", choices=LINK_MODES, default="hardlink", help="how images are placed")
     yolo.set_defaults(func=_run_export_yolo)
-    _add_plugins(formats, EXPORTERS, "export")
+    _add_plugins(formats, EXPORTERS)
 
 
 def _run_export_coco(args: argparse.Namespace) -> int:
@@ -382,31 +382,21 @@ def _add_convert(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("convert", help="convert a public dataset (kitti, dair) into UrbanOmniView")
     names = p.add_subparsers(dest="converter", required=True, metavar="DATASET")
-    _add_plugins(names, CONVERTERS, "convert")
+    _add_plugins(names, CONVERTERS)
 
 
-def _add_plugins(subparsers: argparse._SubParsersAction, registry: dict[str, str], verb: str) -> None:
+def _add_plugins(subparsers: argparse._SubParsersAction, registry: dict[str, str]) -> None:
     """One subcommand per registry entry; the module gives add_arguments(parser) and run(args)."""
     for name, module_name in registry.items():
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name != module_name:
-                raise
-            q = subparsers.add_parser(name, help="(not built yet)")
-            q.set_defaults(func=lambda args, n=name: _say_not_built(f"{verb} {n}".strip()))
-            continue
+        # No fallback for a module that does not import: a missing or broken command is an error
+        # here, not a stub that says "not built yet" (which let a deleted module pass every test).
+        module = importlib.import_module(module_name)
         first = (module.__doc__ or "").strip().splitlines()[0]
         if first[1:2].islower():  # "Train the ..." -> "train the ...", as the built-in verbs read; not "KITTI"
             first = first[:1].lower() + first[1:]
         q = subparsers.add_parser(name, help=first.rstrip("."))
         module.add_arguments(q)
         q.set_defaults(func=module.run)
-
-
-def _say_not_built(what: str) -> int:
-    print(f"omnigen {what}: not built yet.", file=sys.stderr)
-    return 2
 
 
 # ---------------------------------------------------------------------------------------------
@@ -428,7 +418,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_stats(sub)
     _add_show(sub)
     _add_validate(sub)
-    _add_plugins(sub, COMMANDS, "")
+    _add_plugins(sub, COMMANDS)
     return parser
 
 

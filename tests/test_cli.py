@@ -2,20 +2,46 @@
 
 from __future__ import annotations
 
+import argparse
+import importlib
 import subprocess
 import sys
 
+import pytest
+
+from converters import CONVERTERS
 from omnigen import __version__
-from omnigen.cli import build_parser, main
+from omnigen import cli
+from omnigen.cli import COMMANDS, EXPORTERS, build_parser, main
 
 VERBS = ["render", "convert", "merge", "export", "stats", "show", "validate", "train", "predict", "eval", "bev",
          "eval-kitti", "calib-sensitivity"]
 
 
+def _subcommands(parser: argparse.ArgumentParser, dest: str) -> dict[str, argparse.ArgumentParser]:
+    return next(a for a in parser._actions if a.dest == dest).choices
+
+
 def test_every_verb_is_a_subcommand():
     parser = build_parser()
-    sub = next(a for a in parser._actions if a.dest == "command")
-    assert set(VERBS) <= set(sub.choices)
+    sub = _subcommands(parser, "command")
+    assert set(VERBS) <= set(sub)
+    # each plugged-in verb runs its own module's run(), not a stand-in
+    plugged = {**COMMANDS, **{f"export {k}": v for k, v in EXPORTERS.items()},
+               **{f"convert {k}": v for k, v in CONVERTERS.items()}}
+    for verb, module_name in plugged.items():
+        words = verb.split()
+        p = sub[words[0]]
+        if len(words) == 2:
+            p = _subcommands(p, "format" if words[0] == "export" else "converter")[words[1]]
+        assert p.get_default("func") is importlib.import_module(module_name).run, verb
+
+
+def test_a_missing_command_module_is_an_error(monkeypatch):
+    """No "not built yet" stub: a registry entry whose module does not import breaks the parser."""
+    monkeypatch.setitem(cli.COMMANDS, "ghost", "detector.no_such_command")
+    with pytest.raises(ModuleNotFoundError, match="detector.no_such_command"):
+        build_parser()
 
 
 def test_help_does_not_import_torch():

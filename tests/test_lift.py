@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import math
 
@@ -26,7 +25,6 @@ from omnigen.taxonomy import load_taxonomy
 K_EGO = np.array([[721.5, 0.0, 609.6], [0.0, 721.5, 172.9], [0.0, 0.0, 1.0]])
 K_POLE = np.array([[2100.0, 0.0, 960.0], [0.0, 2100.0, 540.0], [0.0, 0.0, 1.0]])
 LEVEL = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # world (x right, y forward, z up) -> level camera
-HAS_KITTI_EVAL = importlib.util.find_spec("detector.kitti_eval") is not None
 
 
 def ego_boxes() -> list[Box3D]:
@@ -242,7 +240,6 @@ def test_sensitivity_writes_folders_and_reports_without_evaluator(fake_ds, tmp_p
                                       for k in range(len(PERTURBATIONS)))
 
 
-@pytest.mark.skipif(not HAS_KITTI_EVAL, reason="detector/kitti_eval.py (another helper's) is not there yet")
 def test_command_end_to_end(fake_ds, tmp_path, capsys):
     path = tmp_path / "pred.json"
     path.write_text(json.dumps(gt_predictions(fake_ds, [0, 1, 2])))
@@ -256,7 +253,6 @@ def test_command_end_to_end(fake_ds, tmp_path, capsys):
     assert "calibration sensitivity" in capsys.readouterr().out
 
 
-@pytest.mark.skipif(not HAS_KITTI_EVAL, reason="detector/kitti_eval.py (another helper's) is not there yet")
 def test_exact_lifts_score_in_3d_what_they_score_in_2d(tmp_path):
     """Lifted lines and exported ground truth agree on KITTI's conventions: with exact corners and
     true sizes, every 3D and BEV match the 2D box match does (a sign or offset slip would zero them)."""

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import math
 from pathlib import Path
@@ -302,7 +301,6 @@ def test_priors_from_all_frames_without_a_train_split_and_no_plane_no_adherence(
     assert unknown.to_dict()["rows"][0]["ground_adherence_deg"] is None
 
 
-@pytest.mark.skipif(importlib.util.find_spec("detector.lift") is None, reason="detector.lift not built yet")
 def test_adherence_with_the_real_lift_is_small_for_true_corners(ds):
     report = evaluate(ds, perfect(ds), split="test")
     r = report.row("overall")

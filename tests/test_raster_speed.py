@@ -57,11 +57,13 @@ def test_wheel_is_the_cylinder_it_replaced():
         assert np.allclose(ref.vertices, got.vertices, atol=1e-12)
 
 
-raster = pytest.importorskip("scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
-
-
 def test_culling_changes_no_pixel(monkeypatch):
+    # Skipped only for the external dependencies (here, not at module level, where it would skip
+    # the pure-numpy tests above too); scenes.raster_backend itself must import.
+    pytest.importorskip("pyrender", reason="pyrender not installed")
+    pytest.importorskip("OpenGL", reason="PyOpenGL not installed")
     from omnigen.geometry import intrinsics_from_fov
+    from scenes import raster_backend as raster
     from scenes.generate import SceneGenerator
 
     scene = SceneGenerator("tiny", 8).frame(8, 1)
