@@ -356,6 +356,27 @@ def test_stats_command(tmp_path, capsys):
     assert 'id="source-kitti"' in page and 'id="view-ego"' in page and "its numbers are those of" in page
 
 
+def test_stats_refuses_an_output_folder_it_did_not_make(tmp_path, capsys):
+    """Issue 27: --out DIR deleted DIR/plots and DIR/gallery whatever DIR was."""
+    write_fake_dataset(tmp_path / "ds", 2, objects_per_frame=1, source="kitti")
+    theirs = tmp_path / "theirs"
+    for sub in ("plots", "gallery"):
+        (theirs / sub).mkdir(parents=True)
+        (theirs / sub / "keep.png").write_bytes(b"someone else's")
+    args = ["stats", str(tmp_path / "ds"), "--gallery", "0", "--no-check-images", "--jobs", "1"]
+    assert main([*args, "--out", str(theirs)]) == 1
+    assert "did not make" in capsys.readouterr().err
+    assert sorted(p.relative_to(theirs).as_posix() for p in theirs.rglob("*")) == [
+        "gallery", "gallery/keep.png", "plots", "plots/keep.png"]
+    # its own folder, and a report from before the marker, are rewritten
+    mine = tmp_path / "mine"
+    assert main([*args, "--out", str(mine)]) == 0
+    assert main([*args, "--out", str(mine)]) == 0
+    (mine / ".omnigen-job").unlink()
+    assert main([*args, "--out", str(mine)]) == 0
+    assert (mine / ".omnigen-job").read_text() == "stats\n"
+
+
 def test_compute_is_vectorised_over_sections(dataset):
     """Sections partition the objects: per-source object counts add up to the total."""
     ds = Dataset.open(dataset, show_progress=False)

@@ -28,6 +28,7 @@ from markupsafe import Markup
 from omnigen import __version__
 from omnigen.dataset import Dataset
 from omnigen.files import atomic_write_text
+from omnigen.ownership import claim_output
 from omnigen.priors import FAR_SIGMA
 from omnigen.stats.compute import OCCLUSION_LEVEL_NAMES, compute_stats, derive
 from omnigen.stats.gallery import write_gallery
@@ -135,12 +136,19 @@ def _plot_job(args: tuple[dict[str, Any], dict[str, Any], str]) -> int:
     return len(plot_section(sec, stats, Path(folder)))
 
 
+def _made_by_stats(folder: Path) -> bool:
+    """A report from before the .omnigen-job marker: its stats.json and index.html are there."""
+    return (folder / "stats.json").is_file() and (folder / "index.html").is_file()
+
+
 def write_report(ds: Dataset, out: str | Path, gallery: int = 6, check_images: bool = True,
                  prior_sigma: float = FAR_SIGMA, seed: int = 0, jobs: int = 1,
                  show_progress: bool = True) -> ReportResult:
     """Compute, check, draw and write the whole report; returns the stats and each step's seconds."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    # The report deletes its own folders below: claimed first, so a folder it did not make (a
+    # dataset, say, given as --out by mistake) is refused with nothing touched.
+    claim_output(out, "stats", _made_by_stats)
     for sub in ("plots", "gallery"):  # the report's own folders: no figure of an older report may linger
         shutil.rmtree(out / sub, ignore_errors=True)
     timings: dict[str, float] = {}
