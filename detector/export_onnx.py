@@ -11,13 +11,24 @@ OPSET = 18
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("weights", help="checkpoint (best.pt or last.pt)")
     p.add_argument("--out", required=True, type=Path, help="FILE.onnx")
-    p.add_argument("--imgsz", type=int, default=640)
+    p.add_argument("--imgsz", type=int, default=None,
+                   help="square input size (default: the size the checkpoint was trained at, 640 if it does not say)")
+    p.add_argument("--dynamic", action="store_true",
+                   help="let height and width vary (any multiple of the largest stride); --imgsz is then the "
+                        "size traced and checked")
     p.add_argument("--check", action=argparse.BooleanOptionalAction, default=True,
                    help="run ONNX Runtime on a random input and compare with PyTorch (tolerance 1e-4)")
 
 
-def export(model, path: Path, imgsz: int) -> None:
-    """Trace `model.infer` at a fixed 1x3xSxS input named `images`, output `output0` (1, 4+nc+24, A)."""
+DYNAMIC_AXES = {"images": {2: "height", 3: "width"}, "output0": {2: "anchors"}}
+
+
+def export(model, path: Path, imgsz: int, dynamic: bool = False) -> None:
+    """Trace `model.infer` at a 1x3xSxS input named `images`, output `output0` (1, 4+nc+24, A).
+
+    Fixed size by default (what most runtimes optimise best); `dynamic` names height, width and
+    the anchor count as free axes, which the graph allows because the model makes no Python-side
+    decision on the traced size."""
     top = model.strides[-1]
     if imgsz <= 0 or imgsz % top:  # checked here: the model skips its own check while it is traced
         raise ValueError(f"--imgsz {imgsz}: the ONNX input must be a positive multiple of the largest stride {top}")
@@ -30,17 +41,20 @@ def export(model, path: Path, imgsz: int) -> None:
 
     buf = io.BytesIO()
     torch.onnx.export(InferenceWrapper(model.eval()), (torch.zeros(1, 3, imgsz, imgsz),), buf, opset_version=OPSET,
-                      input_names=["images"], output_names=["output0"], dynamo=False)
+                      input_names=["images"], output_names=["output0"], dynamo=False,
+                      dynamic_axes=DYNAMIC_AXES if dynamic else None)
     atomic_write_bytes(path, buf.getvalue())
 
 
-def max_difference(model, path: Path, imgsz: int, seed: int = 0) -> float:
-    """Largest absolute difference between ONNX Runtime and PyTorch on a random image."""
+def max_difference(model, path: Path, imgsz: int | tuple[int, int], seed: int = 0) -> float:
+    """Largest absolute difference between ONNX Runtime and PyTorch on a random image of size
+    `imgsz` (square) or (height, width)."""
     import numpy as np
     import onnxruntime as ort
     import torch
 
-    x = np.random.default_rng(seed).random((1, 3, imgsz, imgsz), dtype=np.float32)
+    h, w = (imgsz, imgsz) if isinstance(imgsz, int) else imgsz
+    x = np.random.default_rng(seed).random((1, 3, h, w), dtype=np.float32)
     with torch.inference_mode():
         ref = model.eval().infer(torch.from_numpy(x)).numpy()
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
@@ -50,13 +64,21 @@ def max_difference(model, path: Path, imgsz: int, seed: int = 0) -> float:
 
 def run(args: argparse.Namespace) -> int:
     from detector.checkpoint import load_model
+    from detector.predict import trained_imgsz
     from omnigen.progress import print_table
 
-    model, _ = load_model(args.weights)
-    export(model, args.out, args.imgsz)
-    rows = [("file", str(args.out)), ("input", f"1x3x{args.imgsz}x{args.imgsz}"), ("opset", OPSET)]
+    model, state = load_model(args.weights)
+    # The training size by default: a model exported at another fixed size refuses the images it
+    # was trained on, and sees objects at scales it did not learn.
+    imgsz = trained_imgsz(state) if args.imgsz is None else args.imgsz
+    export(model, args.out, imgsz, args.dynamic)
+    top = model.strides[-1]
+    shape = f"1x3xHxW (multiples of {top}; traced at {imgsz})" if args.dynamic else f"1x3x{imgsz}x{imgsz}"
+    rows = [("file", str(args.out)), ("input", shape), ("opset", OPSET)]
     if args.check:
-        diff = max_difference(model, args.out, args.imgsz)
+        # dynamic: also at a non-square size other than the traced one, the point of the option
+        sizes = [imgsz, (imgsz, imgsz + top)] if args.dynamic else [imgsz]
+        diff = max(max_difference(model, args.out, size) for size in sizes)
         rows.append(("max |ORT - PyTorch|", f"{diff:.2e}"))
         if diff > 1e-4:
             print_table("omnigen export onnx", ["", ""], rows)
