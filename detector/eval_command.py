@@ -1,11 +1,13 @@
 """Keypoint metrics of a checkpoint or a predictions file: overall, per source, view, class and size.
 
     omnigen eval WEIGHTS_OR_PREDICTIONS DATASET [--split test] [--out FILE.json] [--taxonomy fine]
-                 [--imgsz SIZE] [--batch 8] [--no-adherence] [--no-sizes]
+                 [--imgsz SIZE] [--batch 8] [--no-adherence] [--no-sizes] [--per-corner] [--baseline]
 
 A .json argument is a list of predictions in COCO-results form (image_id or frame_id,
-category_id, keypoints: 24 numbers, score); a .pt argument is a checkpoint, run first over the
-split by detector.predict. The metrics and their choices are documented in detector.oks_eval.
+category_id, keypoints: 24 numbers, score, bbox); a .pt argument is a checkpoint, run first over the
+split by detector.predict. The metrics and their choices are documented in detector.oks_eval and
+detector.corner_errors; `--baseline` also scores the box-template baseline (detector.box_template:
+the same boxes, corners placed by the training split's mean layouts) and prints it beside the model.
 """
 
 from __future__ import annotations
@@ -15,11 +17,14 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import orjson
 
 from omnigen.files import atomic_write_bytes
+
+if TYPE_CHECKING:
+    from detector.oks_eval import EvalReport
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,6 +41,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-adherence", action="store_true", help="skip the ground-plane adherence (no 3D lifting)")
     p.add_argument("--no-sizes", action="store_true",
                    help="skip the rows per object size (a second COCOeval pass, reusing the first one's OKS)")
+    p.add_argument("--per-corner", action="store_true",
+                   help="also the median corner errors per corner 0..7 (a table of the overall row's; all rows' in the JSON)")
+    p.add_argument("--baseline", action="store_true",
+                   help="also evaluate the box-template baseline (the predicted boxes with the training split's mean "
+                        "corner layout per class and view); written under 'baseline' in the JSON")
 
 
 def load_predictions(path: Path) -> list[dict[str, Any]]:
@@ -51,6 +61,7 @@ def _cell(v: float) -> float | str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from detector.box_template import evaluate_with_baseline, fit_box_template, training_frames
     from detector.oks_eval import evaluate
     from omnigen.dataset import Dataset, DatasetError
     from omnigen.progress import print_table
@@ -77,8 +88,15 @@ def run(args: argparse.Namespace) -> int:
                                           batch=args.batch)
         else:
             raise ValueError(f"{args.predictions}: expected weights (.pt) or predictions (.json)")
-        report = evaluate(ds, predictions, split=split, taxonomy=taxonomy, adherence=not args.no_adherence,
-                          source=str(args.predictions), sizes=not args.no_sizes)
+        options = dict(adherence=not args.no_adherence, source=str(args.predictions), sizes=not args.no_sizes,
+                       per_corner=args.per_corner)
+        template = baseline = None
+        if args.baseline:
+            frames, fitted_from = training_frames(ds)
+            template = fit_box_template(ds, frames, taxonomy, fitted_from=fitted_from)
+            report, baseline = evaluate_with_baseline(ds, predictions, split, taxonomy, template, **options)
+        else:
+            report = evaluate(ds, predictions, split=split, taxonomy=taxonomy, **options)
     except (ValueError, KeyError, DatasetError, OSError) as exc:
         print(f"omnigen eval: {exc}", file=sys.stderr)
         return 2
@@ -87,18 +105,58 @@ def run(args: argparse.Namespace) -> int:
     print_table(
         f"omnigen eval: {args.predictions.name} on {args.dataset} ({args.split}). mAP: OKS 0.50:0.95, sigma "
         f"{report.oks_sigma}, maxDets {report.max_dets}; P/R/F1 at OKS 0.5 and the best-F1 conf; adh°: mean "
-        f"ground-plane adherence of matched predictions",
-        ["group", "imgs", "objs", "mAP", "AP50", "P", "R", "F1", "conf", "adh°"],
+        f"ground-plane adherence of matched predictions; err px / rel: median corner error of the objects matched "
+        f"by box IoU >= {report.box_match_iou}, in pixels and / sqrt(box area)",
+        ["group", "imgs", "objs", "mAP", "AP50", "P", "R", "F1", "conf", "adh°", "err px", "err rel"],
         [[r.group, r.images, r.objects, *(_cell(v) for v in (r.oks_map50_95, r.ap_oks50, r.precision, r.recall,
-                                                              r.f1, r.conf_threshold, r.ground_adherence_deg))]
+                                                              r.f1, r.conf_threshold, r.ground_adherence_deg,
+                                                              r.corner_error_px, r.corner_error_rel))]
          for r in report.rows])
+    if args.per_corner:
+        print_per_corner(report, baseline)
+    if baseline is not None:
+        print_comparison(report, baseline)
     for note in report.notes:
         print(f"note: {note}")
+    for note in baseline.notes if baseline is not None else []:
+        print(f"note (baseline): {note}")
     if args.out is not None:
         doc = {"report": report.to_dict(),
                "arguments": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
                              if k not in ("func", "command")},
                "wall_s": round(wall, 3)}
+        if baseline is not None:
+            doc["baseline"] = baseline.to_dict()
+            doc["baseline_template"] = template.to_dict()
         atomic_write_bytes(args.out, orjson.dumps(doc, option=orjson.OPT_INDENT_2) + b"\n")
         print(f"wrote {args.out} ({wall:.1f} s)")
     return 0
+
+
+COMPARED = (("mAP50:95", "oks_map50_95"), ("AP50", "ap_oks50"), ("adherence_deg", "ground_adherence_deg"),
+            ("corner_error_px", "corner_error_px"), ("corner_error_rel", "corner_error_rel"))
+
+
+def print_comparison(report: "EvalReport", baseline: "EvalReport") -> None:
+    """The overall rows of the model and of the box-template baseline, metric by metric."""
+    from omnigen.progress import print_table
+
+    m, b = report.row("overall"), baseline.row("overall")
+    print_table("model vs box-template baseline (overall; the model's corners must beat the baseline's)",
+                ["metric", "model", "baseline"],
+                [[label, _cell(getattr(m, name)), _cell(getattr(b, name))] for label, name in COMPARED])
+
+
+def print_per_corner(report: "EvalReport", baseline: "EvalReport | None") -> None:
+    """Median corner errors per corner 0..7 of the overall row (the baseline's too, when evaluated)."""
+    from omnigen.progress import print_table
+
+    rows = []
+    for who, r in (("model", report), ("baseline", baseline)):
+        if r is None:
+            continue
+        o = r.row("overall")
+        rows.append([f"{who} px", *(_cell(v) for v in o.corner_errors_per_corner)])
+        rows.append([f"{who} rel", *(_cell(v) for v in o.corner_errors_rel_per_corner)])
+    print_table("median corner error per corner (overall, box-matched objects)",
+                ["", *(f"corner {i}" for i in range(len(rows[0]) - 1))], rows)

@@ -366,3 +366,131 @@ def test_command_bad_input_exits_2_naming_file_and_field(ds, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "bad.json" in err and "'keypoints'" in err
     assert not (tmp_path / "report.json").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# Corner errors of box-matched objects
+# ---------------------------------------------------------------------------------------------
+
+
+def truth_of(ds: Dataset, split: str | None = "test") -> list[dict]:
+    """The annotations perfect(ds, split) predicts, in its order."""
+    return [a for a in to_coco(ds, split)["annotations"] if a["num_keypoints"]]
+
+
+def shifted(preds: list[dict], offsets: np.ndarray) -> list[dict]:
+    """Every corner of prediction k moved by offsets[k] (2,) or offsets[k] (8, 2); boxes kept."""
+    out = []
+    for p, d in zip(preds, offsets):
+        kp = np.asarray(p["keypoints"], dtype=float).reshape(8, 3)
+        kp[:, :2] += d
+        out.append({**p, "keypoints": kp.ravel().tolist()})
+    return out
+
+
+def expected_medians(truth: list[dict], err: np.ndarray) -> tuple[float, float]:
+    """Median px and px / sqrt(area) over the labelled corners, each object's error err[k] on all of them."""
+    n = np.asarray([a["num_keypoints"] for a in truth])
+    scale = np.sqrt([a["area"] for a in truth])
+    return float(np.median(np.repeat(err, n))), float(np.median(np.repeat(err / scale, n)))
+
+
+def test_corner_errors_of_known_offsets_per_row(ds):
+    truth = truth_of(ds)
+    k = np.arange(len(truth))
+    err = 5.0 * (1 + k % 3)  # 3-4-5 triangles: 5, 10 and 15 px on every corner
+    preds = shifted(perfect(ds), np.stack([0.6 * err, 0.8 * err], axis=1))
+    report = evaluate(ds, preds, split="test", adherence=False)
+    overall = report.row("overall")
+    assert overall.corner_objects == len(truth) == overall.objects
+    assert (overall.corner_error_px, overall.corner_error_rel) == pytest.approx(expected_medians(truth, err))
+    views = {im["id"]: im["view"] for im in to_coco(ds, "test")["images"]}
+    aerial = np.asarray([views[a["image_id"]] == "aerial" for a in truth])
+    row = report.row("view=aerial")
+    assert row.corner_objects == aerial.sum() > 0
+    assert (row.corner_error_px, row.corner_error_rel) == pytest.approx(
+        expected_medians([a for a, s in zip(truth, aerial) if s], err[aerial]))
+    cat = truth[0]["category_id"]
+    name = next(c["name"] for c in to_coco(ds)["categories"] if c["id"] == cat)
+    of_cat = np.asarray([a["category_id"] == cat for a in truth])
+    assert report.row(f"class={name}").corner_error_rel == pytest.approx(
+        expected_medians([a for a, s in zip(truth, of_cat) if s], err[of_cat])[1])
+    sizes = [r for r in report.rows if r.group.startswith("size=")]
+    assert sum(r.corner_objects for r in sizes) == len(truth)
+    assert report.row("overall").corner_errors_per_corner is None  # only when asked
+
+
+def test_unmatched_and_wrong_class_predictions_leave_the_corner_errors(ds):
+    truth = truth_of(ds)
+    preds = shifted(perfect(ds), np.tile([3.0, 4.0], (len(truth), 1)))  # 5 px on every corner
+    for p in preds[:4]:  # the box moved off its object: corners 60 px off, box IoU 0
+        p["keypoints"] = (np.asarray(p["keypoints"]) + np.tile([60.0, 0.0, 0.0], 8)).tolist()
+        p["bbox"] = [p["bbox"][0] + 1000, *p["bbox"][1:]]
+    n_cat = len(to_coco(ds)["categories"])
+    for p in preds[4:7]:  # the right box and far corners, the wrong class
+        p["keypoints"] = (np.asarray(p["keypoints"]) + np.tile([60.0, 0.0, 0.0], 8)).tolist()
+        p["category_id"] = p["category_id"] % n_cat + 1
+    r = evaluate(ds, preds, split="test", adherence=False).row("overall")
+    assert r.corner_objects == len(truth) - 7
+    assert (r.corner_error_px, r.corner_error_rel) == pytest.approx(expected_medians(truth[7:], np.full(len(truth) - 7, 5.0)))
+    nothing = evaluate(ds, preds[:4], split="test", adherence=False).row("overall")
+    assert nothing.corner_objects == 0 and math.isnan(nothing.corner_error_px) and math.isnan(nothing.corner_error_rel)
+    assert evaluate(ds, preds[:4], split="test", adherence=False).to_dict()["rows"][0]["corner_error_px"] is None
+
+
+def test_box_matching_is_greedy_by_score_one_prediction_per_object(ds):
+    truth = truth_of(ds)
+    base = perfect(ds)
+    good = shifted(base, np.tile([0.6, 0.8], (len(truth), 1)))  # 1 px
+    bad = [{**p, "score": 0.5} for p in shifted(base, np.tile([6.0, 8.0], (len(truth), 1)))]  # 10 px, lower score
+    r = evaluate(ds, bad + good, split="test", adherence=False).row("overall")
+    assert r.corner_objects == len(truth) and r.corner_error_px == pytest.approx(1.0)
+    first = [{**p, "score": 0.95} for p in bad]  # now the 10-px duplicates come first
+    assert evaluate(ds, first + good, split="test", adherence=False).row("overall").corner_error_px == pytest.approx(10.0)
+
+
+def test_per_corner_medians_when_asked(ds):
+    truth = truth_of(ds)
+    offsets = np.zeros((len(truth), 8, 2))
+    offsets[:, 3] = [6.0, 8.0]  # corner 3 alone is 10 px off
+    report = evaluate(ds, shifted(perfect(ds), offsets), split="test", adherence=False, per_corner=True)
+    r = report.row("overall")
+    assert r.corner_errors_per_corner == pytest.approx([0, 0, 0, 10.0, 0, 0, 0, 0])
+    labelled3 = [a for a in truth if a["keypoints"][3 * 3 + 2] > 0]
+    assert r.corner_errors_rel_per_corner[3] == pytest.approx(np.median([10.0 / math.sqrt(a["area"]) for a in labelled3]))
+    assert r.corner_error_px == 0.0  # seven corners in eight are exact
+    assert all(len(row.corner_errors_per_corner) == 8 for row in report.rows)
+
+
+def test_prediction_without_a_box_is_matched_by_its_corners_and_a_bad_box_is_an_error(ds):
+    preds = [{k: v for k, v in p.items() if k != "bbox"} for p in perfect(ds)]
+    r = evaluate(ds, preds, split="test", adherence=False).row("overall")
+    assert r.corner_objects > 0.8 * r.objects and r.corner_error_px == 0.0
+    bad = perfect(ds)[:2]
+    bad[1]["bbox"] = [0, 0, -3, 4]
+    with pytest.raises(PredictionError, match=r"preds\.json: prediction 1: field 'bbox'"):
+        evaluate(ds, bad, split="test", adherence=False, source="preds.json")
+
+
+def test_command_prints_corner_errors_per_corner_and_the_baseline(ds, tmp_path, capsys, monkeypatch):
+    from omnigen import progress
+
+    monkeypatch.setattr(progress.console, "_width", 250)
+    path = tmp_path / "preds.json"
+    path.write_text(json.dumps(perfect(ds)))
+    assert eval_command.run(_args(tmp_path, path, ds.root, no_adherence=True, no_sizes=True, per_corner=True,
+                                  baseline=True)) == 0
+    out = capsys.readouterr().out
+    assert "err px" in out and "err rel" in out
+    assert "corner 0" in out and "corner 7" in out
+    comparison = out[out.index("model vs box-template baseline"):]
+    assert "mAP50:95" in comparison and "corner_error_rel" in comparison
+    doc = json.loads((tmp_path / "report.json").read_text())
+    model = {r["group"]: r for r in doc["report"]["rows"]}
+    base = {r["group"]: r for r in doc["baseline"]["rows"]}
+    assert set(model) == set(base) and "view=aerial" in base
+    assert model["overall"]["corner_error_px"] == 0.0 and base["overall"]["corner_error_px"] > 0.5
+    assert base["overall"]["oks_map50_95"] < model["overall"]["oks_map50_95"] == pytest.approx(1.0)
+    assert len(model["overall"]["corner_errors_per_corner"]) == 8
+    assert doc["baseline_template"]["fitted_from"] == "train"
+    assert any("box-template baseline" in n for n in doc["baseline"]["notes"])
