@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from detector.blocks import DSConv
-from detector.outputs import REG_MAX, HeadOutput, make_anchors
+from detector.outputs import KPT_MODES, REG_MAX, HeadOutput, make_anchors
 from omnigen.conventions import NUM_KEYPOINTS
 
 KPT_OUTPUTS = NUM_KEYPOINTS * 3
@@ -36,10 +36,13 @@ class KeypointHead(nn.Module):
     """Per-level box / class / keypoint branches over the neck outputs (finest level first)."""
 
     def __init__(self, in_channels: list[int], strides: list[int], num_classes: int, ref_channels: int,
-                 reg_max: int = REG_MAX):
+                 reg_max: int = REG_MAX, kpt_mode: str = "anchor"):
         super().__init__()
         if len(in_channels) != len(strides):
             raise ValueError(f"head: {len(in_channels)} input levels but {len(strides)} strides")
+        if kpt_mode not in KPT_MODES:
+            raise ValueError(f"head: kpt_mode {kpt_mode!r} is not one of {', '.join(KPT_MODES)}")
+        self.kpt_mode = kpt_mode
         self.num_classes = num_classes
         self.reg_max = reg_max
         self.strides = list(strides)
@@ -67,4 +70,4 @@ class KeypointHead(nn.Module):
         kpt = torch.cat([m(x).view(b, KPT_OUTPUTS, -1) for m, x in zip(self.kpt, feats)], 2)
         shapes = [(x.shape[2], x.shape[3]) for x in feats]
         anchors, strides = make_anchors(shapes, self.strides, device=box.device, dtype=box.dtype)
-        return HeadOutput(box=box, cls=cls, kpt=kpt, anchors=anchors, strides=strides)
+        return HeadOutput(box=box, cls=cls, kpt=kpt, anchors=anchors, strides=strides, kpt_mode=self.kpt_mode)

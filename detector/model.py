@@ -20,7 +20,7 @@ from detector.backbones import BACKBONES, build_backbone
 from detector.blocks import fuse_batchnorm
 from detector.head import KeypointHead
 from detector.neck import PAN
-from detector.outputs import REG_MAX, HeadOutput, decode
+from detector.outputs import KPT_MODES, REG_MAX, HeadOutput, decode
 from omnigen.conventions import FINE_CLASSES
 
 SCALE_NAMES = ("n", "s", "m", "l", "x")
@@ -52,6 +52,7 @@ class DetectorConfig:
     depth: float | None = None
     max_channels: int | None = None
     reg_max: int = REG_MAX
+    kpt_mode: str = "anchor"  # how corners decode: offsets from the anchor, or in units of the box (outputs.py)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -70,6 +71,8 @@ class DetectorConfig:
             raise ValueError(f"DetectorConfig.depth: must be > 0, got {self.depth!r}")
         if self.max_channels is not None and self.max_channels < 8:
             raise ValueError(f"DetectorConfig.max_channels: must be >= 8, got {self.max_channels!r}")
+        if self.kpt_mode not in KPT_MODES:
+            raise ValueError(f"DetectorConfig.kpt_mode: {self.kpt_mode!r} is not one of {', '.join(KPT_MODES)}")
         if self.reg_max != REG_MAX:
             raise ValueError(f"DetectorConfig.reg_max: decoding is built for {REG_MAX} bins, got {self.reg_max}")
 
@@ -110,7 +113,8 @@ class KeypointDetector(nn.Module):
         self.backbone = build_backbone(cfg.backbone, width, depth, max_channels, cfg.p6, heavy)
         self.neck = PAN(self.backbone.channels, self.strides, cfg.backbone, width, depth, max_channels, heavy)
         chans = [self.neck.out_channels[s] for s in self.strides]
-        self.head = KeypointHead(chans, self.strides, cfg.num_classes, self.neck.out_channels[8], cfg.reg_max)
+        self.head = KeypointHead(chans, self.strides, cfg.num_classes, self.neck.out_channels[8], cfg.reg_max,
+                                 cfg.kpt_mode)
 
     def forward(self, images: torch.Tensor) -> HeadOutput:
         top = self.strides[-1]

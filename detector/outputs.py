@@ -19,6 +19,9 @@ from omnigen.conventions import NUM_KEYPOINTS
 REG_MAX = 16
 """Bins of the distribution focal loss: each box side is a distribution over 0..REG_MAX-1 strides."""
 
+KPT_MODES = ("anchor", "box")
+"""How the keypoint branch's raw x, y outputs become corners (decode_keypoints says why there are two)."""
+
 
 @dataclass
 class HeadOutput:
@@ -29,6 +32,7 @@ class HeadOutput:
     kpt: torch.Tensor  # (B, NUM_KEYPOINTS * 3, A) per corner: x offset, y offset, visibility logit
     anchors: torch.Tensor  # (A, 2) anchor centres in input pixels ((i + 0.5) * stride)
     strides: torch.Tensor  # (A,) stride of each anchor's level
+    kpt_mode: str = "anchor"  # KPT_MODES: how `kpt` decodes (decode_keypoints)
 
     @property
     def num_classes(self) -> int:
@@ -63,16 +67,37 @@ def decode_boxes(box: torch.Tensor, anchors: torch.Tensor, strides: torch.Tensor
     return torch.cat([centre - ltrb[:, :2], centre + ltrb[:, 2:]], 1)
 
 
-def decode_keypoints(kpt: torch.Tensor, anchors: torch.Tensor, strides: torch.Tensor) -> torch.Tensor:
+def decode_keypoints(kpt: torch.Tensor, anchors: torch.Tensor, strides: torch.Tensor,
+                     boxes: torch.Tensor | None = None) -> torch.Tensor:
     """Raw keypoint outputs -> (B, NUM_KEYPOINTS, 3, A): x, y in input pixels and visibility logit.
 
-    x = anchor_x + 2 * raw_x * stride: an unbounded offset, so that corners of truncated objects
-    outside the image (real targets in the record) stay reachable.
+    Without `boxes` ('anchor' mode): x = anchor_x + 2 * raw_x * stride, an unbounded offset, so
+    that corners of truncated objects outside the image (real targets in the record) stay
+    reachable. Its targets grow with the object: a 100-pixel car seen from a stride-4 anchor needs
+    raw offsets of about 6, which a freshly initialised branch (outputs near 0) reaches slowly.
+
+    With `boxes` (B, 4, A), the anchor's decoded xyxy box ('box' mode): x = centre_x + raw_x *
+    width (y with the height), the corner in units of the box around the box's centre. The raw
+    targets are then the object's corner layout, about -0.7..0.7 whatever its size, and a fresh
+    branch starts every corner at the box centre: the branch learns a shape, not a scale. Still
+    unbounded, so out-of-image corners stay reachable. The box's size is floored at one stride so a
+    degenerate early box cannot zero the corners' gradient.
     """
     b, _, a = kpt.shape
     k = kpt.view(b, NUM_KEYPOINTS, 3, a)
-    xy = anchors.T.view(1, 1, 2, a) + k[:, :, :2] * 2.0 * strides.view(1, 1, 1, a)
+    if boxes is None:
+        xy = anchors.T.view(1, 1, 2, a) + k[:, :, :2] * 2.0 * strides.view(1, 1, 1, a)
+    else:
+        centre = (boxes[:, :2] + boxes[:, 2:]) / 2  # (B, 2, A)
+        size = torch.maximum(boxes[:, 2:] - boxes[:, :2], strides.view(1, 1, a))
+        xy = centre.unsqueeze(1) + k[:, :, :2] * size.unsqueeze(1)
     return torch.cat([xy, k[:, :, 2:]], 2)
+
+
+def head_keypoints(out: HeadOutput, boxes: torch.Tensor) -> torch.Tensor:
+    """decode_keypoints in the head's own mode; `boxes` (B, 4, A) are its decoded boxes (used in
+    'box' mode only: the loss passes them detached, so corners do not pull the box)."""
+    return decode_keypoints(out.kpt, out.anchors, out.strides, boxes if out.kpt_mode == "box" else None)
 
 
 def decode(out: HeadOutput) -> torch.Tensor:
@@ -80,6 +105,6 @@ def decode(out: HeadOutput) -> torch.Tensor:
     and per corner x, y, visibility score (sigmoid). NMS is applied outside (detector/nms.py)."""
     boxes = decode_boxes(out.box, out.anchors, out.strides)
     scores = out.cls.sigmoid()
-    k = decode_keypoints(out.kpt, out.anchors, out.strides)
+    k = head_keypoints(out, boxes)
     k = torch.cat([k[:, :, :2], k[:, :, 2:].sigmoid()], 2)
     return torch.cat([boxes, scores, k.flatten(1, 2)], 1)

@@ -9,8 +9,8 @@ import torch
 
 from detector.assign import TaskAlignedAssigner
 from detector.boxes import bbox2dist, box_ciou, box_iou, box_iou_pairwise, dist2bbox
-from detector.loss import PARTS, DetectionLoss, LossGains, oks_keypoint_loss
-from detector.outputs import REG_MAX, HeadOutput, make_anchors
+from detector.loss import PARTS, DetectionLoss, LossGains, keypoint_l1_loss, oks_keypoint_loss
+from detector.outputs import REG_MAX, HeadOutput, decode_keypoints, make_anchors
 
 SIGMA = 0.125
 
@@ -129,13 +129,13 @@ def _anchors():
     return make_anchors([(8, 8), (4, 4), (2, 2)], [8, 16, 32])
 
 
-def _head(b, nc, a, seed=0, requires_grad=True):
+def _head(b, nc, a, seed=0, requires_grad=True, kpt_mode="anchor"):
     g = torch.Generator().manual_seed(seed)
     anchors, strides = _anchors()
     box = (torch.randn(b, 4 * REG_MAX, a, generator=g) * 0.1).requires_grad_(requires_grad)
     cls = (torch.randn(b, nc, a, generator=g) * 0.1 - 4).requires_grad_(requires_grad)
     kpt = (torch.randn(b, 24, a, generator=g) * 0.1).requires_grad_(requires_grad)
-    return HeadOutput(box=box, cls=cls, kpt=kpt, anchors=anchors, strides=strides)
+    return HeadOutput(box=box, cls=cls, kpt=kpt, anchors=anchors, strides=strides, kpt_mode=kpt_mode)
 
 
 def _targets():
@@ -289,3 +289,73 @@ def test_assigner_matches_brute_force_reference():
                          mask.tolist(), topk=5)
     got = {(b, i): int(res.target_gt_idx[b, i]) for b, i in res.fg_mask.nonzero().tolist()}
     assert len(want) > 10 and got == want
+
+
+def test_l1_loss_matches_hand_computation(oks_case):
+    pred, gt, mask, area = oks_case
+    expected, n = 0.0, 0
+    for p_i, g_i, m_i, a_i in zip(pred.tolist(), gt.tolist(), mask.tolist(), area.tolist()):
+        if not any(m_i):
+            continue
+        errs = [(abs(px - gx) + abs(py - gy)) / math.sqrt(a_i) for (px, py), (gx, gy), m in zip(p_i, g_i, m_i) if m]
+        expected += sum(errs) / len(errs)
+        n += 1
+    assert float(keypoint_l1_loss(pred, gt, mask, area)) == pytest.approx(expected / n, rel=1e-9)
+
+
+def test_l1_term_pulls_corners_the_oks_kernel_has_let_go():
+    """A corner 3 sqrt(a) from its target: the OKS loss (sigma 0.25) gives it ~no gradient, the L1 term
+    a full one, so only with kpt_l1 > 0 does it move."""
+    gt = torch.zeros(1, 8, 2)
+    pred = torch.full((1, 8, 2), 30.0, requires_grad=True)
+    mask, area = torch.ones(1, 8, dtype=torch.bool), torch.tensor([100.0])
+    oks_keypoint_loss(pred, gt, mask, area, sigma=0.25).backward()
+    oks_grad = pred.grad.abs().max().item()
+    pred.grad = None
+    keypoint_l1_loss(pred, gt, mask, area).backward()
+    assert oks_grad < 1e-20 < pred.grad.abs().min().item()
+    assert pred.grad.abs().min().item() == pytest.approx(1 / (8 * 10))
+
+
+def test_box_mode_decodes_corners_in_units_of_the_box():
+    anchors, strides = _anchors()
+    a = anchors.shape[0]
+    boxes = torch.zeros(1, 4, a)
+    boxes[0, :, 0] = torch.tensor([10.0, 20.0, 50.0, 40.0])  # 40 x 20 around (30, 30)
+    kpt = torch.zeros(1, 24, a)
+    kpt[0, 0:2, 0] = torch.tensor([0.5, -0.5])  # corner 0: the box's top-right
+    kpt[0, 3:5, 0] = torch.tensor([-1.0, 0.0])  # corner 1: half a box left of its left edge
+    k = decode_keypoints(kpt, anchors, strides, boxes)
+    assert k[0, 0, :2, 0].tolist() == [50.0, 20.0] and k[0, 1, :2, 0].tolist() == [-10.0, 30.0]
+    assert k[0, 2, :2, 0].tolist() == [30.0, 30.0]  # raw 0: the box centre
+    # a degenerate box still scales the offsets by at least a stride
+    assert decode_keypoints(kpt, anchors, strides, torch.zeros(1, 4, a))[0, 1, 0, 0].item() == -strides[0].item()
+
+
+@pytest.mark.parametrize("kpt_mode,kpt_l1", [("box", 0.0), ("box", 2.0), ("anchor", 2.0)])
+def test_free_head_outputs_learn_the_targets_in_every_mode(kpt_mode, kpt_l1):
+    torch.manual_seed(0)
+    a = _anchors()[0].shape[0]
+    out = _head(2, 3, a, kpt_mode=kpt_mode)
+    opt = torch.optim.Adam([out.box, out.cls, out.kpt], lr=0.05)
+    loss_fn = DetectionLoss(3, gains=LossGains(kpt_l1=kpt_l1))
+    t = _targets()
+    first, first_parts = loss_fn(out, t)
+    for _ in range(100):
+        opt.zero_grad()
+        total, parts = loss_fn(out, t)
+        total.backward()
+        opt.step()
+    assert parts["kpt"] < 0.2 * first_parts["kpt"] and parts["kpt_l1"] < 0.3 * first_parts["kpt_l1"]
+    assert parts["box"] < 0.5 * first_parts["box"]
+
+
+def test_box_mode_corners_do_not_pull_the_box():
+    """In 'box' mode the loss decodes corners on the detached box: the keypoint terms alone give the
+    box logits no gradient."""
+    a = _anchors()[0].shape[0]
+    out = _head(2, 3, a, kpt_mode="box")
+    loss_fn = DetectionLoss(3, gains=LossGains(box=0, dfl=0, cls=0, kvis=0, kpt=6.0, kpt_l1=2.0))
+    total, _ = loss_fn(out, _targets())
+    total.backward()
+    assert out.kpt.grad.abs().sum() > 0 and (out.box.grad is None or out.box.grad.abs().sum() == 0)

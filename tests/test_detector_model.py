@@ -118,6 +118,23 @@ def test_config_errors():
         DetectorConfig.from_dict({"scale": "n", "colour": "red"})
     with pytest.raises(ValueError, match="multiple of the largest stride"):
         tiny()(torch.rand(1, 3, 48, 64))
+    with pytest.raises(ValueError, match="kpt_mode.*anchor, box"):
+        DetectorConfig(kpt_mode="centre")
+
+
+def test_box_mode_model_puts_fresh_corners_at_its_box_centres():
+    """A 'box'-mode checkpoint's config says so, and its inference tensor decodes the corners in
+    units of each anchor's own box: a fresh head (raw outputs near 0) predicts them near the centre."""
+    model = KeypointDetector(DetectorConfig.from_dict({**tiny().cfg.to_dict(), "kpt_mode": "box"})).eval()
+    with torch.no_grad():
+        torch.nn.init.zeros_(model.head.kpt[0][-1].weight)
+        torch.nn.init.zeros_(model.head.kpt[0][-1].bias)
+        y = model.infer(torch.rand(1, 3, 64, 64))
+    nc = model.cfg.num_classes
+    first = y[0, :, 0]  # an anchor of the first level, whose kpt branch now outputs exactly 0
+    centre = (first[:2] + first[2:4]) / 2
+    corners = first[4 + nc:].view(8, 3)[:, :2]
+    assert torch.allclose(corners, centre.expand(8, 2), atol=1e-5)
 
 
 def test_gradient_reaches_every_parameter():
