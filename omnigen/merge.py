@@ -45,7 +45,7 @@ from omnigen.dataset import (
     write_index,
 )
 from omnigen.files import atomic_write_bytes, atomic_write_json, dumps_json, link_file
-from omnigen.ownership import claim_output, manifest_of
+from omnigen.ownership import claim_output, manifest_of, output_lock
 from omnigen.progress import progress
 from omnigen.splits import SPLITS_DIR, assign_test_split, read_assignments, read_id_list, write_split
 from omnigen.taxonomy import Taxonomy, load_taxonomy, recorded_taxonomy
@@ -59,6 +59,7 @@ class MergeReport:
     duplicate_frames: int = 0
     by_source: Counter = field(default_factory=Counter)
     by_split: Counter = field(default_factory=Counter)
+    test_fraction: float = 0.0  # the share asked for; by_split says what the whole groups gave
     link_modes: Counter = field(default_factory=Counter)
     seconds: float = 0.0
     unmatched_lines: Counter = field(default_factory=Counter)  # split file -> lines naming no frame
@@ -121,9 +122,19 @@ def merge(
     link: str = "hardlink",
 ) -> MergeReport:
     """Merge `sources` into `out`. Unset options default to fine, 0.10 and 0; under `update`, to the
-    earlier merge's, so that adding a source does not change the classes or the draw of the rest."""
-    start = time.perf_counter()
+    earlier merge's, so that adding a source does not change the classes or the draw of the rest.
+
+    The whole merge holds the lock on `out`: a second merge into it at the same time fails at once.
+    """
     out = Path(out)
+    claim_output(out, "merge", _made_by_merge, mark=False)  # a folder not ours is refused before the lock makes it
+    with output_lock(out, "merge"):
+        return _merge(sources, out, taxonomy, test_fraction, seed, split_files, update, link)
+
+
+def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fraction: float | None,
+           seed: int | None, split_files: list[Path] | None, update: bool, link: str) -> MergeReport:
+    start = time.perf_counter()
     previous = _prepare_out(out, update)
     earlier_merge = previous.get("merge", {})
     taxonomy = taxonomy or (recorded_taxonomy(previous) if update else load_taxonomy("fine"))
@@ -249,6 +260,7 @@ def merge(
     for name, ids in sorted(by_split.items()):
         write_split(out, name, ids)
     report.by_split = Counter({k: len(v) for k, v in by_split.items()})
+    report.test_fraction = test_fraction
     extra = {
         "name": out.name,
         "taxonomy": taxonomy.to_dict(),

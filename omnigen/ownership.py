@@ -5,12 +5,18 @@ earlier run of theirs left there and the new one no longer holds (records of fra
 pixels no longer used). Pointed at any other folder, say an unfinished render mistyped as
 `--out`, that would destroy data. So each such job first claims its folder with a marker file
 naming the job, and refuses a folder that holds anything it cannot tell is its own.
+
+The marker says whose a folder is, not who is writing it now: two merges into one folder at once
+each found it their own and together left no images. `output_lock` makes a job the only writer.
 """
 
 from __future__ import annotations
 
+import fcntl
+import os
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from omnigen.dataset import DatasetError, read_manifest
 from omnigen.files import atomic_write_text
@@ -50,3 +56,36 @@ def claim_output(out: str | Path, job: str, made_by_job: Callable[[Path], bool],
                                "them (choose a new or empty folder)")
     if mark:
         atomic_write_text(marker, job + "\n")
+
+
+@contextmanager
+def output_lock(out: str | Path, job: str) -> Iterator[None]:
+    """Hold an exclusive lock on the folder `out` (created if missing) while the block runs.
+
+    The lock is flock(2) on the folder itself, so no lock file is left in it or beside it, and the
+    kernel drops it when the process dies (a killed job never leaves a stale lock). A second job
+    that finds the folder locked fails at once rather than wait: two runs into one output are a
+    mistake to report, not a queue. A folder this call created is removed again when the block
+    fails and leaves it empty.
+    """
+    out = Path(out)
+    made = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    fd = os.open(out, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise DatasetError(f"{out}: another job is writing this folder now (it is locked); wait for it to "
+                               f"end or choose another --out for 'omnigen {job}'") from None
+        try:
+            yield
+        except BaseException:
+            if made:
+                try:
+                    out.rmdir()  # only when empty
+                except OSError:
+                    pass
+            raise
+    finally:
+        os.close(fd)  # releases the lock

@@ -72,7 +72,8 @@ def assign_test_split(
     (e.g. "kitti/ego"); fixed: assignments to keep (from a split file or an earlier merge); a group
     with any fixed frame follows it. Free groups are visited in seeded-hash order and each joins the
     test set when that brings the test frames of the strata it touches closer to
-    round(fraction * stratum size).
+    round(fraction * stratum size). With a fraction above 0 and two or more groups, the test set
+    holds at least one group.
     """
     if not 0.0 <= fraction < 1.0:
         raise ValueError(f"--test-fraction must be in [0, 1), got {fraction}")
@@ -111,4 +112,11 @@ def assign_test_split(
             out[f] = side
         if side == TEST:
             in_test.update(adds)
+    if fraction > 0 and free and len(members) >= 2 and TEST not in out.values():
+        # Groups larger than the whole target (19 frames in groups of 10 at 0.1) would leave no
+        # test split at all, and `export --split test` would then fail: with two or more groups
+        # the smallest free one is held out (the seeded order breaks ties), the rest train.
+        g = min(free, key=lambda g: (len(members[g]), _rank(seed, g)))
+        for f in members[g]:
+            out[f] = TEST
     return out

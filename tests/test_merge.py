@@ -308,3 +308,44 @@ def test_a_taxonomy_read_back_from_a_manifest_keeps_its_class_order():
         stored = json.loads(json.dumps({"taxonomy": t.to_dict()}, sort_keys=True))
         assert recorded_taxonomy(stored).classes == t.classes
         assert Taxonomy.from_dict(stored["taxonomy"]).class_id("pedestrian") == t.class_id("pedestrian")
+
+
+def test_a_small_merge_of_several_groups_has_a_test_split(tmp_path, capsys):
+    """Issue 27: 19 frames in groups of 10 and 9 at --test-fraction 0.1 made no test split at all
+    (each group is larger than the whole target), and `export --split test` then failed."""
+    src = write_fake_dataset(tmp_path / "kit", n_frames=19, objects_per_frame=2, seed=3, source="kitti").root
+    out = tmp_path / "uov"
+    assert cli(["merge", str(src), "--out", str(out), "--test-fraction", "0.1"]) == 0
+    test = read_split(out, "test")
+    assert test and len(test) < 19
+    ds = Dataset.open(out)
+    test_groups = {ds.table.group[ds.index_of(f)] for f in test}
+    assert all(ds.table.group[i] not in test_groups for i in range(len(ds)) if ds.table.frame_id[i] not in test)
+    assert f"test split: {len(test)} of 19 frames ({len(test) / 19:.3f}; asked 0.1)" in capsys.readouterr().out
+    assert cli(["export", "coco", str(out), "--split", "test", "--out", str(tmp_path / "test.json")]) == 0
+    # one group only: nothing can be held out without emptying train
+    one = write_fake_dataset(tmp_path / "one", n_frames=5, objects_per_frame=1, seed=4, source="kitti").root
+    assert merge([one], tmp_path / "uov1", test_fraction=0.1).by_split == {"train": 5}
+
+
+def test_a_second_merge_into_a_locked_folder_fails_and_touches_nothing(sources, tmp_path):
+    import fcntl
+    import os
+
+    out = tmp_path / "uov"
+    merge([sources[1]], out)
+    before = _tree_bytes(out)
+    fd = os.open(out, os.O_RDONLY | os.O_DIRECTORY)  # as a merge running in another process holds it
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(DatasetError, match="another job is writing this folder now"):
+            merge(list(sources), out)
+        assert cli(["merge", str(sources[0]), "--out", str(out)]) == 1
+    finally:
+        os.close(fd)
+    assert _tree_bytes(out) == before
+    assert merge(list(sources), out).frames == 150  # the lock is gone with its holder
+    # a merge that fails on its inputs leaves no folder it made
+    with pytest.raises(DatasetError):
+        merge([tmp_path / "no-such-source"], tmp_path / "new")
+    assert not (tmp_path / "new").exists()
