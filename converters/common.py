@@ -24,9 +24,11 @@ from typing import Any, Callable, Hashable, Iterator, Sequence
 
 from omnigen.dataset import DatasetWriter, IndexRows
 from omnigen.files import LINK_MODES, atomic_write_bytes, link_file
+from omnigen.images import ImageError, check_image
 from omnigen.ownership import claim_output, manifest_of
 from omnigen.progress import print_table, progress
 from omnigen.record import FrameRecord, RecordError
+from omnigen.untrusted import UntrustedFileError, read_regular, resolve_inside
 
 
 class SourceError(ValueError):
@@ -41,6 +43,55 @@ class SourceError(ValueError):
     def __reduce__(self) -> tuple[Any, ...]:
         # Rebuilt from its three parts, so that it crosses a process boundary (workers > 1).
         return (type(self), (self.file, self.where, self.message))
+
+
+TEXT_FILE_MAX_BYTES = 8 * 2**20
+"""Largest label, calibration or other per-frame text file a converter reads. A KITTI label line is
+under 100 bytes and a DAIR-V2X label object under 1 kB, so 8 MiB holds thousands of objects; the cap
+exists so that a path to a huge file (or one that never ends) costs a skip, not the machine's memory."""
+
+
+def source_path(root: str | Path, path: str | Path, frame: str, named_by: str = "") -> Path:
+    """`path` (relative to root, or absolute) with links resolved, refused unless it lies inside root.
+
+    A source names its own files; without this, `../../x`, `/etc/x` or a link out of the tree would
+    be read, or (an image) hard-linked into the output. The error names the frame and who named
+    the path (`named_by`, e.g. the data_info.json field).
+    """
+    try:
+        return resolve_inside(root, path)
+    except UntrustedFileError as exc:
+        raise SourceError(path, "", f"frame {frame}: {exc.message}; only files inside the source folder are "
+                          f"read{f' ({named_by})' if named_by else ''}") from None
+
+
+def read_source_bytes(path: str | Path, max_bytes: int = TEXT_FILE_MAX_BYTES, named_by: str = "") -> bytes:
+    """A source file's bytes: a regular file of at most max_bytes, else a SourceError naming it.
+
+    A missing file stays FileNotFoundError, so that each converter says who expected it.
+    """
+    try:
+        return read_regular(path, max_bytes)
+    except UntrustedFileError as exc:
+        raise SourceError(path, "", f"{exc.message}{f' ({named_by})' if named_by else ''}") from None
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise SourceError(path, "", f"cannot read: {exc.strerror or exc}") from None
+
+
+def source_image_size(source: Path | bytes, file: str | Path) -> tuple[int, int]:
+    """(width, height) of a whole image (omnigen.images.check_image: pixel cap, full decode).
+
+    The header alone is not trusted: a truncated file keeps its header and would fail only in
+    training, and a tiny file can claim a size that takes gigabytes to decode.
+    """
+    try:
+        return check_image(source, file)
+    except FileNotFoundError:
+        raise SourceError(file, "", "missing image") from None
+    except ImageError as exc:
+        raise SourceError(exc.file, "", exc.message) from None
 
 
 @dataclass

@@ -33,18 +33,22 @@ from typing import Any, Sequence
 
 import numpy as np
 import orjson
-from PIL import Image, UnidentifiedImageError
 
 from converters.common import (
     ConvertedFrame,
     ImageSource,
+    TEXT_FILE_MAX_BYTES,
     SourceError,
     add_common_arguments,
     image_relpath,
     print_report,
+    read_source_bytes,
     run_conversion,
     select_keys,
+    source_image_size,
+    source_path,
 )
+from converters.plausible import check_box, check_box2d, check_intrinsics, check_offset
 from omnigen.conventions import DAIR_CLASSES, OCCLUSION_UNKNOWN
 from omnigen.geometry import (
     Box3D,
@@ -89,6 +93,12 @@ GEOMETRY_KEYS = ("2d_box", "3d_dimensions", "3d_location", "rotation")
 
 TIMESTAMP_KEYS = ("image_timestamp", "pointcloud_timestamp")  # microseconds, as digit strings
 
+DATA_INFO_MAX_BYTES = 512 * 2**20
+"""Largest data_info.json read. It holds one entry of about a kilobyte per frame, so this allows
+hundreds of thousands of frames (DAIR-V2X-C's infrastructure side has 12,424) and refuses a file
+(or a link to /dev/zero) that would fill memory. Label and calibration files have the smaller
+converters.common.TEXT_FILE_MAX_BYTES."""
+
 # ---------------------------------------------------------------------------------------------
 # Decisions (docs/converters-dair.md)
 # ---------------------------------------------------------------------------------------------
@@ -127,8 +137,13 @@ def _short(value: Any, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def read_json(path: Path, named_by: str = "") -> Any:
-    """Parse a JSON file; a missing or broken file is a SourceError naming it (and who named it).
+def read_json(path: Path, named_by: str = "", max_bytes: int = TEXT_FILE_MAX_BYTES) -> Any:
+    """Parse a JSON file; a missing, broken or oversized file is a SourceError naming it (and who named it).
+
+    The file must be a regular file of at most max_bytes (converters.common.read_source_bytes),
+    checked before it is opened. Nesting deeper than the parsers allow (orjson stops at 1024
+    levels, json at Python's recursion limit) is a SourceError too, not a RecursionError that
+    would stop the whole run.
 
     orjson parses first (several times faster; three files a frame). It rejects what json accepts
     in a few corners (NaN, UTF-16 files, lone surrogates, 1e400); those files go through json,
@@ -137,11 +152,9 @@ def read_json(path: Path, named_by: str = "") -> Any:
     (orjson too) cannot encode.
     """
     try:
-        data = path.read_bytes()
+        data = read_source_bytes(path, max_bytes, named_by)
     except FileNotFoundError:
         raise SourceError(path, "", f"missing{f' ({named_by})' if named_by else ''}") from None
-    except OSError as exc:
-        raise SourceError(path, "", f"cannot read: {exc.strerror or exc}") from None
     try:
         return orjson.loads(data)
     except orjson.JSONDecodeError:
@@ -152,6 +165,8 @@ def read_json(path: Path, named_by: str = "") -> Any:
         raise SourceError(path, f"line {exc.lineno} column {exc.colno}", f"not valid JSON: {exc.msg}") from None
     except (ValueError, UnicodeDecodeError) as exc:
         raise SourceError(path, "", f"not valid JSON: {exc}") from None
+    except RecursionError:
+        raise SourceError(path, "", "JSON nested too deeply to read") from None
 
 
 def _reject_constant(name: str) -> float:
@@ -225,6 +240,7 @@ def parse_intrinsics(data: Any, file: Path) -> np.ndarray:
     K = as_matrix(data.get("cam_K"), (3, 3), file, "cam_K")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or np.abs(K[2] - (0.0, 0.0, 1.0)).max() > 1e-6:
         raise SourceError(file, "cam_K", f"not a pinhole intrinsic matrix: {K.tolist()}")
+    check_intrinsics(K, file, "cam_K")
     return K
 
 
@@ -247,6 +263,7 @@ def parse_extrinsics(data: Any, file: Path) -> Extrinsics:
         rotation_field = "Tr_velo_to_cam"
     else:
         raise SourceError(file, "rotation", "missing: expected rotation and translation, or Tr_velo_to_cam")
+    check_offset(translation, file, "translation" if rotation_field == "rotation" else rotation_field, "translation")
     return Extrinsics(nearest_rotation(rotation, file, rotation_field), translation, rotation)
 
 
@@ -330,9 +347,12 @@ def parse_label_object(obj: Any, file: Path, i: int) -> LabelObject | IgnoreRegi
     dims = _numbers(obj, "3d_dimensions", ("l", "w", "h"), file, at)
     if min(dims) <= 0:
         raise SourceError(file, f"{at}.3d_dimensions", f"dimensions must be positive, got l w h = {dims}")
+    center = _numbers(obj, "3d_location", ("x", "y", "z"), file, at)
+    yaw = as_number(obj.get("rotation"), file, f"{at}.rotation")
+    check_box(dims, center, yaw, file, at)
     return LabelObject(
-        index=i, category=category, center=np.array(_numbers(obj, "3d_location", ("x", "y", "z"), file, at)),
-        lwh=np.array(dims), yaw=as_number(obj.get("rotation"), file, f"{at}.rotation"), box2d=box2d,
+        index=i, category=category, center=np.array(center),
+        lwh=np.array(dims), yaw=yaw, box2d=box2d,
         occlusion_level=occlusion_level(obj.get("occluded_state")),
         attributes={k: v for k, v in obj.items() if k not in GEOMETRY_KEYS},
     )
@@ -364,6 +384,7 @@ def parse_box2d(value: Any, file: Path, where: str) -> np.ndarray:
     box = _read_numbers(value, BOX2D_KEYS, file, where)
     if box[2] < box[0] or box[3] < box[1]:
         raise SourceError(file, where, f"xmax < xmin or ymax < ymin in {box}")
+    check_box2d(box, file, where)
     return np.array(box)
 
 
@@ -500,7 +521,7 @@ def read_tree(src: Path) -> SourceTree:
     path = root / DATA_INFO
     if not path.is_file():
         return SourceTree(root, None, *_frames_from_layout(root))
-    data = read_json(path)
+    data = read_json(path, max_bytes=DATA_INFO_MAX_BYTES)
     if not isinstance(data, list):
         raise SourceError(path, "", f"expected a JSON list of frames, got {type(data).__name__}")
     frames: list[FrameInfo] = []
@@ -676,8 +697,8 @@ class DairConverter:
         if key in self.errors:
             raise self.errors[key]
         f = self.frames[key]
-        image = self.image_path(f)
-        width, height = read_image_size(image)
+        image, named = self.image_path(f)
+        width, height = source_image_size(image, named)
         K = parse_intrinsics(*self._read(f, INTRINSIC_KEYS, INTRINSIC_DIRS))
         ext = parse_extrinsics(*self._read(f, EXTRINSIC_KEYS, EXTRINSIC_DIRS))
         label_file, label_set = self.label_path(f)
@@ -686,7 +707,7 @@ class DairConverter:
         estimate = estimate_ground(label.objects)
         plane, camera_height, camera_pitch = camera_pose(estimate, ext)
         frame_id = f"{self.source}-{f.key}"
-        suffix = image.suffix.lower()
+        suffix = named.suffix.lower()
         record = FrameRecord(
             frame_id=frame_id, source=self.source, view=VIEW, image=image_relpath(frame_id, suffix),
             width=width, height=height, K=K, objects=[o for o in objects if o is not None], ignore_regions=label.ignore_regions,
@@ -695,11 +716,20 @@ class DairConverter:
         return ConvertedFrame(record, ImageSource(suffix, path=image), frame_stats(objects, estimate, label_set))
 
     # -- paths ------------------------------------------------------------------------------------
-    def image_path(self, f: FrameInfo) -> Path:
-        path = self.root / f.info["image_path"]
+    # Every path a frame needs is resolved (links followed) and must stay inside SRC (--images DIR
+    # for images found there); the file is then read through converters.common's size-capped,
+    # regular-file-only reads. docs/untrusted-inputs.md says why.
+
+    def image_path(self, f: FrameInfo) -> tuple[Path, Path]:
+        """(the image file, links resolved, to decode and link; the path as named, for its suffix)."""
+        value = f.info["image_path"]
+        named_by = f"named by {self.data_info_name}[{f.position}].image_path"
+        named = self.root / value
+        path = source_path(self.root, value, f.key, named_by)
         if self.options.images is not None and not path.exists():
-            return Path(self.options.images) / Path(f.info["image_path"]).name
-        return path
+            named = Path(self.options.images) / Path(value).name
+            path = source_path(self.options.images, named.name, f.key, f"{named_by}, looked up in --images")
+        return path, named
 
     def label_path(self, f: FrameInfo) -> tuple[Path, str]:
         """The label file for the chosen set, or label/virtuallidar where allowed and needed."""
@@ -715,16 +745,19 @@ class DairConverter:
         return path, wanted
 
     def resolve(self, f: FrameInfo, keys: tuple[str, ...], dirs: tuple[str, ...]) -> tuple[Path, str]:
-        """A file named by data_info (first key present), else by the folder layout; and who named it."""
+        """A file named by data_info (first key present), else by the folder layout; and who named it.
+
+        The path is returned with links resolved, and only when it lies inside SRC.
+        """
         for k in keys:
             value = f.info.get(k)
             if isinstance(value, str) and value.strip():
-                return self.root / value, f"named by {self.data_info_name}[{f.position}].{k}"
+                named_by = f"named by {self.data_info_name}[{f.position}].{k}"
+                return source_path(self.root, value, f.key, named_by), named_by
         candidates = [self.root / d / f"{f.key}.json" for d in dirs]
-        for path in candidates:
-            if path.exists():
-                return path, "expected by the folder layout"
-        return candidates[0], "expected by the folder layout"
+        chosen = next((path for path in candidates if path.exists()), candidates[0])
+        named_by = "expected by the folder layout"
+        return source_path(self.root, chosen.relative_to(self.root), f.key, named_by), named_by
 
     def _read(self, f: FrameInfo, keys: tuple[str, ...], dirs: tuple[str, ...]) -> tuple[Any, Path]:
         path, named_by = self.resolve(f, keys, dirs)
@@ -798,14 +831,8 @@ def make_objects(objects: Sequence[LabelObject], K: np.ndarray, ext: Extrinsics,
 
 
 def read_image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the image header only (PIL opens lazily and decodes no pixels)."""
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except FileNotFoundError:
-        raise SourceError(path, "", "missing image") from None
-    except (OSError, UnidentifiedImageError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
-        raise SourceError(path, "", f"not a readable image: {exc}") from None
+    """(width, height) of a whole image: header within the pixel cap, then decoded (see source_image_size)."""
+    return source_image_size(path, path)
 
 
 # ---------------------------------------------------------------------------------------------

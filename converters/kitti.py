@@ -11,7 +11,6 @@ out) is explained in docs/converters-kitti.md; the code keeps to the why.
 from __future__ import annotations
 
 import argparse
-import io
 import math
 import os
 import re
@@ -21,18 +20,22 @@ from pathlib import Path
 from typing import Callable, Protocol
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from converters.common import (
+    TEXT_FILE_MAX_BYTES,
     ConvertedFrame,
     ImageSource,
     SourceError,
     add_common_arguments,
     image_relpath,
     print_report,
+    read_source_bytes,
     run_conversion,
     select_keys,
+    source_image_size,
+    source_path,
 )
+from converters.plausible import check_angle, check_box, check_box2d, check_intrinsics, check_offset
 from omnigen.conventions import BOTTOM_CORNERS, DIFFICULTIES, KITTI_CLASSES, KITTI_IGNORE
 from omnigen.geometry import (
     Box3D,
@@ -42,6 +45,7 @@ from omnigen.geometry import (
     fit_plane,
     plane_from_height_pitch,
 )
+from omnigen.images import MAX_IMAGE_BYTES
 from omnigen.record import FrameRecord, IgnoreRegion, ObjectRecord
 
 SOURCE = "kitti"
@@ -121,12 +125,15 @@ class KittiCalib:
         K = P[:, :3]
         if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and np.allclose(K[2], [0.0, 0.0, 1.0])):
             raise SourceError(self.file, where, f"{name}'s left 3x3 is not a pinhole K: {K.tolist()}")
+        check_intrinsics(K, self.file, where)
+        check_offset(camera_offset_from_projection(P), self.file, where, f"{name}'s camera offset from camera 0")
         return P
 
 
 def decode_text(data: bytes, file: str) -> str:
+    """UTF-8 text; a leading byte-order mark (some Windows editors write one) is dropped."""
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise SourceError(file, "", f"not a text file ({exc})") from None
 
@@ -178,6 +185,7 @@ def _check_label(label: KittiLabel, occluded: float, file: str) -> None:
     x1, y1, x2, y2 = label.bbox
     if x2 < x1 or y2 < y1:
         raise SourceError(file, where, f"2D box has right < left or bottom < top: {list(label.bbox)}")
+    check_box2d(label.bbox, file, where)
     if label.is_ignore:
         return  # DontCare lines carry -1 / -1000 placeholders everywhere but the 2D box
     if not 0.0 <= label.truncated <= 1.0:
@@ -186,6 +194,8 @@ def _check_label(label: KittiLabel, occluded: float, file: str) -> None:
         raise SourceError(file, where, f"occluded must be 0, 1, 2 or 3, got {occluded:g}")
     if min(label.hwl) <= 0:
         raise SourceError(file, where, f"dimensions (h w l) must be positive, got {list(label.hwl)}")
+    check_box(label.hwl, label.location, label.rotation_y, file, where, "h w l")
+    check_angle(label.alpha, file, where, "alpha")
 
 
 def parse_calib(text: str, file: str) -> KittiCalib:
@@ -228,14 +238,9 @@ def folders_for(split: str) -> tuple[str, ...]:
 
 
 def image_size(data: bytes | Path, file: str) -> tuple[int, int]:
-    """Width and height from the image header (PIL reads no pixels here)."""
-    try:
-        with Image.open(io.BytesIO(data) if isinstance(data, bytes) else data) as im:
-            return im.size
-    except UnidentifiedImageError:
-        raise SourceError(file, "", "unreadable image: not a format PIL can identify") from None
-    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:  # PIL's other ways of saying "not an image"
-        raise SourceError(file, "", f"unreadable image: {exc}") from None
+    """Width and height of a whole image: the header within the pixel cap, then decoded
+    (converters.common.source_image_size: the header alone is not trusted)."""
+    return source_image_size(data, file)
 
 
 @dataclass
@@ -261,21 +266,24 @@ class TreeInput:
                         found.add(stem)
         return sorted(found)
 
+    def _inside(self, folder: str, kid: str) -> tuple[Path, Path]:
+        """(the file, links resolved; its name in the tree): a link out of the tree is a skip."""
+        name = self.root / folder / f"{kid}{SUFFIXES[folder]}"
+        return source_path(self.root, name.relative_to(self.root), kid), name
+
     def read_text(self, folder: str, kid: str) -> tuple[str, str]:
-        path = self.root / folder / f"{kid}{SUFFIXES[folder]}"
+        path, name = self._inside(folder, kid)
         try:
-            data = path.read_bytes()
+            data = read_source_bytes(path)
         except FileNotFoundError:
-            raise SourceError(path, "", f"file missing (frame {kid} has other files)") from None
-        except OSError as exc:
-            raise SourceError(path, "", f"unreadable: {exc}") from None
-        return decode_text(data, str(path)), str(path)
+            raise SourceError(name, "", f"file missing (frame {kid} has other files)") from None
+        return decode_text(data, str(name)), str(name)
 
     def image(self, kid: str) -> tuple[ImageSource, tuple[int, int]]:
-        path = self.root / "image_2" / f"{kid}.png"
-        if not path.is_file():
-            raise SourceError(path, "", f"image missing (frame {kid} has other files)")
-        return ImageSource(suffix=".png", path=path), image_size(path, str(path))
+        path, name = self._inside("image_2", kid)
+        if not path.exists():
+            raise SourceError(name, "", f"image missing (frame {kid} has other files)")
+        return ImageSource(suffix=".png", path=path), image_size(path, str(name))
 
 
 class ZipInput:
@@ -334,7 +342,11 @@ class ZipInput:
                               f"{'image' if folder == 'image_2' else 'file'} missing from the archive "
                               f"(frame {kid} has other files)")
         name = f"{self.paths[folder]}:{member}"
+        cap = MAX_IMAGE_BYTES if folder == "image_2" else TEXT_FILE_MAX_BYTES
         try:
+            size = self._zip(folder).getinfo(member).file_size
+            if size > cap:  # the member's declared size, checked before anything is inflated
+                raise SourceError(name, "", f"{size} bytes, more than the {cap} allowed")
             return self._zip(folder).read(member), name
         except (zipfile.BadZipFile, OSError, EOFError) as exc:
             raise SourceError(name, "", f"cannot read from the archive: {exc}") from None
