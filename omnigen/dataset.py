@@ -13,14 +13,21 @@ and resume after an interruption by skipping frames whose record exists; a per-f
 atomically makes each of these safe. Why an index: parsing 40,000 JSON files costs tens of
 seconds, while reading one .npz with the same content costs a fraction of one. The index stores a
 fingerprint of records/ (names, sizes, modification times) and is rebuilt when it no longer matches.
+A dataset that cannot be written (a read-only mount, a copy without write permission) gets the
+rebuilt index in memory for the run, and a one-line note says so.
+
+Consumers find a frame's record by its file name (records/<frame_id>.json), so opening refuses a
+record whose frame_id is not its file name: read by id, it would be missed, doubled or mixed up.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import io
 import json
 import os
+import sys
 from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -185,6 +192,13 @@ def update_records_digest(digest: "hashlib._Hash", name: str, data: bytes) -> No
     digest.update(name.encode() + b"\0" + data)
 
 
+def check_record_name(frame_id: str, file_name: str, path: str | os.PathLike) -> None:
+    """A record must be filed as records/<its frame_id>.json; anything else is refused by name."""
+    if file_name != f"{frame_id}.json":
+        raise DatasetError(f"{path}: frame_id: {frame_id!r} does not match the file name {file_name!r}; records are "
+                           "found by file name, so the dataset is refused (omnigen validate lists every such record)")
+
+
 def read_record(path: str | os.PathLike) -> FrameRecord:
     """Read and validate one record file; errors name the file."""
     path = str(path)
@@ -330,10 +344,14 @@ class Dataset:
         manifest = read_manifest(root)
         if not rebuild:
             loaded = _load_index(root, key, manifest)
-            if loaded is not None:
+            # an index from before the name check could hold a record filed under another id
+            if loaded is not None and loaded.table.frame_id == [e.name[:-5] for e in entries]:
                 return loaded
-        records = [read_record(e.path) for e in progress(entries, desc="reading records", disable=not show_progress)]
-        return build_index(root, records, key, manifest)
+        records = []
+        for e in progress(entries, desc="reading records", disable=not show_progress):
+            records.append(read_record(e.path))
+            check_record_name(records[-1].frame_id, e.name, e.path)
+        return build_index(root, records, key, manifest, cache=True)
 
     # -- access -------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -465,13 +483,13 @@ class IndexRows:
 
 
 def build_index(root: Path, records: list[FrameRecord], key: str | None = None,
-                manifest: dict[str, Any] | None = None) -> Dataset:
-    """Write the columnar index of `records` and return the opened dataset."""
-    return index_from_rows(root, [IndexRows.of(r) for r in records], key, manifest)
+                manifest: dict[str, Any] | None = None, cache: bool = False) -> Dataset:
+    """Write the columnar index of `records` and return the opened dataset (see write_index for `cache`)."""
+    return index_from_rows(root, [IndexRows.of(r) for r in records], key, manifest, cache)
 
 
 def index_from_rows(root: Path, rows: list[IndexRows], key: str | None = None,
-                    manifest: dict[str, Any] | None = None) -> Dataset:
+                    manifest: dict[str, Any] | None = None, cache: bool = False) -> Dataset:
     """Write the index of frames given as IndexRows (sorted here by frame id); return the dataset."""
     rows = sorted(rows, key=lambda r: r.frame_id)
     counts = [len(r.objects) for r in rows]
@@ -481,16 +499,19 @@ def index_from_rows(root: Path, rows: list[IndexRows], key: str | None = None,
     return write_index(
         root, FrameTable.from_records([r.frame for r in rows]),
         np.cumsum([0] + counts).astype(np.int64), objects,
-        attributes if any(attributes) else None, key, manifest,
+        attributes if any(attributes) else None, key, manifest, cache,
     )
 
 
 def write_index(root: str | os.PathLike, table: FrameTable, offsets: np.ndarray, objects: ObjectTable,
                 attributes: list[dict[str, Any]] | None, key: str | None = None,
-                manifest: dict[str, Any] | None = None) -> Dataset:
+                manifest: dict[str, Any] | None = None, cache: bool = False) -> Dataset:
     """Write the index from columns (frames sorted by id) and return the opened dataset.
 
     `key` is the fingerprint of records/ the index describes; by default, that of the folder now.
+    `cache`: the index is only a reader's cache, so a folder that cannot be written (read-only
+    file system, no permission) keeps it in memory, with one line on stderr; a job that writes the
+    dataset (a merge, a finalize) passes False and fails instead.
     """
     root = Path(root)
     if key is None:
@@ -504,7 +525,13 @@ def write_index(root: str | os.PathLike, table: FrameTable, offsets: np.ndarray,
         arrays["attributes"] = np.frombuffer(attributes_blob, dtype=np.uint8)
     buf = io.BytesIO()
     np.savez(buf, **arrays)
-    atomic_write_bytes(root / INDEX_FILE, buf.getvalue())
+    try:
+        atomic_write_bytes(root / INDEX_FILE, buf.getvalue())
+    except OSError as exc:
+        if not cache or exc.errno not in (errno.EROFS, errno.EACCES, errno.EPERM):
+            raise
+        print(f"{root}: cannot write {INDEX_FILE} ({os.strerror(exc.errno)}); using an index built in memory "
+              f"for this run ({len(table)} frames)", file=sys.stderr)
     return Dataset(root, table, offsets, objects, attributes_blob, manifest if manifest is not None else read_manifest(root))
 
 
@@ -594,6 +621,7 @@ class DatasetWriter:
                     rows.append(IndexRows.of(FrameRecord.from_dict(json.loads(data), file=e.path)))
                 except json.JSONDecodeError as exc:
                     raise RecordError(frame_id, "<json>", f"not valid JSON: {exc}", e.path) from None
+                check_record_name(rows[-1].frame_id, e.name, e.path)
         ds = index_from_rows(self.root, rows, key, manifest={})
         ds.manifest = make_manifest(ds, digest.hexdigest(), extra or {})
         atomic_write_json(self.root / MANIFEST, ds.manifest, indent=2)  # last: it seals the dataset

@@ -172,3 +172,95 @@ def test_coco_split_and_taxonomy(dataset: Dataset, tmp_path: Path):
 def test_flip_idx_is_an_involution_that_swaps_left_and_right():
     assert [FLIP_IDX[i] for i in FLIP_IDX] == list(range(8))
     assert all(FLIP_IDX[i] != i for i in range(8))
+
+
+# --- issue 27: read-only datasets, records filed under another id -----------------------------
+
+
+def _read_only(monkeypatch, root: Path) -> None:
+    """Writes into `root` fail as on a read-only mount (EROFS). Tests run as root, where chmod
+    stops no write, so the one place every atomic write creates its file is made to refuse."""
+    import errno
+
+    import omnigen.files as files
+
+    real = files.make_temp
+    top = str(root.resolve())
+
+    def refusing(folder, suffix=""):
+        if str(Path(folder).resolve()).startswith(top):
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(folder))
+        return real(folder, suffix)
+
+    monkeypatch.setattr(files, "make_temp", refusing)
+
+
+@pytest.mark.parametrize("index", ["missing", "stale"])
+def test_a_read_only_dataset_is_read_with_an_index_in_memory(tmp_path: Path, monkeypatch, capsys, index):
+    """Issue 27: export, stats, show, train and merge failed with EROFS writing .index.npz."""
+    from detector.data import KeypointDataset
+
+    root = write_fake_dataset(tmp_path / "ds", n_frames=6, objects_per_frame=2, seed=3, source="kitti").root
+    if index == "missing":
+        (root / INDEX_FILE).unlink()
+    else:  # a plain `cp -r` gives the records new times: the index no longer matches
+        for p in (root / "records").iterdir():
+            os.utime(p, ns=(1, 1))
+    before = sorted(p.name for p in root.rglob("*"))
+    _read_only(monkeypatch, root)
+    with pytest.raises(OSError):  # the simulation holds: a write into the dataset fails
+        atomic_write_bytes(root / "probe", b"x")
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert cli(["export", "coco", str(root), "--out", str(out / "c.json")]) == 0
+    assert cli(["export", "yolo", str(root), "--out", str(out / "yolo")]) == 0
+    assert cli(["stats", str(root), "--out", str(out / "stats"), "--gallery", "0", "--no-check-images",
+                "--jobs", "1"]) == 0
+    assert cli(["show", str(root), "kitti-000001", "--out", str(out / "f.png")]) == 0
+    assert cli(["merge", str(root), "--out", str(out / "uov")]) == 0
+    assert len(KeypointDataset(root, load_taxonomy("fine"), 64)) == 6  # what train reads
+    notes = [line for line in capsys.readouterr().err.splitlines() if "built in memory" in line]
+    assert len(notes) == 6 and notes[0].startswith(f"{root}: cannot write {INDEX_FILE} (Read-only file system)")
+    assert sorted(p.name for p in root.rglob("*")) == before  # nothing written into it
+    # a writer of the dataset still fails loudly (a merge's index is its output, not a cache)
+    from omnigen.dataset import write_index
+
+    ds = Dataset.open(root, show_progress=False)
+    with pytest.raises(OSError):
+        write_index(root, ds.table, ds.offsets, ds.objects, None)
+
+
+def _refile(root: Path, frame_id: str, as_id: str) -> Path:
+    """Give record `frame_id` the id `as_id` inside, keeping its file name."""
+    path = record_path(root, frame_id)
+    d = json.loads(path.read_text())
+    d["frame_id"] = as_id
+    path.write_text(json.dumps(d))
+    return path
+
+
+def test_a_record_filed_under_another_id_is_refused_by_every_consumer(tmp_path: Path, capsys):
+    """Issue 27: `export yolo` reported 13 frames and wrote 12, `export coco` wrote a duplicate id,
+    `train` died with a KeyError; only validate saw it."""
+    from detector.data import KeypointDataset
+    from omnigen.dataset import build_index, read_record, record_files
+
+    root = write_fake_dataset(tmp_path / "ds", n_frames=13, objects_per_frame=2, seed=5, source="kitti").root
+    bad = _refile(root, "kitti-000005", "kitti-000004")
+    for args in (["export", "yolo", str(root), "--out", str(tmp_path / "y")],
+                 ["export", "coco", str(root), "--out", str(tmp_path / "c.json")],
+                 ["stats", str(root), "--out", str(tmp_path / "s"), "--gallery", "0"],
+                 ["merge", str(root), "--out", str(tmp_path / "m")]):
+        assert cli(args) == 1, args
+        err = capsys.readouterr().err
+        assert f"{bad}: frame_id: 'kitti-000004' does not match the file name 'kitti-000005.json'" in err, args
+    with pytest.raises(Exception, match="does not match the file name"):
+        KeypointDataset(root, load_taxonomy("fine"), 64)
+    assert not (tmp_path / "c.json").exists() and not (tmp_path / "y" / "data.yaml").exists()
+    # an index written before the check (holding the mismatched record) is not trusted either
+    build_index(root, [read_record(e.path) for e in record_files(root)])
+    with pytest.raises(Exception, match="does not match the file name"):
+        Dataset.open(root)
+    # validate names it
+    assert cli(["validate", str(root)]) == 1
+    assert f"{bad}: frame_id: 'kitti-000004' does not match the file name" in capsys.readouterr().out
