@@ -61,7 +61,7 @@ def source_path(root: str | Path, path: str | Path, frame: str, named_by: str = 
     try:
         return resolve_inside(root, path)
     except UntrustedFileError as exc:
-        raise SourceError(path, "", f"frame {frame}: {exc.message}; only files inside the source folder are "
+        raise SourceError(Path(root) / path, "", f"frame {frame}: {exc.message}; only files inside the source folder are "
                           f"read{f' ({named_by})' if named_by else ''}") from None
 
 

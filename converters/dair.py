@@ -354,8 +354,36 @@ def parse_label_object(obj: Any, file: Path, i: int) -> LabelObject | IgnoreRegi
         index=i, category=category, center=np.array(center),
         lwh=np.array(dims), yaw=yaw, box2d=box2d,
         occlusion_level=occlusion_level(obj.get("occluded_state")),
-        attributes={k: v for k, v in obj.items() if k not in GEOMETRY_KEYS},
+        attributes=_attributes(obj, file, at),
     )
+
+
+MAX_ATTRIBUTE_NESTING = 32
+"""Deepest nesting of lists and objects accepted in a label's free-form fields, which are copied
+into the record as source_attributes. DAIR-V2X's are flat; orjson parses up to 1024 levels but
+writes at most 254, so a deeper value would pass reading and then stop the run at the write."""
+
+
+def _attributes(obj: dict, file: Path, at: str) -> dict[str, Any]:
+    """The label's other fields (source_attributes), refused when nested beyond MAX_ATTRIBUTE_NESTING."""
+    attributes = {k: v for k, v in obj.items() if k not in GEOMETRY_KEYS}
+    for key, value in attributes.items():
+        if isinstance(value, (dict, list)) and _nesting(value) > MAX_ATTRIBUTE_NESTING:
+            raise SourceError(file, f"{at}.{key}", f"nested deeper than {MAX_ATTRIBUTE_NESTING} levels "
+                              f"(MAX_ATTRIBUTE_NESTING)")
+    return attributes
+
+
+def _nesting(value: Any) -> int:
+    """Depth of nested lists and objects (a scalar 0, a flat list 1), without recursion; stops looking past the limit."""
+    deepest, stack = 0, [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, (dict, list)):
+            deepest = max(deepest, depth)
+            if depth <= MAX_ATTRIBUTE_NESTING:  # deeper than the limit: no need to look further
+                stack.extend((v, depth + 1) for v in (item.values() if isinstance(item, dict) else item))
+    return deepest
 
 
 def _numbers(obj: dict, key: str, names: tuple[str, ...], file: Path, at: str) -> list[float]:
@@ -701,8 +729,8 @@ class DairConverter:
         width, height = source_image_size(image, named)
         K = parse_intrinsics(*self._read(f, INTRINSIC_KEYS, INTRINSIC_DIRS))
         ext = parse_extrinsics(*self._read(f, EXTRINSIC_KEYS, EXTRINSIC_DIRS))
-        label_file, label_set = self.label_path(f)
-        label = parse_label(read_json(label_file), label_file)
+        label_file, label_set, named_by = self.label_path(f)
+        label = parse_label(read_json(label_file, f"{named_by}, frame {f.key}"), label_file)
         objects = make_objects(label.objects, K, ext, width, height, label_set)
         estimate = estimate_ground(label.objects)
         plane, camera_height, camera_pitch = camera_pose(estimate, ext)
@@ -731,18 +759,19 @@ class DairConverter:
             path = source_path(self.options.images, named.name, f.key, f"{named_by}, looked up in --images")
         return path, named
 
-    def label_path(self, f: FrameInfo) -> tuple[Path, str]:
-        """The label file for the chosen set, or label/virtuallidar where allowed and needed."""
+    def label_path(self, f: FrameInfo) -> tuple[Path, str, str]:
+        """The label file for the chosen set, or label/virtuallidar where allowed and needed; the
+        set it belongs to; who named it."""
         wanted = self.options.label
         path, named_by = self.resolve(f, LABEL_KEYS[wanted], LABEL_DIRS[wanted])
         if wanted == "camera" and self.options.fallback_virtuallidar and not path.exists():
-            other, _ = self.resolve(f, LABEL_KEYS["virtuallidar"], LABEL_DIRS["virtuallidar"])
+            other, other_named_by = self.resolve(f, LABEL_KEYS["virtuallidar"], LABEL_DIRS["virtuallidar"])
             if other.exists():
-                return other, "virtuallidar"
+                return other, "virtuallidar", other_named_by
         if not path.exists():
             hint = "; --fallback-virtuallidar uses label/virtuallidar instead" if wanted == "camera" else ""
             raise SourceError(path, "", f"missing ({named_by}){hint}")
-        return path, wanted
+        return path, wanted, named_by
 
     def resolve(self, f: FrameInfo, keys: tuple[str, ...], dirs: tuple[str, ...]) -> tuple[Path, str]:
         """A file named by data_info (first key present), else by the folder layout; and who named it.
@@ -761,7 +790,7 @@ class DairConverter:
 
     def _read(self, f: FrameInfo, keys: tuple[str, ...], dirs: tuple[str, ...]) -> tuple[Any, Path]:
         path, named_by = self.resolve(f, keys, dirs)
-        return read_json(path, named_by), path
+        return read_json(path, f"{named_by}, frame {f.key}"), path
 
     @property
     def data_info_name(self) -> str:

@@ -22,6 +22,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from omnigen.conventions import BOTTOM_CORNERS, FINE_CLASSES, NEAR_PLANE, SKELETON, TOP_CORNERS
+from omnigen.images import load_rgb
 from omnigen.record import FrameRecord
 
 TOP_COLOR = (255, 150, 0)
@@ -56,8 +57,7 @@ def display_scale(width: int, height: int, target: int = 900, most: int = 8) -> 
 def load_image(path: str | Path, width: int, height: int) -> tuple[Image.Image, str | None]:
     """The frame's image as RGB, or a grey placeholder of the record's size and the reason it failed."""
     try:
-        with Image.open(path) as im:
-            return im.convert("RGB"), None
+        return load_rgb(path), None  # the header's size is capped before any pixel is decoded
     except Exception as exc:  # noqa: BLE001 - the viewer must draw the labels whatever the pixels do
         return Image.new("RGB", (width, height), PLACEHOLDER), f"{type(exc).__name__}: {exc}".splitlines()[0]
 

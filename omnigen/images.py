@@ -117,12 +117,10 @@ def check_image(source: Source, file: str | os.PathLike | None = None) -> tuple[
 
 
 def load_rgb(path: Path | str) -> Image.Image:
-    """The image decoded as RGB, its size checked against the caps before any pixel is decoded."""
-    try:
-        with _open(path, path) as im:
-            _capped_size(im, path)
-            return im.convert("RGB")
-    except (FileNotFoundError, ImageError):
-        raise
-    except _PIL_ERRORS as exc:
-        raise ImageError(path, _unreadable(exc)) from None
+    """The image decoded as RGB, its size checked against the caps before any pixel is decoded.
+
+    The caps are ImageError; PIL's own errors propagate unchanged (a viewer shows them as they are).
+    """
+    with _open(path, path) as im:
+        _capped_size(im, path)
+        return im.convert("RGB")
