@@ -295,6 +295,9 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--shard", default=None, metavar="K/N",
                    help="render only frames with index %% N == K-1 (1 <= K <= N) into the shared --out; the shard "
                         "that finds every frame of the run written finalizes (docs/rendering-at-scale.md)")
+    p.add_argument("--fresh", action="store_true",
+                   help="delete the folder's frames, index, manifest and recorded arguments first and start over "
+                        "(a rerun with other arguments is refused without it)")
     p.add_argument("--finalize-only", action="store_true",
                    help="render nothing: build the index and manifest once every frame of the run is written")
     p.add_argument("--executor", choices=("local", "ray"), default="local",
@@ -311,7 +314,8 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
 
 def _run_render(args: argparse.Namespace) -> int:
     from omnigen.progress import print_table
-    from rigs.render import RenderJob, Renderer, finalize_run, missing_frames, parse_shard
+    from rigs.render import (RenderJob, Renderer, claim_render_folder, finalize_run, missing_frames, parse_shard,
+                             render_args, start_over)
 
     if args.frames < 0 or args.seed < 0 or args.start < 0:
         print("omnigen render: --frames, --seed and --start must be >= 0", file=sys.stderr)
@@ -339,6 +343,16 @@ def _run_render(args: argparse.Namespace) -> int:
     job = RenderJob(rig=args.rig, frames=args.frames, out=args.out, seed=args.seed, scene=args.scene,
                     width=args.width, height=args.height, backend=args.backend, quality=args.quality, start=args.start,
                     shard=shard, overrides=overrides, save_blend=args.save_blend, labels=args.labels)
+    if args.fresh:
+        if args.finalize_only or shard[1] > 1:
+            print("omnigen render: --fresh deletes every shard's frames: run it once, without --shard or "
+                  "--finalize-only", file=sys.stderr)
+            return 2
+        deleted = start_over(args.out)
+        if deleted:
+            print(f"--fresh: deleted {deleted} frames of {args.out}")
+    # Refused here, before any executor starts, when the folder's frames were rendered otherwise.
+    claim_render_folder(job, render_args(job))
     if args.finalize_only:
         missing = missing_frames(job)
         if missing or not finalize_run(job):

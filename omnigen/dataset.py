@@ -45,6 +45,7 @@ from omnigen.record import DIFFICULTY_NAMES, FrameRecord, IgnoreRegion, ObjectRe
 MANIFEST = "manifest.json"
 RECORDS_DIR = "records"
 INDEX_FILE = ".index.npz"
+RENDER_ARGS_FILE = ".render-args.json"  # a render folder's recorded arguments (rigs/render.py)
 INDEX_VERSION = 2
 FORMAT_NAME = "UrbanOmniView"
 

@@ -14,6 +14,11 @@ Per frame i of a dataset with seed s (frame id `synthetic-<rig>-s<seed>-<i:06d>`
    renders only what is missing, and since every frame depends only on (s, i) the result equals
    an uninterrupted run.
 
+A render folder records the arguments that decide its frames in `.render-args.json` (written
+before the first frame); a run into a folder whose recorded arguments differ is refused with the
+differences named, so a resumed render never mixes frames of two settings (`--fresh` deletes the
+folder's frames and starts over).
+
 Shards (`RenderJob.shard = (K, N)`, `--shard K/N`) render the indices with index % N == K - 1
 into one shared folder; whichever finds every frame of the run written builds the index and the
 manifest (`finalize_run`), so the dataset equals an unsharded run's. `rigs/ray_executor.py`
@@ -22,16 +27,19 @@ calls `Renderer.render_frame(index)` from Ray actors (docs/rendering-at-scale.md
 
 from __future__ import annotations
 
+import hashlib
 import io
+import json
 import os
+import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from omnigen.dataset import DatasetWriter
-from omnigen.files import atomic_write_bytes, make_temp
+from omnigen.dataset import INDEX_FILE, MANIFEST, RECORDS_DIR, RENDER_ARGS_FILE, DatasetWriter, read_manifest
+from omnigen.files import atomic_write_bytes, atomic_write_json, make_temp
 from omnigen.record import FrameRecord, SyntheticInfo
 from rigs.annotate import annotate
 from rigs.rig import Rig, load_rig
@@ -268,6 +276,121 @@ def render_info(job: RenderJob, rig: Rig | None = None) -> dict:
             "width": int(job.width or rig.resolution[0]), "height": int(job.height or rig.resolution[1])}
 
 
+RENDER_ARGS = RENDER_ARGS_FILE
+RENDER_FOLDERS = ("records", "images", "depth", "instance")
+_FLAGS = {  # recorded key -> how the command line says it (for the refusal's message)
+    "rig": "--rig", "rig_sha256": "the rig's definition (its TOML)", "scene": "--scene",
+    "scene_sha256": "the scene preset's definition (its TOML)", "seed": "--seed", "width": "--width",
+    "height": "--height", "backend": "--backend", "quality": "--quality", "labels": "--labels",
+    "weather": "--weather", "time_of_day": "--time-of-day", "fog_density": "--fog-density",
+    "precipitation": "--precipitation",
+}
+
+
+def _sha256_json(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def render_args(job: RenderJob, rig: Rig | None = None, preset=None) -> dict:
+    """Every argument that decides a frame's pixels or labels, as recorded in `.render-args.json`.
+
+    Not recorded: --frames, --start and --shard (frame i depends only on (seed, i)), the
+    executor, --save-blend. The rig's and the scene's definitions are hashed, so an edited TOML
+    under the same name is a difference too. Quality and label source matter only to Cycles.
+    """
+    from scenes.description import to_dict
+    from scenes.preset import load_preset
+
+    rig = rig or load_rig(job.rig)
+    preset = preset if preset is not None else load_preset(job.scene)
+    args = render_info(job, rig)
+    rig_fields = {k: v for k, v in asdict(rig).items() if k not in ("description", "source")}
+    scene_fields = {k: v for k, v in to_dict(preset).items() if k != "source"}  # where the file lies is no setting
+    args.update(rig_sha256=_sha256_json(rig_fields), scene_sha256=_sha256_json(scene_fields))
+    if job.backend == "cycles":
+        args["labels"] = job.labels
+    else:
+        args.pop("quality")
+    o = job.overrides or FrameOverrides()
+    args.update(weather=o.weather, time_of_day=o.time_of_day, fog_density=o.fog_density,
+                precipitation=o.precipitation)
+    return args
+
+
+def _recorded_args(out: Path) -> tuple[dict, str] | None:
+    """What a render folder says it was rendered with, and where it says so; None for a folder
+    with no frames. Folders from before `.render-args.json`: the manifest's `render` entry, else
+    the first record (its size, rig, scene and seed)."""
+    path = out / RENDER_ARGS
+    if path.exists():
+        try:
+            return json.loads(path.read_text()), str(path)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc}); delete the folder or rerun with --fresh") from None
+    render = read_manifest(out).get("render") if (out / MANIFEST).exists() else None
+    if render:
+        return dict(render), str(out / MANIFEST)
+    records = sorted((out / RECORDS_DIR).glob("synthetic-*.json")) if (out / RECORDS_DIR).is_dir() else []
+    if not records:
+        return None
+    r = json.loads(records[0].read_text())
+    syn = r.get("synthetic") or {}
+    return {"width": r.get("width"), "height": r.get("height"), "rig": syn.get("rig"), "scene": syn.get("scene"),
+            "seed": syn.get("seed")}, str(records[0])
+
+
+def claim_render_folder(job: RenderJob, args: dict) -> None:
+    """Record `args` in the folder, or refuse a folder whose frames were rendered with others.
+
+    Shards and Ray actors of one run all call this: equal arguments write equal bytes, atomically.
+    """
+    out = Path(job.out)
+    recorded = _recorded_args(out)
+    if recorded is not None:
+        was, where = recorded
+        # the recorded file names every argument; an older folder's manifest or record only some
+        if where.endswith(RENDER_ARGS):
+            keys = [k for k in _FLAGS if k in was or k in args]
+        else:
+            keys = [k for k in _FLAGS if k in was and k in args]
+        diff = [k for k in keys if was.get(k) != args.get(k)]
+        if diff:
+            said = "; ".join(f"{_FLAGS[k]}: {_shown(was.get(k))} there, {_shown(args.get(k))} now" for k in diff)
+            raise ValueError(f"{out}: its frames were rendered with other arguments ({said}; recorded in {where}); "
+                             "rerun with the same arguments to resume, choose another --out, or add --fresh to "
+                             "delete its frames and start over")
+    if not (out / RENDER_ARGS).exists():
+        atomic_write_json(out / RENDER_ARGS, args, indent=2)
+
+
+def _shown(v) -> str:
+    if isinstance(v, str) and len(v) == 64:  # a definition's hash
+        return v[:12]
+    return "unset" if v is None else str(v)
+
+
+def start_over(out: str | Path) -> int:
+    """--fresh: delete a render folder's frames, index, manifest and recorded arguments; the
+    number of records deleted. Only a folder that is a render's (recorded arguments, a manifest
+    with a `render` entry, or only rendered records) is touched; anything else is refused."""
+    out = Path(out)
+    if not out.exists():
+        return 0
+    recorded = (out / RENDER_ARGS).exists() or "render" in (read_manifest(out) if (out / MANIFEST).exists() else {})
+    records = list((out / RECORDS_DIR).glob("*.json")) if (out / RECORDS_DIR).is_dir() else []
+    if not recorded and (not records or not all(p.name.startswith("synthetic-") for p in records)):
+        if any(out.iterdir()):
+            raise ValueError(f"{out}: --fresh deletes only a render's frames, and this folder is no render "
+                             "folder (no .render-args.json, no render manifest); choose another --out")
+        return 0
+    (out / MANIFEST).unlink(missing_ok=True)  # unsealed first
+    (out / INDEX_FILE).unlink(missing_ok=True)
+    for sub in RENDER_FOLDERS:
+        shutil.rmtree(out / sub, ignore_errors=True)
+    (out / RENDER_ARGS).unlink(missing_ok=True)  # last: a kill before this leaves a folder --fresh still knows
+    return len(records)
+
+
 def missing_frames(job: RenderJob, rig: Rig | None = None) -> list[int]:
     """Indices of the run (all shards) whose record is not written yet."""
     rig = rig or load_rig(job.rig)
@@ -282,6 +405,7 @@ def finalize_run(job: RenderJob, show_progress: bool = True, writer: DatasetWrit
     rig = load_rig(job.rig)
     if missing_frames(job, rig):
         return False
+    claim_render_folder(job, render_args(job, rig))  # --finalize-only with other arguments is refused too
     writer = writer or DatasetWriter(job.out, durable=job.durable)
     writer.finalize({"render": render_info(job, rig)}, show_progress=show_progress)
     return True
@@ -319,6 +443,7 @@ class Renderer:
         self.scene_name = Path(str(job.scene)).stem if str(job.scene).endswith(".toml") else str(job.scene)
         self.backend = None
         self._blend_saved = False
+        claim_render_folder(job, render_args(job, self.rig, self.gen.preset))  # before any frame is written
         self.writer = DatasetWriter(job.out, durable=job.durable)
         self.summary = RenderSummary()
 

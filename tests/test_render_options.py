@@ -60,3 +60,76 @@ def test_save_blend_writes_a_blend_file(tmp_path):
     # Blender writes either a plain .blend ("BLENDER") or a zstd-compressed one.
     assert head == b"BLENDER" or head[:4] == b"\x28\xb5\x2f\xfd"
     assert blend.stat().st_size > 10_000
+
+
+# --- issue 27: a render folder records its arguments ------------------------------------------
+
+
+def _raster(out: Path, *extra: str, frames: int = 2, width: int = 64) -> int:
+    return main(["render", "--rig", "pole", "--frames", str(frames), "--scene", "tiny", "--backend", "raster",
+                 "--width", str(width), "--height", "48", "--seed", "3", "--out", str(out), *extra])
+
+
+def _widths(out: Path) -> list[int]:
+    return [r["width"] for r in _records(out)]
+
+
+def test_a_resumed_render_with_other_arguments_is_refused(tmp_path, capsys):
+    """Issue 27: killed part-way and rerun with another --width, a render added frames of the new
+    size to the old ones, the manifest claimed the new size and validate said valid."""
+    _needs_egl()
+    from rigs.render import RenderJob, Renderer
+
+    out = tmp_path / "ds"
+    assert _raster(out, frames=3) == 0
+    args = json.loads((out / ".render-args.json").read_text())
+    assert (args["width"], args["height"], args["rig"], args["seed"], args["backend"]) == (64, 48, "pole", 3, "raster")
+    # a kill after two frames: the third record and the manifest are not there
+    (out / "manifest.json").unlink()
+    sorted((out / "records").glob("*.json"))[-1].unlink()
+    capsys.readouterr()
+    assert _raster(out, frames=3, width=80) == 1
+    err = capsys.readouterr().err
+    assert "--width: 64 there, 80 now" in err and "--fresh" in err
+    assert _widths(out) == [64, 64] and not (out / "manifest.json").exists()
+    assert _raster(out, "--weather", "fog", frames=3) == 1  # any frame-deciding argument
+    assert "--weather: unset there, fog now" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="--height: 48 there, 40 now"):  # the API refuses as the command does
+        Renderer(RenderJob(rig="pole", frames=3, out=out, seed=3, scene="tiny", width=64, height=40, backend="raster"))
+    # the same arguments resume; --frames and --start are no such argument
+    assert _raster(out, frames=3) == 0 and _widths(out) == [64, 64, 64]
+    assert main(["validate", str(out)]) == 0
+    # --fresh starts over with the new ones
+    assert _raster(out, "--fresh", frames=2, width=80) == 0
+    assert _widths(out) == [80, 80] and json.loads((out / ".render-args.json").read_text())["width"] == 80
+    assert main(["validate", str(out)]) == 0
+    assert _raster(out, "--fresh", "--shard", "1/2", frames=2) == 2
+
+
+def test_fresh_touches_no_folder_that_is_not_a_render(tmp_path, capsys):
+    theirs = tmp_path / "theirs"
+    (theirs / "records").mkdir(parents=True)
+    (theirs / "records" / "kitti-000001.json").write_text("{}")
+    (theirs / "notes.txt").write_text("mine")
+    assert main(["render", "--rig", "pole", "--frames", "1", "--scene", "tiny", "--backend", "raster",
+                 "--fresh", "--out", str(theirs)]) == 1
+    assert "no render folder" in capsys.readouterr().err
+    assert sorted(p.name for p in theirs.rglob("*")) == ["kitti-000001.json", "notes.txt", "records"]
+
+
+def test_validate_catches_frames_that_disagree_with_the_folders_arguments(tmp_path, capsys):
+    """A folder mixed before the arguments were recorded: its manifest claims one size, frames hold another."""
+    _needs_egl()
+    out = tmp_path / "ds"
+    assert _raster(out) == 0
+    (out / ".render-args.json").unlink()
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["render"]["width"] = 80
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    capsys.readouterr()
+    assert main(["validate", str(out)]) == 1
+    lines = [line for line in capsys.readouterr().out.splitlines() if ": width: 64 but the folder was rendered with 80" in line]
+    assert len(lines) == 2
+    # and a rerun there is refused by what the manifest says
+    assert _raster(out, width=64) == 1
+    assert "--width: 80 there, 64 now" in capsys.readouterr().err
