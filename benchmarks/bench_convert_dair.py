@@ -3,7 +3,8 @@
 12,424 is the number of infrastructure-side frames in DAIR-V2X-C. The frames come from
 converters.dair_fixture (tiny 96x54 JPEGs, 4-14 labelled objects each, about 9 on average, like the
 real 001366.json's 8), so the figure measures the converter (JSON parsing, geometry, record
-writing, linking, indexing), not image decoding, which it never does. Target: under 20 s.
+writing, linking, indexing); each image is decoded in full (omnigen.images.check_image), which at
+96x54 costs little: benchmarks/bench_image_check.py measures that check at real sizes. Target: under 20 s.
 
 Prints every run, the median of --repeats runs, and then where a frame's CPU time goes, step by
 step, measured serially on --steps frames. --tree DIR keeps the generated tree there and
@@ -93,7 +94,7 @@ def step_costs(tree: Path, out: Path, n: int) -> list[tuple[str, float]]:
     spent["finalize"] = time.process_time() - t
     ms = {k: v / len(keys) * 1000 for k, v in spent.items()}
     return [
-        ("DAIR-specific work: three JSON files, image header, label parsing, ground fit", ms["convert"] - ms["objects"]),
+        ("DAIR-specific work: three JSON files, image check, label parsing, ground fit", ms["convert"] - ms["objects"]),
         ("make_objects: boxes, projection, silhouettes (shapely), self-occlusion, records", ms["objects"]),
         ("placing the image (hard link)", ms["place"]),
         ("writing the record: to_dict, validation (FrameRecord.from_dict), JSON, atomic write", ms["write"]),
