@@ -160,9 +160,8 @@ def _run_merge(args: argparse.Namespace) -> int:
               args.seed, args.split_file, args.update, args.link)
     print_table(f"merge -> {args.out}", ["source", "frames"], sorted(r.by_source.items()))
     print_table("splits", ["split", "frames"], sorted(r.by_split.items()))
-    # whole groups make the share reached differ from the one asked
-    print(f"test split: {r.by_split.get('test', 0)} of {r.frames} frames ({r.by_split.get('test', 0) / max(r.frames, 1):.3f}; "
-          f"asked {r.test_fraction:g})")
+    test = r.by_split.get("test", 0)  # whole groups make the share reached differ from the one asked
+    print(f"test split: {test} of {r.frames} frames ({test / max(r.frames, 1):.3f}; asked {r.test_fraction:g})")
     for path, n in sorted(r.unmatched_lines.items()):
         print(f"  {path}: {n} lines name no frame of these sources (left out)")
     links = ", ".join(f"{k} {v}" for k, v in sorted(r.link_modes.items())) or "-"

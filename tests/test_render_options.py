@@ -128,7 +128,8 @@ def test_validate_catches_frames_that_disagree_with_the_folders_arguments(tmp_pa
     (out / "manifest.json").write_text(json.dumps(manifest))
     capsys.readouterr()
     assert main(["validate", str(out)]) == 1
-    lines = [line for line in capsys.readouterr().out.splitlines() if ": width: 64 but the folder was rendered with 80" in line]
+    wanted = ": width: 64 but the folder was rendered with 80"
+    lines = [line for line in capsys.readouterr().out.splitlines() if wanted in line]
     assert len(lines) == 2
     # and a rerun there is refused by what the manifest says
     assert _raster(out, width=64) == 1
