@@ -180,7 +180,7 @@ def default_amp(device: str | None) -> str:
 DATA_ARGUMENTS = ("frames", "cities", "size", "backend", "seed", "kitti", "dair")
 
 
-def check_data_arguments(work: Path, args: argparse.Namespace) -> None:
+def check_data_arguments(work: Path, args: argparse.Namespace, names: tuple[str, ...] = DATA_ARGUMENTS) -> None:
     """Refuse to resume a working folder whose renders and merge were made with other arguments.
 
     Stages are skipped when their output exists, so reusing a folder rendered at another --size
@@ -188,7 +188,7 @@ def check_data_arguments(work: Path, args: argparse.Namespace) -> None:
     WORK/data.json and compared.
     """
     wanted = {k: str(getattr(args, k)) if isinstance(getattr(args, k), Path) else getattr(args, k)
-              for k in DATA_ARGUMENTS}
+              for k in names}
     path = work / "data.json"
     if path.exists():
         had = json.loads(path.read_text())
@@ -203,33 +203,53 @@ def check_data_arguments(work: Path, args: argparse.Namespace) -> None:
 def render_all(run: Runner, work: Path, args: argparse.Namespace) -> list[Path]:
     """Each rig renders --cities cities (one seed each: frames of one city form one split group, so
     several are needed for a group-aware test split), --jobs renders at a time."""
-    import subprocess
+    jobs = render_jobs(work, args)
+    run_renders(run, [argv for argv, out in jobs if not (out / "manifest.json").exists()], args.jobs)
+    return [out for _, out in jobs]
 
+
+def render_jobs(work: Path, args: argparse.Namespace, first_city: int = 0) -> list[tuple[list[str], Path]]:
+    """The render command and output folder of each rig's --cities cities, numbered from
+    `first_city` (the seed of city c of rig i is --seed + 100 i + c); a finished one is said skipped."""
     per_city = max(1, args.frames // args.cities)
-    todo, outs = [], []
+    jobs = []
     for i, rig in enumerate(RIGS):
-        for c in range(args.cities):
+        for c in range(first_city, first_city + args.cities):
             seed = args.seed + 100 * i + c
             out = work / f"render-{rig}-s{seed}"
-            outs.append(out)
             argv = ["render", "--rig", rig, "--frames", str(per_city), "--seed", str(seed), "--width", str(args.size),
                     "--height", str(args.size), "--backend", args.backend, "--quality", "preview", "--out", str(out)]
+            if getattr(args, "scene", None):  # gpu_validate's tiny test; validate renders the default city
+                argv += ["--scene", args.scene]
             if (out / "manifest.json").exists():
                 print(f"[skip, done] omnigen {shlex.join(argv)}", flush=True)
-            else:
-                todo.append(argv)
+            jobs.append((argv, out))
+    return jobs
+
+
+def run_renders(run: Runner, todo: list[list[str]], jobs: int, env: dict[str, str] | None = None) -> None:
+    """Run `omnigen ARGV` for each of `todo`, `jobs` processes at a time (in `env`, else this
+    process's environment), recording each with its wall time; the first failure stops the run."""
+    import subprocess
+
+    todo = list(todo)
     running: list[tuple[list[str], subprocess.Popen, float]] = []
     while todo or running:
-        while todo and len(running) < args.jobs:
+        while todo and len(running) < jobs:
             argv = todo.pop(0)
             print(f"[run] omnigen {shlex.join(argv)}", flush=True)
             running.append((argv, subprocess.Popen([sys.executable, "-m", "omnigen.cli", *argv],
-                                                   stdout=subprocess.DEVNULL), time.perf_counter()))
-        argv, proc, t = running.pop(0)
-        if proc.wait():
-            raise SystemExit(f"validate: 'omnigen {shlex.join(argv)}' exited with {proc.returncode}")
-        run.record(f"omnigen {shlex.join(argv)}", time.perf_counter() - t)
-    return outs
+                                                   stdout=subprocess.DEVNULL, env=env), time.perf_counter()))
+        # whichever ends first frees its slot: waiting on the oldest would idle the others' slots
+        while not (ended := [r for r in running if r[1].poll() is not None]):
+            time.sleep(0.05)
+        for argv, proc, t in ended:
+            running.remove((argv, proc, t))
+            if proc.returncode:
+                for _, other, _ in running:
+                    other.kill()
+                raise SystemExit(f"validate: 'omnigen {shlex.join(argv)}' exited with {proc.returncode}")
+            run.record(f"omnigen {shlex.join(argv)}", time.perf_counter() - t)
 
 
 def synthetic_row(report: dict[str, Any]) -> dict[str, Any]:
@@ -387,7 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     args.results.mkdir(parents=True, exist_ok=True)
     atomic_write_json(args.results / "results.json", results, indent=2)
-    atomic_write_text(args.results / "RESULTS.md", results_markdown(results))
+    md = args.results / "RESULTS.md"
+    atomic_write_text(md, results_markdown(results) + kept_sections(md.read_text() if md.exists() else ""))
     print(f"validate: wrote {args.results / 'RESULTS.md'} and results.json in {wall / 60:.1f} min")
     print(f"synthetic test: OKS mAP50:95 {row['oks_map50_95']:.3f} (target >= {TARGET_MAP}), "
           f"ground-plane adherence {row['ground_adherence_deg']} deg (target <= {TARGET_ADHERENCE})")
@@ -540,6 +561,26 @@ def floor_table(r: dict[str, Any], made: str) -> list[str]:
             f"{_f(cell[noise, g]['oks_map50_95'])} / {_f(cell[noise, g]['adherence_deg'], 2)}"
             if (noise, g) in cell else "-" for g in groups) + " |")
     return lines + ["", made, ""]
+
+
+# Sections of RESULTS.md that other scripts write (benchmarks/gpu_validate.py): each between its
+# own markers, kept when this script rewrites the rest, replaced whole by the script that owns it.
+SECTION = re.compile(r"<!-- (?P<name>[\w-]+): begin -->\n.*?<!-- (?P=name): end -->\n", re.S)
+
+
+def kept_sections(text: str) -> str:
+    """The marked sections of a RESULTS.md, each after a blank line, to append to a rewritten one."""
+    return "".join("\n" + m.group(0) for m in SECTION.finditer(text))
+
+
+def with_section(text: str, name: str, body: str) -> str:
+    """`text` with section `name` replaced by `body` (markers added), or appended when it has none."""
+    block = f"<!-- {name}: begin -->\n{body.rstrip()}\n<!-- {name}: end -->\n"
+    for m in SECTION.finditer(text):
+        if m.group("name") == name:
+            return text[:m.start()] + block + text[m.end():]
+    gap = "" if not text or text.endswith("\n\n") else "\n" if text.endswith("\n") else "\n\n"
+    return text + gap + block
 
 
 def results_markdown(r: dict[str, Any]) -> str:
