@@ -35,9 +35,9 @@ import numpy as np
 import orjson
 
 from converters.common import (
+    TEXT_FILE_MAX_BYTES,
     ConvertedFrame,
     ImageSource,
-    TEXT_FILE_MAX_BYTES,
     SourceError,
     add_common_arguments,
     image_relpath,

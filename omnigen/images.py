@@ -97,18 +97,22 @@ def check_image(source: Source, file: str | os.PathLike | None = None) -> tuple[
     """
     file = file if file is not None else str(source)
     try:
-        with _open(source, file) as im:
+        im = _open(source, file)
+        try:
             width, height = _capped_size(im, file)
             if im.format == "PNG":
-                im.verify()
-        with _open(source, file) as im:
+                im.verify()  # reads to the end: the image must be opened again to decode it
+                im.close()
+                im = _open(source, file)
             if im.format == "JPEG":
                 im.draft(im.mode, (max(1, width // JPEG_DRAFT_SCALE), max(1, height // JPEG_DRAFT_SCALE)))
             elif im.size != (width, height):
-                raise ImageError(file, f"size changed between two reads: {im.size} vs {width}x{height}")
+                raise ImageError(file, f"size changed between two reads: {im.size[0]}x{im.size[1]} vs {width}x{height}")
             im.load()
             if im.format != "JPEG" and im.size != (width, height):
                 raise ImageError(file, f"decoded {im.size[0]}x{im.size[1]}, header says {width}x{height}")
+        finally:
+            im.close()
     except (FileNotFoundError, ImageError):
         raise
     except _PIL_ERRORS as exc:

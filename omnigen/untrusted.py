@@ -14,6 +14,7 @@ so that callers keep their own "missing" messages.
 
 from __future__ import annotations
 
+import functools
 import os
 import stat
 from pathlib import Path
@@ -37,13 +38,19 @@ def resolve_inside(root: str | os.PathLike, path: str | os.PathLike) -> Path:
 
     Resolving first is what makes the check hold: `a/../../x` and a link `a -> /etc` are caught
     by where they lead, not by how they are spelled. A path that does not exist resolves as far as
-    it does and is judged the same way (the caller then reports it missing).
+    it does and is judged the same way (the caller then reports it missing). The root itself is
+    resolved once per process (a converter asks for several files a frame under one root).
     """
-    real_root = Path(root).resolve()
-    resolved = (real_root / path).resolve()
-    if not resolved.is_relative_to(real_root):
+    real_root = _real_root(os.fspath(root))
+    resolved = os.path.realpath(os.path.join(real_root, path))
+    if resolved != real_root and not resolved.startswith(real_root.rstrip(os.sep) + os.sep):
         raise UntrustedFileError(path, f"leads outside {root} (to {resolved})")
-    return resolved
+    return Path(resolved)
+
+
+@functools.lru_cache(maxsize=64)
+def _real_root(root: str) -> str:
+    return os.path.realpath(root)
 
 
 def _check_regular(st: os.stat_result, path: str | os.PathLike, max_bytes: int) -> None:
