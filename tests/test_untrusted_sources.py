@@ -323,6 +323,17 @@ def test_kitti_label_and_calib_with_a_byte_order_mark_are_read(tmp_path, capsys)
         assert (tmp_path / "bom/records" / name).read_bytes() == (tmp_path / "plain/records" / name).read_bytes()
 
 
+def test_dair_json_with_a_byte_order_mark_is_read(tmp_path, capsys):
+    root = tmp_path / "src"
+    write_dair_tree(root, 1, seed=5, variant="i")
+    assert convert_dair(root, tmp_path / "plain", capsys) == (0, [])
+    for path in (root / "label/camera/000000.json", root / "calib/camera_intrinsic/000000.json"):
+        path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    assert convert_dair(root, tmp_path / "bom", capsys) == (0, [])
+    name = "records/dair-v2x-i-000000.json"
+    assert (tmp_path / "bom" / name).read_bytes() == (tmp_path / "plain" / name).read_bytes()
+
+
 def test_kitti_links_out_of_the_tree_and_oversize_zip_members_are_skips(tmp_path, capsys, monkeypatch):
     src = tmp_path / "kitti"
     write_kitti_tree(src, 3, seed=2)
