@@ -10,9 +10,11 @@ Converters, `omnigen validate` and `omnigen show` read images through here.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 from pathlib import Path
+from typing import Iterator
 
 from PIL import Image, UnidentifiedImageError
 
@@ -40,20 +42,24 @@ Source = Path | str | bytes
 """A file name, or the file's bytes (read from an archive)."""
 
 
-def _open(source: Source, file: str | os.PathLike) -> Image.Image:
+@contextlib.contextmanager
+def _opened(source: Source, file: str | os.PathLike) -> Iterator[Image.Image]:
+    """The image opened lazily (header parsed, no pixels), its file closed on leaving.
+
+    PIL does not close a file object it was handed, so the file is closed here.
+    """
     if isinstance(source, bytes):
         if len(source) > MAX_IMAGE_BYTES:
             raise ImageError(file, f"{len(source)} bytes, more than the {MAX_IMAGE_BYTES} allowed for an image")
-        return Image.open(io.BytesIO(source))
+        with Image.open(io.BytesIO(source)) as im:
+            yield im
+        return
     try:
         fh = open_regular(source, MAX_IMAGE_BYTES)
     except UntrustedFileError as exc:
         raise ImageError(file, exc.message) from None
-    try:
-        return Image.open(fh)  # PIL closes fh with the image
-    except BaseException:
-        fh.close()
-        raise
+    with fh, Image.open(fh) as im:
+        yield im
 
 
 def _capped_size(im: Image.Image, file: str | os.PathLike) -> tuple[int, int]:
@@ -76,11 +82,15 @@ def _unreadable(exc: BaseException) -> str:
     return f"unreadable image: {exc}"
 
 
+def _name(source: Source, file: str | os.PathLike | None) -> str | os.PathLike:
+    return file if file is not None else ("<image bytes>" if isinstance(source, bytes) else source)
+
+
 def image_size(source: Source, file: str | os.PathLike | None = None) -> tuple[int, int]:
     """(width, height) from the header only, within the caps. Fast; does not prove the pixels are there."""
-    file = file if file is not None else str(source)
+    file = _name(source, file)
     try:
-        with _open(source, file) as im:
+        with _opened(source, file) as im:
             return _capped_size(im, file)
     except (FileNotFoundError, ImageError):
         raise
@@ -95,24 +105,16 @@ def check_image(source: Source, file: str | os.PathLike | None = None) -> tuple[
     data is caught here) and then decoded; a JPEG is decoded at 1/JPEG_DRAFT_SCALE. The decoded
     size must equal the header's (PIL's decoders make it so; the check guards the promise).
     """
-    file = file if file is not None else str(source)
+    file = _name(source, file)
     try:
-        im = _open(source, file)
-        try:
+        with _opened(source, file) as im:
             width, height = _capped_size(im, file)
-            if im.format == "PNG":
-                im.verify()  # reads to the end: the image must be opened again to decode it
-                im.close()
-                im = _open(source, file)
-            if im.format == "JPEG":
-                im.draft(im.mode, (max(1, width // JPEG_DRAFT_SCALE), max(1, height // JPEG_DRAFT_SCALE)))
-            elif im.size != (width, height):
-                raise ImageError(file, f"size changed between two reads: {im.size[0]}x{im.size[1]} vs {width}x{height}")
-            im.load()
-            if im.format != "JPEG" and im.size != (width, height):
-                raise ImageError(file, f"decoded {im.size[0]}x{im.size[1]}, header says {width}x{height}")
-        finally:
-            im.close()
+            if im.format != "PNG":
+                _decode(im, width, height, file)
+                return width, height
+            im.verify()  # reads to the end: the image must be opened again to decode it
+        with _opened(source, file) as im:
+            _decode(im, width, height, file)
     except (FileNotFoundError, ImageError):
         raise
     except _PIL_ERRORS as exc:
@@ -120,11 +122,22 @@ def check_image(source: Source, file: str | os.PathLike | None = None) -> tuple[
     return width, height
 
 
+def _decode(im: Image.Image, width: int, height: int, file: str | os.PathLike) -> None:
+    """Every pixel decoded (a JPEG at 1/JPEG_DRAFT_SCALE), and the result of the header's size."""
+    if im.size != (width, height):
+        raise ImageError(file, f"size changed between two reads: {im.size[0]}x{im.size[1]} vs {width}x{height}")
+    if im.format == "JPEG":
+        im.draft(im.mode, (max(1, width // JPEG_DRAFT_SCALE), max(1, height // JPEG_DRAFT_SCALE)))
+    im.load()
+    if im.format != "JPEG" and im.size != (width, height):
+        raise ImageError(file, f"decoded {im.size[0]}x{im.size[1]}, header says {width}x{height}")
+
+
 def load_rgb(path: Path | str) -> Image.Image:
     """The image decoded as RGB, its size checked against the caps before any pixel is decoded.
 
     The caps are ImageError; PIL's own errors propagate unchanged (a viewer shows them as they are).
     """
-    with _open(path, path) as im:
+    with _opened(path, path) as im:
         _capped_size(im, path)
         return im.convert("RGB")
