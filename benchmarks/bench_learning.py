@@ -1,0 +1,139 @@
+"""The yardstick for recipe changes: train a fixed number of steps from a fixed seed, score the
+synthetic test split against the box-template baseline.
+
+    .venv/bin/python benchmarks/bench_learning.py runs/validate/uov --steps 2000
+    .venv/bin/python benchmarks/bench_learning.py runs/validate/uov --steps 400 --kpt-mode box --kpt-l1 2
+
+Why a fixed number of steps and not minutes: on a shared 2-core machine the time a step takes
+varies with what else runs, the steps do not, so two recipes trained for the same steps compare
+whatever the machine did meanwhile (the seconds are printed, not compared).
+
+What it prints, for the model (its EMA weights after the last step) and for the box-template
+baseline (each predicted box's corners placed by its class's and view's mean layout from the
+training split, detector/box_template.py): OKS mAP50:95, AP50, ground-plane adherence, and the
+median corner error of the box-matched objects in pixels and relative to sqrt(box area)
+(detector/corner_errors.py), on the synthetic test frames and per view. A recipe whose
+`corner_error_rel` is not below the baseline's has corners worth no more than the 2D box.
+OKS mAP of a few hundred CPU steps sits near 0 and moves in noise; the corner errors move from
+the first hundred steps on, which is why they are the figure to compare at small budgets.
+
+Last line: `learning: mAP50:95 X (baseline Y), corner error rel A (baseline B)`.
+`--out DIR/NAME.json` keeps the numbers; docs/detector-training.md tables what each recipe printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+RECIPE = {"imgsz": 640, "crop": 320, "batch": 16, "lr0": 2e-3, "kpt_sigma_end": 0.25, "amp": "bf16"}
+"""make validate's CPU recipe (benchmarks/validate.py), the point every change is compared from."""
+
+FIELDS = ("oks_map50_95", "ap_oks50", "ground_adherence_deg", "corner_error_px", "corner_error_rel", "corner_objects")
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("dataset", type=Path, help="a merged dataset with train and test splits (make validate's uov)")
+    ap.add_argument("--steps", type=int, default=2000, help="optimiser steps (rounded up to whole epochs)")
+    ap.add_argument("--work", type=Path, default=Path("runs/learning"), help="where the run folder goes")
+    ap.add_argument("--name", default=None, help="run folder name (default: from the recipe's arguments)")
+    ap.add_argument("--out", type=Path, default=None, help="write the numbers as JSON here")
+    ap.add_argument("--imgsz", type=int, default=RECIPE["imgsz"])
+    ap.add_argument("--crop", type=int, default=RECIPE["crop"], help="0: whole images")
+    ap.add_argument("--batch", type=int, default=RECIPE["batch"])
+    ap.add_argument("--lr0", type=float, default=RECIPE["lr0"])
+    ap.add_argument("--kpt-sigma-end", type=float, default=RECIPE["kpt_sigma_end"])
+    ap.add_argument("--kpt-mode", default="anchor", choices=["anchor", "box"])
+    ap.add_argument("--kpt-l1", type=float, default=0.0)
+    ap.add_argument("--amp", default=RECIPE["amp"], choices=["auto", "bf16", "fp16", "off"])
+    ap.add_argument("--model", default="n")
+    ap.add_argument("--width", type=float, default=None, help="override the scale's width (tiny test models)")
+    ap.add_argument("--depth", type=float, default=None)
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--device", default="cpu")
+    return ap.parse_args(argv)
+
+
+def rows_of(report: Any) -> dict[str, dict[str, float]]:
+    """The synthetic row (else overall) and the per-view rows of an EvalReport, FIELDS only."""
+    rows = {r.group: r for r in report.rows}
+    main = rows.get("source=synthetic") or rows["overall"]
+    out = {"synthetic" if main.group == "source=synthetic" else "overall": main}
+    out.update({g.split("=", 1)[1]: r for g, r in rows.items() if g.startswith("view=")})
+    def value(v: float) -> float | None:  # JSON has no NaN: a figure nothing was matched for is null
+        return None if isinstance(v, float) and math.isnan(v) else v
+
+    return {k: {f: value(getattr(r, f)) for f in FIELDS} for k, r in out.items()}
+
+
+def fmt(v: float, digits: int = 3) -> str:
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    import torch
+
+    from detector.box_template import evaluate_with_baseline
+    from detector.predict import predict_dataset
+    from detector.train import TrainConfig, train
+    from omnigen.dataset import Dataset
+    from omnigen.splits import read_split
+
+    torch.set_num_threads(torch.get_num_threads())  # the process's default; nothing global changed
+    frames = len(read_split(args.dataset, "train"))
+    per_epoch = math.ceil(frames / args.batch)
+    epochs = max(1, math.ceil(args.steps / per_epoch))
+    name = args.name or (f"{args.model}-{args.kpt_mode}-l1{args.kpt_l1:g}-s{args.steps}"
+                         f"-c{args.crop}-lr{args.lr0:g}-seed{args.seed}")
+    run = args.work / name
+    cfg = TrainConfig(dataset=str(args.dataset), out=str(run), model=args.model, width=args.width, depth=args.depth,
+                      imgsz=args.imgsz, crop=args.crop or None, epochs=epochs, batch=args.batch, lr0=args.lr0,
+                      kpt_sigma_end=args.kpt_sigma_end, kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1,
+                      amp=args.amp, workers=args.workers, seed=args.seed, device=args.device,
+                      val_every=10**6)  # validates once, after the last epoch (train always does): the test split
+    t0 = time.perf_counter()
+    last = train(cfg, resume=False)
+    train_s = time.perf_counter() - t0
+    preds = predict_dataset(run / "last.pt", args.dataset, split="test", imgsz=args.imgsz, batch=8)
+    ds = Dataset.open(args.dataset, show_progress=False)
+    report, baseline = evaluate_with_baseline(ds, preds, split="test", taxonomy=cfg.taxonomy)
+    model_rows, base_rows = rows_of(report), rows_of(baseline)
+    main_key = next(iter(model_rows))
+    result = {"dataset": str(args.dataset), "name": name, "steps": epochs * per_epoch, "epochs": epochs,
+              "train_seconds": round(train_s, 1), "config": asdict(cfg),
+              "final_losses": {k: last.get(k) for k in ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1")},
+              "model": model_rows, "baseline": base_rows}
+
+    print(f"\n{name}: {result['steps']} steps ({epochs} epochs of {per_epoch}), {train_s:.0f} s of training")
+    print("| rows | model mAP50:95 | AP50 | adherence (deg) | corner error px | rel | baseline mAP50:95 | "
+          "AP50 | px | rel |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for key, m in model_rows.items():
+        b = base_rows[key]
+        print(f"| {key} | {fmt(m['oks_map50_95'])} | {fmt(m['ap_oks50'])} | {fmt(m['ground_adherence_deg'], 2)} | "
+              f"{fmt(m['corner_error_px'], 2)} | {fmt(m['corner_error_rel'])} | {fmt(b['oks_map50_95'])} | "
+              f"{fmt(b['ap_oks50'])} | {fmt(b['corner_error_px'], 2)} | {fmt(b['corner_error_rel'])} |")
+    if args.out:
+        from omnigen.files import atomic_write_json
+
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(args.out, result, indent=2)
+    m, b = model_rows[main_key], base_rows[main_key]
+    print(f"learning: mAP50:95 {fmt(m['oks_map50_95'])} (baseline {fmt(b['oks_map50_95'])}), "
+          f"corner error rel {fmt(m['corner_error_rel'])} (baseline {fmt(b['corner_error_rel'])})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,35 @@
+"""Issue 25: the fixed-budget learning benchmark runs end to end and prints the model beside the
+box-template baseline (tiny model, a few steps on a fake dataset with train and test splits)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
+
+from benchmarks.bench_learning import main  # noqa: E402
+from omnigen.fakes import write_fake_dataset  # noqa: E402
+from omnigen.splits import write_split  # noqa: E402
+
+
+def test_bench_learning_prints_model_and_baseline(tmp_path, capsys):
+    ds = write_fake_dataset(tmp_path / "uov", 9, objects_per_frame=4, seed=5)
+    ids = [ds.table.frame_id[i] for i in range(len(ds))]
+    write_split(ds.root, "train", ids[:6])
+    write_split(ds.root, "test", ids[6:])
+    out = tmp_path / "result.json"
+    rc = main([str(ds.root), "--steps", "2", "--batch", "3", "--imgsz", "64", "--crop", "0", "--amp", "off",
+               "--width", "0.125", "--depth", "0.34", "--workers", "0", "--kpt-mode", "box", "--kpt-l1", "1",
+               "--work", str(tmp_path / "runs"), "--out", str(out)])
+    assert rc == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[-1].startswith("learning: mAP50:95 ") and "(baseline " in lines[-1]
+    assert "corner error rel" in lines[-1]
+    result = json.loads(out.read_text())
+    assert result["steps"] == 2 and result["config"]["kpt_mode"] == "box" and result["config"]["kpt_l1"] == 1.0
+    assert set(result["model"]) == set(result["baseline"]) and "synthetic" in result["model"]
+    for row in (*result["model"].values(), *result["baseline"].values()):
+        assert {"oks_map50_95", "ap_oks50", "corner_error_px", "corner_error_rel"} <= set(row)
+    assert (tmp_path / "runs" / result["name"] / "last.pt").exists()
