@@ -50,3 +50,59 @@ def load_model(path: str | Path) -> tuple[KeypointDetector, dict[str, Any]]:
 def checkpoint_taxonomy(state: dict[str, Any]) -> Taxonomy:
     """The classes a checkpoint was trained on (checkpoints without the field: the fine taxonomy)."""
     return Taxonomy.from_dict(state["taxonomy"]) if "taxonomy" in state else load_taxonomy("fine")
+
+
+def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonomy) -> list[str]:
+    """Load an earlier run's weights (its EMA model) into a fresh `model` for a new run; returns notes.
+
+    Why it is not a resume: fine-tuning (e.g. a model pretrained on a large synthetic set, then
+    real data: the design's Table 8 setting) wants the weights and nothing else: a fresh optimiser,
+    a new schedule from epoch 0, possibly other classes.
+    The architecture must be the same (every DetectorConfig field but num_classes): otherwise the
+    tensors mean other things, and the refusal names the file and the field. Where the classes
+    differ, the class branches' last layers get the checkpoint's rows of the classes both
+    taxonomies name, and keep the fresh initialisation for the others; any class-branch tensor
+    whose shape still differs stays freshly initialised. The notes say what was re-initialised.
+    """
+    state = load_checkpoint(path)
+    theirs, mine = DetectorConfig.from_dict(state["config"]).to_dict(), model.cfg.to_dict()
+    for key in mine:
+        if key != "num_classes" and theirs.get(key) != mine[key]:
+            raise ValueError(f"{path}: config field {key!r} is {theirs.get(key)!r}, this run builds {mine[key]!r}: "
+                             "--weights needs the same architecture (only the classes may differ)")
+    src = state["model"]
+    dst = model.state_dict()
+    old_classes = list(state["classes"])
+    new_classes = list(taxonomy.classes)
+    last_layers = {f"head.cls.{i}.{len(branch) - 1}.{name}"
+                   for i, branch in enumerate(model.head.cls) for name in ("weight", "bias")}
+    fresh, partial = [], []
+    loaded: dict[str, torch.Tensor] = {}
+    for key, value in dst.items():
+        if key in last_layers and old_classes != new_classes:
+            rows = [(new_classes.index(c), old_classes.index(c)) for c in new_classes if c in old_classes]
+            if rows and key in src and src[key].shape[1:] == value.shape[1:]:
+                to, frm = zip(*rows)
+                loaded[key] = value.clone()
+                loaded[key][list(to)] = src[key][list(frm)].to(value.dtype)
+                partial.append(key)
+            else:
+                fresh.append(key)
+        elif key in src and src[key].shape == value.shape:
+            loaded[key] = src[key]
+        elif key.startswith("head.cls."):
+            fresh.append(key)
+        else:
+            raise ValueError(f"{path}: tensor {key!r} is missing or has shape "
+                             f"{tuple(src[key].shape) if key in src else None}, this model's is {tuple(value.shape)}")
+    model.load_state_dict({**dst, **loaded})
+    notes = []
+    if old_classes != new_classes:
+        kept = [c for c in new_classes if c in old_classes]
+        notes.append(f"{path}: trained on classes {old_classes}, this run has {new_classes}; the class branches' "
+                     f"last layers keep the rows of {kept or 'no class'} and start fresh for the others")
+    if fresh:
+        notes.append(f"{path}: re-initialised {len(fresh)} class-head tensor(s): {', '.join(fresh)}")
+    if partial:
+        notes.append(f"{path}: re-initialised the rows of new classes in {', '.join(partial)}")
+    return notes

@@ -14,11 +14,14 @@ same weights as an uninterrupted run on the CPU (each sample's augmentation is s
 results.csv has a row per epoch; its `time` column is the seconds the run's epochs have taken so
 far, validation included, summed over resumed invocations (the work a kill threw away is not in
 it), so a run cut into time-boxed jobs still says what it cost.
+
+`time_minutes` fits the schedule to a wall-clock budget (detector/time_budget.py); `weights`
+starts a new run from an earlier run's weights (checkpoint.load_pretrained). Where the time of a
+step goes and what was done about it: docs/detector-training.md, "Speed".
 """
 
 from __future__ import annotations
 
-import copy
 import datetime
 import math
 import os
@@ -31,12 +34,17 @@ from typing import Any, Callable
 import torch
 import torch.distributed as dist
 
-from detector.checkpoint import checkpoint_taxonomy, load_checkpoint, save_checkpoint
-from detector.data import Augment, KeypointDataset, collate, split_frames
+from detector.checkpoint import checkpoint_taxonomy, load_checkpoint, load_pretrained, save_checkpoint
+from detector.data import Augment, KeypointDataset, split_frames
+from detector.ema import ModelEMA
 from detector.loss import OKS_SIGMA as KPT_SIGMA
-from detector.loss import DetectionLoss
+from detector.loss import DetectionLoss, LossGains
 from detector.model import DetectorConfig, KeypointDetector
 from detector.predict import EVAL_CONF, PredictOptions, predict_frames
+from detector import time_budget
+from detector.time_budget import TimeBudget
+from detector.train_loader import EpochSampler, collate_uint8, make_loader
+from detector.train_step import PartSums, TrainStep, to_device, use_channels_last
 from omnigen.files import atomic_write_text, dumps_json
 from omnigen.splits import TEST, split_names
 from omnigen.taxonomy import load_taxonomy
@@ -69,6 +77,8 @@ class TrainConfig:
     kpt_sigma_start: float = 0.5  # keypoint-loss sigma annealed to kpt_sigma_end (see kpt_sigma)
     kpt_sigma_anneal: float = 0.3  # fraction of the iterations over which it is annealed
     kpt_sigma_end: float = KPT_SIGMA  # the design's 0.125; 0.25 is the kernel of the OKS metric itself
+    kpt_mode: str = "anchor"  # corners as offsets from the anchor, or in units of the anchor's box (outputs.py)
+    kpt_l1: float = 0.0  # gain of the scale-free L1 corner term beside the OKS loss (loss.keypoint_l1_loss)
     taxonomy: str = "fine"
     train_split: str = "train"
     val_split: str | None = None  # None: 'val' if the dataset has it, else 'test', else all frames
@@ -80,31 +90,13 @@ class TrainConfig:
     save_interval: float = 60.0  # seconds between last.pt writes (also written after validation and at the end)
     device: str | None = None
     amp: str = "auto"  # mixed precision: auto (fp16 on CUDA, off on the CPU), bf16, fp16 or off
+    channels_last: bool | None = None  # NHWC activations; None: on for CUDA, off on the CPU (train_step)
+    time_minutes: float | None = None  # wall-clock budget of the whole run; epochs is then an upper bound
+    weights: str | None = None  # start from this checkpoint's (EMA) weights: a new run, not a resume
 
     def model_config(self, num_classes: int) -> DetectorConfig:
-        return DetectorConfig(scale=self.model, backbone=self.backbone, p2=self.p2, p6=self.p6,
+        return DetectorConfig(scale=self.model, backbone=self.backbone, p2=self.p2, p6=self.p6, kpt_mode=self.kpt_mode,
                               num_classes=num_classes, width=self.width, depth=self.depth)
-
-
-class ModelEMA:
-    """Exponential moving average of the weights (and buffers), the model that is validated and saved."""
-
-    def __init__(self, model: torch.nn.Module, decay: float, tau: float, updates: int = 0):
-        self.ema = copy.deepcopy(model).eval()
-        for p in self.ema.parameters():
-            p.requires_grad_(False)
-        self.decay, self.tau, self.updates = decay, tau, updates
-
-    @torch.no_grad()
-    def update(self, model: torch.nn.Module) -> None:
-        self.updates += 1
-        d = self.decay * (1 - math.exp(-self.updates / self.tau))
-        msd = model.state_dict()
-        for k, v in self.ema.state_dict().items():
-            if v.dtype.is_floating_point:
-                v.mul_(d).add_(msd[k].detach(), alpha=1 - d)
-            else:
-                v.copy_(msd[k])
 
 
 def param_groups(model: torch.nn.Module, weight_decay: float) -> list[dict[str, Any]]:
@@ -128,15 +120,18 @@ def make_optimizer(cfg: TrainConfig, model: torch.nn.Module) -> torch.optim.Opti
     """
     if cfg.optimizer not in OPTIMIZERS:
         raise ValueError(f"optimizer: {cfg.optimizer!r} is not one of {sorted(OPTIMIZERS)}")
-    return OPTIMIZERS[cfg.optimizer](param_groups(model, cfg.weight_decay), lr=cfg.lr0, betas=(0.937, 0.999))
+    # fused: one kernel for all parameters on CUDA (the foreach default launches several per group)
+    fused = {"fused": True} if next(model.parameters()).is_cuda else {}
+    return OPTIMIZERS[cfg.optimizer](param_groups(model, cfg.weight_decay), lr=cfg.lr0, betas=(0.937, 0.999), **fused)
 
 
 def learning_rate(cfg: TrainConfig, it: int, total: int) -> float:
-    """Linear warm-up, then cosine decay from lr0 to lr0 * lrf over the remaining iterations."""
+    """Linear warm-up, then cosine decay from lr0 to lr0 * lrf over the remaining iterations: the
+    last iteration (total - 1) runs at lr0 * lrf."""
     warm = min(cfg.warmup_iters, max(1, total // 5))
     if it < warm:
         return cfg.lr0 * (it + 1) / warm
-    t = (it - warm) / max(1, total - warm)
+    t = min(1.0, (it - warm) / max(1, total - 1 - warm))
     return cfg.lr0 * (cfg.lrf + (1 - cfg.lrf) * 0.5 * (1 + math.cos(math.pi * t)))
 
 
@@ -248,6 +243,8 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     cfg.epochs), as a kill would, so that a later `resume=True` continues it: time-boxed jobs on a
     cluster do the same.
     """
+    clock = time_budget.clock  # seconds of the run's epochs and budget (tests may replace it)
+    entered = clock()  # a time budget counts the setup (dataset, image cache) too
     rank, local_rank, world = distributed()
     device = pick_device(cfg, local_rank)
     if world > 1 and not dist.is_initialized():
@@ -280,8 +277,16 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
         if rank == 0:  # only rank 0 validates
             val.cache_images(show_progress=True)
 
-    model = KeypointDetector(cfg.model_config(len(taxonomy.classes))).to(device)
-    ema = ModelEMA(model, cfg.ema_decay, cfg.ema_tau)
+    model = KeypointDetector(cfg.model_config(len(taxonomy.classes)))
+    if state is None and cfg.weights:  # a new run from earlier weights: fresh optimiser, epoch 0
+        for note in load_pretrained(model, cfg.weights, taxonomy):
+            if rank == 0:
+                print(f"note: {note}", file=sys.stderr, flush=True)
+    channels_last = use_channels_last(cfg.channels_last, device)
+    model = model.to(device, memory_format=torch.channels_last if channels_last else torch.preserve_format)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True  # fixed input sizes: each convolution's kernel is timed once
+    ema = ModelEMA(model, cfg.ema_decay, cfg.ema_tau)  # after the move: it pairs the model's tensors
     optimizer = make_optimizer(cfg, model)
     start_epoch, best, history = 0, -1.0, []
     if state is not None:
@@ -290,7 +295,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
         ema.updates = int(state["ema_updates"])
         optimizer.load_state_dict(state["optimizer"])
         start_epoch, best, history = int(state["epoch"]) + 1, float(state["best_fitness"]), list(state["history"])
-    criterion = DetectionLoss(model.cfg.num_classes)
+    criterion = DetectionLoss(model.cfg.num_classes, gains=LossGains(kpt_l1=cfg.kpt_l1))
     amp_dtype = autocast_dtype(cfg.amp, device)
     # fp16 gradients underflow without scaling; bf16 has float32's range and needs none
     scaler = torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16)
@@ -298,65 +303,82 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
         scaler.load_state_dict(state["scaler"])
     ddp = torch.nn.parallel.DistributedDataParallel(model, device_ids=[local_rank] if device.type == "cuda" else None) \
         if world > 1 else model
+    step = TrainStep(model, ddp, criterion, optimizer, scaler, ema, amp_dtype)
 
-    sampler = torch.utils.data.distributed.DistributedSampler(data, world, rank, shuffle=True, seed=cfg.seed) \
+    shard = torch.utils.data.distributed.DistributedSampler(data, world, rank, shuffle=True, seed=cfg.seed) \
         if world > 1 else None
+    sampler = EpochSampler(len(data), cfg.seed, shard)
+    per_step = max(1, cfg.batch // world)
+    loader = make_loader(data, per_step, cfg.workers, sampler, pin=device.type == "cuda", collate_fn=collate_uint8)
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / "args.json", dumps_json(asdict(cfg)))
-    per_step = max(1, cfg.batch // world)
     iters_per_epoch = math.ceil(len(data) / (per_step * world))
-    total = cfg.epochs * iters_per_epoch
     from tqdm import tqdm
 
-    end_epoch = cfg.epochs if stop_after is None else min(cfg.epochs, stop_after)
-    last_save = started = time.perf_counter()
+    budget = TimeBudget(cfg.time_minutes * 60, cfg.epochs) if cfg.time_minutes is not None else None
+    end = cfg.epochs  # the run's last epoch (exclusive): with a time budget, planned as it goes
+    validates = len(val) > 0
+    last_validated = max((int(r["epoch"]) for r in history if "oks_map50_95" in r), default=0)
+    if budget is not None and history:  # resumed: plan from the epochs the earlier invocations measured
+        budget.epoch_seconds = [float(r["seconds"]) for r in history[-4:]]
+        budget.val_seconds = next((float(r["val_seconds"]) for r in reversed(history) if "val_seconds" in r), None)
+    last_save, started = time.perf_counter(), clock()
     time_before = float(history[-1].get("time", 0.0)) if history else 0.0  # the resumed invocations' share
-    for epoch in range(start_epoch, end_epoch):
-        data.set_epoch(epoch)
-        if sampler is not None:
-            sampler.set_epoch(epoch)
-        gen = torch.Generator().manual_seed(cfg.seed * 100_003 + epoch)
-        loader = torch.utils.data.DataLoader(
-            data, batch_size=per_step, shuffle=sampler is None, sampler=sampler, generator=gen,
-            num_workers=cfg.workers, collate_fn=collate, drop_last=False, persistent_workers=False)
+
+    def used() -> float:  # seconds of the budget spent: earlier invocations' epochs, all of this one
+        return time_before + clock() - entered
+
+    epoch = start_epoch
+    while epoch < (end if stop_after is None else min(end, stop_after)):
+        if budget is not None:
+            end = agree(budget.plan(epoch, used(), cfg.val_every, validates), device, world)
+            if end <= epoch:
+                break
+        total = end * iters_per_epoch
+        sampler.set_epoch(epoch)
         model.train()
-        sums: dict[str, float] = {}
-        bar = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", disable=rank != 0, leave=False,
+        sums = PartSums()
+        bar = tqdm(loader, desc=f"epoch {epoch + 1}/{end}", disable=rank != 0, leave=False,
                    dynamic_ncols=True, mininterval=0.5 if sys.stderr.isatty() else 60.0)  # logs: a line a minute
-        t0 = time.perf_counter()
+        t0, show = clock(), time.perf_counter()
         for i, (images, targets, _) in enumerate(bar):
             it = epoch * iters_per_epoch + i
             for g in optimizer.param_groups:
                 g["lr"] = learning_rate(cfg, it, total)
             criterion.kpt_sigma = kpt_sigma(cfg, it, total)
-            images = images.to(device, non_blocking=True)
-            targets = {k: v.to(device) for k, v in targets.items()}
-            with torch.autocast(device.type, dtype=amp_dtype or torch.float32, enabled=amp_dtype is not None):
-                out_step = ddp(images)
-            loss, parts = criterion(out_step, targets)
-            optimizer.zero_grad(set_to_none=True)
-            scaler.scale(loss).backward()
-            scaler.unscale_(optimizer)
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-            scaler.step(optimizer)
-            scaler.update()
-            ema.update(model)
-            for k, v in parts.items():
-                sums[k] = sums.get(k, 0.0) + float(v)
-            # refresh=False: a redraw per step would defeat the log's one line a minute
-            bar.set_postfix({k: f"{v / (i + 1):.3f}" for k, v in sums.items()}, refresh=False)
+            sums.add(step(*to_device(images, targets, device, channels_last)))
+            if rank == 0 and time.perf_counter() >= show:  # read the device's sums only when the bar may redraw
+                # refresh=False: a redraw per step would defeat the log's one line a minute
+                bar.set_postfix({k: f"{v:.3f}" for k, v in sums.means().items()}, refresh=False)
+                show = time.perf_counter() + bar.mininterval
+        means = sums.means()  # waits for the epoch's last step
         row: dict[str, float] = {"epoch": epoch + 1, "lr": optimizer.param_groups[0]["lr"],
-                                 "seconds": time.perf_counter() - t0}
-        row.update({k: v / max(1, len(loader)) for k, v in sums.items()})
+                                 "seconds": clock() - t0}
+        row.update(means)
+        if budget is not None:
+            budget.epoch_seconds.append(row["seconds"])
+            if budget.spent(used(), validates):  # far slower than planned: stop, validate, save
+                end = epoch + 1
+            end = agree(end, device, world)
         if rank == 0:
-            validated = len(val) > 0 and ((epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.epochs)
+            validated = validates and (epoch + 1 == end or (
+                (epoch + 1) % cfg.val_every == 0 if budget is None
+                else epoch + 1 - last_validated >= budget.val_cadence(cfg.val_every)))
             if validated:
+                t_val = clock()
                 row.update(validate(ema.ema, val, val_name if val_name != 'all' else None, per_step))
-            row["time"] = time_before + time.perf_counter() - started
+                row["val_seconds"] = clock() - t_val
+                last_validated = epoch + 1
+                if budget is not None:
+                    budget.val_seconds = row["val_seconds"]
+            row["time"] = time_before + clock() - started
             history.append(row)
             fitness = row.get("oks_map50_95", -1.0)
-            due = validated or epoch + 1 == end_epoch or time.perf_counter() - last_save >= cfg.save_interval
+            last = epoch + 1 == end or epoch + 1 == stop_after
+            if budget is not None and budget.plan(epoch + 1, used(), cfg.val_every, validates) <= epoch + 1:
+                last = True  # the validation took what was left: the next plan ends the run, save now
+            due = validated or last or time.perf_counter() - last_save >= cfg.save_interval
             if on_epoch is not None:
                 on_epoch(epoch, row)
             if due:
@@ -364,7 +386,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
                 ckpt = {"config": model.cfg.to_dict(), "classes": taxonomy.classes, "taxonomy": taxonomy.to_dict(),
                         "model": ema.ema.state_dict(), "raw_model": model.state_dict(), "ema_updates": ema.updates,
                         "optimizer": optimizer.state_dict(), "scaler": scaler.state_dict(),
-                        "epoch": epoch, "best_fitness": max(best, fitness),
+                        "epoch": epoch, "best_fitness": max(best, fitness), "planned_epochs": end,
                         "history": history, "train_config": asdict(cfg)}
                 save_checkpoint(out / "last.pt", ckpt)
                 if fitness > best:
@@ -373,7 +395,17 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
                 write_results_csv(out / "results.csv", history)
         if world > 1:
             dist.barrier(device_ids=[torch.cuda.current_device()] if device.type == "cuda" else None)
+        epoch += 1
     return history[-1] if history else {}
+
+
+def agree(value: int, device: torch.device, world: int) -> int:
+    """Rank 0's value on every process: the ranks time their epochs apart, and must end together."""
+    if world == 1:
+        return value
+    t = torch.tensor([value], device=device if device.type == "cuda" else "cpu")
+    dist.broadcast(t, 0)
+    return int(t.item())
 
 
 def write_results_csv(path: Path, history: list[dict[str, float]]) -> None:

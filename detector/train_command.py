@@ -41,9 +41,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kpt-sigma-end", type=float, default=0.125,
                    help="keypoint-loss sigma after the anneal: the design's 0.125; 0.25 is the OKS metric's kernel")
     p.add_argument("--kpt-sigma-anneal", type=float, default=0.3, help="fraction of the run the anneal takes")
+    p.add_argument("--kpt-mode", default="anchor", choices=["anchor", "box"],
+                   help="corners as offsets from the anchor, or in units of the anchor's predicted box")
+    p.add_argument("--kpt-l1", type=float, default=0.0,
+                   help="gain of a scale-free L1 corner term beside the OKS keypoint loss (0: the design's loss)")
     p.add_argument("--amp", default="auto", choices=["auto", "bf16", "fp16", "off"],
                    help="mixed precision of the forward pass (auto: fp16 on CUDA, off on the CPU; bf16 "
                         "steps take about 0.65 of the time on CPUs with AVX512-BF16, less precisely)")
+    p.add_argument("--time", type=float, default=None, metavar="MINUTES",
+                   help="wall-clock budget of the whole run: the schedule (warm-up, cosine, sigma anneal, "
+                        "validations) is fitted to the epochs that fit, --epochs is then an upper bound")
+    p.add_argument("--weights", default=None, metavar="PATH",
+                   help="start from an earlier run's weights (best.pt/last.pt): a new run with a fresh optimiser; "
+                        "class branches re-initialised where the classes differ")
+    p.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
+                   help="NHWC activations (default: on for CUDA, off on the CPU)")
     p.add_argument("--resume", action="store_true", help="continue OUT/last.pt")
 
 
@@ -62,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
         out_of_image=args.out_of_image, augment=asdict(Augment.off() if args.no_augment else Augment()),
         workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every,
         kpt_sigma_start=args.kpt_sigma_start, kpt_sigma_end=args.kpt_sigma_end, kpt_sigma_anneal=args.kpt_sigma_anneal,
-        amp=args.amp)
+        kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1, amp=args.amp,
+        time_minutes=args.time, weights=args.weights, channels_last=args.channels_last)
     start = time.perf_counter()
 
     def report(epoch: int, row: dict) -> None:

@@ -1,4 +1,5 @@
-"""Issue 10: training, checkpoints, resume, prediction, ONNX export, data-parallel step, overfitting.
+"""Issue 10: training, checkpoints, resume, prediction, ONNX export, data-parallel step, overfitting;
+issue 24: time-boxed runs (--time); issue 25: fine-tuning from earlier weights (--weights).
 
 The overfit test is the detector's end-to-end check on the CPU: a tiny model learns four rendered
 frames to OKS mAP >= 0.9 within three minutes. It renders with the raster backend when headless
@@ -20,11 +21,12 @@ import torch
 
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
-from detector.checkpoint import load_checkpoint, load_model, save_checkpoint
+from detector.checkpoint import load_checkpoint, load_model, load_pretrained, save_checkpoint
 from detector.predict import trained_imgsz
 from detector.data import Augment, KeypointDataset, collate, split_frames
 from detector.loss import DetectionLoss
 from detector.model import DetectorConfig, KeypointDetector
+from detector.time_budget import TimeBudget
 from detector.train import TrainConfig, autocast_dtype, learning_rate, make_optimizer, train
 from omnigen.cli import main
 from omnigen.fakes import write_fake_dataset
@@ -90,8 +92,9 @@ def test_crop_trains_on_windows_and_validates_on_the_whole_input(fake, tmp_path,
     import detector.train as train_module
 
     seen = []
-    real_collate = train_module.collate
-    monkeypatch.setattr(train_module, "collate", lambda samples: seen.append(samples[0].image.shape) or real_collate(samples))
+    real_collate = train_module.collate_uint8
+    monkeypatch.setattr(train_module, "collate_uint8",
+                        lambda samples: seen.append(samples[0].image.shape) or real_collate(samples))
     sizes = []
     real_validate = train_module.validate
     monkeypatch.setattr(train_module, "validate", lambda model, data, *a: sizes.append(data.size) or real_validate(model, data, *a))
@@ -334,3 +337,110 @@ def test_kpt_sigma_anneals_geometrically_to_its_end():
         assert kpt_sigma(cfg, 50, 100) == end and kpt_sigma(cfg, 99, 100) == end
     flat = TrainConfig(dataset="d", out="o", kpt_sigma_start=0.25, kpt_sigma_end=0.25)
     assert kpt_sigma(flat, 0, 100) == 0.25
+
+
+# ---------------------------------------------------------------------------------------------
+# Time-boxed runs and fine-tuning from earlier weights
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def source(fake, tmp_path_factory):
+    """A one-epoch run on the fine taxonomy: the checkpoint the fine-tuning tests start from."""
+    out = tmp_path_factory.mktemp("source")
+    train(_cfg(fake, out, epochs=1, val_every=100))
+    return out / "last.pt"
+
+
+def test_a_budget_plans_the_epochs_that_fit_with_their_validations():
+    budget = TimeBudget(seconds=100.0, max_epochs=50)
+    assert budget.plan(0, 2.0, val_every=1, validates=True) == 50  # nothing measured: the upper bound
+    budget.epoch_seconds.append(10.0)
+    assert budget.plan(1, 12.0, val_every=1, validates=False) == 1 + 8  # floor(88 / 10)
+    budget.val_seconds = 5.0  # a validation costs half an epoch: every 5th epoch keeps it at 10%
+    assert budget.val_cadence(1) == 5 and budget.val_cadence(8) == 8
+    assert budget.plan(1, 12.0, val_every=1, validates=True) == 1 + 7  # floor((88 - 5 reserved) / (10 + 1))
+    assert budget.plan(8, 90.0, val_every=1, validates=True) == 9  # part of one fits: a last one, overrunning
+    assert budget.plan(9, 95.0, val_every=1, validates=True) == 9  # no time left (the final validation's): end now
+    assert TimeBudget(seconds=100.0, max_epochs=4, epoch_seconds=[1.0]).plan(1, 2.0, 1, False) == 4  # epochs bound it
+    assert budget.spent(95.0, validates=True) and not budget.spent(94.0, validates=True)
+    with pytest.raises(ValueError, match="time_minutes"):
+        TimeBudget(seconds=0.0, max_epochs=1)
+
+
+def test_a_time_boxed_run_ends_in_time_and_leaves_last_pt(fake, source, tmp_path):
+    # `source` trained first: this process's first convolutions (seconds on a busy CPU) are behind us
+    budget_s = 15.0
+    cfg = _cfg(fake, tmp_path / "run", epochs=100_000, time_minutes=budget_s / 60)
+    start = time.perf_counter()
+    last = train(cfg)
+    elapsed = time.perf_counter() - start
+    state = load_checkpoint(tmp_path / "run" / "last.pt")
+    history = state["history"]
+    epoch_s = max(r["seconds"] + r.get("val_seconds", 0.0) for r in history)
+    assert elapsed <= budget_s + epoch_s + 2.0, (elapsed, epoch_s)  # within about an epoch (and the save)
+    assert state["epoch"] + 1 == len(history) < 100_000 and "oks_map50_95" in last  # the last epoch validates
+
+
+def test_a_time_budget_fits_the_schedule_and_validations_to_the_epochs_that_fit(fake, tmp_path, monkeypatch):
+    # A deterministic clock: a training step takes 0.5 s (an epoch of 2 steps 1 s), a validation 2 s.
+    import detector.time_budget as time_budget
+    import detector.train as train_module
+
+    now = [0.0]
+    monkeypatch.setattr(time_budget, "clock", lambda: now[0])
+    real_to_device, real_validate = train_module.to_device, train_module.validate
+
+    def step_to_device(*args):
+        now[0] += 0.5
+        return real_to_device(*args)
+
+    def slow_validate(*args):
+        now[0] += 2.0
+        return real_validate(*args)
+    monkeypatch.setattr(train_module, "to_device", step_to_device)
+    monkeypatch.setattr(train_module, "validate", slow_validate)
+    last = train(_cfg(fake, tmp_path / "run", epochs=1000, time_minutes=10 / 60, lr0=1e-2, lrf=0.01))
+    history = load_checkpoint(tmp_path / "run" / "last.pt")["history"]
+    # epoch 1 (1 s) and its validation (2 s); then with 10 - 3 s left, 2 s kept for the final validation
+    # and validations stretched to every 20 epochs (10% of the time): 4 epochs of 1.1 s fit, 5 in all
+    assert len(history) == 5 and now[0] == 3.0 + 4 * 1.0 + 2.0 <= 10.0
+    assert [r["epoch"] for r in history if "oks_map50_95" in r] == [1, 5]
+    assert last["lr"] == pytest.approx(1e-2 * 0.01, rel=1e-9)  # the cosine ended on the last step
+
+
+def test_fine_tuning_starts_from_the_checkpoints_weights_with_a_fresh_schedule(fake, source, tmp_path):
+    src = load_checkpoint(source)["model"]
+    model = KeypointDetector(TrainConfig(dataset="d", out="o", **TINY).model_config(12))
+    assert load_pretrained(model, source, load_taxonomy("fine")) == []  # same classes: nothing to say
+    for name, p in model.named_parameters():
+        torch.testing.assert_close(p.detach(), src[name], rtol=0, atol=0, msg=name)
+    # through train(): with lr0 = 0 the weights stay the checkpoint's; epoch 0, one history row
+    train(_cfg(fake, tmp_path / "ft", weights=str(source), lr0=0.0, epochs=1, val_every=100))
+    state = load_checkpoint(tmp_path / "ft" / "last.pt")
+    assert state["epoch"] == 0 and len(state["history"]) == 1
+    name = "backbone.stem.conv.weight" if "backbone.stem.conv.weight" in src else next(iter(dict(model.named_parameters())))
+    torch.testing.assert_close(state["raw_model"][name], src[name], rtol=0, atol=0)
+
+
+def test_another_taxonomy_reinitialises_only_the_class_heads_last_layers(fake, source, tmp_path, capsys):
+    src = load_checkpoint(source)["model"]
+    coarse = load_taxonomy("coarse")
+    model = KeypointDetector(TrainConfig(dataset="d", out="o", **TINY).model_config(len(coarse.classes)))
+    notes = load_pretrained(model, source, coarse)
+    last_layers = {f"head.cls.{i}.{len(b) - 1}.{n}" for i, b in enumerate(model.head.cls) for n in ("weight", "bias")}
+    assert any("re-initialised" in n and all(k in n for k in last_layers) for n in notes), notes
+    for key, value in model.state_dict().items():
+        if key in last_layers:
+            assert value.shape[0] == len(coarse.classes) != src[key].shape[0]
+        else:
+            torch.testing.assert_close(value, src[key], rtol=0, atol=0, msg=key)
+    train(_cfg(fake, tmp_path / "coarse", weights=str(source), taxonomy="coarse", epochs=1, val_every=100))
+    assert "re-initialised" in capsys.readouterr().err
+
+
+def test_another_scale_is_refused_naming_the_file_and_field(fake, source, tmp_path):
+    with pytest.raises(ValueError, match=r"last\.pt: config field 'scale' is 'n', this run builds 's'"):
+        train(_cfg(fake, tmp_path / "s", weights=str(source), model="s"))
+    with pytest.raises(ValueError, match="config field 'p2'"):
+        train(_cfg(fake, tmp_path / "nop2", weights=str(source), p2=False))
