@@ -321,12 +321,10 @@ def cpu_reference(results_dir: Path) -> dict[str, Any] | None:
             "synthetic": metric_row(main["synthetic_test"])}
 
 
-def _f(v: Any, digits: int = 3) -> str:
-    return "-" if v is None else f"{v:.{digits}f}" if isinstance(v, float) else str(v)
-
-
 def section_markdown(r: dict[str, Any]) -> str:
     """The RESULTS.md section: every number read from results.json, which this script wrote."""
+    from benchmarks.validate import _f
+
     a, t, s = r["arguments"], r["training"], r["synthetic"]
     unused = ("work", "wheels", "results", "kitti") + (("fallback_rate",) if r["timed"] else ())
     cmd = "python benchmarks/gpu_validate.py " + " ".join(
@@ -429,7 +427,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from benchmarks.validate import Runner, check_data_arguments, machine, synthetic_row, train_stage, with_section
+    from benchmarks.validate import Runner, _f, check_data_arguments, machine, synthetic_row, train_stage, with_section
     from omnigen.files import atomic_write_json, atomic_write_text
     from omnigen.splits import read_split
 
