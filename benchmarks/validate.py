@@ -55,7 +55,8 @@ if TYPE_CHECKING:
 RIGS = ("ego", "pole", "drone")
 TARGET_MAP = 0.55  # the design's nano reaches 0.559 on its mixed data
 TARGET_ADHERENCE = 3.57  # degrees, the design's synthetic figure
-FLOOR_NOISE_PX = [0.0, 1.0, 2.0]  # corner noise of the "what the truth's own corners score" rows
+FLOOR_NOISE_PX = [0.0, 1.0, 2.0]
+BASELINE_FIELDS = ("oks_map50_95", "ap_oks50", "ground_adherence_deg", "corner_error_px", "corner_error_rel")  # corner noise of the "what the truth's own corners score" rows
 
 
 class Runner:
@@ -283,6 +284,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kpt-sigma-end", type=float, default=0.25,
                     help="keypoint-loss sigma after the anneal: 0.25 trains on the kernel of the OKS metric "
                          "reported here (pycocotools, sigma 0.125); 0.125 is the design's formula read literally")
+    ap.add_argument("--kpt-mode", default="anchor", choices=["anchor", "box"],
+                    help="how the keypoint branch places corners (omnigen train --kpt-mode)")
+    ap.add_argument("--kpt-l1", type=float, default=0.0, help="gain of the L1 corner term (omnigen train --kpt-l1)")
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
                          "natively, a step in about 0.65 of the time by benchmarks/bench_train_step.py; else auto)")
@@ -324,7 +328,8 @@ def main(argv: list[str] | None = None) -> int:
     common = ["--imgsz", str(args.imgsz), "--epochs", str(args.epochs), "--batch", str(args.batch),
               "--workers", str(args.workers), "--seed", str(args.seed),
               "--optimizer", args.optimizer, "--lr0", str(args.lr0), "--val-every", str(args.val_every),
-              "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp
+              "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp,
+              "--kpt-mode", args.kpt_mode, "--kpt-l1", str(args.kpt_l1)
               ] + (["--device", args.device] if args.device else []) + (["--cache"] if args.cache else [])
     runs: list[dict[str, Any]] = []
 
@@ -343,9 +348,10 @@ def main(argv: list[str] | None = None) -> int:
             atomic_write_text(preds, json.dumps(results))
             run.record(f"predict_dataset({out / 'last.pt'}, {uov}, split='test')", time.perf_counter() - t0)
         report_path = out / "eval.json"
-        run(["eval", str(preds), str(uov), "--split", "test", "--out", str(report_path)], report_path)
+        run(["eval", str(preds), str(uov), "--split", "test", "--baseline", "--out", str(report_path)], report_path)
         report = json.loads(report_path.read_text())
         row = synthetic_row(report)
+        baseline = synthetic_row({"report": report["baseline"]}) if "baseline" in report else None
         orders = asdict(corner_order_counts(uov_ds, json.loads(preds.read_text())))
         hist = list(csv.DictReader((out / "results.csv").read_text().splitlines()))
         curve = [{"epoch": int(float(h["epoch"])), "oks_map50_95": float(h["oks_map50_95"]), "ap_oks50": float(h["ap_oks50"])}
@@ -355,6 +361,7 @@ def main(argv: list[str] | None = None) -> int:
                  # robust to a busy machine where the total is not: the training part of an epoch
                  "median_epoch_seconds": round(statistics.median(float(h["seconds"]) for h in hist), 1),
                  "synthetic_test": row, "overall_test": report["report"]["rows"][0], "epochs_logged": len(hist),
+                 "baseline_synthetic_test": baseline,
                  "curve": curve, "validated_on": validated_on(dataset, extra, uov),
                  "report_rows": report["report"]["rows"], "corner_order": orders}
         runs.append(entry)
@@ -391,6 +398,9 @@ def main(argv: list[str] | None = None) -> int:
     results = {
         "oks_map50_95": row["oks_map50_95"], "ap_oks50": row["ap_oks50"], "precision": row["precision"],
         "recall": row["recall"], "f1": row["f1"], "bev_adherence_deg": row["ground_adherence_deg"],
+        "corner_error_px": row.get("corner_error_px"), "corner_error_rel": row.get("corner_error_rel"),
+        # the box-template baseline's synthetic row: what the 2D boxes alone give (omnigen eval --baseline)
+        "baseline": {k: (main_run["baseline_synthetic_test"] or {}).get(k) for k in BASELINE_FIELDS},
         "targets": {"oks_map50_95": TARGET_MAP, "bev_adherence_deg": TARGET_ADHERENCE},
         "frames": {"total": counts["counts"]["frames"], "by_source": counts["counts"]["frames_by_source"],
                    "by_view": counts["counts"]["frames_by_view"], "objects": counts["counts"]["objects"],
@@ -444,6 +454,26 @@ def object_sizes(ds: Dataset, split: str = "test") -> dict[str, dict[str, float]
 
 def _f(v: Any, digits: int = 3) -> str:
     return "-" if v is None else f"{v:.{digits}f}" if isinstance(v, float) else str(v)
+
+
+def baseline_table(r: dict[str, Any], made: str) -> list[str]:
+    """The model beside the box-template baseline (each predicted box's corners placed by the mean
+    layout of its class and view, learned from the train split): whether the corners carry more
+    than the 2D box does. Empty for results written before the baseline existed."""
+    b = r.get("baseline")
+    if not b:
+        return []
+    rows = [("OKS mAP50:95", "oks_map50_95", r["oks_map50_95"], 3), ("AP at OKS 0.50", "ap_oks50", r["ap_oks50"], 3),
+            ("ground-plane adherence (deg)", "ground_adherence_deg", r["bev_adherence_deg"], 2),
+            ("median corner error of box-matched objects (px)", "corner_error_px", r.get("corner_error_px"), 2),
+            ("the same, relative to sqrt(box area)", "corner_error_rel", r.get("corner_error_rel"), 3)]
+    return ["## The corners against what the boxes alone give", "",
+            "The same predictions with their corners replaced by the box-template baseline",
+            "(`omnigen eval --baseline`, docs/metric-3d.md): where the model is not better, its corners",
+            "carry no more than its 2D boxes.", "",
+            "| synthetic test split | model | box-template baseline |", "|---|---|---|",
+            *[f"| {name} | {_f(v, d)} | {_f(b.get(k), d)} |" for name, k, v, d in rows],
+            "", made, ""]
 
 
 def _view_line(g: dict[str, Any], sizes: dict[str, Any]) -> str:
@@ -616,6 +646,7 @@ def results_markdown(r: dict[str, Any]) -> str:
         f"| precision / recall / F1 at OKS 0.5 (best-F1 confidence) | {_f(r['precision'])} / {_f(r['recall'])} / {_f(r['f1'])} | |",
         f"| ground-plane adherence of predicted corners (deg) | {_f(r['bev_adherence_deg'], 2)} | <= {r['targets']['bev_adherence_deg']} |",
         "", made, "",
+        *baseline_table(r, made),
         "## By view, and how large the test objects are",
         "",
         "OKS measures a corner's error against the object's scale (sqrt of its box area), so small",

@@ -249,3 +249,17 @@ def test_a_run_is_said_to_validate_on_the_split_train_picks(tmp_path):
     assert validated_on(merged.root, ["--model", "n"], merged.root) == "val"
     assert validated_on(real.root, ["--model", "n", "--val-split", "train"], merged.root) == "train of uov-real"
     assert validated_on(real.root, ["--model", "n"], merged.root) == "all of uov-real"  # no splits at all
+
+
+def test_results_markdown_puts_the_model_beside_the_box_template_baseline():
+    from benchmarks.validate import baseline_table
+
+    r = {"oks_map50_95": 0.12, "ap_oks50": 0.3, "bev_adherence_deg": 4.5, "corner_error_px": 3.25,
+         "corner_error_rel": 0.081,
+         "baseline": {"oks_map50_95": 0.02, "ap_oks50": 0.06, "ground_adherence_deg": None, "corner_error_px": 7.5,
+                      "corner_error_rel": 0.2}}
+    md = "\n".join(baseline_table(r, "Made by X."))
+    assert "| OKS mAP50:95 | 0.120 | 0.020 |" in md
+    assert "| ground-plane adherence (deg) | 4.50 | - |" in md
+    assert "| the same, relative to sqrt(box area) | 0.081 | 0.200 |" in md and "Made by X." in md
+    assert baseline_table({"oks_map50_95": 0.1}, "Made by X.") == []  # results from before the baseline
