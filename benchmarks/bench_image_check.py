@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import os
 import statistics
 import sys
 import tempfile
@@ -72,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         real = sorted(REAL_KITTI.glob("*.png")) if REAL_KITTI.is_dir() else []
         if real:
             kinds["KITTI, real frames (shared/realdata)"] = real
-        print(f"median ms per image over {args.repeats} repeats")
+        print(f"median ms per image over {args.repeats} repeats, one process (load average {os.getloadavg()[0]:.2f})")
         print(f"{'images':44} {'header':>8} {'check':>8} {'plain decode':>13} {'check/header':>13}")
         for name, paths in kinds.items():
             header = median_ms(image_size, paths, args.repeats)
