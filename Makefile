@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 SHARED ?= ../shared
 DEMO   ?= demo
 
-.PHONY: demo test venv system clean bench validate
+.PHONY: demo test venv system clean bench validate gpu-validate
 
 venv: $(STAMP)
 
@@ -89,6 +89,14 @@ bench: $(STAMP)
 VALIDATE_ARGS ?=
 validate: $(STAMP) system
 	$(BIN)/python benchmarks/validate.py $$( [ -d "$(SHARED)/realdata/kitti/training" ] && echo --kitti "$(SHARED)/realdata/kitti" ) $(VALIDATE_ARGS)
+
+# On one GPU machine with the machine's own Python (docs/gpu.md): render, train for 7 minutes, evaluate,
+# within 12 minutes; GPU_ARGS='--wheels DIR' installs what is missing from fetch_gpu_wheels.py's folder.
+GPU_PYTHON ?= python3
+GPU_WORK   ?= runs/gpu-validate
+GPU_ARGS   ?=
+gpu-validate:
+	$(GPU_PYTHON) benchmarks/gpu_validate.py --work $(GPU_WORK) $(GPU_ARGS)
 
 clean:
 	rm -rf $(VENV) $(DEMO) .pytest_cache
