@@ -173,13 +173,15 @@ def gl_renderer(env: dict[str, str]) -> str:
     return r.stdout.strip().splitlines()[-1]
 
 
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def child_environment(site: Path) -> dict[str, str]:
     """The environment of the processes this run starts: our code and WORK/site importable, and
     one thread each for the numerical libraries (--jobs renders share the cores)."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(site), *filter(None, [env.get("PYTHONPATH")])])
-    for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        env[k] = "1"
+    env.update({k: "1" for k in THREAD_VARIABLES})
     return env
 
 
@@ -468,7 +470,10 @@ def main(argv: list[str] | None = None) -> int:
                f"{args.minutes:g}", "--imgsz", str(args.imgsz), "--batch", str(args.batch), "--workers",
                str(args.workers), "--device", args.device]
         print(f"[peer] {shlex.join(cmd)}", flush=True)
-        subprocess.run(cmd, env=env, check=False)
+        # one process trains there, as here: the thread caps of the renders are lifted
+        peer_env = {k: v for k, v in env.items() if k not in THREAD_VARIABLES}
+        peer_env.update({k: os.environ[k] for k in THREAD_VARIABLES if k in os.environ})
+        subprocess.run(cmd, env=peer_env)
         peer_path = work / "peer" / "result.json"
         peer = json.loads(peer_path.read_text()) if peer_path.exists() else None
 

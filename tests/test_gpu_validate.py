@@ -101,6 +101,26 @@ def test_the_wheel_list_covers_what_the_code_paths_import_and_nothing_more():
     assert needs.isdisjoint(fetch_gpu_wheels.IMAGE_HAS)
 
 
+# Names numpy 2 removed (its migration guide, NPY201) and modules Python 3.12 removed: the GPU
+# machine runs our code from the checkout on numpy 2 and Python 3.12, where none of them exists.
+NUMPY1_ONLY = re.compile(r"\bnp\.(float_|complex_|infty|Inf|Infinity|NaN|NINF|PINF|NZERO|PZERO|string_|unicode_|"
+                         r"int0|uint0|bool8|longfloat|longcomplex|clongfloat|cfloat|singlecomplex|product|cumproduct|"
+                         r"alltrue|sometrue|row_stack|asfarray|find_common_type|cast|mat|round_|msort|trapz|in1d|"
+                         r"issubclass_|maximum_sctype|obj2sctype|sctype2char|sctypes|issctype|set_string_function|"
+                         r"safe_eval|recfromcsv|recfromtxt|deprecate|disp|who|byte_bounds|source|lookfor|DataSource)\b")
+PY312_REMOVED = re.compile(r"^\s*(import|from)\s+(distutils|imp|asynchat|asyncore|smtpd)\b", re.M)
+
+
+def test_our_code_names_nothing_numpy_2_or_python_3_12_removed():
+    found = []
+    for folder in ("omnigen", "rigs", "scenes", "detector", "converters", "benchmarks"):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            text = path.read_text()
+            found += [f"{path.relative_to(ROOT)}: {m.group(0)}" for m in NUMPY1_ONLY.finditer(text)]
+            found += [f"{path.relative_to(ROOT)}: {m.group(0).strip()}" for m in PY312_REMOVED.finditer(text)]
+    assert found == []
+
+
 def test_what_a_machine_lacks_is_read_from_its_pip_freeze(tmp_path):
     freeze = tmp_path / "freeze.txt"
     freeze.write_text("numpy==2.1.0\nShapely==2.0.6\npyopengl==3.1.7\n# comment\n")
