@@ -31,7 +31,7 @@ compressed one far less; 256 MiB keeps any real camera image and refuses a file 
 
 JPEG_DRAFT_SCALE = 8
 """A JPEG is decoded at 1/8 scale when checked: libjpeg still reads every entropy-coded byte (so a
-truncated file fails just the same) but skips the full-size inverse DCT, which is most of the
+truncated file fails just the same) but skips the full-size inverse DCT, a large part of the
 decoding time (benchmarks/bench_image_check.py compares the check with a plain decode)."""
 
 
