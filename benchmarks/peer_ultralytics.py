@@ -23,6 +23,7 @@ import csv
 import importlib.metadata
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -110,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     import torch
 
-    from benchmarks.validate import Runner, _f, synthetic_row
+    from benchmarks.validate import Runner, _f, stale, synthetic_row
     from omnigen.dataset import Dataset
     from omnigen.files import atomic_write_json, atomic_write_text
     from omnigen.splits import read_split
@@ -126,16 +127,22 @@ def main(argv: list[str] | None = None) -> int:
 
     run_dir = peer / "train"
     weights = run_dir / "weights" / "last.pt"
+    preds, report_path = peer / "test-predictions.json", peer / "eval.json"
+    stamp = f"{MODEL_YAML} minutes={args.minutes:g} imgsz={args.imgsz} batch={args.batch} seed={args.seed}"
+    if stale(run_dir / "done", stamp):  # trained with other arguments: train, predict and score again
+        shutil.rmtree(run_dir)
+        preds.unlink(missing_ok=True)
+        report_path.unlink(missing_ok=True)
+        run.forget(run_dir)
     if not (run_dir / "done").exists():
         t = time.perf_counter()
         YOLO(MODEL_YAML, task="pose").train(
             data=str(yolo / "data.yaml"), time=args.minutes / 60, epochs=1000, imgsz=args.imgsz, batch=args.batch,
             workers=args.workers, device=0 if device.startswith("cuda") else "cpu", project=str(peer), name="train",
             exist_ok=True, pretrained=False, plots=False, val=False, cache="ram", seed=args.seed, verbose=False)
-        run.record(f"YOLO({MODEL_YAML}).train(time={args.minutes / 60:.4f} h)", time.perf_counter() - t)
-        atomic_write_text(run_dir / "done", "\n")
+        run.record(f"YOLO({MODEL_YAML}).train({run_dir}, time={args.minutes / 60:.4f} h)", time.perf_counter() - t)
+        atomic_write_text(run_dir / "done", stamp + "\n")
 
-    preds = peer / "test-predictions.json"
     if not preds.exists():
         t = time.perf_counter()
         ds = Dataset.open(uov, show_progress=False)
@@ -146,13 +153,12 @@ def main(argv: list[str] | None = None) -> int:
             device=0 if device.startswith("cuda") else "cpu", stream=True, verbose=False)
         atomic_write_text(preds, json.dumps(coco_predictions(list(results), frame_index)))
         run.record(f"YOLO({weights}).predict(test)", time.perf_counter() - t)
-    report_path = peer / "eval.json"
     run(["eval", str(preds), str(uov), "--split", "test", "--out", str(report_path)], report_path)
     report = json.loads(report_path.read_text())
 
-    result = {"model": MODEL, "ultralytics": importlib.metadata.version("ultralytics"), "minutes": args.minutes,
+    result = {"model": MODEL, "ultralytics": importlib.metadata.version("ultralytics"), "minutes": args.minutes,  # the stamp's
               "imgsz": args.imgsz, "batch": args.batch, "device": device, "epochs": epochs_trained(run_dir),
-              "train_seconds": round(run.seconds(f"YOLO({MODEL_YAML}).train"), 1),
+              "train_seconds": round(run.seconds(f"YOLO({MODEL_YAML}).train({run_dir},"), 1),
               "synthetic": metric_row(synthetic_row(report)), "overall": metric_row(report["report"]["rows"][0])}
     atomic_write_json(peer / "result.json", result, indent=2)
     ours_path = work / "results.json"
