@@ -291,7 +291,7 @@ def device_name(device: str) -> str:
 
     if device.startswith("cuda") and torch.cuda.is_available():
         return torch.cuda.get_device_name(torch.device(device))
-    return f"CPU ({platform.processor() or platform.machine()}, {os.cpu_count()} cores)"
+    return f"CPU ({platform.processor() or platform.machine()}, {usable_cores()} cores)"
 
 
 def git_commit() -> str | None:
@@ -378,8 +378,13 @@ def section_markdown(r: dict[str, Any]) -> str:
 # ---------------------------------------------------------------------------------------------
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (a container's share, not the host's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    cores = os.cpu_count() or 1
+    cores = usable_cores()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True, help="working folder (resumable)")
     ap.add_argument("--device", default=None, help="cuda or cpu (default: cuda when there is one)")

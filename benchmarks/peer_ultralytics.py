@@ -32,7 +32,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.gpu_validate import metric_row, use_site  # noqa: E402  (the standard library alone)
+from benchmarks.gpu_validate import metric_row, usable_cores, use_site  # noqa: E402  (the standard library alone)
 
 MODEL_YAML = "yolo11n-pose.yaml"
 MODEL = "YOLO11n-pose"
@@ -89,7 +89,7 @@ def epochs_trained(run_dir: Path) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    cores = os.cpu_count() or 1
+    cores = usable_cores()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True, help="gpu_validate.py's working folder (WORK/uov)")
     ap.add_argument("--minutes", type=float, default=7.0, help="Ultralytics' training budget (its `time`)")
