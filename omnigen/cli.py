@@ -291,6 +291,12 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
                    help="Cycles: where depth, instance ids and silhouettes come from: gl (the raster id pass over "
                         "the same geometry, milliseconds), cycles (one-sample Cycles passes), auto (gl when a "
                         "headless OpenGL context can be made)")
+    from scenes.cycles_devices import DEVICE_KINDS  # plain Python, no bpy
+
+    p.add_argument("--device", choices=DEVICE_KINDS, default="auto",
+                   help="Cycles' compute devices: auto (the best GPU there is, OptiX > CUDA > HIP > oneAPI > Metal, "
+                        "else the CPU), cpu, or one GPU type (an error if absent); not a frame-deciding argument: a "
+                        "render resumes on any device (docs/rendering.md)")
     p.add_argument("--shard", default=None, metavar="K/N",
                    help="render only frames with index %% N == K-1 (1 <= K <= N) into the shared --out; the shard "
                         "that finds every frame of the run written finalizes (docs/rendering-at-scale.md)")
@@ -337,11 +343,26 @@ def _run_render(args: argparse.Namespace) -> int:
     if args.save_blend is not None and args.backend != "cycles":
         print("omnigen render: --save-blend needs --backend cycles", file=sys.stderr)
         return 2
+    if args.backend != "cycles" and args.device not in ("auto", "cpu"):
+        print(f"omnigen render: --device {args.device} needs --backend cycles (the raster backend renders through "
+              "OpenGL on the device its EGL driver offers)", file=sys.stderr)
+        return 2
+    if args.backend == "cycles" and args.executor == "local" and args.device != "cpu" and not args.finalize_only:
+        # Checked before anything is written (on Ray each worker checks its own machine).
+        from scenes.blender_backend import cycles_devices
+        from scenes.cycles_devices import DeviceUnavailable
+
+        try:
+            print(cycles_devices(args.device).note, file=sys.stderr)
+        except DeviceUnavailable as exc:
+            print(f"omnigen render: {exc}", file=sys.stderr)
+            return 2
     overrides = FrameOverrides(weather=args.weather, time_of_day=args.time_of_day, fog_density=args.fog_density,
                                precipitation=args.precipitation)
     job = RenderJob(rig=args.rig, frames=args.frames, out=args.out, seed=args.seed, scene=args.scene,
                     width=args.width, height=args.height, backend=args.backend, quality=args.quality, start=args.start,
-                    shard=shard, overrides=overrides, save_blend=args.save_blend, labels=args.labels)
+                    shard=shard, overrides=overrides, save_blend=args.save_blend, labels=args.labels,
+                    device=args.device)
     if args.fresh:
         if args.finalize_only or shard[1] > 1:
             print("omnigen render: --fresh deletes every shard's frames: run it once, without --shard or "

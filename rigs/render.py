@@ -163,12 +163,12 @@ class CyclesBackend:
 
     name = "cycles"
 
-    def __init__(self, scene: Scene, quality: str = "fast", labels: str = "auto") -> None:
+    def __init__(self, scene: Scene, quality: str = "fast", labels: str = "auto", device: str = "auto") -> None:
         from scenes.blender_backend import BlenderScene
 
         if labels not in LABEL_SOURCES:
             raise ValueError(f"unknown label source {labels!r}; choose from {', '.join(LABEL_SOURCES)}")
-        self.bs = BlenderScene(scene)
+        self.bs = BlenderScene(scene, device=device)
         self.bs.set_quality(quality)
         self.rs = None
         if labels != "cycles":
@@ -216,11 +216,11 @@ class CyclesBackend:
             shutil.rmtree(tmp, ignore_errors=True)
 
 
-def make_backend(name: str, scene: Scene, quality: str, labels: str = "auto"):
+def make_backend(name: str, scene: Scene, quality: str, labels: str = "auto", device: str = "auto"):
     if name == "raster":
         return RasterBackend(scene, quality)
     if name == "cycles":
-        return CyclesBackend(scene, quality, labels)
+        return CyclesBackend(scene, quality, labels, device)
     raise ValueError(f"unknown backend {name!r}; choose from {', '.join(BACKENDS)}")
 
 
@@ -246,6 +246,7 @@ class RenderJob:
     overrides: FrameOverrides | None = None  # weather / time of day fixed on the command line
     save_blend: Path | None = None  # Cycles: write the first rendered frame's scene as a .blend
     labels: str = "auto"  # Cycles: depth, ids and silhouettes from GL (auto, gl) or Cycles' own passes
+    device: str = "auto"  # Cycles' compute devices (scenes/cycles_devices.py): how frames render, not what
 
     def indices(self) -> range:
         """Every frame index of the run (all shards)."""
@@ -295,7 +296,8 @@ def render_args(job: RenderJob, rig: Rig | None = None, preset=None) -> dict:
     """Every argument that decides a frame's pixels or labels, as recorded in `.render-args.json`.
 
     Not recorded: --frames, --start and --shard (frame i depends only on (seed, i)), the
-    executor, --save-blend. The rig's and the scene's definitions are hashed, so an edited TOML
+    executor, --save-blend, --device (the same frames but for noise on any device, and a cluster
+    may resume on nodes of another kind). The rig's and the scene's definitions are hashed, so an edited TOML
     under the same name is a difference too. Quality and label source matter only to Cycles.
     """
     from scenes.description import to_dict
@@ -458,7 +460,7 @@ class Renderer:
         t1 = time.perf_counter()
         tm["scene"] += t1 - t0
         if self.backend is None:
-            self.backend = make_backend(job.backend, scene, job.quality, job.labels)
+            self.backend = make_backend(job.backend, scene, job.quality, job.labels, job.device)
             tm["build"] += time.perf_counter() - t1
         else:
             self.backend.update(scene)

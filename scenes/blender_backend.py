@@ -33,26 +33,84 @@ import bpy
 import mathutils
 import numpy as np
 
+from scenes.cycles_devices import CyclesDevice, DeviceChoice, choose_devices
 from scenes.description import Material, Scene
 from scenes.meshes import RenderObject, compile_scene, lamp_lights
 from scenes.seeding import frame_streams
 
 
 @contextlib.contextmanager
+def _native_output_to(path: str = os.devnull, fds: tuple[int, ...] = (1,)):
+    """Send what Blender's C code prints to `path` (file descriptors, past Python's sys.stdout)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(fd) for fd in fds]
+    target = os.open(path, os.O_WRONLY | os.O_APPEND)
+    try:
+        for fd in fds:
+            os.dup2(target, fd)
+        yield
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        for fd, s in zip(fds, saved):
+            os.dup2(s, fd)
+            os.close(s)
+        os.close(target)
+
+
 def _quiet_native_output():
     """Silence what Blender's C code prints during a render ("Saved: ..." per file written by the
     compositor): it goes straight to file descriptor 1, past Python's sys.stdout, and would bury
     the progress bar and summary tables of `omnigen render`."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
-        os.close(devnull)
+    return _native_output_to(os.devnull)
+
+
+# ---------------------------------------------------------------------------------------------
+# Compute devices (--device; the decision is scenes/cycles_devices.py's)
+# ---------------------------------------------------------------------------------------------
+
+
+def _cycles_preferences():
+    return bpy.context.preferences.addons["cycles"].preferences
+
+
+def cycles_devices(requested: str) -> DeviceChoice:
+    """Enumerate the devices Cycles sees and decide which a render of kind `requested` uses;
+    changes nothing. Raises DeviceUnavailable naming what was found.
+
+    Cycles prints why a GPU library did not load ("CUEW initialization failed: Error opening the
+    library") on its first enumeration in a process; that is caught and quoted in the error."""
+    import tempfile
+
+    prefs = _cycles_preferences()
+    with tempfile.NamedTemporaryFile("r", prefix="omnigen-cycles-devices-") as log:
+        with _native_output_to(log.name, fds=(1, 2)):
+            offered = tuple(t for t, *_ in prefs.get_device_types(bpy.context) if t != "NONE")
+            listed = [d for t in (*offered, "CPU") for d in prefs.get_device_list(t)]
+        said = [line.split("|", 1)[-1].strip() for line in log.read().splitlines()
+                if "WARNING" in line or "ERROR" in line]
+    said = tuple(m.split(" ", 1)[1] if m.split(" ", 1)[0] in ("WARNING", "ERROR") else m for m in said)
+    found = list(dict.fromkeys(CyclesDevice(type=str(d[1]), name=str(d[0]), id=str(d[2])) for d in listed))
+    return choose_devices(requested, found, offered, said)
+
+
+def use_cycles_devices(requested: str, bscene) -> DeviceChoice:
+    """Select the devices of `cycles_devices(requested)` in Cycles' preferences (the chosen type's
+    GPUs on, every other device off, the CPU too: OptiX cannot render beside it, and a node's
+    few CPU cores would hold the GPUs back) and set the scene's device. Preferences are the
+    process's, and read_factory_settings resets them: call after it."""
+    choice = cycles_devices(requested)
+    prefs = _cycles_preferences()
+    prefs.compute_device_type = choice.compute_device_type
+    if choice.gpu:
+        prefs.get_devices_for_type(choice.compute_device_type)  # makes the entries to switch on
+    wanted = {(d.type, d.id) for d in choice.devices}
+    for entry in prefs.devices:
+        entry.use = (entry.type, entry.id) in wanted
+    bscene.cycles.device = choice.scene_device
+    return choice
+
 
 PBR = "omnigen_pbr"
 AGENTS, STATIC, WEATHER = "omnigen_agents", "omnigen_static", "omnigen_weather"
@@ -60,8 +118,8 @@ WEATHER_BOX = (60.0, 60.0, 30.0)
 QUALITY = {  # Cycles settings of --quality (docs/rendering.md, "Speed", has the measurements).
     # samples: the most per pixel (adaptive sampling stops earlier where the noise is below
     # adaptive_threshold); bounces: max_bounces, and the diffuse/glossy/transmission caps;
-    # denoise: OpenImageDenoise on the CPU with the given prefilter and quality (the prefilter
-    # ACCURATE denoises the albedo and normal passes too: about 7 s of a 640 x 640 frame on the
+    # denoise: OpenImageDenoise (on the CPU, or on the render's GPU) with the given prefilter and
+    # quality (the prefilter ACCURATE denoises the albedo and normal passes too: about 7 s of a 640 x 640 frame on the
     # 2-core machine, against well under a second for FAST); caustics: reflective and refractive.
     # min_volume_density: thinner fog (clear-weather haze, visibility above 2 km) is left out of
     # the beauty render: the 1.5 km haze volume cost 3x the frame time at 256 x 256.
@@ -200,13 +258,14 @@ def _trim_heap() -> None:
 class BlenderScene:
     """A bpy scene kept in step with a Scene: build once, `update` per frame, `save_blend`."""
 
-    def __init__(self, scene: Scene, reset: bool = True, volumes: bool = True, precipitation: bool = True) -> None:
+    def __init__(self, scene: Scene, reset: bool = True, volumes: bool = True, precipitation: bool = True,
+                 device: str = "cpu") -> None:
         if reset:
             bpy.ops.wm.read_factory_settings(use_empty=True)
         self.volumes, self.precipitation = volumes, precipitation
         self.bscene = bpy.context.scene
         self.bscene.render.engine = "CYCLES"
-        self.bscene.cycles.device = "CPU"
+        self.device = use_cycles_devices(device, self.bscene)  # --device (scenes/cycles_devices.py)
         self.bscene.view_layers[0].use_pass_object_index = True
         self.bscene.view_layers[0].use_pass_z = True
         self._order: dict[str, list[tuple[str, int]]] = {}
@@ -519,7 +578,9 @@ class BlenderScene:
         c.caustics_reflective = c.caustics_refractive = q["caustics"]
         c.use_light_tree = q["light_tree"]
         c.use_adaptive_sampling, c.adaptive_threshold = True, q["adaptive_threshold"]
-        c.denoiser, c.denoising_use_gpu = "OPENIMAGEDENOISE", False
+        # OpenImageDenoise on the render's GPU when it has one (same denoiser, results equal but
+        # for float rounding); on the CPU otherwise.
+        c.denoiser, c.denoising_use_gpu = "OPENIMAGEDENOISE", self.device.gpu
         c.denoising_prefilter, c.denoising_quality = q["denoising_prefilter"], q["denoising_quality"]
         c.filter_width = 1.5
 
