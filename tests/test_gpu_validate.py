@@ -225,3 +225,15 @@ def test_ultralytics_predictions_become_our_coco_results_exactly(tmp_path):
         np.testing.assert_allclose(kp[on, :2], o.keypoints[j][on], atol=1e-5 * max(ds.table.width))
     report = evaluate(ds, preds, split="test", adherence=False, sizes=False)
     assert report.rows[0].oks_map50_95 > 0.99
+
+
+def test_make_validate_keeps_the_gpu_section_when_it_rewrites_results_md():
+    from benchmarks.validate import kept_sections, with_section
+
+    old = with_section("# Results\n\nCPU tables\n", "gpu-validate", "## On one GPU\n\nfigures\n")
+    assert old == "# Results\n\nCPU tables\n\n<!-- gpu-validate: begin -->\n## On one GPU\n\nfigures\n<!-- gpu-validate: end -->\n"
+    rewritten = "# Results\n\nnew CPU tables\n" + kept_sections(old)  # what validate.py writes
+    assert rewritten.endswith("\n\n<!-- gpu-validate: begin -->\n## On one GPU\n\nfigures\n<!-- gpu-validate: end -->\n")
+    assert with_section(rewritten, "gpu-validate", "## On one GPU\n\nnew figures") == \
+        rewritten.replace("\nfigures\n", "\nnew figures\n")
+    assert kept_sections("# Results\n\nno sections\n") == ""
