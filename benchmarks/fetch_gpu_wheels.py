@@ -41,6 +41,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+MB = 10**6  # the limit is in megabytes, as the issue states it
 
 
 @dataclass(frozen=True)
@@ -213,7 +214,7 @@ print(json.dumps(out))
 
 
 def size_mb(paths: list[Path]) -> float:
-    return sum(p.stat().st_size for p in paths) / 2**20
+    return sum(p.stat().st_size for p in paths) / MB
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -222,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--have", type=Path, help="the GPU machine's `pip freeze` (default: its image's list, IMAGE_HAS)")
     ap.add_argument("--all", action="store_true", help="fetch every needed wheel, whatever the machine has")
     ap.add_argument("--no-debs", action="store_true", help="skip EGL's Debian packages")
-    ap.add_argument("--limit-mb", type=float, default=40.0, help="the most the folder may hold (MiB)")
+    ap.add_argument("--limit-mb", type=float, default=40.0, help="the most the folder may hold (MB)")
     ap.add_argument("--check", action="store_true",
                     help="print the distributions the code paths import here and which NEEDS entry or image package covers each")
     args = ap.parse_args(argv)
@@ -244,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     needs = list(NEEDS) if args.all else missing_needs(read_have(args.have) if args.have else IMAGE_HAS)
     files: list[Path] = []
     skipped: list[str] = []
-    limit = args.limit_mb * 2**20
+    limit = args.limit_mb * MB
     for need in needs:
         wheel = download_wheel(need.dist, wanted_version(need.dist, pins), args.out)
         if (sum(p.stat().st_size for p in files) + wheel.stat().st_size) > limit:
@@ -252,19 +253,19 @@ def main(argv: list[str] | None = None) -> int:
             skipped.append(need.dist)
             continue
         files.append(wheel)
-        print(f"  {wheel.name:60s} {wheel.stat().st_size / 2**20:6.2f} MiB  ({need.why})")
+        print(f"  {wheel.name:60s} {wheel.stat().st_size / MB:6.2f} MB  ({need.why})")
     if not args.no_debs:
         for deb in download_debs(EGL_DEBS, args.out / "debs"):
-            if size_mb(files) + deb.stat().st_size / 2**20 > args.limit_mb:
+            if size_mb(files) + deb.stat().st_size / MB > args.limit_mb:
                 deb.unlink()
                 skipped.append(deb.name)
                 continue
             files.append(deb)
-            print(f"  debs/{deb.name:55s} {deb.stat().st_size / 2**20:6.2f} MiB  (EGL loader)")
+            print(f"  debs/{deb.name:55s} {deb.stat().st_size / MB:6.2f} MB  (EGL loader)")
     stray = sorted(set(args.out.glob("*.whl")) - set(files))
     if stray:
         print(f"fetch_gpu_wheels: also in {args.out}, not fetched now (remove them): {', '.join(p.name for p in stray)}")
-    print(f"fetch_gpu_wheels: {len(files)} files, {size_mb(files):.1f} MiB in {args.out} (limit {args.limit_mb:g} MiB)"
+    print(f"fetch_gpu_wheels: {len(files)} files, {size_mb(files):.1f} MB in {args.out} (limit {args.limit_mb:g} MB)"
           + (f"; skipped to stay under it: {', '.join(skipped)}" if skipped else ""))
     return 1 if skipped else 0
 
