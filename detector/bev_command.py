@@ -148,10 +148,9 @@ def bev_for_image(dets: list[Detection], classes: list[str], lam: float) -> dict
 
 
 def run(args: argparse.Namespace) -> int:
-    from PIL import Image
-
     from detector.bev_draw import BevScene, render_bev_figure
     from omnigen.files import atomic_write_bytes, atomic_write_json
+    from omnigen.images import load_rgb
     from omnigen.progress import print_table, progress
     from omnigen.taxonomy import load_taxonomy
 
@@ -167,7 +166,7 @@ def run(args: argparse.Namespace) -> int:
         res = out["result"]
         if not args.no_draw:
             path = find_image(args.images, image_id)
-            image = Image.open(path).convert("RGB") if path else None
+            image = load_rgb(path) if path else None  # size-capped before decoding (omnigen.images)
             pts = np.concatenate([out["ground"].reshape(-1, 2),
                                   out["boxes_2d"][:, :2].reshape(-1, 2), (out["boxes_2d"][:, :2] + out["boxes_2d"][:, 2:])])
             w, h = image.size if image else (int(pts[:, 0].max()) + 20, int(pts[:, 1].max()) + 20)

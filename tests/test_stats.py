@@ -463,3 +463,25 @@ def test_report_without_objects_or_ground_planes(tmp_path):
     assert _check(r.stats, "frames_without_objects")["count"] == 2
     assert len(r.stats["gallery"]) == 3 and r.stats["gallery"][0]["objects"] == 2  # frames with objects first
     assert (tmp_path / "r" / "index.html").exists()
+
+
+def test_image_check_reports_a_fifo_instead_of_waiting_on_it(tmp_path):
+    """An image path that is a FIFO (or a device) is a reported problem: opening it for its header
+    would block the report for ever (issue 27)."""
+    import os
+    import threading
+
+    from omnigen.fakes import write_fake_dataset
+    from omnigen.stats.health import image_checks
+
+    ds = write_fake_dataset(tmp_path / "ds", 3, objects_per_frame=2, seed=1)
+    victim = ds.path(ds.table.image[1])
+    victim.unlink()
+    os.mkfifo(victim)
+    result: list = []
+    worker = threading.Thread(target=lambda: result.append(image_checks(ds, show_progress=False)), daemon=True)
+    worker.start()
+    worker.join(20)
+    assert result, "the image check waited on a FIFO"
+    unreadable = next(c for c in result[0] if c["name"] == "images_unreadable")
+    assert unreadable["count"] == 1 and unreadable["examples"][0]["frame_id"] == ds.table.frame_id[1]

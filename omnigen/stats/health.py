@@ -16,10 +16,10 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
-from PIL import Image
 
 from omnigen.conventions import FINE_CLASSES
 from omnigen.dataset import Dataset
+from omnigen.images import image_size
 from omnigen.priors import FAR_SIGMA, dims_z_scores
 from omnigen.progress import progress
 from omnigen.stats.compute import rnd
@@ -84,10 +84,10 @@ def object_checks(ds: Dataset, sigma: float = FAR_SIGMA, limit: int = MAX_EXAMPL
 
 
 def _open_header(path: str) -> tuple[str, tuple[int, int] | None]:
-    """('ok' | error text, size): opens the file and parses its header only."""
+    """('ok' | error text, size): parses the header only, through omnigen.images' guarded opener
+    (a regular file within the size caps: a FIFO or a device in a dataset is reported, not waited on)."""
     try:
-        with Image.open(path) as im:
-            return "ok", im.size
+        return "ok", image_size(path)
     except Exception as exc:  # noqa: BLE001 - any failure to open is what this check reports
         return f"{type(exc).__name__}: {exc}".splitlines()[0][:200], None
 
