@@ -81,6 +81,7 @@ def cycles_devices(requested: str) -> DeviceChoice:
 
     Cycles prints why a GPU library did not load ("CUEW initialization failed: Error opening the
     library") on its first enumeration in a process; that is caught and quoted in the error."""
+    import re
     import tempfile
 
     prefs = _cycles_preferences()
@@ -88,9 +89,9 @@ def cycles_devices(requested: str) -> DeviceChoice:
         with _native_output_to(log.name, fds=(1, 2)):
             offered = tuple(t for t, *_ in prefs.get_device_types(bpy.context) if t != "NONE")
             listed = [d for t in (*offered, "CPU") for d in prefs.get_device_list(t)]
-        said = [line.split("|", 1)[-1].strip() for line in log.read().splitlines()
-                if "WARNING" in line or "ERROR" in line]
-    said = tuple(m.split(" ", 1)[1] if m.split(" ", 1)[0] in ("WARNING", "ERROR") else m for m in said)
+        # "00:00.594  cycles  | WARNING CUEW initialization failed: ..." -> "CUEW initialization ..."
+        said = tuple(re.sub(r"^(WARNING|ERROR)\s+", "", line.split("|", 1)[-1].strip())
+                     for line in log.read().splitlines() if "WARNING" in line or "ERROR" in line)
     found = list(dict.fromkeys(CyclesDevice(type=str(d[1]), name=str(d[0]), id=str(d[2])) for d in listed))
     return choose_devices(requested, found, offered, said)
 
@@ -119,8 +120,9 @@ QUALITY = {  # Cycles settings of --quality (docs/rendering.md, "Speed", has the
     # samples: the most per pixel (adaptive sampling stops earlier where the noise is below
     # adaptive_threshold); bounces: max_bounces, and the diffuse/glossy/transmission caps;
     # denoise: OpenImageDenoise (on the CPU, or on the render's GPU) with the given prefilter and
-    # quality (the prefilter ACCURATE denoises the albedo and normal passes too: about 7 s of a 640 x 640 frame on the
-    # 2-core machine, against well under a second for FAST); caustics: reflective and refractive.
+    # quality (the prefilter ACCURATE denoises the albedo and normal passes too: about 7 s of a
+    # 640 x 640 frame on the 2-core machine, against well under a second for FAST); caustics:
+    # reflective and refractive.
     # min_volume_density: thinner fog (clear-weather haze, visibility above 2 km) is left out of
     # the beauty render: the 1.5 km haze volume cost 3x the frame time at 256 x 256.
     # light_tree: Cycles' light tree for next-event estimation. The PBR material's emission comes
