@@ -5,29 +5,39 @@ gradient clipping and an Adam step. The batch is real: a fake dataset's frames t
 training loader. The precisions alternate step by step after a warm-up, so a busy machine slows
 both alike; the script prints each one's median and the ratio of the medians.
 
+`--loop` also times the training loop's own per-step work as `omnigen train` did it before issue
+24 (EMA through two state_dict() walks, float32 images out of the loader) against what it does now
+(detector/train_step.py: fused foreach EMA, uint8 batch converted where the step runs), in float32
+and with channels-last activations, alternating step by step in one run: medians and their ratio.
+
 `--overfit` also prints what bf16 costs in precision: the overfit check of the test suite (a tiny
 model, four raster frames of the tiny city at 256x192, 700 Adam steps on one thread) trained in
 each precision, with its final losses and OKS mAP50:95 on those frames.
 
     .venv/bin/python benchmarks/bench_train_step.py              # nano P2, batch 16, 320 px, 2 threads
     .venv/bin/python benchmarks/bench_train_step.py --imgsz 640 --steps 10
+    .venv/bin/python benchmarks/bench_train_step.py --loop       # + the loop: before/after issue 24
     .venv/bin/python benchmarks/bench_train_step.py --overfit    # + the precision cost (about 5 min)
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
+import math
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Callable
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from detector.data import Augment, KeypointDataset, collate  # noqa: E402
+from detector.ema import ModelEMA  # noqa: E402
 from detector.loss import DetectionLoss  # noqa: E402
 from detector.model import DetectorConfig, KeypointDetector  # noqa: E402
 from detector.train import autocast_dtype, fast_bf16  # noqa: E402
@@ -45,6 +55,7 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--steps", type=int, default=15, help="timed steps per precision")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--loop", action="store_true", help="also time the loop's per-step work before/after issue 24")
     ap.add_argument("--overfit", action="store_true", help="also train the overfit check in both precisions")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -55,7 +66,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         write_fake_dataset(tmp, args.batch, objects_per_frame=8, seed=0)
         data = KeypointDataset(tmp, taxonomy, args.imgsz, None, Augment())
-        images, targets, _ = collate([data[i] for i in range(args.batch)])
+        batch = [data[i] for i in range(args.batch)]
+        images, targets, _ = collate(batch)
 
     model = KeypointDetector(DetectorConfig(args.model, p2=not args.no_p2, num_classes=len(taxonomy.classes)))
     model.train()
@@ -92,8 +104,85 @@ def main() -> None:
     for amp in MODES:
         print(f"| {'float32' if amp == 'off' else amp} | {med[amp]:.3f} | {args.batch / med[amp]:.1f} |")
     print(f"bf16 / float32 step time: {med['bf16'] / med['off']:.2f}")
+    if args.loop:
+        loop(args, model.cfg, batch)
     if args.overfit:
         overfit()
+
+
+class LegacyEMA:
+    """The EMA update as train.py did it before issue 24: two state_dict() walks a step."""
+
+    def __init__(self, model: torch.nn.Module, decay: float = 0.9999, tau: float = 2000.0):
+        self.ema, self.decay, self.tau, self.updates = copy.deepcopy(model).eval(), decay, tau, 0
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module) -> None:
+        self.updates += 1
+        d = self.decay * (1 - math.exp(-self.updates / self.tau))
+        msd = model.state_dict()
+        for k, v in self.ema.state_dict().items():
+            if v.dtype.is_floating_point:
+                v.mul_(d).add_(msd[k].detach(), alpha=1 - d)
+            else:
+                v.copy_(msd[k])
+
+
+def loop(args: argparse.Namespace, cfg: DetectorConfig, samples: list) -> None:
+    """The loop's per-step work, before and after issue 24, float32, alternating step by step."""
+    from detector.train import TrainConfig, make_optimizer
+    from detector.train_loader import collate_uint8
+    from detector.train_step import PartSums, TrainStep, to_device
+
+    device = torch.device("cpu")
+    float_batch, uint8_batch = collate(samples)[:2], collate_uint8(samples)[:2]
+    steps: dict[str, Callable[[], None]] = {}
+    for name in VARIANTS:
+        torch.manual_seed(0)
+        model = KeypointDetector(cfg)
+        if name == "after, channels-last":
+            model = model.to(memory_format=torch.channels_last)
+        model.train()
+        optimizer = make_optimizer(TrainConfig(dataset="", out=""), model)
+        criterion = DetectionLoss(cfg.num_classes)
+        scaler = torch.amp.GradScaler("cpu", enabled=False)
+        if name == "before":
+            ema = LegacyEMA(model)
+
+            def before(model=model, optimizer=optimizer, criterion=criterion, ema=ema) -> None:
+                images, targets = float_batch
+                loss, parts = criterion(model(images), targets)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+                optimizer.step()
+                ema.update(model)
+                sums = {k: float(v) for k, v in parts.items()}  # a float() per part and step
+                assert sums
+            steps[name] = before
+        else:
+            step = TrainStep(model, model, criterion, optimizer, scaler, ModelEMA(model, 0.9999, 2000.0), None)
+            sums = PartSums()
+            cl = name.endswith("channels-last")
+            steps[name] = lambda step=step, sums=sums, cl=cl: sums.add(step(*to_device(*uint8_batch, device, cl)))
+    for name in VARIANTS:  # warm-up
+        steps[name](), steps[name]()
+    times: dict[str, list[float]] = {name: [] for name in VARIANTS}
+    for _ in range(args.steps):
+        for name in VARIANTS:
+            start = time.perf_counter()
+            steps[name]()
+            times[name].append(time.perf_counter() - start)
+    med = {name: statistics.median(t) for name, t in times.items()}
+    print(f"training loop step (train_step.py) before/after issue 24, float32, batch {args.batch}, {args.imgsz} px, "
+          f"{args.threads} threads; median of {args.steps} alternating steps")
+    print("| loop | s per step | images/s | / before |")
+    print("|---|---|---|---|")
+    for name in VARIANTS:
+        print(f"| {name} | {med[name]:.3f} | {args.batch / med[name]:.1f} | {med[name] / med['before']:.3f} |")
+
+
+VARIANTS = ("before", "after", "after, channels-last")
 
 
 def overfit() -> None:
