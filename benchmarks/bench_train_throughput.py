@@ -1,7 +1,7 @@
 """Training throughput in images/s: the loader alone, the step alone, and end to end (issue 24).
 
 Three numbers say where a training run's time goes:
-- the loader alone: the run's own loader (detector/train_loader.py: persistent workers, uint8
+- the loader alone: the run's own loader (detector/train_loader.py: one for the run, uint8
   batches, pinned on CUDA) iterated without training, in total and per worker process, and the
   samples/s one process makes (decode, letterbox, augment), the most a worker can give;
 - the step alone: forward, loss, backward, optimiser and EMA (detector/train_step.py) on one batch
@@ -39,7 +39,7 @@ from detector.ema import ModelEMA  # noqa: E402
 from detector.loss import DetectionLoss  # noqa: E402
 from detector.model import DetectorConfig, KeypointDetector  # noqa: E402
 from detector.train import TrainConfig, autocast_dtype, make_optimizer  # noqa: E402
-from detector.train_loader import EpochSampler, make_loader  # noqa: E402
+from detector.train_loader import EpochBatches, make_loader  # noqa: E402
 from detector.train_step import TrainStep, to_device, use_channels_last  # noqa: E402
 from omnigen.taxonomy import load_taxonomy  # noqa: E402
 
@@ -123,17 +123,7 @@ def run(args: argparse.Namespace, device: torch.device, root: str | Path) -> Non
         data[i]
     one = n_one / (time.perf_counter() - start)
 
-    sampler = EpochSampler(len(data), 0)
-    loader = make_loader(data, args.batch, args.workers, sampler, pin=device.type == "cuda")
-
-    def batches():
-        epoch = 0
-        while True:
-            sampler.set_epoch(epoch)
-            yield from loader
-            epoch += 1
-
-    stream = batches()
+    stream = iter(make_loader(data, EpochBatches(len(data), args.batch, 0), args.workers, pin=device.type == "cuda"))
     next(stream)  # the workers start and fill their prefetch queues
     start = time.perf_counter()
     count = 0

@@ -43,7 +43,7 @@ from detector.model import DetectorConfig, KeypointDetector
 from detector.predict import EVAL_CONF, PredictOptions, predict_frames
 from detector import time_budget
 from detector.time_budget import TimeBudget
-from detector.train_loader import EpochSampler, collate_uint8, make_loader
+from detector.train_loader import EpochBatches, collate_uint8, make_loader
 from detector.train_step import PartSums, TrainStep, to_device, use_channels_last
 from omnigen.files import atomic_write_text, dumps_json
 from omnigen.splits import TEST, split_names
@@ -307,13 +307,13 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
 
     shard = torch.utils.data.distributed.DistributedSampler(data, world, rank, shuffle=True, seed=cfg.seed) \
         if world > 1 else None
-    sampler = EpochSampler(len(data), cfg.seed, shard)
     per_step = max(1, cfg.batch // world)
-    loader = make_loader(data, per_step, cfg.workers, sampler, pin=device.type == "cuda", collate_fn=collate_uint8)
+    sampler = EpochBatches(len(data), per_step, cfg.seed, start_epoch, shard)
+    batches = iter(make_loader(data, sampler, cfg.workers, pin=device.type == "cuda", collate_fn=collate_uint8))
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / "args.json", dumps_json(asdict(cfg)))
-    iters_per_epoch = math.ceil(len(data) / (per_step * world))
+    iters_per_epoch = sampler.per_epoch()
     from tqdm import tqdm
 
     budget = TimeBudget(cfg.time_minutes * 60, cfg.epochs) if cfg.time_minutes is not None else None
@@ -336,13 +336,13 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
             if end <= epoch:
                 break
         total = end * iters_per_epoch
-        sampler.set_epoch(epoch)
         model.train()
         sums = PartSums()
-        bar = tqdm(loader, desc=f"epoch {epoch + 1}/{end}", disable=rank != 0, leave=False,
+        bar = tqdm(range(iters_per_epoch), desc=f"epoch {epoch + 1}/{end}", disable=rank != 0, leave=False,
                    dynamic_ncols=True, mininterval=0.5 if sys.stderr.isatty() else 60.0)  # logs: a line a minute
         t0, show = clock(), time.perf_counter()
-        for i, (images, targets, _) in enumerate(bar):
+        for i in bar:
+            images, targets, _ = next(batches)  # this epoch's i-th batch: the sampler goes epoch by epoch
             it = epoch * iters_per_epoch + i
             for g in optimizer.param_groups:
                 g["lr"] = learning_rate(cfg, it, total)

@@ -1,12 +1,16 @@
-"""The training data loader: built once per run, its worker processes kept across epochs.
+"""The training data loader: one for the whole run, whose batches flow from epoch to epoch.
 
-Why it is built once: forking 14 loader processes every epoch cost seconds an epoch on a GPU
-machine, and each fresh process decoded its first images while the GPU waited. Persistent workers
-hold a copy of the dataset made when they started, so `KeypointDataset.set_epoch` in the main
-process would no longer reach them; instead the sampler hands every worker (epoch, index) pairs
-and `EpochData` sets the epoch before it draws the sample. Each sample's augmentation thus stays
-seeded by (seed, epoch, frame) and the shuffling by (seed, epoch) exactly as before, so a resumed
-run still equals an uninterrupted one.
+Why: the loader used to be built again every epoch, forking its 14 worker processes anew, and
+every epoch began with the GPU waiting while fresh workers decoded their first batches. Now the
+run iterates one loader whose batch sampler never ends: it yields the batches of epoch after
+epoch, and the trainer takes an epoch's worth of them at a time. The workers keep decoding across
+the epoch boundary and through validation, with `prefetch_factor` batches each in flight.
+
+A worker holds the copy of the dataset it started with, so `KeypointDataset.set_epoch` in the
+main process would not reach it: each index carries its epoch, (epoch, frame), and `EpochData`
+sets the epoch before it draws the sample. Each sample's augmentation thus stays seeded by
+(seed, epoch, frame) and the shuffling by (seed, epoch) exactly as before, so a resumed run still
+equals an uninterrupted one.
 
 Batches leave the workers as uint8 images (a quarter of the bytes of float32): the copy into
 pinned memory and to the GPU is what limits a fast accelerator, and the division by 255 is one
@@ -15,6 +19,7 @@ cheap kernel on the device (train_step.to_device).
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import Iterator
 
@@ -24,31 +29,35 @@ import torch
 from detector.data import KeypointDataset, Sample, collate
 
 
-class EpochSampler(torch.utils.data.Sampler):
-    """(epoch, index) pairs of one epoch: a permutation seeded by (seed, epoch), or the shard of a
-    DistributedSampler (which shuffles by its own seed and the epoch)."""
+class EpochBatches(torch.utils.data.Sampler):
+    """Batches of (epoch, index) pairs, epoch after epoch from `start`, without end.
 
-    def __init__(self, n: int, seed: int, shard: torch.utils.data.distributed.DistributedSampler | None = None):
-        self.n, self.seed, self.shard, self.epoch = n, seed, shard, 0
+    An epoch's order is a permutation seeded by (seed, epoch), the one DataLoader(shuffle=True)
+    drew with such a generator, or this process's shard of a DistributedSampler; its last batch
+    may be short (batches never mix two epochs)."""
 
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = epoch
+    def __init__(self, n: int, batch: int, seed: int, start: int = 0,
+                 shard: torch.utils.data.distributed.DistributedSampler | None = None):
+        self.n, self.batch, self.seed, self.start, self.shard = n, batch, seed, start, shard
+
+    def order(self, epoch: int) -> list[int]:
         if self.shard is not None:
             self.shard.set_epoch(epoch)
-
-    def order(self) -> list[int]:
-        if self.shard is not None:
             return list(self.shard)
-        # the same permutation as DataLoader(shuffle=True, generator=Generator().manual_seed(...))
-        gen = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
+        gen = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
         return torch.randperm(self.n, generator=gen).tolist()
 
-    def __iter__(self) -> Iterator[tuple[int, int]]:
-        epoch = self.epoch
-        return iter([(epoch, i) for i in self.order()])
+    def per_epoch(self) -> int:
+        """Batches an epoch."""
+        return math.ceil((len(self.shard) if self.shard is not None else self.n) / self.batch)
 
-    def __len__(self) -> int:
-        return len(self.shard) if self.shard is not None else self.n
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+        epoch = self.start
+        while True:
+            order = self.order(epoch)
+            for k in range(0, len(order), self.batch):
+                yield [(epoch, i) for i in order[k:k + self.batch]]
+            epoch += 1
 
 
 class EpochData(torch.utils.data.Dataset):
@@ -87,10 +96,10 @@ def quiet_worker(worker_id: int) -> None:
     torch.set_num_threads(1)
 
 
-def make_loader(data: KeypointDataset, batch: int, workers: int, sampler: EpochSampler, pin: bool,
+def make_loader(data: KeypointDataset, batches: EpochBatches, workers: int, pin: bool,
                 collate_fn=collate_uint8) -> torch.utils.data.DataLoader:
-    """The run's one loader; workers (when any) persist across epochs, prefetching 4 batches each."""
+    """The run's one loader (iterate it once: its batches do not end); each worker keeps 4
+    batches in flight."""
     return torch.utils.data.DataLoader(
-        EpochData(data), batch_size=batch, sampler=sampler, num_workers=workers, collate_fn=collate_fn,
-        drop_last=False, pin_memory=pin, persistent_workers=workers > 0,
+        EpochData(data), batch_sampler=batches, num_workers=workers, collate_fn=collate_fn, pin_memory=pin,
         prefetch_factor=4 if workers > 0 else None, worker_init_fn=quiet_worker if workers > 0 else None)

@@ -444,3 +444,24 @@ def test_another_scale_is_refused_naming_the_file_and_field(fake, source, tmp_pa
         train(_cfg(fake, tmp_path / "s", weights=str(source), model="s"))
     with pytest.raises(ValueError, match="config field 'p2'"):
         train(_cfg(fake, tmp_path / "nop2", weights=str(source), p2=False))
+
+
+def test_foreach_ema_follows_the_formula_on_every_float_tensor_and_copies_the_counters():
+    from detector.ema import ModelEMA
+
+    torch.manual_seed(0)
+    model = KeypointDetector(DetectorConfig(num_classes=12, width=0.125, depth=0.34))
+    ema = ModelEMA(model, decay=0.9, tau=1.0)
+    before = {k: v.clone() for k, v in ema.ema.state_dict().items()}
+    model.train()
+    model(torch.rand(2, 3, 64, 64))  # BatchNorm statistics and counters move
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(torch.randn_like(p))
+    ema.update(model)
+    d = 0.9 * (1 - np.exp(-1.0))
+    now = model.state_dict()
+    for k, v in ema.ema.state_dict().items():
+        want = before[k] * d + now[k] * (1 - d) if v.dtype.is_floating_point else now[k]
+        torch.testing.assert_close(v, want, msg=k)
+    assert ema.updates == 1
