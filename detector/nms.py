@@ -40,10 +40,30 @@ def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return inter / (area_a[:, None] + area_b[None] - inter + 1e-9)
 
 
+def greedy_survivors(over: torch.Tensor) -> torch.Tensor:
+    """Greedy NMS's survivors (bool) from the overlap matrix of score-sorted boxes, on its device.
+
+    Box j survives iff no surviving box before it overlaps it. Iterating that rule from "all
+    survive" fixes one more box per pass at least (box j depends only on boxes before it), so it
+    reaches greedy NMS's result exactly, in as many passes as the longest chain of suppressions:
+    a few small kernels on a GPU instead of copying the matrix to the host and looping there.
+    """
+    over = over.triu(1)
+    keep = torch.ones(len(over), dtype=torch.bool, device=over.device)
+    for _ in range(len(over)):
+        new = ~(over & keep[:, None]).any(0)
+        if torch.equal(new, keep):
+            break
+        keep = new
+    return keep
+
+
 def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> torch.Tensor:
     """Indices of the kept boxes, by decreasing score."""
     order = scores.argsort(descending=True)
     boxes = boxes[order]
+    if boxes.is_cuda:
+        return order[greedy_survivors(box_iou(boxes, boxes) > iou_threshold)]
     over = (box_iou(boxes, boxes) > iou_threshold).cpu().numpy()
     suppressed = np.zeros(len(order), dtype=bool)
     keep = []
