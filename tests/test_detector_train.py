@@ -382,8 +382,10 @@ def test_a_time_boxed_run_ends_in_time_and_leaves_last_pt(fake, source, tmp_path
     assert state["epoch"] + 1 == len(history) < 100_000 and "oks_map50_95" in last  # the last epoch validates
 
 
-def test_a_time_budget_fits_the_schedule_and_validations_to_the_epochs_that_fit(fake, tmp_path, monkeypatch):
-    # A deterministic clock: a training step takes 0.5 s (an epoch of 2 steps 1 s), a validation 2 s.
+@pytest.fixture
+def step_clock(monkeypatch):
+    """A deterministic clock for time-boxed runs: a training step takes 0.5 s (an epoch of the
+    fake's 2 steps 1 s), a validation 2 s; nothing else takes time."""
     import detector.time_budget as time_budget
     import detector.train as train_module
 
@@ -400,13 +402,33 @@ def test_a_time_budget_fits_the_schedule_and_validations_to_the_epochs_that_fit(
         return real_validate(*args)
     monkeypatch.setattr(train_module, "to_device", step_to_device)
     monkeypatch.setattr(train_module, "validate", slow_validate)
+    return now
+
+
+def test_a_time_budget_fits_the_schedule_and_validations_to_the_epochs_that_fit(fake, tmp_path, step_clock):
     last = train(_cfg(fake, tmp_path / "run", epochs=1000, time_minutes=10 / 60, lr0=1e-2, lrf=0.01))
     history = load_checkpoint(tmp_path / "run" / "last.pt")["history"]
     # epoch 1 (1 s) and its validation (2 s); then with 10 - 3 s left, 2 s kept for the final validation
     # and validations stretched to every 20 epochs (10% of the time): 4 epochs of 1.1 s fit, 5 in all
-    assert len(history) == 5 and now[0] == 3.0 + 4 * 1.0 + 2.0 <= 10.0
+    assert len(history) == 5 and step_clock[0] == 3.0 + 4 * 1.0 + 2.0 <= 10.0
     assert [r["epoch"] for r in history if "oks_map50_95" in r] == [1, 5]
     assert last["lr"] == pytest.approx(1e-2 * 0.01, rel=1e-9)  # the cosine ended on the last step
+
+
+def test_a_resumed_time_boxed_run_spends_what_is_left_of_its_budget(fake, tmp_path, step_clock):
+    # Killed after 2 epochs and resumed (with other settings on the command line, as `--resume`
+    # passes them): the budget is the run's, so it plans the same 5 epochs and ends with the same
+    # weights as the uninterrupted run
+    cfg = dict(epochs=1000, time_minutes=10 / 60, lr0=1e-2, lrf=0.01)
+    train(_cfg(fake, tmp_path / "full", **cfg))
+    train(_cfg(fake, tmp_path / "cut", **cfg), stop_after=2)
+    assert len(load_checkpoint(tmp_path / "cut" / "last.pt")["history"]) == 2
+    last = train(_cfg(fake, tmp_path / "cut", epochs=3), resume=True)
+    full, cut = (load_checkpoint(tmp_path / run / "last.pt") for run in ("full", "cut"))
+    assert len(cut["history"]) == len(full["history"]) == 5 and cut["planned_epochs"] == 5
+    assert last["lr"] == pytest.approx(1e-2 * 0.01, rel=1e-9)
+    for k in full["model"]:
+        torch.testing.assert_close(cut["model"][k], full["model"][k], rtol=0, atol=1e-6, msg=k)
 
 
 def test_fine_tuning_starts_from_the_checkpoints_weights_with_a_fresh_schedule(fake, source, tmp_path):
