@@ -99,8 +99,10 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     notes = []
     if old_classes != new_classes:
         kept = [c for c in new_classes if c in old_classes]
-        notes.append(f"{path}: trained on classes {old_classes}, this run has {new_classes}; the class branches' "
-                     f"last layers keep the rows of {kept or 'no class'} and start fresh for the others")
+        layers = (f"keep the checkpoint's rows of {kept} and start fresh for the other classes" if kept
+                  else "start fresh (no class in common)")
+        notes.append(f"{path}: trained on classes {old_classes}, this run has {new_classes}; "
+                     f"the class branches' last layers {layers}")
     if fresh:
         notes.append(f"{path}: re-initialised {len(fresh)} class-head tensor(s): {', '.join(fresh)}")
     if partial:
