@@ -25,7 +25,8 @@ class ModelEMA:
 
     The tensor pairs are taken at construction: build it after the model has its final device and
     memory format (Module.to swaps the buffers for new tensors). load_state_dict on either model
-    copies in place and keeps the pairs valid.
+    copies in place and keeps the pairs valid. The EMA therefore follows that one model, its
+    `source`, for good: `update` refuses any other (averaging it would need pairs of its own).
     """
 
     def __init__(self, model: torch.nn.Module, decay: float, tau: float, updates: int = 0):
@@ -33,6 +34,7 @@ class ModelEMA:
         for p in self.ema.parameters():
             p.requires_grad_(False)
         self.decay, self.tau, self.updates = decay, tau, updates
+        self.source = model  # the model whose tensors are paired below
         mine, theirs = dict(_tensors(self.ema)), dict(_tensors(model))
         if mine.keys() != theirs.keys():
             raise ValueError("ModelEMA: the EMA copy and the model hold different tensors")
@@ -49,8 +51,12 @@ class ModelEMA:
 
     @torch.no_grad()
     def update(self, model: torch.nn.Module | None = None) -> None:
-        """One EMA step towards the model the EMA was built from (`model` is accepted for the
-        interface's sake and must be that model)."""
+        """One EMA step towards `source`, the model the EMA was built from. `model` may be given
+        (the usual EMA interface) but must be that very model: the step reads the tensors paired at
+        construction, so another model, even an equal copy, would silently not be averaged."""
+        if model is not None and model is not self.source:
+            raise ValueError(f"ModelEMA.update: model is a {type(model).__name__} other than the one this EMA "
+                             "was built from (its tensors are paired at construction); build a ModelEMA for it")
         d = self.decay_now()
         self.updates += 1
         torch._foreach_mul_(self._ema_float, d)

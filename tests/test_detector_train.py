@@ -487,3 +487,19 @@ def test_foreach_ema_follows_the_formula_on_every_float_tensor_and_copies_the_co
         want = before[k] * d + now[k] * (1 - d) if v.dtype.is_floating_point else now[k]
         torch.testing.assert_close(v, want, msg=k)
     assert ema.updates == 1
+
+
+def test_ema_update_refuses_a_model_other_than_its_source():
+    # The EMA reads the tensors it paired at construction: another model passed to update() would
+    # be ignored while the EMA went on averaging its source. It is refused instead.
+    from detector.ema import ModelEMA
+
+    model = KeypointDetector(DetectorConfig(num_classes=12, width=0.125, depth=0.34))
+    ema = ModelEMA(model, decay=0.9, tau=1.0)
+    before = {k: v.clone() for k, v in ema.ema.state_dict().items()}
+    with pytest.raises(ValueError, match="ModelEMA.update: model is a KeypointDetector other than"):
+        ema.update(KeypointDetector(DetectorConfig(num_classes=12, width=0.125, depth=0.34)))
+    assert ema.updates == 0 and all(torch.equal(v, before[k]) for k, v in ema.ema.state_dict().items())
+    ema.update(model)
+    ema.update()  # no argument: the source
+    assert ema.updates == 2 and ema.source is model
