@@ -76,21 +76,17 @@ def rows_of(report: Any) -> dict[str, dict[str, float]]:
     return {k: {f: value(getattr(r, f)) for f in FIELDS} for k, r in out.items()}
 
 
-def fmt(v: float, digits: int = 3) -> str:
-    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
-
-
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     import torch
 
+    from benchmarks.validate import fmt
     from detector.box_template import evaluate_with_baseline
     from detector.predict import predict_dataset
     from detector.train import TrainConfig, train
     from omnigen.dataset import Dataset
     from omnigen.splits import read_split
 
-    torch.set_num_threads(torch.get_num_threads())  # the process's default; nothing global changed
     frames = len(read_split(args.dataset, "train"))
     per_epoch = math.ceil(frames / args.batch)
     epochs = max(1, math.ceil(args.steps / per_epoch))

@@ -325,7 +325,7 @@ def cpu_reference(results_dir: Path) -> dict[str, Any] | None:
 
 def section_markdown(r: dict[str, Any]) -> str:
     """The RESULTS.md section: every number read from results.json, which this script wrote."""
-    from benchmarks.validate import _f
+    from benchmarks.validate import fmt
 
     a, t, s = r["arguments"], r["training"], r["synthetic"]
     unused = ("work", "wheels", "results", "kitti") + (("fallback_rate",) if r["timed"] else ())
@@ -345,11 +345,11 @@ def section_markdown(r: dict[str, Any]) -> str:
              f"train {r['frames']['train']}, test {r['frames']['test']}",
              f"- training: {t['epochs']} epochs of {t['train_frames']} frames at {a['imgsz']} px, batch {a['batch']}, "
              f"{t['step_seconds']} s of steps ({t['seconds']} s with validation): "
-             f"{_f(t['images_per_s'], 1)} training images/s"
+             f"{fmt(t['images_per_s'], 1)} training images/s"
              + ("" if r["timed"] else f" (no `--time` in train yet: --epochs from --fallback-rate {a['fallback_rate']})"),
              "",
              "| stage | seconds | budget (s) |", "|---|---|---|",
-             *[f"| {k} | {v} | {_f(r['stage_budgets'].get(k), 0)} |" for k, v in r["stage_seconds"].items()],
+             *[f"| {k} | {v} | {fmt(r['stage_budgets'].get(k), 0)} |" for k, v in r["stage_seconds"].items()],
              f"| total | {r['total_seconds']} | {BUDGET_SECONDS} |",
              "", made, "",
              "| synthetic test split | this run |" + (" make validate (CPU) |" if cpu else ""),
@@ -357,7 +357,7 @@ def section_markdown(r: dict[str, Any]) -> str:
     rows = [("OKS mAP50:95", "oks_map50_95", 3), ("AP at OKS 0.50", "ap_oks50", 3), ("F1 at OKS 0.5", "f1", 3),
             ("ground-plane adherence (deg)", "ground_adherence_deg", 2)]
     for label, key, digits in rows:
-        lines.append(f"| {label} | {_f(s.get(key), digits)} |" + (f" {_f(cpu['synthetic'].get(key), digits)} |" if cpu else ""))
+        lines.append(f"| {label} | {fmt(s.get(key), digits)} |" + (f" {fmt(cpu['synthetic'].get(key), digits)} |" if cpu else ""))
     lines.append(f"| test frames (synthetic) | {s.get('images')} |" + (f" {cpu['synthetic'].get('images')} |" if cpu else ""))
     if cpu:
         crop = f" (crop {cpu['crop']})" if cpu.get("crop") else ""
@@ -367,8 +367,8 @@ def section_markdown(r: dict[str, Any]) -> str:
     if peer:
         lines += ["", f"Beside it, on the same data for the same minutes: {peer['model']} "
                       f"(Ultralytics {peer['ultralytics']}, from scratch; benchmarks/peer_ultralytics.py): synthetic "
-                      f"mAP50:95 {_f(peer['synthetic'].get('oks_map50_95'))}, AP50 {_f(peer['synthetic'].get('ap_oks50'))}, "
-                      f"adherence {_f(peer['synthetic'].get('ground_adherence_deg'), 2)} deg, {peer['epochs']} epochs."]
+                      f"mAP50:95 {fmt(peer['synthetic'].get('oks_map50_95'))}, AP50 {fmt(peer['synthetic'].get('ap_oks50'))}, "
+                      f"adherence {fmt(peer['synthetic'].get('ground_adherence_deg'), 2)} deg, {peer['epochs']} epochs."]
     lines += ["", made]
     return "\n".join(lines) + "\n"
 
@@ -434,7 +434,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from benchmarks.validate import Runner, _f, check_data_arguments, machine, synthetic_row, train_stage, with_section
+    from benchmarks.validate import Runner, fmt, check_data_arguments, machine, synthetic_row, train_stage, with_section
     from omnigen.files import atomic_write_json, atomic_write_text
     from omnigen.splits import read_split
 
@@ -508,8 +508,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{results['total_seconds']:.0f} s of stages ({time.perf_counter() - started:.0f} s this invocation), "
           f"budget {BUDGET_SECONDS} s")
     s, speed = results["synthetic"], results["training"]["images_per_s"]
-    print(f"gpu_validate: synthetic mAP50:95 {_f(s['oks_map50_95'])}, adherence {_f(s['ground_adherence_deg'], 2)} deg, "
-          f"{_f(speed, 1)} img/s")
+    print(f"gpu_validate: synthetic mAP50:95 {fmt(s['oks_map50_95'])}, adherence {fmt(s['ground_adherence_deg'], 2)} deg, "
+          f"{fmt(speed, 1)} img/s")
     return 0
 
 

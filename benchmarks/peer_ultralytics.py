@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     import torch
 
-    from benchmarks.validate import Runner, _f, stale, synthetic_row
+    from benchmarks.validate import Runner, fmt, stale, synthetic_row
     from omnigen.dataset import Dataset
     from omnigen.files import atomic_write_json, atomic_write_text
     from omnigen.splits import read_split
@@ -164,9 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     ours_path = work / "results.json"
     ours = json.loads(ours_path.read_text())["synthetic"] if ours_path.exists() else {}
     s = result["synthetic"]
-    print(f"peer_ultralytics: synthetic mAP50:95 bundled n+P2 {_f(ours.get('oks_map50_95'))} vs {MODEL} "
-          f"{_f(s['oks_map50_95'])}; AP50 {_f(ours.get('ap_oks50'))} vs {_f(s['ap_oks50'])}; adherence "
-          f"{_f(ours.get('ground_adherence_deg'), 2)} vs {_f(s['ground_adherence_deg'], 2)} deg "
+    print(f"peer_ultralytics: synthetic mAP50:95 bundled n+P2 {fmt(ours.get('oks_map50_95'))} vs {MODEL} "
+          f"{fmt(s['oks_map50_95'])}; AP50 {fmt(ours.get('ap_oks50'))} vs {fmt(s['ap_oks50'])}; adherence "
+          f"{fmt(ours.get('ground_adherence_deg'), 2)} vs {fmt(s['ground_adherence_deg'], 2)} deg "
           f"({result['epochs']} epochs in {args.minutes:g} min)")
     return 0
 

@@ -30,6 +30,7 @@ import csv
 import datetime
 import hashlib
 import json
+import math
 import os
 import platform
 import re
@@ -452,8 +453,11 @@ def object_sizes(ds: Dataset, split: str = "test") -> dict[str, dict[str, float]
     return out
 
 
-def _f(v: Any, digits: int = 3) -> str:
-    return "-" if v is None else f"{v:.{digits}f}" if isinstance(v, float) else str(v)
+def fmt(v: Any, digits: int = 3) -> str:
+    """A figure for a table: '-' where there is none (None, or NaN: nothing was matched)."""
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
 
 def baseline_table(r: dict[str, Any], made: str) -> list[str]:
@@ -472,15 +476,15 @@ def baseline_table(r: dict[str, Any], made: str) -> list[str]:
             "(`omnigen eval --baseline`, docs/metric-3d.md): where the model is not better, its corners",
             "carry no more than its 2D boxes.", "",
             "| synthetic test split | model | box-template baseline |", "|---|---|---|",
-            *[f"| {name} | {_f(v, d)} | {_f(b.get(k), d)} |" for name, k, v, d in rows],
+            *[f"| {name} | {fmt(v, d)} | {fmt(b.get(k), d)} |" for name, k, v, d in rows],
             "", made, ""]
 
 
 def _view_line(g: dict[str, Any], sizes: dict[str, Any]) -> str:
     """One row of the by-view table: the view's metrics and how large its test objects are."""
     px = " / ".join(str(sizes.get(k, "-")) for k in ("p10_px", "p50_px", "p90_px"))
-    adherence = f"{_f(g.get('ground_adherence_deg'), 2)} ({g.get('adherence_objects', 0)})"
-    return (f"| {g['group'][5:]} | {_f(g['oks_map50_95'])} | {_f(g['ap_oks50'])} | {_f(g['f1'])} | {adherence} | "
+    adherence = f"{fmt(g.get('ground_adherence_deg'), 2)} ({g.get('adherence_objects', 0)})"
+    return (f"| {g['group'][5:]} | {fmt(g['oks_map50_95'])} | {fmt(g['ap_oks50'])} | {fmt(g['f1'])} | {adherence} | "
             f"{sizes.get('objects', '-')} | {px} | {sizes.get('p50_m', '-')} |")
 
 
@@ -502,7 +506,7 @@ def size_table(r: dict[str, Any]) -> list[str]:
              "| run | " + " | ".join(f"{b}: {label[b]} px ({objects[b]} objects)" for b in names) + " |",
              "|---|" + "---|" * len(names)]
     for name, by in rows.items():
-        cells = [f"{_f(by[b]['oks_map50_95'])} / {_f(by[b]['ap_oks50'])}" if b in by else "-" for b in names]
+        cells = [f"{fmt(by[b]['oks_map50_95'])} / {fmt(by[b]['ap_oks50'])}" if b in by else "-" for b in names]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
 
@@ -536,7 +540,7 @@ def curve_table(r: dict[str, Any]) -> list[str]:
              "| epoch | " + " | ".join(run["name"] for run in runs) + " |",
              "|---|" + "---|" * len(runs)]
     for e in epochs:
-        cells = [f"{_f(at[n][e]['oks_map50_95'])} / {_f(at[n][e]['ap_oks50'])}" if e in at[n] else "-" for n in at]
+        cells = [f"{fmt(at[n][e]['oks_map50_95'])} / {fmt(at[n][e]['ap_oks50'])}" if e in at[n] else "-" for n in at]
         lines.append(f"| {e} | " + " | ".join(cells) + " |")
     return lines
 
@@ -588,7 +592,7 @@ def floor_table(r: dict[str, Any], made: str) -> list[str]:
              "|---|" + "---|" * len(groups)]
     for noise in dict.fromkeys(x["noise_px"] for x in rows):
         lines.append(f"| {noise:g} | " + " | ".join(
-            f"{_f(cell[noise, g]['oks_map50_95'])} / {_f(cell[noise, g]['adherence_deg'], 2)}"
+            f"{fmt(cell[noise, g]['oks_map50_95'])} / {fmt(cell[noise, g]['adherence_deg'], 2)}"
             if (noise, g) in cell else "-" for g in groups) + " |")
     return lines + ["", made, ""]
 
@@ -641,10 +645,10 @@ def results_markdown(r: dict[str, Any]) -> str:
         "",
         "| metric | value | target |",
         "|---|---|---|",
-        f"| OKS mAP50:95 | {_f(r['oks_map50_95'])} | >= {r['targets']['oks_map50_95']} |",
-        f"| AP at OKS 0.50 | {_f(r['ap_oks50'])} | |",
-        f"| precision / recall / F1 at OKS 0.5 (best-F1 confidence) | {_f(r['precision'])} / {_f(r['recall'])} / {_f(r['f1'])} | |",
-        f"| ground-plane adherence of predicted corners (deg) | {_f(r['bev_adherence_deg'], 2)} | <= {r['targets']['bev_adherence_deg']} |",
+        f"| OKS mAP50:95 | {fmt(r['oks_map50_95'])} | >= {r['targets']['oks_map50_95']} |",
+        f"| AP at OKS 0.50 | {fmt(r['ap_oks50'])} | |",
+        f"| precision / recall / F1 at OKS 0.5 (best-F1 confidence) | {fmt(r['precision'])} / {fmt(r['recall'])} / {fmt(r['f1'])} | |",
+        f"| ground-plane adherence of predicted corners (deg) | {fmt(r['bev_adherence_deg'], 2)} | <= {r['targets']['bev_adherence_deg']} |",
         "", made, "",
         *baseline_table(r, made),
         "## By view, and how large the test objects are",
@@ -666,8 +670,8 @@ def results_markdown(r: dict[str, Any]) -> str:
         "",
         "| class | test objects | mAP50:95 | AP50 | precision | recall | F1 |",
         "|---|---|---|---|---|---|---|",
-        *[f"| {g['group'][6:]} | {g['objects']} | {_f(g['oks_map50_95'])} | {_f(g['ap_oks50'])} | "
-          f"{_f(g['precision'])} | {_f(g['recall'])} | {_f(g['f1'])} |" for g in r.get("by_class", [])],
+        *[f"| {g['group'][6:]} | {g['objects']} | {fmt(g['oks_map50_95'])} | {fmt(g['ap_oks50'])} | "
+          f"{fmt(g['precision'])} | {fmt(g['recall'])} | {fmt(g['f1'])} |" for g in r.get("by_class", [])],
         "", made, "",
         "## Every run (the design's Tables 2 and 8, as far as this machine allowed)",
         "",
@@ -692,8 +696,8 @@ def results_markdown(r: dict[str, Any]) -> str:
         size = f"{run['imgsz']} ({run['crop']})" if run.get("crop") else str(run["imgsz"])
         lines.append(f"| {run['name']} | `{' '.join(run['train_args'])}` | {size} | {run['train_seconds']} | "
                      f"{run.get('median_epoch_seconds', '-')} | "
-                     f"{_f(s['oks_map50_95'])} | {_f(s['ap_oks50'])} | {_f(s['f1'])} | {_f(s['ground_adherence_deg'], 2)} | "
-                     f"{_f(o['oks_map50_95'])} |")
+                     f"{fmt(s['oks_map50_95'])} | {fmt(s['ap_oks50'])} | {fmt(s['f1'])} | {fmt(s['ground_adherence_deg'], 2)} | "
+                     f"{fmt(o['oks_map50_95'])} |")
     sizes = size_table(r)
     if sizes:
         lines += ["", made, "", *sizes]

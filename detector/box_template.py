@@ -94,6 +94,12 @@ class BoxTemplate:
                                   for c, views in d["by_class_view"].items()})
 
 
+def frame_views(ds: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """The dataset's view names (sorted) and each frame's index into them: the key of a layout."""
+    names, of_frame = np.unique(np.asarray(ds.table.view, dtype=object), return_inverse=True)
+    return names, of_frame.reshape(-1)
+
+
 def training_frames(ds: Dataset) -> tuple[list[str], str]:
     """The frames a template (or any prior) is fitted on: the 'train' split, else all frames."""
     if TRAIN in split_names(ds.root):
@@ -140,8 +146,8 @@ def fit_box_template(ds: Dataset, frames: str | Sequence[str] | None, taxonomy: 
     kp, box, wh, cls = t.keypoints[keep], box[keep], wh[keep], cls[keep]
     valid = ~t.behind_camera[keep].astype(bool) & np.isfinite(kp).all(axis=2)
     norm = (np.nan_to_num(kp) - (box[:, None, :2] + box[:, None, 2:]) / 2) / wh[:, None, :]
-    view_names, view_of_frame = np.unique(np.asarray(ds.table.view, dtype=object), return_inverse=True)
-    views = view_of_frame.reshape(-1)[t.frame[keep]]
+    view_names, view_of_frame = frame_views(ds)
+    views = view_of_frame[t.frame[keep]]
     n_cls, n_views = len(taxonomy.classes), len(view_names)
     overall, overall_n = _means(np.zeros(len(cls), np.int64), 1, norm, valid)
     per_cls, per_cls_n = _means(cls, n_cls, norm, valid)
@@ -196,9 +202,9 @@ def apply(template: BoxTemplate, predictions: Sequence[dict[str, Any]], ds: Data
             raise PredictionError(f"{where}: field 'bbox': the box template baseline needs each prediction's "
                                   f"2D box (x, y, w, h, four finite numbers)")
         boxes[i] = b
-    view_names, view_of_frame = np.unique(np.asarray(ds.table.view, dtype=object), return_inverse=True)
+    view_names, view_of_frame = frame_views(ds)
     table = np.asarray([[template.layout(c, str(v)) for v in view_names] for c in template.classes])
-    layout = table[cats, view_of_frame.reshape(-1)[frames]] if n else np.zeros((0, NUM_KEYPOINTS, 2))
+    layout = table[cats, view_of_frame[frames]] if n else np.zeros((0, NUM_KEYPOINTS, 2))
     xy = boxes[:, None, :2] + boxes[:, None, 2:] / 2 + layout * boxes[:, None, 2:]
     kp = np.concatenate([xy, np.full((n, NUM_KEYPOINTS, 1), BASELINE_VISIBILITY)], axis=2).reshape(n, -1).tolist()
     return [{**p, "keypoints": k} for p, k in zip(predictions, kp)]

@@ -68,11 +68,9 @@ def oks_keypoint_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, 
     m = mask.to(pred.dtype)
     labelled = m.sum(1)
     keep = labelled > 0
-    n = int(keep.sum())
-    if n == 0:
-        return (pred * 0).sum()
     per_instance = ((1 - torch.exp(-e)) * m).sum(1) / labelled.clamp(min=1)
-    return per_instance[keep].sum() / n
+    # a division, not a count read back: no host-device synchronisation in the training step
+    return (per_instance * keep).sum() / keep.sum().clamp(min=1)
 
 
 def keypoint_l1_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, area: torch.Tensor) -> torch.Tensor:
@@ -140,16 +138,18 @@ def check_targets(targets: dict[str, torch.Tensor], batch_size: int, num_classes
         if shape != (m, *tail):
             raise ValueError(f"DetectionLoss: targets['{key}'] has shape {shape}, expected {(m, *tail)}")
     if m:
-        b = targets["batch_idx"]
-        if int(b.min()) < 0 or int(b.max()) >= batch_size:
+        # the four bounds read back in one transfer: a synchronisation per step, not four
+        b, c = targets["batch_idx"], targets["cls"]
+        b_min, b_max, c_min, c_max = torch.stack([b.min(), b.max(), c.min(), c.max()]).tolist()
+        if b_min < 0 or b_max >= batch_size:
             raise ValueError(f"DetectionLoss: targets['batch_idx'] outside 0..{batch_size - 1}")
-        c = targets["cls"]
-        if int(c.min()) < 0 or int(c.max()) >= num_classes:
+        if c_min < 0 or c_max >= num_classes:
             raise ValueError(f"DetectionLoss: targets['cls'] outside 0..{num_classes - 1}")
 
 
 class DetectionLoss:
-    """Loss of a batch: (total, parts). See the module docstring for the scaling.
+    """Loss of a batch: (total, parts), parts as detached 0-dim tensors. See the module docstring
+    for the scaling.
 
     `strides` is accepted for the interface's sake; the anchors' strides come with the HeadOutput.
     `kpt_sigma` is the design's 0.125 by default. Its kernel is narrow: a corner more than about
@@ -211,7 +211,9 @@ class DetectionLoss:
         parts_t = {"box": box_loss, "dfl": dfl_loss, "cls": cls_loss, "kpt": kpt_loss, "kvis": kvis_loss, "kpt_l1": kpt_l1}
         gains = asdict(self.gains)
         total = sum(gains[k] * parts_t[k] for k in PARTS)
-        return total, {k: float(v.detach()) for k, v in parts_t.items()}
+        # detached 0-dim tensors, not floats: a float() per part would wait for the device six
+        # times a step; the trainer sums them where they are (train_step.PartSums) and reads once
+        return total, {k: v.detach() for k, v in parts_t.items()}
 
     @staticmethod
     def _dfl(out: HeadOutput, bi, ai, target_boxes, weight) -> torch.Tensor:

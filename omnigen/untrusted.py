@@ -14,7 +14,6 @@ so that callers keep their own "missing" messages.
 
 from __future__ import annotations
 
-import functools
 import os
 import stat
 from pathlib import Path
@@ -38,19 +37,15 @@ def resolve_inside(root: str | os.PathLike, path: str | os.PathLike) -> Path:
 
     Resolving first is what makes the check hold: `a/../../x` and a link `a -> /etc` are caught
     by where they lead, not by how they are spelled. A path that does not exist resolves as far as
-    it does and is judged the same way (the caller then reports it missing). The root itself is
-    resolved once per process (a converter asks for several files a frame under one root).
+    it does and is judged the same way (the caller then reports it missing). The root is resolved
+    on every call, not cached: a relative root means the working folder of now, and a root that is
+    a link may have been re-pointed (a few lstat calls, against milliseconds to decode an image).
     """
-    real_root = _real_root(os.fspath(root))
+    real_root = os.path.realpath(root)
     resolved = os.path.realpath(os.path.join(real_root, path))
     if resolved != real_root and not resolved.startswith(real_root.rstrip(os.sep) + os.sep):
         raise UntrustedFileError(path, f"leads outside {root} (to {resolved})")
     return Path(resolved)
-
-
-@functools.lru_cache(maxsize=64)
-def _real_root(root: str) -> str:
-    return os.path.realpath(root)
 
 
 def _check_regular(st: os.stat_result, path: str | os.PathLike, max_bytes: int) -> None:

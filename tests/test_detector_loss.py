@@ -180,7 +180,7 @@ def test_loss_invariant_to_gt_order():
     total, parts = DetectionLoss(3)(out, t)
     total_p, parts_p = DetectionLoss(3)(out, {k: v[perm] for k, v in t.items()})
     assert float(total_p) == pytest.approx(float(total), rel=1e-6)
-    assert parts_p == pytest.approx(parts, rel=1e-6)
+    assert {k: float(v) for k, v in parts_p.items()} == pytest.approx({k: float(v) for k, v in parts.items()}, rel=1e-6)
 
 
 def test_masked_keypoints_do_not_change_detection_loss():
@@ -200,25 +200,6 @@ def test_bad_targets_name_the_field():
     t["kpt_mask"] = t["kpt_mask"][:, :4]
     with pytest.raises(ValueError, match="kpt_mask"):
         DetectionLoss(3)(_head(2, 3, a, requires_grad=False), t)
-
-
-def test_free_head_outputs_learn_the_targets():
-    """Adam on the raw head tensors (no model) must drive every part of the loss down."""
-    torch.manual_seed(0)
-    a = _anchors()[0].shape[0]
-    out = _head(2, 3, a)
-    params = [out.box, out.cls, out.kpt]
-    opt = torch.optim.Adam(params, lr=0.05)
-    loss_fn = DetectionLoss(3, gains=LossGains())
-    t = _targets()
-    first, first_parts = loss_fn(out, t)
-    for _ in range(100):
-        opt.zero_grad()
-        total, parts = loss_fn(out, t)
-        total.backward()
-        opt.step()
-    assert float(total.detach()) < 0.2 * float(first.detach())
-    assert parts["kpt"] < 0.2 * first_parts["kpt"] and parts["box"] < 0.5 * first_parts["box"]
 
 
 def test_sigma_warmup_reaches_far_and_out_of_image_corners():
@@ -332,8 +313,10 @@ def test_box_mode_decodes_corners_in_units_of_the_box():
     assert decode_keypoints(kpt, anchors, strides, torch.zeros(1, 4, a))[0, 1, 0, 0].item() == -strides[0].item()
 
 
-@pytest.mark.parametrize("kpt_mode,kpt_l1", [("box", 0.0), ("box", 2.0), ("anchor", 2.0)])
-def test_free_head_outputs_learn_the_targets_in_every_mode(kpt_mode, kpt_l1):
+@pytest.mark.parametrize("kpt_mode,kpt_l1", [("anchor", 0.0), ("box", 0.0), ("box", 2.0), ("anchor", 2.0)])
+def test_free_head_outputs_learn_the_targets(kpt_mode, kpt_l1):
+    """Adam on the raw head tensors (no model) must drive every part of the loss down, in both
+    keypoint modes, with and without the L1 term."""
     torch.manual_seed(0)
     a = _anchors()[0].shape[0]
     out = _head(2, 3, a, kpt_mode=kpt_mode)
@@ -346,8 +329,10 @@ def test_free_head_outputs_learn_the_targets_in_every_mode(kpt_mode, kpt_l1):
         total, parts = loss_fn(out, t)
         total.backward()
         opt.step()
-    assert parts["kpt"] < 0.2 * first_parts["kpt"] and parts["kpt_l1"] < 0.3 * first_parts["kpt_l1"]
-    assert parts["box"] < 0.5 * first_parts["box"]
+    assert float(total.detach()) < 0.2 * float(first.detach())
+    assert parts["kpt"] < 0.2 * first_parts["kpt"] and parts["box"] < 0.5 * first_parts["box"]
+    if kpt_l1:
+        assert parts["kpt_l1"] < 0.3 * first_parts["kpt_l1"]
 
 
 def test_box_mode_corners_do_not_pull_the_box():

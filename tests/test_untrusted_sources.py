@@ -436,3 +436,17 @@ def test_source_error_from_an_image_check_names_the_file(tmp_path):
     (tmp_path / "x.png").write_bytes(b"not an image")
     with pytest.raises(SourceError, match="x.png: unreadable image: not a format PIL can identify"):
         kitti.image_size(tmp_path / "x.png", str(tmp_path / "x.png"))
+
+
+def test_a_relative_root_is_judged_from_the_working_folder_of_the_call(tmp_path, monkeypatch):
+    """The root is resolved at each call: after a change of working folder the same relative root
+    names the new folder's tree, never the first one's (a cached resolution would keep it)."""
+    from omnigen.untrusted import resolve_inside
+
+    for name in ("a", "b"):
+        (tmp_path / name / "src").mkdir(parents=True)
+        (tmp_path / name / "src" / "f").write_text(name)
+    monkeypatch.chdir(tmp_path / "a")
+    assert resolve_inside("src", "f") == (tmp_path / "a" / "src" / "f").resolve()
+    monkeypatch.chdir(tmp_path / "b")
+    assert resolve_inside("src", "f") == (tmp_path / "b" / "src" / "f").resolve()
