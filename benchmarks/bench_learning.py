@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     last = train(cfg, resume=False)
     train_s = time.perf_counter() - t0
-    preds = predict_dataset(run / "last.pt", args.dataset, split="test", imgsz=args.imgsz, batch=8)
+    preds = predict_dataset(run / "last.pt", args.dataset, split="test", imgsz=args.imgsz, batch=8, device=args.device)
     ds = Dataset.open(args.dataset, show_progress=False)
     report, baseline = evaluate_with_baseline(ds, preds, split="test", taxonomy=cfg.taxonomy)
     model_rows, base_rows = rows_of(report), rows_of(baseline)

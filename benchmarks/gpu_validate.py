@@ -25,8 +25,9 @@ skipped, so an interrupted run resumes; benchmarks/validate.py's Runner and trai
 - data: KITTI converted; the `make validate` renders merged with it to draw the test split, then
   everything merged with that split pinned (`--split-file`, the rest train).
 - train: `omnigen train --time --minutes` (its schedule fitted to the budget), nano+P2, whole images,
-  --cache, amp auto; until `--time` exists, --epochs from --fallback-rate.
-- eval: `omnigen eval last.pt` on the test split.
+  --cache, amp auto.
+- eval: `omnigen eval last.pt --baseline` on the test split (the corner errors beside the
+  box-template baseline's, docs/metric-3d.md).
 - --peer: benchmarks/peer_ultralytics.py on the same data for the same minutes (outside the budget).
 Writes WORK/results.json, and into --results: the `gpu-validate` section of RESULTS.md (the rest of
 the file kept) and gpu_results.json. The last line printed is
@@ -218,15 +219,6 @@ def default_kitti() -> Path | None:
     return None
 
 
-def has_time_option() -> bool:
-    """Whether `omnigen train` takes --time (what `omnigen train --help` lists)."""
-    from detector.train_command import add_arguments
-
-    p = argparse.ArgumentParser()
-    add_arguments(p)
-    return "--time" in p._option_string_actions
-
-
 def render_stage(run, work: Path, args: argparse.Namespace, env: dict[str, str]) -> tuple[list[Path], list[Path], bool]:
     """The `make validate` cities and the extra training cities, rendered --jobs at a time, longest
     jobs first; returns (validate's renders, the extra ones, whether anything was rendered)."""
@@ -259,16 +251,9 @@ def data_stage(run, work: Path, base: list[Path], extra: list[Path], args: argpa
     return uov, ran > 0
 
 
-def train_arguments(uov: Path, out: Path, args: argparse.Namespace, train_frames: int, timed: bool) -> list[str]:
-    """`omnigen train`: nano with P2 on whole images; --time when train has it, else --epochs from
-    --fallback-rate (training images a second) and --minutes."""
-    if timed:
-        budget = ["--time", f"{args.minutes:g}", "--epochs", str(MAX_EPOCHS)]
-    else:
-        epochs = max(1, int(args.minutes * 60 * args.fallback_rate / max(1, train_frames)))
-        budget = ["--epochs", str(epochs)]
-        print(f"[train] omnigen train has no --time yet: {epochs} epochs from --fallback-rate "
-              f"{args.fallback_rate:g} img/s over {train_frames} frames", flush=True)
+def train_arguments(uov: Path, out: Path, args: argparse.Namespace) -> list[str]:
+    """`omnigen train`: nano with P2 on whole images, its schedule fitted to --minutes (--time)."""
+    budget = ["--time", f"{args.minutes:g}", "--epochs", str(MAX_EPOCHS)]
     return ["train", str(uov), "--out", str(out), "--model", "n", "--p2", "--imgsz", str(args.imgsz),
             "--batch", str(args.batch), "--workers", str(args.workers), "--seed", str(args.seed),
             "--optimizer", "adamw", "--lr0", str(args.lr0), "--val-every", str(args.val_every),
@@ -304,7 +289,8 @@ def git_commit() -> str | None:
 
 
 def metric_row(row: dict[str, Any]) -> dict[str, Any]:
-    keys = ("images", "objects", "oks_map50_95", "ap_oks50", "precision", "recall", "f1", "ground_adherence_deg")
+    keys = ("images", "objects", "oks_map50_95", "ap_oks50", "precision", "recall", "f1", "ground_adherence_deg",
+            "corner_error_px", "corner_error_rel")
     return {k: row.get(k) for k in keys}
 
 
@@ -328,7 +314,7 @@ def section_markdown(r: dict[str, Any]) -> str:
     from benchmarks.validate import fmt
 
     a, t, s = r["arguments"], r["training"], r["synthetic"]
-    unused = ("work", "wheels", "results", "kitti") + (("fallback_rate",) if r["timed"] else ())
+    unused = ("work", "wheels", "results", "kitti")
     cmd = "python benchmarks/gpu_validate.py " + " ".join(
         f"--{k.replace('_', '-')}" + ("" if v is True else f" {v}") for k, v in a.items()
         if v not in (None, False) and k not in unused)
@@ -345,8 +331,7 @@ def section_markdown(r: dict[str, Any]) -> str:
              f"train {r['frames']['train']}, test {r['frames']['test']}",
              f"- training: {t['epochs']} epochs of {t['train_frames']} frames at {a['imgsz']} px, batch {a['batch']}, "
              f"{t['step_seconds']} s of steps ({t['seconds']} s with validation): "
-             f"{fmt(t['images_per_s'], 1)} training images/s"
-             + ("" if r["timed"] else f" (no `--time` in train yet: --epochs from --fallback-rate {a['fallback_rate']})"),
+             f"{fmt(t['images_per_s'], 1)} training images/s",
              "",
              "| stage | seconds | budget (s) |", "|---|---|---|",
              *[f"| {k} | {v} | {fmt(r['stage_budgets'].get(k), 0)} |" for k, v in r["stage_seconds"].items()],
@@ -355,9 +340,14 @@ def section_markdown(r: dict[str, Any]) -> str:
              "| synthetic test split | this run |" + (" make validate (CPU) |" if cpu else ""),
              "|---|---|" + ("---|" if cpu else "")]
     rows = [("OKS mAP50:95", "oks_map50_95", 3), ("AP at OKS 0.50", "ap_oks50", 3), ("F1 at OKS 0.5", "f1", 3),
-            ("ground-plane adherence (deg)", "ground_adherence_deg", 2)]
+            ("ground-plane adherence (deg)", "ground_adherence_deg", 2),
+            ("median corner error of box-matched objects (px)", "corner_error_px", 2),
+            ("the same, relative to sqrt(box area)", "corner_error_rel", 3)]
+    base = r.get("baseline") or {}
     for label, key, digits in rows:
         lines.append(f"| {label} | {fmt(s.get(key), digits)} |" + (f" {fmt(cpu['synthetic'].get(key), digits)} |" if cpu else ""))
+        if key.startswith("corner_error") and base:
+            lines.append(f"| {label}, box-template baseline | {fmt(base.get(key), digits)} |" + (" |" if cpu else ""))
     lines.append(f"| test frames (synthetic) | {s.get('images')} |" + (f" {cpu['synthetic'].get('images')} |" if cpu else ""))
     if cpu:
         crop = f" (crop {cpu['crop']})" if cpu.get("crop") else ""
@@ -401,9 +391,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--val-every", type=int, default=10, help="validate every N epochs (train stretches it under --time)")
     ap.add_argument("--jobs", type=int, default=cores, help="concurrent render processes")
     ap.add_argument("--workers", type=int, default=max(0, cores - 2), help="training's data loader processes")
-    ap.add_argument("--fallback-rate", type=float, default=None,
-                    help="training images/s assumed to size --epochs while train has no --time "
-                         "(default: 100 on CUDA, as measured at 842556e on an H200; 10 on the CPU)")
     ap.add_argument("--wheels", type=Path, default=None, help="folder from fetch_gpu_wheels.py (wheels, debs/)")
     ap.add_argument("--kitti", type=Path, default=default_kitti(), help="KITTI tree to merge (default: the shared sample)")
     ap.add_argument("--no-kitti", action="store_true", help="synthetic frames alone")
@@ -439,8 +426,6 @@ def main(argv: list[str] | None = None) -> int:
     from omnigen.splits import read_split
 
     args.device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-    if args.fallback_rate is None:
-        args.fallback_rate = 100.0 if args.device.startswith("cuda") else 10.0
     stages = Stages(work)
     stages.done("setup", time.perf_counter() - t, True, STAGE_BUDGETS["setup"])
     check_data_arguments(work, args, ("frames", "cities", "city_frames", "test_fraction", "size", "scene", "seed", "kitti"))
@@ -457,15 +442,14 @@ def main(argv: list[str] | None = None) -> int:
     t = time.perf_counter()
     out = work / "runs" / "n-p2"
     train_frames = len(read_split(uov, "train"))
-    timed = has_time_option()
     ran = not (out / "done").exists()
-    train_stage(run, train_arguments(uov, out, args, train_frames, timed), out)
+    train_stage(run, train_arguments(uov, out, args), out)
     stages.done("train", time.perf_counter() - t, ran, args.minutes * 60 + 30)
 
     t = time.perf_counter()
     report_path = out / "eval.json"
     ran = run(["eval", str(out / "last.pt"), str(uov), "--split", "test", "--batch", str(args.batch),
-               "--out", str(report_path)], report_path) > 0
+               "--device", args.device, "--baseline", "--out", str(report_path)], report_path) > 0
     stages.done("eval", time.perf_counter() - t, ran, STAGE_BUDGETS["eval"])
     report = json.loads(report_path.read_text())
 
@@ -493,8 +477,9 @@ def main(argv: list[str] | None = None) -> int:
                    "test": splits.get("test", {}).get("frames")},
         "stage_seconds": dict(stages.seconds), "stage_budgets": {**STAGE_BUDGETS, "train": args.minutes * 60 + 30},
         "total_seconds": round(sum(stages.seconds.values()), 1), "budget_seconds": BUDGET_SECONDS,
-        "timed": timed, "training": training_speed(out, train_frames),
+        "training": training_speed(out, train_frames),
         "synthetic": metric_row(synthetic_row(report)), "overall": metric_row(report["report"]["rows"][0]),
+        "baseline": metric_row(synthetic_row({"report": report["baseline"]})) if "baseline" in report else None,
         "arguments": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
         "cpu_reference": cpu_reference(args.results), "peer": peer,
     }

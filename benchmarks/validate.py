@@ -345,7 +345,8 @@ def main(argv: list[str] | None = None) -> int:
             t0 = time.perf_counter()
             # last.pt, not best.pt: without a val split, train validates on the test split, and
             # choosing the checkpoint by its test score would flatter the number reported here
-            results = predict_dataset(out / "last.pt", uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch)
+            results = predict_dataset(out / "last.pt", uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch,
+                                      device=args.device)
             atomic_write_text(preds, json.dumps(results))
             run.record(f"predict_dataset({out / 'last.pt'}, {uov}, split='test')", time.perf_counter() - t0)
         report_path = out / "eval.json"

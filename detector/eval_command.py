@@ -38,6 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--imgsz", type=int, default=None,
                    help="network input size, with a checkpoint (default: its training size)")
     p.add_argument("--batch", type=int, default=8, help="images per batch, with a checkpoint")
+    p.add_argument("--device", default=None, help="where a checkpoint predicts: cpu, cuda, cuda:1 (default: cuda when present)")
     p.add_argument("--no-adherence", action="store_true", help="skip the ground-plane adherence (no 3D lifting)")
     p.add_argument("--no-sizes", action="store_true",
                    help="skip the rows per object size (a second COCOeval pass, reusing the first one's OKS)")
@@ -85,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
                 taxonomy = checkpoint_taxonomy(load_checkpoint(args.predictions))
 
             predictions = predict_dataset(args.predictions, args.dataset, split=split, imgsz=args.imgsz,
-                                          batch=args.batch)
+                                          batch=args.batch, device=args.device)
         else:
             raise ValueError(f"{args.predictions}: expected weights (.pt) or predictions (.json)")
         options = dict(adherence=not args.no_adherence, source=str(args.predictions), sizes=not args.no_sizes,

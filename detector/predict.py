@@ -124,12 +124,15 @@ def trained_imgsz(state: dict[str, Any], default: int = 640) -> int:
 
 
 def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | None = "test",
-                    imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF) -> list[dict[str, Any]]:
+                    imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
+                    device: str | None = None) -> list[dict[str, Any]]:
     """Detections of a checkpoint on a dataset split, ready for `omnigen eval` (at the training
-    input size unless `imgsz` says otherwise)."""
+    input size unless `imgsz` says otherwise), on `device` (default: CUDA when there is one: a
+    checkpoint loads onto the CPU, where a GPU machine's evaluation would otherwise run)."""
     from detector.checkpoint import checkpoint_taxonomy, load_model
 
     model, state = load_model(weights)
+    model.to(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     imgsz = imgsz or trained_imgsz(state)
     taxonomy = checkpoint_taxonomy(state)
     data = KeypointDataset(dataset_root, taxonomy, imgsz, split_frames(dataset_root, split))

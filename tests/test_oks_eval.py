@@ -343,16 +343,16 @@ def test_command_runs_weights_through_predict(ds, tmp_path, monkeypatch):
 
     seen = {}
 
-    def fake_predict(weights, root, split, imgsz, batch):
-        seen.update(weights=Path(weights), split=split, imgsz=imgsz, batch=batch)
+    def fake_predict(weights, root, split, imgsz, batch, device):
+        seen.update(weights=Path(weights), split=split, imgsz=imgsz, batch=batch, device=device)
         return perfect(ds)
 
     monkeypatch.setattr(predict, "predict_dataset", fake_predict)
     weights = tmp_path / "best.pt"
     weights.write_bytes(b"x")
-    args = _args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True, taxonomy="fine")
+    args = _args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True, taxonomy="fine", device="cpu")
     assert eval_command.run(args) == 0
-    assert seen == {"weights": weights, "split": "test", "imgsz": 320, "batch": 2}
+    assert seen == {"weights": weights, "split": "test", "imgsz": 320, "batch": 2, "device": "cpu"}
 
 
 def test_command_bad_input_exits_2_naming_file_and_field(ds, tmp_path, capsys):
