@@ -4,8 +4,17 @@ Why a plan and not a cut-off: the learning rate's warm-up and cosine decay, the 
 anneal and the last validation are laid out over the run's total number of iterations. A run
 killed at its time limit stops at a high learning rate with a wide sigma, mid-schedule. Instead
 the trainer measures how long an epoch (and a validation) takes, plans the number of epochs that
-fit in what is left of the budget, gives that total to the schedule, and plans again at the start
+fit in what is left of the budget, gives that total to the schedule, and plans again at the end
 of every epoch: the last planned epoch ends the cosine at lr0 * lrf.
+
+Why the plan is made once an epoch, right after its training and before its validation: that one
+decision says whether the epoch is the last, so the last is always validated and saved. A plan
+made later (after the validation, or at the top of the next epoch) could find the budget spent by
+the validation, the checkpoint's save or a slow disk, and end the run after an epoch that was
+neither validated nor saved as the last. An epoch planned as the last stays the last: its
+schedule has ended. The price is an overrun when the time after the decision is far longer than
+measured (a validation or a save much slower than before): the run then ends at the next
+decision, one epoch and a validation later.
 
 The budget is the whole run's: a resumed run counts the seconds its earlier invocations trained
 (results.csv's `time` column) and plans with what is left.
@@ -61,7 +70,8 @@ class TimeBudget:
         one validation is kept in reserve for the end. Before any epoch is measured the plan is
         max_epochs, the upper bound. While any time is left, one more epoch is planned even when
         less than a whole one fits: it is then the last, ends the schedule, and overruns the
-        budget by less than an epoch (a run stopped instead would end mid-schedule).
+        budget by less than an epoch (a run stopped instead would end mid-schedule). With no time
+        left (the final validation counted) the plan is `done`: the epoch just trained is the last.
         """
         e = self.epoch_estimate()
         if e is None:
@@ -73,8 +83,3 @@ class TimeBudget:
             return done
         fit = max(1, math.floor(left / cost)) if cost > 0 else self.max_epochs
         return min(self.max_epochs, done + fit)
-
-    def spent(self, used: float, validates: bool) -> bool:
-        """Whether the budget is spent (the final validation counted): an epoch planned to be
-        followed by others ends the run anyway, when it took far longer than measured before."""
-        return used + ((self.val_seconds or 0.0) if validates else 0.0) >= self.seconds

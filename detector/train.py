@@ -320,21 +320,21 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     end = cfg.epochs  # the run's last epoch (exclusive): with a time budget, planned as it goes
     validates = len(val) > 0
     last_validated = max((int(r["epoch"]) for r in history if "oks_map50_95" in r), default=0)
-    if budget is not None and history:  # resumed: plan from the epochs the earlier invocations measured
-        budget.epoch_seconds = [float(r["seconds"]) for r in history[-4:]]
-        budget.val_seconds = next((float(r["val_seconds"]) for r in reversed(history) if "val_seconds" in r), None)
     last_save, started = time.perf_counter(), clock()
     time_before = float(history[-1].get("time", 0.0)) if history else 0.0  # the resumed invocations' share
 
     def used() -> float:  # seconds of the budget spent: earlier invocations' epochs, all of this one
         return time_before + clock() - entered
 
+    if budget is not None and history:  # resumed: plan from the epochs the earlier invocations measured
+        budget.epoch_seconds = [float(r["seconds"]) for r in history[-4:]]
+        budget.val_seconds = next((float(r["val_seconds"]) for r in reversed(history) if "val_seconds" in r), None)
+        # the plan the checkpoint's epoch made for the next (the uninterrupted run's), else one now
+        end = agree(int(state.get("planned_epochs") or budget.plan(start_epoch, used(), cfg.val_every, validates)),
+                    device, world)
+
     epoch = start_epoch
     while epoch < (end if stop_after is None else min(end, stop_after)):
-        if budget is not None:
-            end = agree(budget.plan(epoch, used(), cfg.val_every, validates), device, world)
-            if end <= epoch:
-                break
         total = end * iters_per_epoch
         model.train()
         sums = PartSums()
@@ -357,10 +357,12 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
                                  "seconds": clock() - t0}
         row.update(means)
         if budget is not None:
+            # The one decision of the epoch, before its validation: whether it is the last, and else
+            # the plan of the epochs after it (their schedule). Nothing later (validation, save, a
+            # slow disk) changes it, so an epoch that ends the run is always validated and saved.
             budget.epoch_seconds.append(row["seconds"])
-            if budget.spent(used(), validates):  # far slower than planned: stop, validate, save
-                end = epoch + 1
-            end = agree(end, device, world)
+            if epoch + 1 < end:  # a planned last epoch stays the last: its schedule has ended
+                end = agree(budget.plan(epoch + 1, used(), cfg.val_every, validates), device, world)
         if rank == 0:
             validated = validates and (epoch + 1 == end or (
                 (epoch + 1) % cfg.val_every == 0 if budget is None
@@ -376,8 +378,6 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
             history.append(row)
             fitness = row.get("oks_map50_95", -1.0)
             last = epoch + 1 == end or epoch + 1 == stop_after
-            if budget is not None and budget.plan(epoch + 1, used(), cfg.val_every, validates) <= epoch + 1:
-                last = True  # the validation took what was left: the next plan ends the run, save now
             due = validated or last or time.perf_counter() - last_save >= cfg.save_interval
             if on_epoch is not None:
                 on_epoch(epoch, row)
