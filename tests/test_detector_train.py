@@ -525,3 +525,28 @@ def test_ema_update_refuses_a_model_other_than_its_source():
     ema.update(model)
     ema.update()  # no argument: the source
     assert ema.updates == 2 and ema.source is model
+
+
+
+
+def test_loader_workers_augment_each_sample_by_its_epoch(fake):
+    # A worker holds its own copy of the dataset: set_epoch in the main process does not reach it.
+    # The epoch travels with each index instead, so what a worker yields for (epoch e, frame i) is
+    # the main process's set_epoch(e); data[i], and the augmentation differs from epoch to epoch.
+    from detector.train_loader import EpochBatches, make_loader
+
+    data = KeypointDataset(str(fake), load_taxonomy("fine"), 64, split_frames(str(fake), "train"), Augment(), seed=5)
+    sampler = EpochBatches(len(data), 2, seed=5)
+    keys, batches = iter(sampler), iter(make_loader(data, sampler, workers=1, pin=False, collate_fn=list))
+    got = {}
+    for _ in range(2 * sampler.per_epoch()):  # epochs 0 and 1
+        for key, sample in zip(next(keys), next(batches), strict=True):
+            got[key] = sample
+    del batches  # ends the worker
+    assert {e for e, _ in got} == {0, 1} and len(got) == 2 * len(data)
+    for (epoch, i), sample in got.items():
+        data.set_epoch(epoch)
+        want = data[i]
+        assert sample.frame_index == want.frame_index
+        assert np.array_equal(sample.image, want.image) and np.array_equal(sample.keypoints, want.keypoints), (epoch, i)
+    assert any(not np.array_equal(got[0, i].image, got[1, i].image) for i in range(len(data)))
