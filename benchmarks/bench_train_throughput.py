@@ -10,6 +10,14 @@ Three numbers say where a training run's time goes:
 End to end near the step alone means the device is the limit; near the loader alone, the loader.
 On CUDA it also prints the top operators of a torch.profiler trace of a few steps.
 
+Why each loader measurement builds its own loader and discards its first PREFETCH * workers
+batches: iterating a loader queues that many batches at once, and the workers decode them while
+nothing is timed (or, for the loader left running, while the step alone is timed). Timing them
+would count batches decoded before the clock started; the timed batches are the `--steps` after
+them, which the workers decode while the clock runs. Keep --steps well above PREFETCH * workers:
+the workers have up to that many batches part-decoded when the clock starts. The step alone runs
+with no loader alive, so no worker competes with it for the CPU.
+
 Without --dataset it writes a small fake dataset whose images are textured (a smooth random
 pattern, 960x540 PNG unless --fake-size says otherwise), so decoding costs what a render's does.
 
@@ -28,6 +36,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
@@ -39,7 +48,7 @@ from detector.ema import ModelEMA  # noqa: E402
 from detector.loss import DetectionLoss  # noqa: E402
 from detector.model import DetectorConfig, KeypointDetector  # noqa: E402
 from detector.train import TrainConfig, autocast_dtype, make_optimizer  # noqa: E402
-from detector.train_loader import EpochBatches, make_loader  # noqa: E402
+from detector.train_loader import PREFETCH, EpochBatches, make_loader  # noqa: E402
 from detector.train_step import TrainStep, to_device, use_channels_last  # noqa: E402
 from omnigen.taxonomy import load_taxonomy  # noqa: E402
 
@@ -80,7 +89,8 @@ def main() -> None:
     ap.add_argument("--imgsz", type=int, default=640)
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--workers", type=int, default=min(16, os.cpu_count() or 1), help="loader processes")
-    ap.add_argument("--steps", type=int, default=10, help="timed batches of each measurement")
+    ap.add_argument("--steps", type=int, default=10,
+                    help="timed batches of each measurement (after the PREFETCH * workers discarded ones)")
     ap.add_argument("--dataset", default=None, help="dataset folder (default: a fake one, written to a temporary folder)")
     ap.add_argument("--frames", type=int, default=None, help="frames of the fake dataset (default: 2 batches, at least 16)")
     ap.add_argument("--fake-size", default="960x540", help="WxH of the fake dataset's images")
@@ -123,13 +133,14 @@ def run(args: argparse.Namespace, device: torch.device, root: str | Path) -> Non
         data[i]
     one = n_one / (time.perf_counter() - start)
 
-    stream = iter(make_loader(data, EpochBatches(len(data), args.batch, 0), args.workers, pin=device.type == "cuda"))
-    next(stream)  # the workers start and fill their prefetch queues
-    start = time.perf_counter()
-    count = 0
-    for _ in range(args.steps):
-        count += len(next(stream)[0])
-    loader_rate = count / (time.perf_counter() - start)
+    def loader() -> Iterator:
+        return iter(make_loader(data, EpochBatches(len(data), args.batch, 0), args.workers, pin=device.type == "cuda"))
+
+    prefetched = PREFETCH * args.workers
+    stream = loader()
+    loader_rate = timed_rate(stream, prefetched, args.steps, device)
+    images, targets, _ = next(stream)  # the step alone's batch
+    del stream  # its workers end: none decodes while the step alone is timed
 
     cfg = DetectorConfig(args.model, p2=not args.no_p2, num_classes=len(taxonomy.classes),
                          width=args.width, depth=args.depth)
@@ -143,7 +154,6 @@ def run(args: argparse.Namespace, device: torch.device, root: str | Path) -> Non
                      torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16),
                      ModelEMA(model, 0.9999, 2000.0), amp_dtype)
 
-    images, targets, _ = next(stream)
     on_device = to_device(images, targets, device, channels_last)
     for _ in range(3):  # warm-up: kernel selection (cudnn autotuning, oneDNN primitives)
         step(*on_device)
@@ -156,15 +166,8 @@ def run(args: argparse.Namespace, device: torch.device, root: str | Path) -> Non
         times.append(time.perf_counter() - start)
     step_rate = len(images) / statistics.median(times)
 
-    sync(device)
-    start = time.perf_counter()
-    count = 0
-    for _ in range(args.steps):
-        images, targets, _ = next(stream)
-        step(*to_device(images, targets, device, channels_last))
-        count += len(images)
-    sync(device)
-    end_to_end = count / (time.perf_counter() - start)
+    end_to_end = timed_rate(loader(), prefetched, args.steps, device,
+                            lambda images, targets: step(*to_device(images, targets, device, channels_last)))
 
     if device.type == "cuda":
         profile(step, on_device, device)
@@ -176,7 +179,28 @@ def run(args: argparse.Namespace, device: torch.device, root: str | Path) -> Non
     print(f"| loader, per worker | {loader_rate / workers:.1f} |")
     print(f"| step alone (batch on the device, median of {args.steps}) | {step_rate:.1f} |")
     print(f"| end to end | {end_to_end:.1f} |")
+    print(f"each loader measurement discarded its first {prefetched} batches (prefetched before timing), "
+          f"then timed {args.steps}")
     print(f"end-to-end: {end_to_end:.1f} img/s")
+
+
+def timed_rate(stream: Iterator, skip: int, steps: int, device: torch.device,
+               use: Callable[[torch.Tensor, dict], object] | None = None) -> float:
+    """Images/s of `steps` batches of a fresh loader's `stream`, each given to `use` (the step, or
+    nothing for the loader alone), after discarding the first `skip`: those were queued when the
+    loader was iterated and decoded before the clock started."""
+    for _ in range(skip):
+        next(stream)
+    sync(device)
+    start = time.perf_counter()
+    count = 0
+    for _ in range(steps):
+        images, targets, _ = next(stream)
+        if use is not None:
+            use(images, targets)
+        count += len(images)
+    sync(device)
+    return count / (time.perf_counter() - start)
 
 
 def profile(step: TrainStep, batch: tuple, device: torch.device, steps: int = 5) -> None:

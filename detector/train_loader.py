@@ -96,10 +96,14 @@ def quiet_worker(worker_id: int) -> None:
     torch.set_num_threads(1)
 
 
+PREFETCH = 4
+"""Batches each loader worker keeps in flight (DataLoader's prefetch_factor)."""
+
+
 def make_loader(data: KeypointDataset, batches: EpochBatches, workers: int, pin: bool,
                 collate_fn=collate_uint8) -> torch.utils.data.DataLoader:
-    """The run's one loader (iterate it once: its batches do not end); each worker keeps 4
-    batches in flight."""
+    """The run's one loader (iterate it once: its batches do not end); each worker keeps
+    PREFETCH batches in flight, queued as soon as the loader is iterated."""
     return torch.utils.data.DataLoader(
         EpochData(data), batch_sampler=batches, num_workers=workers, collate_fn=collate_fn, pin_memory=pin,
-        prefetch_factor=4 if workers > 0 else None, worker_init_fn=quiet_worker if workers > 0 else None)
+        prefetch_factor=PREFETCH if workers > 0 else None, worker_init_fn=quiet_worker if workers > 0 else None)

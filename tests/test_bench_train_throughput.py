@@ -26,3 +26,32 @@ def test_throughput_benchmark_prints_each_stage_and_ends_with_end_to_end():
         assert any(line.startswith(f"| {stage}") for line in lines), (stage, out.stdout)
     m = re.fullmatch(r"end-to-end: (\d+\.\d) img/s", lines[-1])
     assert m and float(m.group(1)) > 0, lines[-1]
+    assert any(line.startswith("each loader measurement discarded its first 4 batches") for line in lines), out.stdout
+
+
+def test_a_loader_measurement_times_only_batches_decoded_after_its_clock_started(monkeypatch):
+    # Iterating a loader queues PREFETCH batches per worker at once; the timed batches must be the
+    # ones after those, and the rate counts only them.
+    import importlib.util
+
+    import torch
+
+    spec = importlib.util.spec_from_file_location("bench_train_throughput",
+                                                  ROOT / "benchmarks" / "bench_train_throughput.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    served, used = [], []
+
+    def stream():
+        for k in range(100):
+            served.append(k)
+            yield torch.zeros(3 if k < 8 else 2, 1), {"k": k}, None
+    now = [0.0]
+    monkeypatch.setattr(bench.time, "perf_counter", lambda: now[0])
+
+    def use(images, targets):
+        used.append(targets["k"])
+        now[0] += 1.0
+    rate = bench.timed_rate(stream(), 8, 5, torch.device("cpu"), use)
+    assert used == [8, 9, 10, 11, 12] and served == list(range(13))
+    assert rate == 2 * 5 / 5.0  # the 5 timed batches of 2 images in 5 s; none of the discarded 3-image ones
