@@ -37,7 +37,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 RECIPE = {"imgsz": 640, "crop": 320, "batch": 16, "lr0": 2e-3, "kpt_sigma_end": 0.25, "amp": "bf16"}
 """make validate's CPU recipe (benchmarks/validate.py), the point every change is compared from."""
 
-FIELDS = ("oks_map50_95", "ap_oks50", "ground_adherence_deg", "corner_error_px", "corner_error_rel", "corner_objects")
+FIELDS = ("oks_map50_95", "ap_oks50", "ground_adherence_deg", "corner_error_px", "corner_error_rel", "corner_spread",
+          "corner_objects")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -112,13 +113,14 @@ def main(argv: list[str] | None = None) -> int:
               "model": model_rows, "baseline": base_rows}
 
     print(f"\n{name}: {result['steps']} steps ({epochs} epochs of {per_epoch}), {train_s:.0f} s of training")
-    print("| rows | model mAP50:95 | AP50 | adherence (deg) | corner error px | rel | baseline mAP50:95 | "
+    print("| rows | model mAP50:95 | AP50 | adherence (deg) | corner error px | rel | spread | baseline mAP50:95 | "
           "AP50 | px | rel |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for key, m in model_rows.items():
         b = base_rows[key]
         print(f"| {key} | {fmt(m['oks_map50_95'])} | {fmt(m['ap_oks50'])} | {fmt(m['ground_adherence_deg'], 2)} | "
-              f"{fmt(m['corner_error_px'], 2)} | {fmt(m['corner_error_rel'])} | {fmt(b['oks_map50_95'])} | "
+              f"{fmt(m['corner_error_px'], 2)} | {fmt(m['corner_error_rel'])} | {fmt(m['corner_spread'], 2)} | "
+              f"{fmt(b['oks_map50_95'])} | "
               f"{fmt(b['ap_oks50'])} | {fmt(b['corner_error_px'], 2)} | {fmt(b['corner_error_rel'])} |")
     if args.out:
         from omnigen.files import atomic_write_json

@@ -19,6 +19,11 @@ template baseline, detector/box_template.py). These numbers do.
   that a drone's 15-pixel cars and an ego camera's 200-pixel ones compare. Medians, because a
   few objects predicted turned 180 degrees would dominate a mean.
 - Per corner (0..7, the contract's corner order), the same medians over that corner alone.
+- `corner_spread`: the median over matched objects of how far the predicted corners spread about
+  their centroid, as a fraction of the true corners' spread (root-mean-square distance to the
+  centroid, over the object's labelled corners, at least three). 1 is a layout of the right size;
+  well under 1 is a collapsed one, what a model predicts when it averages over layouts it cannot
+  tell apart (a car's front and back), so the errors say how far off, this says in what way.
 
 Everything after the matching is numpy over all matched objects at once.
 """
@@ -46,6 +51,7 @@ class CornerErrors:
     objects: int  # matched objects with at least one labelled corner
     per_corner_px: list[float]
     per_corner_rel: list[float]
+    spread: float = math.nan  # median predicted / true corner spread (module docstring)
 
     @classmethod
     def none(cls) -> "CornerErrors":
@@ -61,14 +67,17 @@ class MatchedCorners:
     det_index: np.ndarray  # (M,) positions in the prediction list
     err_px: np.ndarray  # (M, 8) pixels; NaN where the corner is not labelled (v = 0)
     err_rel: np.ndarray  # (M, 8) err_px / sqrt(box area)
+    spread: np.ndarray | None = None  # (M,) predicted / true corner spread; NaN under 3 labelled corners
 
     def summary(self, mask: np.ndarray | None = None) -> CornerErrors:
         """Medians over the rows `mask` selects (all rows when None)."""
         px = self.err_px if mask is None else self.err_px[mask]
         rel = self.err_rel if mask is None else self.err_rel[mask]
+        spread = np.full(len(self.err_px), np.nan) if self.spread is None else self.spread
         return CornerErrors(px=_median(px.ravel()), rel=_median(rel.ravel()),
                             objects=int(np.isfinite(px).any(axis=1).sum()),
-                            per_corner_px=_column_medians(px), per_corner_rel=_column_medians(rel))
+                            per_corner_px=_column_medians(px), per_corner_rel=_column_medians(rel),
+                            spread=_median(spread if mask is None else spread[mask]))
 
 
 def _median(values: np.ndarray) -> float:
@@ -153,7 +162,23 @@ def matched_corners(gt_anns: Sequence[dict[str, Any]], det_anns: Sequence[dict[s
     area = np.fromiter((gt_anns[i]["area"] for i in gi.tolist()), np.float64, len(gi))
     with np.errstate(invalid="ignore", divide="ignore"):
         scale = np.where(area > 0, np.sqrt(np.clip(area, 0, None)), np.nan)
-    return MatchedCorners(gt_index=gi, det_index=di, err_px=err, err_rel=err / scale[:, None])
+    return MatchedCorners(gt_index=gi, det_index=di, err_px=err, err_rel=err / scale[:, None],
+                          spread=spread_ratio(dt_kp[:, :, :2], gt_kp[:, :, :2], gt_kp[:, :, 2] > 0))
+
+
+def spread_ratio(pred: np.ndarray, gt: np.ndarray, labelled: np.ndarray) -> np.ndarray:
+    """(M,) RMS distance of the predicted corners (M, 8, 2) to their centroid over the RMS distance
+    of the true ones to theirs, both over each object's labelled corners (M, 8); NaN for objects with
+    fewer than three (two points have no layout to speak of) or a true spread of zero."""
+    w = labelled.astype(np.float64)[..., None]
+    n = w.sum(1)  # (M, 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        def rms(xy: np.ndarray) -> np.ndarray:
+            centre = (xy * w).sum(1) / n
+            return np.sqrt((((xy - centre[:, None]) ** 2) * w).sum((1, 2)) / n[:, 0])
+        truth = rms(gt)
+        ratio = rms(pred) / np.where(truth > 0, truth, np.nan)
+    return np.where(n[:, 0] >= 3, ratio, np.nan)
 
 
 def corners_extent_boxes(keypoints: np.ndarray, width: np.ndarray, height: np.ndarray) -> np.ndarray:

@@ -135,7 +135,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 COMPARED = (("mAP50:95", "oks_map50_95"), ("AP50", "ap_oks50"), ("adherence_deg", "ground_adherence_deg"),
-            ("corner_error_px", "corner_error_px"), ("corner_error_rel", "corner_error_rel"))
+            ("corner_error_px", "corner_error_px"), ("corner_error_rel", "corner_error_rel"),
+            ("corner_spread", "corner_spread"))
 
 
 def print_comparison(report: "EvalReport", baseline: "EvalReport") -> None:

@@ -494,3 +494,28 @@ def test_command_prints_corner_errors_per_corner_and_the_baseline(ds, tmp_path, 
     assert len(model["overall"]["corner_errors_per_corner"]) == 8
     assert doc["baseline_template"]["fitted_from"] == "train"
     assert any("box-template baseline" in n for n in doc["baseline"]["notes"])
+
+
+def test_corner_spread_says_how_collapsed_the_predicted_layouts_are(ds):
+    """Predicted corners pulled halfway to their centroid spread half as far as the truth (0.5);
+    exact corners spread 1.0; a shift moves them without changing the spread."""
+    from detector.corner_errors import spread_ratio
+
+    gt = np.array([[[0, 0], [4, 0], [4, 2], [0, 2], [0, 0], [4, 0], [4, 2], [0, 2]]], dtype=float)
+    labelled = np.ones((1, 8), bool)
+    centre = gt[0].mean(0)
+    assert spread_ratio(gt, gt, labelled)[0] == pytest.approx(1.0)
+    assert spread_ratio(centre + 0.5 * (gt - centre), gt, labelled)[0] == pytest.approx(0.5)
+    assert spread_ratio(gt + 7.0, gt, labelled)[0] == pytest.approx(1.0)
+    two = labelled.copy()
+    two[0, 2:] = False
+    assert math.isnan(spread_ratio(gt, gt, two)[0])  # under three labelled corners: no layout
+
+    preds = perfect(ds)
+    for p in preds:  # every prediction's corners halfway to their centroid, its box kept
+        k = np.asarray(p["keypoints"], dtype=float).reshape(8, 3)
+        k[:, :2] = k[:, :2].mean(0) + 0.5 * (k[:, :2] - k[:, :2].mean(0))
+        p["keypoints"] = k.ravel().tolist()
+    overall = evaluate(ds, preds, split="test", adherence=False, sizes=False).row("overall")
+    exact = evaluate(ds, perfect(ds), split="test", adherence=False, sizes=False).row("overall")
+    assert exact.corner_spread == pytest.approx(1.0) and 0.4 < overall.corner_spread < 0.6
