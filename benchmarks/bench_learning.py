@@ -77,6 +77,21 @@ def rows_of(report: Any) -> dict[str, dict[str, float]]:
     return {k: {f: value(getattr(r, f)) for f in FIELDS} for k, r in out.items()}
 
 
+def finished(run: Path, cfg: Any, epochs: int) -> dict[str, Any] | None:
+    """The last history row of a run folder that already holds this recipe trained to its end
+    (the same training arguments, its last epoch written), so a rerun only scores it; else None."""
+    from detector.checkpoint import load_checkpoint
+
+    path = run / "last.pt"
+    if not path.exists():
+        return None
+    state = load_checkpoint(path)
+    saved, wanted = state.get("train_config", {}), asdict(cfg)
+    same = all(saved.get(k) == v for k, v in wanted.items()
+               if k in saved and k not in ("out", "device", "workers", "val_every", "cache"))
+    return state["history"][-1] if same and int(state["epoch"]) + 1 == epochs and state.get("history") else None
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     import torch
@@ -98,10 +113,14 @@ def main(argv: list[str] | None = None) -> int:
                       imgsz=args.imgsz, crop=args.crop or None, epochs=epochs, batch=args.batch, lr0=args.lr0,
                       kpt_sigma_end=args.kpt_sigma_end, kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1,
                       amp=args.amp, workers=args.workers, seed=args.seed, device=args.device,
-                      val_every=10**6)  # validates once, after the last epoch (train always does): the test split
+                      val_every=0)  # no validation while training: the test split is scored below, once
     t0 = time.perf_counter()
-    last = train(cfg, resume=False)
-    train_s = time.perf_counter() - t0
+    last = finished(run, cfg, epochs)
+    if last is None:
+        last = train(cfg, resume=False)
+    else:
+        print(f"{run}: trained before with these arguments; scoring its last.pt")
+    train_s = time.perf_counter() - t0 if last.get("time") is None else float(last["time"])
     preds = predict_dataset(run / "last.pt", args.dataset, split="test", imgsz=args.imgsz, batch=8, device=args.device)
     ds = Dataset.open(args.dataset, show_progress=False)
     report, baseline = evaluate_with_baseline(ds, preds, split="test", taxonomy=cfg.taxonomy)

@@ -86,7 +86,7 @@ class TrainConfig:
     augment: dict[str, Any] = field(default_factory=lambda: asdict(Augment()))
     workers: int = 2
     seed: int = 0
-    val_every: int = 1
+    val_every: int = 1  # validate every N epochs and after the last; 0: never
     save_interval: float = 60.0  # seconds between last.pt writes (also written after validation and at the end)
     device: str | None = None
     amp: str = "auto"  # mixed precision: auto (fp16 on CUDA, off on the CPU), bf16, fp16 or off
@@ -318,7 +318,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
 
     budget = TimeBudget(cfg.time_minutes * 60, cfg.epochs) if cfg.time_minutes is not None else None
     end = cfg.epochs  # the run's last epoch (exclusive): with a time budget, planned as it goes
-    validates = len(val) > 0
+    validates = len(val) > 0 and cfg.val_every > 0  # val_every 0: never (a benchmark scores on its own)
     last_validated = max((int(r["epoch"]) for r in history if "oks_map50_95" in r), default=0)
     last_save, started = time.perf_counter(), clock()
     time_before = float(history[-1].get("time", 0.0)) if history else 0.0  # the resumed invocations' share

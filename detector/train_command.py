@@ -33,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out-of-image", default="learn", choices=["learn", "drop"],
                    help="corners outside the image but in front of the camera: learn them (default) or mask them")
     p.add_argument("--no-augment", action="store_true", help="letterbox only (flip, scale, colour off)")
-    p.add_argument("--val-every", type=int, default=1, help="validate every N epochs (and after the last)")
+    p.add_argument("--val-every", type=int, default=1, help="validate every N epochs (and after the last); 0: never")
     p.add_argument("--workers", type=int, default=2, help="data loader processes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")

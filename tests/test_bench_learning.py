@@ -20,10 +20,10 @@ def test_bench_learning_prints_model_and_baseline(tmp_path, capsys):
     write_split(ds.root, "train", ids[:6])
     write_split(ds.root, "test", ids[6:])
     out = tmp_path / "result.json"
-    rc = main([str(ds.root), "--steps", "2", "--batch", "3", "--imgsz", "64", "--crop", "0", "--amp", "off",
-               "--width", "0.125", "--depth", "0.34", "--workers", "0", "--kpt-mode", "box", "--kpt-l1", "1",
-               "--work", str(tmp_path / "runs"), "--out", str(out)])
-    assert rc == 0
+    argv = [str(ds.root), "--steps", "2", "--batch", "3", "--imgsz", "64", "--crop", "0", "--amp", "off",
+            "--width", "0.125", "--depth", "0.34", "--workers", "0", "--kpt-mode", "box", "--kpt-l1", "1",
+            "--work", str(tmp_path / "runs"), "--out", str(out)]
+    assert main(argv) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[-1].startswith("learning: mAP50:95 ") and "(baseline " in lines[-1]
     assert "corner error rel" in lines[-1]
@@ -33,3 +33,9 @@ def test_bench_learning_prints_model_and_baseline(tmp_path, capsys):
     for row in (*result["model"].values(), *result["baseline"].values()):
         assert {"oks_map50_95", "ap_oks50", "corner_error_px", "corner_error_rel"} <= set(row)
     assert (tmp_path / "runs" / result["name"] / "last.pt").exists()
+
+    # a rerun of the same recipe scores the finished run again instead of training it anew
+    assert main(argv) == 0
+    again = capsys.readouterr().out
+    assert "trained before with these arguments" in again and again.strip().splitlines()[-1] == lines[-1]
+    assert json.loads(out.read_text())["model"] == result["model"]
