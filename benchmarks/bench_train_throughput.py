@@ -21,7 +21,7 @@ with no loader alive, so no worker competes with it for the CPU.
 Without --dataset it writes a small fake dataset whose images are textured (a smooth random
 pattern, 960x540 PNG unless --fake-size says otherwise), so decoding costs what a render's does.
 
-    .venv/bin/python benchmarks/bench_train_throughput.py --device cpu --imgsz 320 --batch 8 --steps 5
+    .venv/bin/python benchmarks/bench_train_throughput.py --device cpu --imgsz 320 --batch 8 --steps 12 --workers 1
     python benchmarks/bench_train_throughput.py --device cuda --imgsz 640 --batch 64 --workers 14 --dataset D
 
 The last line is `end-to-end: X img/s`.
