@@ -79,17 +79,27 @@ def rows_of(report: Any) -> dict[str, dict[str, float]]:
 
 def finished(run: Path, cfg: Any, epochs: int) -> dict[str, Any] | None:
     """The last history row of a run folder that already holds this recipe trained to its end
-    (the same training arguments, its last epoch written), so a rerun only scores it; else None."""
+    (the same training arguments, its last epoch written), so a rerun only scores it; None when
+    the folder has no checkpoint. A checkpoint of other arguments, or one cut off before its end,
+    is refused rather than trained over: it may be the only copy of an hour's run."""
     from detector.checkpoint import load_checkpoint
 
     path = run / "last.pt"
     if not path.exists():
         return None
     state = load_checkpoint(path)
-    saved, wanted = state.get("train_config", {}), asdict(cfg)
-    same = all(saved.get(k) == v for k, v in wanted.items()
-               if k in saved and k not in ("out", "device", "workers", "val_every", "cache"))
-    return state["history"][-1] if same and int(state["epoch"]) + 1 == epochs and state.get("history") else None
+    saved, wanted = dict(state.get("train_config", {})), asdict(cfg)
+    for key in ("dataset",):  # the same folder however it was spelled
+        saved[key], wanted[key] = (str(Path(d).resolve()) if d else d for d in (saved.get(key), wanted[key]))
+    differ = sorted(k for k, v in wanted.items()
+                    if k in saved and saved[k] != v and k not in ("out", "device", "workers", "val_every", "cache"))
+    if differ:
+        raise SystemExit(f"bench_learning: {path} was trained with other arguments ({', '.join(differ)}); "
+                         "give another --name or --work, or delete the folder")
+    if int(state["epoch"]) + 1 != epochs or not state.get("history"):
+        raise SystemExit(f"bench_learning: {path} stopped at epoch {int(state['epoch']) + 1} of {epochs}; "
+                         "delete the folder to train it again")
+    return state["history"][-1]
 
 
 def main(argv: list[str] | None = None) -> int:

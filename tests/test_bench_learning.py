@@ -39,3 +39,9 @@ def test_bench_learning_prints_model_and_baseline(tmp_path, capsys):
     again = capsys.readouterr().out
     assert "trained before with these arguments" in again and again.strip().splitlines()[-1] == lines[-1]
     assert json.loads(out.read_text())["model"] == result["model"]
+
+    # another recipe into the same folder is refused, the finished run left as it was
+    before = (tmp_path / "runs" / result["name"] / "last.pt").read_bytes()
+    with pytest.raises(SystemExit, match="other arguments.*lr0"):
+        main(argv + ["--lr0", "0.01", "--name", result["name"]])
+    assert (tmp_path / "runs" / result["name"] / "last.pt").read_bytes() == before
