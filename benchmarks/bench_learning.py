@@ -77,6 +77,10 @@ def rows_of(report: Any) -> dict[str, dict[str, float]]:
     return {k: {f: value(getattr(r, f)) for f in FIELDS} for k, r in out.items()}
 
 
+IGNORED = ("out", "device", "workers", "cache", "val_every", "val_split")
+"""Training arguments that do not change the weights a run ends with (where it runs, what it validates on)."""
+
+
 def finished(run: Path, cfg: Any, epochs: int) -> dict[str, Any] | None:
     """The last history row of a run folder that already holds this recipe trained to its end
     (the same training arguments, its last epoch written), so a rerun only scores it; None when
@@ -92,7 +96,7 @@ def finished(run: Path, cfg: Any, epochs: int) -> dict[str, Any] | None:
     for key in ("dataset",):  # the same folder however it was spelled
         saved[key], wanted[key] = (str(Path(d).resolve()) if d else d for d in (saved.get(key), wanted[key]))
     differ = sorted(k for k, v in wanted.items()
-                    if k in saved and saved[k] != v and k not in ("out", "device", "workers", "val_every", "cache"))
+                    if k in saved and saved[k] != v and k not in IGNORED)
     if differ:
         raise SystemExit(f"bench_learning: {path} was trained with other arguments ({', '.join(differ)}); "
                          "give another --name or --work, or delete the folder")
