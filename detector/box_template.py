@@ -206,7 +206,7 @@ def apply(template: BoxTemplate, predictions: Sequence[dict[str, Any]], ds: Data
     table = np.asarray([[template.layout(c, str(v)) for v in view_names] for c in template.classes])
     layout = table[cats, view_of_frame[frames]] if n else np.zeros((0, NUM_KEYPOINTS, 2))
     xy = boxes[:, None, :2] + boxes[:, None, 2:] / 2 + layout * boxes[:, None, 2:]
-    kp = np.concatenate([xy, np.full((n, NUM_KEYPOINTS, 1), BASELINE_VISIBILITY)], axis=2).reshape(n, -1).tolist()
+    kp = np.concatenate([xy, np.full((n, NUM_KEYPOINTS, 1), BASELINE_VISIBILITY)], axis=2).reshape(n, 3 * NUM_KEYPOINTS).tolist()
     return [{**p, "keypoints": k} for p, k in zip(predictions, kp)]
 
 

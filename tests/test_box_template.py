@@ -161,3 +161,12 @@ def test_baseline_of_turned_objects_is_worse_and_says_when_fitted_on_all_frames(
     ds.objects.keypoints[turned] = ds.objects.keypoints[turned][:, [2, 3, 0, 1, 6, 7, 4, 5]]
     _, mixed = evaluate_with_baseline(ds, preds, None, "fine", adherence=False, sizes=False)
     assert mixed.row("overall").corner_error_rel > 0.05 and mixed.row("overall").oks_map50_95 < 0.9
+
+
+def test_a_model_that_predicts_nothing_gets_an_empty_baseline(small):
+    """No predictions (a fresh model at any confidence floor): the baseline is empty too, and the
+    evaluation runs on both, as gpu_validate's tiny run needs."""
+    ds = with_layouts(small, lambda c, v: LAYOUT)
+    assert apply(fit_box_template(ds, None, "fine"), [], ds) == []
+    report, baseline = evaluate_with_baseline(ds, [], split=None, adherence=False, sizes=False)
+    assert report.row("overall").oks_map50_95 == baseline.row("overall").oks_map50_95 == 0.0
