@@ -1,0 +1,469 @@
+"""Realism benchmark: image statistics and object sizes of default raster frames against real frames.
+
+Why: issue 26 found the raster frames easy to tell from real ones (flat, low contrast, brown haze
+from above, narrow classes). This script measures that with numbers a change can move: it renders
+(or reuses) default raster frames from each rig (ego, pole, drone) with `omnigen render --backend
+raster --quality preview` and compares them with the real sample frames in ../shared/realdata:
+
+- luminance Y = 0.299 R + 0.587 G + 0.114 B on the 8-bit sRGB values; per frame its mean and its
+  standard deviation (the contrast figure of the issue: the median over frames);
+- luminance and colour (R, G, B) histograms, 32 bins, averaged over frames (each frame weighs the
+  same), compared with KITTI's by histogram intersection (1 = identical) and by the earth mover's
+  distance in grey levels (0 = identical);
+- colourfulness (Hasler and Suesstrunk 2003), per frame, median;
+- edge density: the fraction of pixels whose Sobel gradient magnitude of Y (the 3x3 kernel divided
+  by 8, so grey levels per pixel) is at least EDGE_THRESHOLD. Real frames are first resized (area
+  resampling) to the renders' width, so that a pixel spans a similar angle in both;
+- object sizes and distances: car length, pedestrian height and distance to the camera from the
+  synthetic records, KITTI's labels (camera-0 rectified frame) and DAIR-V2X's label (distance from
+  the virtual-LiDAR origin: the sample has no image and no calibration, and its LiDAR stands on the
+  same pole as its camera).
+
+The only real photographs here are KITTI's (ego view); there is no roadside or aerial image in
+../shared/realdata, so pole and drone frames are compared with KITTI too, as the only reference for
+what a real camera's histogram looks like. Without ../shared/realdata the comparisons are left out
+with a one-line reason; the synthetic figures are still printed.
+
+It also prints issue 26's class figure: 10 frames (6 drone + 4 pole, 320x240, raster, the default
+preset): how many classes appear (traffic cones among them?), the median car length and the range
+of pedestrian heights. The last line is the contrast figure per rig against the issue's targets.
+
+    .venv/bin/python benchmarks/bench_realism.py [--frames 12] [--size 640] [--work runs/realism]
+        [--seed 0] [--scene NAME] [--realdata ../shared/realdata] [--out realism.json] [--no-classes]
+
+Renders are kept in --work and reused while the renderer's sources (scenes/, rigs/, omnigen/) are
+unchanged; any change to them renders again (a stamp file holds their hash).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import shutil
+import subprocess
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+RIGS = ("ego", "pole", "drone")
+TARGETS = {"ego": 55.0, "pole": 55.0, "drone": 40.0}
+"""Issue 26's contrast targets: median per-frame luminance std of default raster frames."""
+BINS = 32
+EDGE_THRESHOLD = 32.0
+"""Grey levels per pixel (the Sobel response divided by 8) at which a pixel counts as an edge: a
+step of 64 grey levels between neighbours passes, sensor noise and smooth shading do not."""
+CLASS_FRAMES = {"drone": 6, "pole": 4}
+CLASS_SIZE = (320, 240)
+CAR_LENGTH_RANGE = (3.6, 4.9)
+PED_HEIGHT_RANGE = (1.5, 1.95)
+MIN_CLASSES = 6
+SOURCE_DIRS = ("scenes", "rigs", "omnigen")
+STAMP = "sources.sha256"
+
+
+# ---------------------------------------------------------------------------------------------
+# Image statistics (pure functions on uint8 RGB arrays; the tests call them on synthetic arrays)
+# ---------------------------------------------------------------------------------------------
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """Y = 0.299 R + 0.587 G + 0.114 B on the 8-bit values (float64, 0-255): the issue's definition."""
+    rgb = np.asarray(rgb, dtype=np.float64)
+    return rgb[..., 0] * 0.299 + rgb[..., 1] * 0.587 + rgb[..., 2] * 0.114
+
+
+def sobel_magnitude(y: np.ndarray) -> np.ndarray:
+    """Gradient magnitude of a 2D array by the 3x3 Sobel kernels divided by 8 (grey levels per
+    pixel; a step of s between two columns gives s/2 on both), edges replicated at the border."""
+    p = np.pad(np.asarray(y, dtype=np.float64), 1, mode="edge")
+    gx = (p[:-2, 2:] + 2 * p[1:-1, 2:] + p[2:, 2:] - p[:-2, :-2] - 2 * p[1:-1, :-2] - p[2:, :-2]) / 8.0
+    gy = (p[2:, :-2] + 2 * p[2:, 1:-1] + p[2:, 2:] - p[:-2, :-2] - 2 * p[:-2, 1:-1] - p[:-2, 2:]) / 8.0
+    return np.hypot(gx, gy)
+
+
+def edge_density(rgb: np.ndarray, threshold: float = EDGE_THRESHOLD) -> float:
+    """Fraction of pixels whose Sobel magnitude of luminance is at least `threshold`."""
+    return float((sobel_magnitude(luminance(rgb)) >= threshold).mean())
+
+
+def colourfulness(rgb: np.ndarray) -> float:
+    """Hasler and Suesstrunk's colourfulness (2003): 0 for grey, about 30-60 for ordinary photos."""
+    rgb = np.asarray(rgb, dtype=np.float64)
+    rg = rgb[..., 0] - rgb[..., 1]
+    yb = 0.5 * (rgb[..., 0] + rgb[..., 1]) - rgb[..., 2]
+    return float(math.hypot(rg.std(), yb.std()) + 0.3 * math.hypot(rg.mean(), yb.mean()))
+
+
+def histogram(values: np.ndarray, bins: int = BINS) -> np.ndarray:
+    """Normalised histogram of 0-255 values in `bins` equal bins (sums to 1)."""
+    h, _ = np.histogram(np.asarray(values, dtype=np.float64).ravel(), bins=bins, range=(0.0, 256.0))
+    return h / max(h.sum(), 1)
+
+
+def intersection(p: np.ndarray, q: np.ndarray) -> float:
+    """Histogram intersection of two normalised histograms: 1 identical, 0 disjoint."""
+    return float(np.minimum(p, q).sum())
+
+
+def emd(p: np.ndarray, q: np.ndarray, span: float = 256.0) -> float:
+    """Earth mover's distance between two normalised 1D histograms over [0, span), in the values'
+    units (grey levels): the L1 distance of their cumulative sums times the bin width."""
+    return float(np.abs(np.cumsum(p) - np.cumsum(q)).sum() * span / len(p))
+
+
+@dataclass
+class FrameStats:
+    """One image's figures."""
+
+    lum_mean: float
+    lum_std: float
+    edge_density: float
+    colourfulness: float
+    hist_lum: np.ndarray
+    hist_rgb: np.ndarray  # (3, BINS)
+
+
+def frame_stats(rgb: np.ndarray) -> FrameStats:
+    y = luminance(rgb)
+    return FrameStats(float(y.mean()), float(y.std()), edge_density(rgb), colourfulness(rgb), histogram(y),
+                      np.stack([histogram(rgb[..., c]) for c in range(3)]))
+
+
+@dataclass
+class SetStats:
+    """A set of frames: medians over frames, and the frames' mean histograms."""
+
+    name: str
+    frames: int
+    lum_mean: float
+    lum_std: float
+    lum_std_per_frame: list[float]
+    edge_density: float
+    colourfulness: float
+    hist_lum: np.ndarray
+    hist_rgb: np.ndarray
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["hist_lum"] = self.hist_lum.round(6).tolist()
+        d["hist_rgb"] = self.hist_rgb.round(6).tolist()
+        return d
+
+
+def set_stats(name: str, images: list[np.ndarray]) -> SetStats:
+    fs = [frame_stats(im) for im in images]
+    if not fs:
+        raise ValueError(f"{name}: no frames")
+    med = lambda k: float(np.median([getattr(f, k) for f in fs]))  # noqa: E731
+    return SetStats(name, len(fs), med("lum_mean"), med("lum_std"), [round(f.lum_std, 3) for f in fs],
+                    med("edge_density"), med("colourfulness"), np.mean([f.hist_lum for f in fs], axis=0),
+                    np.mean([f.hist_rgb for f in fs], axis=0))
+
+
+def compare(a: SetStats, b: SetStats) -> dict[str, float]:
+    """Histogram distances of `a` from `b`: luminance intersection and EMD, per-channel EMD."""
+    out = {"lum_intersection": intersection(a.hist_lum, b.hist_lum), "lum_emd": emd(a.hist_lum, b.hist_lum)}
+    for c, name in enumerate("rgb"):
+        out[f"{name}_emd"] = emd(a.hist_rgb[c], b.hist_rgb[c])
+    out["rgb_intersection"] = float(np.mean([intersection(a.hist_rgb[c], b.hist_rgb[c]) for c in range(3)]))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Objects: sizes and distances
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Objects:
+    """Per source: each object's fine class, [l, w, h] and distance to the camera (m)."""
+
+    name: str
+    category: list[str] = field(default_factory=list)
+    dims: list[tuple[float, float, float]] = field(default_factory=list)
+    distance: list[float] = field(default_factory=list)
+    note: str = ""
+
+    def add(self, category: str, dims, distance: float) -> None:
+        self.category.append(category)
+        self.dims.append(tuple(float(v) for v in dims))
+        self.distance.append(float(distance))
+
+    def values(self, measure: str) -> np.ndarray:
+        """'car length', 'ped. height' (pedestrians) or 'distance' (every object)."""
+        if measure == "distance":
+            return np.asarray(self.distance, dtype=np.float64)
+        cls, axis = {"car length": ("car", 0), "ped. height": ("pedestrian", 2)}[measure]
+        return np.asarray([d[axis] for c, d in zip(self.category, self.dims) if c == cls], dtype=np.float64)
+
+
+MEASURES = ("car length", "ped. height", "distance")
+
+
+def summary(v: np.ndarray) -> dict[str, float | int | None]:
+    """n, median, 10th and 90th percentile, min and max (None where there are no values)."""
+    if len(v) == 0:
+        return {"n": 0, "median": None, "p10": None, "p90": None, "min": None, "max": None}
+    return {"n": int(len(v)), "median": float(np.median(v)), "p10": float(np.percentile(v, 10)),
+            "p90": float(np.percentile(v, 90)), "min": float(v.min()), "max": float(v.max())}
+
+
+def synthetic_objects(name: str, dataset: Path) -> Objects:
+    """Every annotated object of a rendered dataset's records (box centre in the camera frame)."""
+    objs = Objects(name)
+    for p in sorted((dataset / "records").glob("*.json")):
+        for o in json.loads(p.read_text())["objects"]:
+            b = o["box3d"]
+            objs.add(o["category"], b["dims"], np.linalg.norm(b["center"]))
+    return objs
+
+
+def kitti_objects(root: Path) -> Objects:
+    """KITTI label_2 objects by fine class; [l, w, h] from KITTI's h w l; distance of the box centre
+    (location is the bottom-face centre) from camera 0, which camera 2 sits 6 cm beside."""
+    from converters.kitti import parse_labels
+    from omnigen.conventions import KITTI_CLASSES
+
+    objs = Objects("kitti", note="labels in the camera-0 rectified frame")
+    for p in sorted((root / "label_2").glob("*.txt")):
+        for lab in parse_labels(p.read_text(), str(p)):
+            cat = KITTI_CLASSES.get(lab.type)
+            if cat is None:
+                continue
+            h, w, l = lab.hwl
+            x, y, z = lab.location
+            objs.add(cat, (l, w, h), math.sqrt(x * x + (y - h / 2) ** 2 + z * z))
+    return objs
+
+
+def dair_objects(root: Path) -> Objects:
+    """DAIR-V2X label objects by fine class (case-insensitive names; numbers may be strings);
+    distance of the box centre from the virtual-LiDAR origin."""
+    from omnigen.conventions import DAIR_CLASSES
+
+    objs = Objects("dair-v2x", note="distance from the virtual-LiDAR origin (no calibration in the sample)")
+    for p in sorted(root.rglob("*.json")):
+        for o in json.loads(p.read_text()):
+            cat = DAIR_CLASSES.get(str(o.get("type", "")).strip().lower())
+            if cat is None:
+                continue
+            d, loc = o["3d_dimensions"], o["3d_location"]
+            objs.add(cat, (float(d["l"]), float(d["w"]), float(d["h"])),
+                     math.sqrt(sum(float(loc[k]) ** 2 for k in "xyz")))
+    return objs
+
+
+# ---------------------------------------------------------------------------------------------
+# Frames: rendering (reused while the sources are unchanged) and reading
+# ---------------------------------------------------------------------------------------------
+
+
+def sources_hash() -> str:
+    """sha256 over the renderer's sources (scenes/, rigs/, omnigen/: *.py and *.toml): renders in
+    the work folder are reused only while it is unchanged."""
+    h = hashlib.sha256()
+    for d in SOURCE_DIRS:
+        for p in sorted((ROOT / d).rglob("*")):
+            if p.suffix in (".py", ".toml") and "__pycache__" not in p.parts:
+                h.update(str(p.relative_to(ROOT)).encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def render(rig: str, out: Path, frames: int, width: int, height: int, seed: int, stamp: str,
+           scene: str | None = None) -> Path:
+    """`omnigen render --backend raster --quality preview` of frames 0..frames-1 into `out`, unless
+    `out` already holds them from the same sources (`scene` None: the command's default preset). Raises RuntimeError with the command's last
+    lines when it fails (no headless EGL, for one)."""
+    stamp_file = out / STAMP
+    have = len(list((out / "records").glob("*.json"))) if (out / "records").is_dir() else 0
+    if have == frames and stamp_file.exists() and stamp_file.read_text().strip() == stamp:
+        return out
+    if out.exists():
+        shutil.rmtree(out)
+    cmd = [sys.executable, "-m", "omnigen", "render", "--rig", rig, "--frames", str(frames), "--out", str(out),
+           "--seed", str(seed), "--width", str(width), "--height", str(height), "--backend", "raster",
+           "--quality", "preview"] + (["--scene", scene] if scene else [])
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    if res.returncode != 0:
+        tail = "\n".join((res.stdout + res.stderr).strip().splitlines()[-5:])
+        raise RuntimeError(f"{' '.join(cmd[1:])} failed ({res.returncode}):\n{tail}")
+    stamp_file.write_text(stamp + "\n")
+    return out
+
+
+def rig_dataset(work: Path, rig: str, frames: int, size: int, seed: int, stamp: str, scene: str | None) -> Path:
+    """The benchmark's square renders of one rig in the work folder (the figure script reads the same)."""
+    tag = f"-{Path(scene).stem}" if scene else ""
+    return render(rig, work / f"{rig}-{frames}-{size}-s{seed}{tag}", frames, size, size, seed, stamp, scene)
+
+
+def read_rgb(path: Path, width: int | None = None) -> np.ndarray:
+    """An image as uint8 RGB; resized (area resampling) to `width` when given and different."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        im = im.convert("RGB")
+        if width and im.width != width:
+            im = im.resize((width, max(1, round(im.height * width / im.width))), Image.Resampling.BOX)
+        return np.asarray(im)
+
+
+def dataset_images(dataset: Path) -> list[np.ndarray]:
+    return [read_rgb(p) for p in sorted((dataset / "images").glob("*.png"))]
+
+
+def dataset_scene(dataset: Path) -> str:
+    return json.loads((dataset / "manifest.json").read_text())["render"]["scene"]
+
+
+def real_sources(realdata: Path) -> tuple[Path | None, Path | None, list[str]]:
+    """(KITTI training folder, DAIR-V2X label folder, notes on what is missing)."""
+    notes = []
+    kitti = realdata / "kitti" / "training"
+    if not (kitti / "image_2").is_dir():
+        notes.append(f"KITTI comparison skipped: no {kitti / 'image_2'}")
+        kitti = None
+    dair = realdata / "dair-v2x-c" / "infrastructure-side"
+    if not (dair.is_dir() and any(dair.rglob("*.json"))):
+        notes.append(f"DAIR-V2X comparison skipped: no label under {dair}")
+        dair = None
+    elif not any(p.suffix.lower() in (".jpg", ".png") for p in dair.rglob("*")):
+        notes.append("DAIR-V2X: labels only (no image in the sample): its objects are compared, not its look")
+    return kitti, dair, notes
+
+
+# ---------------------------------------------------------------------------------------------
+# The run
+# ---------------------------------------------------------------------------------------------
+
+
+def class_summary(objs: Objects, scenes: list[str]) -> dict:
+    """Issue 26's class figure from the objects of its 10 frames: the classes and their counts,
+    whether cones are among them, the median car length, the pedestrian height range, and whether
+    all of it meets the targets (>= 6 classes with cones, 3.6-4.9 m, 1.5-1.95 m)."""
+    counts = {c: objs.category.count(c) for c in sorted(set(objs.category))}
+    cars, peds = objs.values("car length"), objs.values("ped. height")
+    car_med = float(np.median(cars)) if len(cars) else None
+    ped = (float(peds.min()), float(peds.max())) if len(peds) else None
+    ok = (len(counts) >= MIN_CLASSES and "traffic_cone" in counts and car_med is not None
+          and CAR_LENGTH_RANGE[0] <= car_med <= CAR_LENGTH_RANGE[1] and ped is not None
+          and PED_HEIGHT_RANGE[0] <= ped[0] and ped[1] <= PED_HEIGHT_RANGE[1])
+    return {"frames": dict(CLASS_FRAMES), "size": list(CLASS_SIZE), "scene": scenes, "classes": counts,
+            "n_classes": len(counts), "traffic_cone": "traffic_cone" in counts, "car_length_median": car_med,
+            "pedestrian_height_range": ped, "meets_targets": ok}
+
+
+def class_figure(work: Path, seed: int, stamp: str, scene: str | None) -> dict:
+    """Issue 26's class figure on 6 drone + 4 pole frames at 320x240 (raster, default preset)."""
+    objs = Objects("classes")
+    scenes = set()
+    for rig, n in CLASS_FRAMES.items():
+        ds = render(rig, work / f"classes-{rig}-{n}-{CLASS_SIZE[0]}x{CLASS_SIZE[1]}-s{seed}", n, *CLASS_SIZE, seed,
+                    stamp, scene)
+        scenes.add(dataset_scene(ds))
+        o = synthetic_objects(rig, ds)
+        for c, d, r in zip(o.category, o.dims, o.distance):
+            objs.add(c, d, r)
+    return class_summary(objs, sorted(scenes))
+
+
+def class_line(cf: dict) -> str:
+    """The class figure in one line, beside the issue's targets."""
+    car = "-" if cf["car_length_median"] is None else f"{cf['car_length_median']:.2f}"
+    ped = cf["pedestrian_height_range"]
+    ped = "-" if ped is None else f"{ped[0]:.2f}-{ped[1]:.2f}"
+    classes = ", ".join(f"{c} {n}" for c, n in cf["classes"].items())
+    return (f"classes: {cf['n_classes']} in 10 frames (6 drone + 4 pole, 320x240, raster, scene "
+            f"{', '.join(cf['scene'])}): {classes}; traffic cones {'yes' if cf['traffic_cone'] else 'no'} "
+            f"(target >= {MIN_CLASSES} classes with cones); median car length {car} m (3.6-4.9); "
+            f"pedestrian height {ped} m (1.5-1.95)")
+
+
+def run(args: argparse.Namespace) -> dict:
+    from omnigen.progress import print_table
+
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    stamp = sources_hash()
+    kitti, dair, notes = real_sources(Path(args.realdata))
+    datasets = {rig: rig_dataset(work, rig, args.frames, args.size, args.seed, stamp, args.scene) for rig in RIGS}
+    scenes = sorted({dataset_scene(ds) for ds in datasets.values()})
+    sets = {rig: set_stats(rig, dataset_images(ds)) for rig, ds in datasets.items()}
+    if kitti is not None:
+        sets["kitti"] = set_stats("kitti", [read_rgb(p, args.size) for p in sorted((kitti / "image_2").glob("*.png"))])
+    print(f"realism: {args.frames} frames a rig at {args.size}x{args.size}, raster preview, scene "
+          f"{', '.join(scenes)}, seed {args.seed}; work folder {work}")
+    for n in notes:
+        print(n)
+    print_table("image statistics (median over frames)",
+                ["frames", "n", "lum mean", "lum std", "edges", "colourful"],
+                [[s.name, s.frames, f"{s.lum_mean:.1f}", f"{s.lum_std:.1f}", f"{s.edge_density:.3f}",
+                  f"{s.colourfulness:.1f}"] for s in sets.values()])
+    distances = {}
+    if "kitti" in sets:
+        distances = {rig: compare(sets[rig], sets["kitti"]) for rig in RIGS}
+        print_table("histograms against KITTI's (intersection: 1 same; EMD: grey levels, 0 same)",
+                    ["rig", "lum inters.", "lum EMD", "RGB inters.", "R EMD", "G EMD", "B EMD"],
+                    [[rig, f"{d['lum_intersection']:.3f}", f"{d['lum_emd']:.1f}", f"{d['rgb_intersection']:.3f}",
+                      f"{d['r_emd']:.1f}", f"{d['g_emd']:.1f}", f"{d['b_emd']:.1f}"] for rig, d in distances.items()])
+
+    objects = [synthetic_objects(rig, ds) for rig, ds in datasets.items()]
+    if kitti is not None:
+        objects.append(kitti_objects(kitti))
+    if dair is not None:
+        objects.append(dair_objects(dair))
+    sizes = {o.name: {m: summary(o.values(m)) for m in MEASURES} for o in objects}
+    f = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+    print_table("object sizes and distances (m)", ["source", "measure", "n", "median", "p10", "p90", "min", "max"],
+                [[name, m, s["n"], f(s["median"]), f(s["p10"]), f(s["p90"]), f(s["min"]), f(s["max"])]
+                 for name, by in sizes.items() for m, s in by.items()])
+
+    result = {"frames": args.frames, "size": args.size, "seed": args.seed, "scene": scenes, "notes": notes,
+              "edge_threshold": EDGE_THRESHOLD, "bins": BINS, "images": {k: s.to_dict() for k, s in sets.items()},
+              "histogram_distances_to_kitti": distances, "objects": sizes, "targets": TARGETS,
+              "sources_sha256": stamp}
+    if not args.no_classes:
+        cf = class_figure(work, args.seed, stamp, args.scene)
+        result["class_figure"] = cf
+        print(class_line(cf))
+    result["lum_std"] = {rig: sets[rig].lum_std for rig in RIGS}
+    result["meets_contrast_targets"] = all(sets[r].lum_std >= TARGETS[r] for r in RIGS)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    print("realism: " + ", ".join(f"{rig} lum std {sets[rig].lum_std:.1f} (>= {TARGETS[rig]:.0f})" for rig in RIGS))
+    return result
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=12, help="frames a rig")
+    ap.add_argument("--size", type=int, default=640, help="square frame size of the rig renders")
+    ap.add_argument("--work", default=str(ROOT / "runs" / "realism"), help="render folder, reused")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--scene", default=None, help="city preset or TOML (default: omnigen render's default)")
+    ap.add_argument("--realdata", default=str(ROOT.parent / "shared" / "realdata"))
+    ap.add_argument("--out", default="", help="write the figures as JSON here")
+    ap.add_argument("--no-classes", action="store_true", help="leave out the 10-frame class figure")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        run(args)
+    except RuntimeError as exc:
+        print(f"bench_realism: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

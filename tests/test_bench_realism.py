@@ -1,0 +1,161 @@
+"""benchmarks/bench_realism.py and realism_figure.py: the statistics on arrays whose answer is known
+(luminance std, edge density, histogram distances), the object readers on the real sample labels,
+the class figure's targets, and both scripts end to end at a tiny size (skipped without EGL)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import bench_realism as br
+
+REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+
+
+def grey(values: np.ndarray) -> np.ndarray:
+    """An RGB image whose three channels hold `values` (so its luminance is `values`)."""
+    return np.repeat(np.asarray(values, dtype=np.uint8)[..., None], 3, axis=2)
+
+
+def test_luminance_uses_the_issue_weights():
+    assert br.luminance(np.array([[[255, 0, 0]]], np.uint8))[0, 0] == pytest.approx(0.299 * 255)
+    assert br.luminance(np.array([[[0, 255, 0]]], np.uint8))[0, 0] == pytest.approx(0.587 * 255)
+    assert br.luminance(grey(np.full((2, 2), 100)))[0, 0] == pytest.approx(100.0)
+
+
+def test_luminance_std_of_a_half_black_half_grey_frame_is_known():
+    im = np.zeros((10, 20), np.uint8)
+    im[:, 10:] = 200  # values 0 and 200 in equal parts: std exactly 100
+    assert br.frame_stats(grey(im)).lum_std == pytest.approx(100.0)
+    s = br.set_stats("x", [grey(im), grey(np.full((10, 20), 50))])
+    assert s.lum_std == pytest.approx(50.0)  # the median of 100 and 0
+    assert s.lum_std_per_frame == [100.0, 0.0]
+
+
+def test_edge_density_counts_the_two_columns_beside_each_step():
+    w = 64
+    stripes = grey(np.tile(np.repeat(np.array([0, 255] * 4), 8), (32, 1)))  # 8 stripes of 8 px: 7 steps
+    assert stripes.shape == (32, w, 3)
+    assert br.edge_density(stripes) == pytest.approx(14 / w)
+    assert br.edge_density(grey(np.full((32, w), 128))) == 0.0
+    ramp = grey(np.tile(np.arange(w) * 3, (32, 1)))  # 3 grey levels a pixel: shading, not an edge
+    assert br.edge_density(ramp) == 0.0
+    # A step of s grey levels gives s/2 a pixel on both sides of it: the threshold (32) lies between 62 and 66.
+    step = np.zeros((8, 16), np.uint8)
+    step[:, 8:] = 66
+    assert br.edge_density(grey(step)) == pytest.approx(2 / 16)
+    step[:, 8:] = 62
+    assert br.edge_density(grey(step)) == 0.0
+
+
+def test_sobel_magnitude_of_a_horizontal_step():
+    im = np.zeros((16, 8))
+    im[8:] = 100.0
+    m = br.sobel_magnitude(im)
+    assert m[7] == pytest.approx(np.full(8, 50.0)) and m[8] == pytest.approx(np.full(8, 50.0))
+    assert m[:7].max() == 0.0 and m[9:].max() == 0.0
+
+
+def test_histogram_distances():
+    black, white = grey(np.zeros((4, 4))), grey(np.full((4, 4), 255))
+    a, b = br.frame_stats(black), br.frame_stats(white)
+    assert a.hist_lum.sum() == pytest.approx(1.0)
+    assert br.intersection(a.hist_lum, a.hist_lum) == pytest.approx(1.0)
+    assert br.intersection(a.hist_lum, b.hist_lum) == 0.0
+    assert br.emd(a.hist_lum, a.hist_lum) == 0.0
+    assert br.emd(a.hist_lum, b.hist_lum) == pytest.approx((br.BINS - 1) * 256 / br.BINS)  # first bin to last
+    d = br.compare(br.set_stats("a", [black]), br.set_stats("b", [white]))
+    assert d["r_emd"] == d["lum_emd"] and d["rgb_intersection"] == 0.0
+
+
+def test_colourfulness_is_zero_for_grey_and_grows_with_colour():
+    assert br.colourfulness(grey(np.random.default_rng(0).integers(0, 255, (8, 8)))) == pytest.approx(0.0)
+    im = np.zeros((8, 8, 3), np.uint8)
+    im[:4, :, 0] = 255  # half red, half blue
+    im[4:, :, 2] = 255
+    assert br.colourfulness(im) > 100
+
+
+def _objects(cars, peds, extra=()):
+    o = br.Objects("t")
+    for l in cars:
+        o.add("car", (l, 1.8, 1.5), 10.0)
+    for h in peds:
+        o.add("pedestrian", (0.6, 0.6, h), 10.0)
+    for c in extra:
+        o.add(c, (1.0, 1.0, 1.0), 10.0)
+    return o
+
+
+def test_class_summary_meets_the_targets_only_when_all_hold():
+    extra = ("van", "truck", "bus", "traffic_cone")
+    ok = br.class_summary(_objects([4.0, 4.2, 4.6], [1.6, 1.9], extra), ["downtown"])
+    assert ok["n_classes"] == 6 and ok["traffic_cone"] and ok["car_length_median"] == pytest.approx(4.2)
+    assert ok["pedestrian_height_range"] == (1.6, 1.9) and ok["meets_targets"]
+    assert not br.class_summary(_objects([4.0], [1.47, 1.9], extra), [])["meets_targets"]  # a short pedestrian
+    assert not br.class_summary(_objects([5.0], [1.7], extra), [])["meets_targets"]  # long cars
+    no_cones = br.class_summary(_objects([4.0], [1.7], ("van", "truck", "bus", "cyclist")), [])
+    assert no_cones["n_classes"] == 6 and not no_cones["traffic_cone"] and not no_cones["meets_targets"]
+    assert "traffic cones no" in br.class_line(no_cones)
+
+
+@pytest.mark.skipif(not (REALDATA / "kitti").is_dir(), reason="no ../shared/realdata/kitti (real sample absent)")
+def test_kitti_and_dair_labels_are_read_with_their_sizes_and_distances():
+    k = br.kitti_objects(REALDATA / "kitti" / "training")
+    assert sorted(k.values("car length").round(2)) == [3.69, 4.36]
+    assert k.values("ped. height").tolist() == [1.89]
+    # The pedestrian of 000000: bottom centre (1.84, 1.47, 8.41), h 1.89: centre 0.945 m higher.
+    assert k.distance[0] == pytest.approx(np.linalg.norm([1.84, 1.47 - 0.945, 8.41]))
+    d = br.dair_objects(REALDATA / "dair-v2x-c" / "infrastructure-side")
+    assert d.category.count("car") == 4 and d.category.count("motorcyclist") == 3
+    assert d.category.count("traffic_cone") == 1  # 'Trafficcone', mixed case
+    assert br.summary(d.values("ped. height"))["n"] == 0
+
+
+def _egl_or_skip():
+    pytest.importorskip("scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
+    from scenes import raster_backend
+    from scenes.generate import SceneGenerator
+
+    try:
+        raster_backend.RasterScene(SceneGenerator("tiny", 0).frame(0, 0))
+    except Exception as exc:  # no headless GL here: say so rather than fail obscurely
+        pytest.skip(f"headless EGL rendering unavailable: {exc}")
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_scripts_end_to_end_at_tiny_size(tmp_path, capsys):
+    _egl_or_skip()
+    work, out = tmp_path / "work", tmp_path / "realism.json"
+    args = ["--frames", "2", "--size", "96", "--work", str(work), "--no-classes", "--scene", "tiny"]
+    assert br.main(args + ["--realdata", str(tmp_path / "none"), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "KITTI comparison skipped" in text and "DAIR-V2X comparison skipped" in text
+    last = text.strip().splitlines()[-1]
+    assert last.startswith("realism: ego lum std ") and "(>= 55)" in last and "drone lum std" in last
+    res = json.loads(out.read_text())
+    assert set(res["images"]) == {"ego", "pole", "drone"} and res["images"]["ego"]["frames"] == 2
+    assert res["lum_std"]["ego"] > 0 and res["histogram_distances_to_kitti"] == {}
+    assert f"{res['lum_std']['pole']:.1f}" in last
+    image = next((work / "ego-2-96-s0-tiny" / "images").glob("*.png"))
+    before = image.stat().st_mtime_ns
+
+    if (REALDATA / "kitti").is_dir():  # the same renders again (reused), now against the real sample
+        assert br.main(args + ["--realdata", str(REALDATA), "--out", str(out)]) == 0
+        res = json.loads(out.read_text())
+        assert image.stat().st_mtime_ns == before  # reused, not rendered again
+        assert res["images"]["kitti"]["frames"] == 3
+        assert 0 < res["histogram_distances_to_kitti"]["ego"]["lum_intersection"] <= 1
+        assert res["objects"]["dair-v2x"]["car length"]["n"] == 4
+
+    from benchmarks import realism_figure
+
+    figs = tmp_path / "figs"
+    assert realism_figure.main(["--frames", "2", "--size", "96", "--work", str(work), "--out-dir", str(figs),
+                                "--realdata", str(REALDATA), "--scene", "tiny"]) == 0
+    for name in ("realism-ego.png", "realism-pole.png"):
+        assert 0 < (figs / name).stat().st_size < 400 * 1024
+    assert image.stat().st_mtime_ns == before
