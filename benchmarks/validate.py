@@ -179,7 +179,10 @@ def default_amp(device: str | None) -> str:
     return "bf16" if on_cpu and fast_bf16(torch.device("cpu")) else "auto"
 
 
-DATA_ARGUMENTS = ("frames", "cities", "size", "backend", "seed", "kitti", "dair")
+DATA_ARGUMENTS = ("frames", "cities", "size", "backend", "seed", "scene", "kitti", "dair")
+SCENE_MIX = "downtown,suburban,arterial,intersection"
+"""The presets validate's cities are drawn from: city seed s gets the (s mod 4)-th (omnigen render
+--scene with a mix), so each rig's consecutive seeds cover all four."""
 
 
 def check_data_arguments(work: Path, args: argparse.Namespace, names: tuple[str, ...] = DATA_ARGUMENTS) -> None:
@@ -221,7 +224,7 @@ def render_jobs(work: Path, args: argparse.Namespace, first_city: int = 0) -> li
             out = work / f"render-{rig}-s{seed}"
             argv = ["render", "--rig", rig, "--frames", str(per_city), "--seed", str(seed), "--width", str(args.size),
                     "--height", str(args.size), "--backend", args.backend, "--quality", "preview", "--out", str(out)]
-            if getattr(args, "scene", None):  # gpu_validate's tiny test; validate renders the default city
+            if getattr(args, "scene", None):  # validate: the preset mix; gpu_validate: its --scene (tiny in its test)
                 argv += ["--scene", args.scene]
             if (out / "manifest.json").exists():
                 print(f"[skip, done] omnigen {shlex.join(argv)}", flush=True)
@@ -268,6 +271,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dair", type=Path, help="a DAIR-V2X tree to convert and merge (real data)")
     ap.add_argument("--frames", type=int, default=200, help="frames per rig")
     ap.add_argument("--cities", type=int, default=5, help="cities (seeds) per rig: the split groups")
+    ap.add_argument("--scene", default=SCENE_MIX,
+                    help="city preset or mix of presets (omnigen render --scene): each city seed draws one")
     ap.add_argument("--size", type=int, default=640, help="rendered image width and height")
     ap.add_argument("--backend", default="raster", choices=["raster", "cycles"])
     ap.add_argument("--jobs", type=int, default=2, help="concurrent render processes")

@@ -273,7 +273,9 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, required=True, help="how many frames (indices start..start+N-1)")
     p.add_argument("--out", type=Path, required=True, help="output dataset folder (rerun to resume)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed: the city and every frame follow from it")
-    p.add_argument("--scene", default="downtown", help="city preset (downtown, arterial, suburban, tiny) or a TOML file")
+    p.add_argument("--scene", default="downtown",
+                   help="city preset (downtown, arterial, suburban, intersection, tiny) or a TOML file; or a mix "
+                        "NAME,NAME,... of which each --seed draws one (seed mod the count)")
     p.add_argument("--width", type=int, default=None, help="image width (default: the rig's)")
     p.add_argument("--height", type=int, default=None, help="image height (default: the rig's)")
     p.add_argument("--backend", choices=("cycles", "raster"), default="cycles", help="Cycles, or the fast raster preview")

@@ -3,7 +3,9 @@ annotate, write.
 
 Per frame i of a dataset with seed s (frame id `synthetic-<rig>-s<seed>-<i:06d>`):
 1. the scene: `SceneGenerator(scene, s).frame(s, i)` (agents, weather, lighting from
-   default_rng([s, i]); the city of (scene, s) is built once per process);
+   default_rng([s, i]); the city of (scene, s) is built once per process; a mix of presets,
+   "downtown,suburban,...", gives the city the preset its seed draws, which the record's
+   `synthetic.scene`, the manifest and `.render-args.json` name);
 2. the camera: `rigs.sampling.sample_camera` from the rig's own stream `rig_rng(s, i)`;
 3. render (backend `raster` or `cycles`), annotate (rigs/annotate.py); if fewer than the rig's
    `min_objects` objects are annotated (buildings hid what the geometric estimate counted), the
@@ -269,12 +271,27 @@ def parse_shard(text: str) -> tuple[int, int]:
     return k, n
 
 
+def scene_name_of(job: RenderJob) -> str:
+    """The preset the job's city is drawn from: with a mix (`--scene a,b,c`) the one its seed
+    draws (scenes.preset.preset_for_seed); a TOML path by its file's stem."""
+    from scenes.preset import preset_for_seed
+
+    chosen = preset_for_seed(job.scene, job.seed)
+    return Path(chosen).stem if chosen.endswith(".toml") else chosen
+
+
 def render_info(job: RenderJob, rig: Rig | None = None) -> dict:
-    """The manifest's `render` entry: the same for every shard and executor of one run."""
+    """The manifest's `render` entry: the same for every shard and executor of one run. `scene`
+    is the preset the city was drawn from; `scene_mix` the mix it was drawn out of, if any."""
+    from scenes.preset import mix_names
+
     rig = rig or load_rig(job.rig)
-    scene_name = Path(str(job.scene)).stem if str(job.scene).endswith(".toml") else str(job.scene)
-    return {"rig": rig.name, "scene": scene_name, "seed": job.seed, "backend": job.backend, "quality": job.quality,
-            "width": int(job.width or rig.resolution[0]), "height": int(job.height or rig.resolution[1])}
+    info = {"rig": rig.name, "scene": scene_name_of(job), "seed": job.seed, "backend": job.backend,
+            "quality": job.quality, "width": int(job.width or rig.resolution[0]),
+            "height": int(job.height or rig.resolution[1])}
+    if len(mix_names(job.scene)) > 1:
+        info["scene_mix"] = str(job.scene)
+    return info
 
 
 RENDER_ARGS = RENDER_ARGS_FILE
@@ -301,10 +318,10 @@ def render_args(job: RenderJob, rig: Rig | None = None, preset=None) -> dict:
     under the same name is a difference too. Quality and label source matter only to Cycles.
     """
     from scenes.description import to_dict
-    from scenes.preset import load_preset
+    from scenes.preset import load_preset, preset_for_seed
 
     rig = rig or load_rig(job.rig)
-    preset = preset if preset is not None else load_preset(job.scene)
+    preset = preset if preset is not None else load_preset(preset_for_seed(job.scene, job.seed))
     args = render_info(job, rig)
     rig_fields = {k: v for k, v in asdict(rig).items() if k not in ("description", "source")}
     scene_fields = {k: v for k, v in to_dict(preset).items() if k != "source"}  # where the file lies is no setting
@@ -441,8 +458,8 @@ class Renderer:
         self.rig: Rig = load_rig(job.rig)
         self.width = int(job.width or self.rig.resolution[0])
         self.height = int(job.height or self.rig.resolution[1])
-        self.gen = SceneGenerator(job.scene, job.seed)
-        self.scene_name = Path(str(job.scene)).stem if str(job.scene).endswith(".toml") else str(job.scene)
+        self.gen = SceneGenerator(job.scene, job.seed)  # a mix: the preset the seed draws
+        self.scene_name = scene_name_of(job)
         self.backend = None
         self._blend_saved = False
         claim_render_folder(job, render_args(job, self.rig, self.gen.preset))  # before any frame is written

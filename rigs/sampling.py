@@ -8,7 +8,7 @@ R's rows are (right, down, forward). Pitch 90 degrees looks straight down, the h
 which way is "up" in the image.
 
 Rejection (`pose_problem`): a pose is redrawn when the camera stands inside or within 0.5 m of
-a building, an agent's cuboid or a furniture footprint (below its top), or when fewer than the
+a building, an agent's cuboid or a furniture footprint (below its top; 1.5 m of a tree's crown), or when fewer than the
 rig's `min_objects` agents would be annotated by a cheap geometric estimate (cuboid in front, in
 the image, at least MIN_BOX_PIXELS tall and wide, nearer than MAX_DISTANCE). The renderer checks
 the real count after annotation and redraws again if the estimate was optimistic (buildings hide
@@ -34,6 +34,9 @@ _RIG_SPAWN_KEY = (0x0416,)
 MIN_BOX_PIXELS = 6.0
 MAX_DISTANCE = 250.0
 CLEARANCE = 0.5
+CROWN_CLEARANCE = 1.5
+"""Metres a camera keeps from a tree's crown (its cuboid's footprint) below the tree's top: a
+camera closer sees a wall of leaves (the trunk's footprint alone let pole cameras stand in crowns)."""
 TRAFFIC_GAP = (4.0, 30.0)
 """Metres from the `traffic` anchor's camera to the rear of the vehicle it follows: city
 following distances, from queueing at a light to a couple of seconds at 50 km/h."""
@@ -101,6 +104,18 @@ def leaders(scene: Scene) -> list:
     return [a for a in scene.agents if a.state == "moving" and a.category in FOLLOWED]
 
 
+POLE_MOUNT = 0.8
+"""Metres from a corner pole's axis to a camera mounted on it: outside the pole's obstacle
+footprint grown by CLEARANCE, on the side facing the junction."""
+CORNERS = ((1.0, 1.0), (-1.0, 1.0), (-1.0, -1.0), (1.0, -1.0))
+
+
+def corner_pole(city, inter, sx: float, sy: float):
+    """The pole the layout stood on the (sx, sy) corner of `inter` (`furniture.corner_poles`), or None."""
+    want = f"{inter.intersection_id}_pole{CORNERS.index((float(sx), float(sy)))}"
+    return next((f for f in city.furniture if f.furniture_id == want), None)
+
+
 def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, float, str]:
     """(x, y), a base heading and the anchor kind used: `traffic` without moving vehicles in the
     frame falls back to `lane` (a camera in an empty lane), and the record then says so."""
@@ -127,6 +142,10 @@ def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator) 
         off = rng.uniform(1.0, 3.0, size=2)
         c = np.asarray(inter.center)
         p = c + np.array([sx * (inter.size[0] / 2 + off[0]), sy * (inter.size[1] / 2 + off[1])])
+        pole = corner_pole(city, inter, sx, sy)
+        if pole is not None:  # mounted on the corner's pole, on the junction side (as DAIR's cameras)
+            q = np.mean(np.asarray(pole.footprint), axis=0)  # the pole's axis (its centre is the arm's cuboid's)
+            p = q + POLE_MOUNT * (c - q) / np.linalg.norm(c - q)
         return p, math.atan2(c[1] - p[1], c[0] - p[0]), anchor
     if anchor == "roadside":
         road = _weighted(rng, list(city.roads), [math.dist(r.start, r.end) for r in city.roads])
@@ -157,7 +176,12 @@ class Obstacles:
                 polys.append(Polygon(part.footprint))
                 tops.append(part.top_z + part.roof_height)
         for f in scene.city.furniture:
-            polys.append(Polygon(f.footprint) if len(f.footprint) >= 3 else Point(f.center[:2]).buffer(0.2))
+            if f.kind == "tree":  # the crown, not the trunk: a camera in or just beside it sees leaves
+                crown = shapely.box(f.center[0] - f.dims[0] / 2, f.center[1] - f.dims[1] / 2,
+                                    f.center[0] + f.dims[0] / 2, f.center[1] + f.dims[1] / 2)
+                polys.append(crown.buffer(CROWN_CLEARANCE - CLEARANCE))
+            else:
+                polys.append(Polygon(f.footprint) if len(f.footprint) >= 3 else Point(f.center[:2]).buffer(0.2))
             tops.append(f.center[2] + f.dims[2] / 2)
         for a in scene.agents:
             box = shapely.box(-a.dims[0] / 2, -a.dims[1] / 2, a.dims[0] / 2, a.dims[1] / 2)

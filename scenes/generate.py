@@ -3,6 +3,7 @@
     gen = SceneGenerator("downtown", seed=7)          # builds the static city once
     scene = gen.frame(dataset_seed=7, frame_index=3)  # agents, weather, lighting of frame 3
     scene = build_scene("arterial", seed=1)            # city of seed 1 plus its frame 0
+    gen = SceneGenerator("downtown,suburban", seed=3)  # a mix: seed 3 draws suburban (3 mod 2)
 
 Frame `i` draws only from np.random.default_rng([dataset_seed, i]) (split into independent
 streams for agents, weather and lighting, see seeding.py), so frames come out the same in any
@@ -17,7 +18,7 @@ from pathlib import Path
 from scenes.description import City, Scene, canonical
 from scenes.layout import build_city
 from scenes.placement import place_agents
-from scenes.preset import Preset, load_preset
+from scenes.preset import Preset, load_preset, preset_for_seed
 from scenes.seeding import frame_streams
 from scenes.weather import draw_lighting, draw_weather
 
@@ -61,7 +62,9 @@ class SceneGenerator:
     """Holds a preset and its city; draws frames. Build once per process, call frame() often."""
 
     def __init__(self, preset: str | Path | Preset = "downtown", seed: int = 0) -> None:
-        self.preset = preset if isinstance(preset, Preset) else load_preset(preset)
+        """`preset`: a Preset, a name or TOML path, or a mix "a,b,c" of which the seed draws one
+        (`preset.preset_for_seed`); `self.preset.name` says which."""
+        self.preset = preset if isinstance(preset, Preset) else load_preset(preset_for_seed(preset, seed))
         self.seed = int(seed)
         self.city = build_city(self.preset, self.seed)
         self.user_assets = _user_library(self.preset)

@@ -139,15 +139,20 @@ def build_city(preset: Preset, seed: int) -> City:
             }
             tag = f"b{bi}_{bj}"
             strips = _block_sidewalks(tag, block, sw, g.curb_height)
-            sidewalks.extend(strips)
+            verges = {s.sidewalk_id: _verge_width(rng, g, s) for s in strips}
+            for strip in strips:
+                sidewalks.extend(_split_verge(strip, block, verges[strip.sidewalk_id], sw))
             lot = _Rect(block.x0 + sw["w"], block.y0 + sw["s"], block.x1 - sw["e"], block.y1 - sw["n"])
             if lot.w > 0.5 and lot.h > 0.5:
                 sidewalks.append(Sidewalk(f"{tag}_lot", preset.buildings.lot_surface, ((lot.x0 + lot.x1) / 2, (lot.y0 + lot.y1) / 2),
                                           lot.w, lot.h, 0.0, g.curb_height))
                 faces = {k: v > 0 for k, v in sw.items()}
-                buildings.extend(_block_buildings(rng, tag, lot, faces, preset))
+                new_buildings = _block_buildings(rng, tag, lot, faces, preset)
+                buildings.extend(new_buildings)
+                if preset.furniture.hedge_probability > 0:
+                    furniture.extend(_lot_hedges(rng, tag, lot, faces, new_buildings, preset, taken))
             for strip in strips:
-                furniture.extend(_strip_furniture(rng, strip, block, preset, taken))
+                furniture.extend(_strip_furniture(rng, strip, block, preset, taken, verges[strip.sidewalk_id]))
     for inter in intersections:
         furniture.extend(_corner_furniture(rng, inter, crosswalks, g, preset, taken))
 
@@ -223,7 +228,7 @@ def _crossings_and_markings(rng, roads, xs, ys, width_x, width_y, lanes_x, lanes
             blocked.append((c - cross_w / 2.0, c + cross_w / 2.0))
         lo, hi = (bounds[0], bounds[2]) if road.axis == "x" else (bounds[1], bounds[3])
         for a, b in _free_intervals(lo, hi, blocked):
-            markings.extend(_segment_markings(road, heading, center_across, a, b, lanes, g, rng))
+            markings.extend(_segment_markings(road, heading, center_across, a, b, lanes, g, rng, (lo, hi)))
     return crosswalks, markings
 
 
@@ -245,27 +250,69 @@ def _road_point(axis: str, center_across: float, along: float, across: float) ->
     return (center_across - across, along)  # left of +y is -x
 
 
-def _segment_markings(road, heading, center_across, a, b, lanes, g, rng) -> list[Marking]:
-    """Double centre line, dashed lane dividers, solid edge lines at the parking lanes."""
+def _segment_markings(road, heading, center_across, a, b, lanes, g, rng, bounds=None) -> list[Marking]:
+    """Double centre line, dashed lane dividers, solid edge lines at the parking lanes; with
+    `turn_lanes`, the inner lane of each junction approach is a left-turn lane: a solid divider
+    over the last `turn_lane_length` metres and arrows (left in the turn lane, ahead elsewhere)."""
     def at(along: float, across: float):
         return _road_point(road.axis, center_across, along, across)
 
     out = []
     mid, length = (a + b) / 2.0, b - a
+    lo, hi = bounds if bounds is not None else (a, b)
     for off in (-0.1, 0.1):
         out.append(Marking("center_line", at(mid, off), length, 0.1, heading, "yellow"))
     dash, gap = 3.0, 6.0
     phase = float(rng.uniform(0, dash + gap))
     for side in (-1.0, 1.0):
+        # side -1: lanes travelling +axis, meeting a junction at b; side +1: travelling -axis, at a.
+        at_junction = b < hi - 1e-6 if side < 0 else a > lo + 1e-6
+        turn = min(g.turn_lane_length, 0.45 * length) if g.turn_lanes and lanes >= 2 and at_junction else 0.0
         for i in range(1, lanes):
             off = side * i * g.lane_width
+            da, db = a, b
+            if i == 1 and turn > 0:
+                da, db = (a, b - turn) if side < 0 else (a + turn, b)
+                solid = (b - turn / 2.0) if side < 0 else (a + turn / 2.0)
+                out.append(Marking("turn_divider", at(solid, off), turn, 0.15, heading, "white"))
             t = a + phase
             while t + dash < b:
-                out.append(Marking("lane_divider", at(t + dash / 2.0, off), dash, 0.12, heading, "white"))
+                if t >= da and t + dash <= db:
+                    out.append(Marking("lane_divider", at(t + dash / 2.0, off), dash, 0.12, heading, "white"))
                 t += dash + gap
+        if turn > 0:
+            end = b if side < 0 else a
+            travel = heading if side < 0 else heading + math.pi
+            for i in range(lanes):
+                base = at(end + side * (7.0 + 3.0), side * (i + 0.5) * g.lane_width)
+                out.extend(_arrow(base, travel, left=(i == 0)))
         if g.parking_lanes:
             out.append(Marking("edge_line", at(mid, side * lanes * g.lane_width), length, 0.12, heading, "white"))
     return out
+
+
+def _arrow(base: tuple[float, float], yaw: float, left: bool) -> list[Marking]:
+    """A painted lane arrow from `base` along `yaw` (3 m ahead, or 2 m then a 1.2 m turn to the
+    left), as flat strokes 0.15 m wide."""
+    u = np.array([math.cos(yaw), math.sin(yaw)])
+    p0 = np.asarray(base, dtype=np.float64)
+
+    def stroke(a: np.ndarray, b: np.ndarray) -> Marking:
+        c, d = (a + b) / 2.0, b - a
+        return Marking("arrow", (float(c[0]), float(c[1])), float(np.hypot(*d)) + 0.15, 0.15, math.atan2(d[1], d[0]), "white")
+
+    if left:
+        bend = p0 + 2.0 * u
+        lft = np.array([-u[1], u[0]])
+        tip, point = bend + 1.2 * lft, yaw + math.pi / 2
+        strokes = [stroke(p0, bend), stroke(bend, tip)]
+    else:
+        tip, point = p0 + 3.0 * u, yaw
+        strokes = [stroke(p0, tip)]
+    for turn in (math.radians(150), -math.radians(150)):
+        back = np.array([math.cos(point + turn), math.sin(point + turn)])
+        strokes.append(stroke(tip, tip + 0.9 * back))
+    return strokes
 
 
 # ---------------------------------------------------------------------------------------------
@@ -405,15 +452,61 @@ def _add_if_free(item: Furniture, out: list[Furniture], taken: Occupancy, margin
         out.append(item)
 
 
-def _strip_furniture(rng: np.random.Generator, strip: Sidewalk, block: _Rect, preset: Preset, taken: Occupancy) -> list[Furniture]:
-    """Street lights and trees on the kerb side, bins and hydrants, benches by the buildings."""
+def _kerb_sign(strip: Sidewalk, block: _Rect) -> float:
+    """+1 when the strip's kerb (the side nearer the road, away from the block centre) is on the
+    strip's left (+across), -1 when on its right."""
+    to_center = np.array([(block.x0 + block.x1) / 2 - strip.center[0], (block.y0 + block.y1) / 2 - strip.center[1]])
+    left = np.array([-math.sin(strip.yaw), math.cos(strip.yaw)])
+    return -1.0 if float(left @ to_center) > 0 else 1.0
+
+
+CORNER_POLE = (5.8, 1.0)  # metres from the junction box's corner along one road and in from its kerb
+VERGE_END = 5.5  # metres of paving kept at each end of a verged strip: crosswalk landings and corners
+MIN_FOOTWAY = 1.8  # a verge never narrows the footway below this
+
+
+def _verge_width(rng: np.random.Generator, g, strip: Sidewalk) -> float:
+    """The grass verge of one strip (0: none); no draw at all when the preset has no verges, so
+    presets without them keep their cities."""
+    if g.verge_width[1] <= 0:
+        return 0.0
+    v = min(float(rng.uniform(*g.verge_width)), strip.width - MIN_FOOTWAY)
+    return v if v >= 0.6 and strip.length - 2 * VERGE_END > 3.0 else 0.0
+
+
+def _split_verge(strip: Sidewalk, block: _Rect, verge: float, sw: dict) -> list[Sidewalk]:
+    """A road-side strip as footway (building side, full length), and, when it has a verge, a
+    grass verge along the kerb with paved ends (where crosswalks land and corners are walked)."""
+    if verge <= 0:
+        return [strip]
+    del sw
+    k = _kerb_sign(strip, block)
+    half_w = strip.width / 2.0
+
+    def piece(sid: str, kind: str, along: float, across: float, length: float, width: float) -> Sidewalk:
+        c = to_world(strip.center, strip.yaw, along, across)
+        return Sidewalk(sid, kind, c, length, width, strip.yaw, strip.height, strip.road_yaw)
+
+    kerb_mid = k * (half_w - verge / 2.0)
+    end_along = strip.length / 2.0 - VERGE_END / 2.0
+    return [
+        piece(strip.sidewalk_id, "sidewalk", 0.0, -k * verge / 2.0, strip.length, strip.width - verge),
+        piece(f"{strip.sidewalk_id}_verge", "lawn", 0.0, kerb_mid, strip.length - 2 * VERGE_END, verge),
+        piece(f"{strip.sidewalk_id}_end0", "sidewalk", -end_along, kerb_mid, VERGE_END, verge),
+        piece(f"{strip.sidewalk_id}_end1", "sidewalk", end_along, kerb_mid, VERGE_END, verge),
+    ]
+
+
+def _strip_furniture(rng: np.random.Generator, strip: Sidewalk, block: _Rect, preset: Preset, taken: Occupancy,
+                     verge: float = 0.0) -> list[Furniture]:
+    """Street lights and trees on the kerb side (on the verge where there is one), bins and
+    hydrants, planters, benches by the buildings."""
     f = preset.furniture
     out: list[Furniture] = []
     along_yaw = strip.yaw
     # Which side of the strip is the kerb: the side nearer the road, i.e. away from the block centre.
-    to_center = np.array([(block.x0 + block.x1) / 2 - strip.center[0], (block.y0 + block.y1) / 2 - strip.center[1]])
     left = np.array([-math.sin(along_yaw), math.cos(along_yaw)])
-    kerb_sign = -1.0 if float(left @ to_center) > 0 else 1.0  # +1: kerb on the strip's left
+    kerb_sign = _kerb_sign(strip, block)  # +1: kerb on the strip's left
     road_yaw = math.atan2(kerb_sign * left[1], kerb_sign * left[0])  # facing the road
     z = strip.height
     margin = strip.width + 4.0  # keep clear of the corners (crosswalks, traffic lights)
@@ -428,12 +521,14 @@ def _strip_furniture(rng: np.random.Generator, strip: Sidewalk, block: _Rect, pr
     def add(item: Furniture) -> None:
         _add_if_free(item, out, taken)
 
+    # On a verge, poles and trunks stand in its middle; the footway starts behind it.
+    pole_at, tree_at, foot = (verge / 2.0, verge / 2.0, verge) if verge > 0 else (0.45, min(1.3, strip.width / 2), 0.0)
     n = len(taken.polygons)
     if f.street_light_spacing > 0:
         t = lo + float(rng.uniform(0, f.street_light_spacing / 2))
         while t <= hi:
             h, arm = float(rng.uniform(7.0, 9.0)), float(rng.uniform(1.2, 2.2))
-            p = at(t, 0.45)
+            p = at(t, pole_at)
             dims = (arm + 0.35, 0.45, h)
             add(_furniture(f"{strip.sidewalk_id}_light{n + len(out)}", "street_light", p, (-dims[0] / 2 + 0.12, 0.0), dims, road_yaw, z,
                            {"arm": arm, "pole_radius": 0.09, "lamp": True, "clearance": h - 0.6}, _footprint_square(p, 0.4)))
@@ -443,7 +538,7 @@ def _strip_furniture(rng: np.random.Generator, strip: Sidewalk, block: _Rect, pr
         while t <= hi:
             if rng.random() < f.tree_probability:
                 trunk, crown = float(rng.uniform(2.3, 3.5)), float(rng.uniform(1.2, min(2.2, strip.width)))
-                p = at(t, min(1.3, strip.width / 2))
+                p = at(t, tree_at)
                 dims = (2 * crown, 2 * crown, trunk + 1.8 * crown)
                 add(_furniture(f"{strip.sidewalk_id}_tree{n + len(out)}", "tree", p, (0.0, 0.0), dims, float(rng.uniform(0, 2 * math.pi)), z,
                                {"trunk_height": trunk, "trunk_radius": float(rng.uniform(0.1, 0.18)), "clearance": trunk,
@@ -461,11 +556,56 @@ def _strip_furniture(rng: np.random.Generator, strip: Sidewalk, block: _Rect, pr
                               {"facing": road_yaw}, fp))
                 continue
             if kind == "bin":
-                p, dims, size = at(t, 0.5), (0.55, 0.55, 0.95), 0.55
+                p, dims, size = at(t, foot + 0.5), (0.55, 0.55, 0.95), 0.55
             else:
-                p, dims, size = at(t, 0.35), (0.35, 0.35, 0.75), 0.35
+                p, dims, size = at(t, foot + 0.35), (0.35, 0.35, 0.75), 0.35
             add(Furniture(f"{strip.sidewalk_id}_{kind}{n + len(out)}", kind, (p[0], p[1], z + dims[2] / 2), dims, road_yaw, {},
                           _footprint_square(p, size)))
+    if f.planters_per_100m > 0 and strip.width - foot >= 2.6:  # leave a footway beside the planter
+        for _ in range(int(rng.poisson(f.planters_per_100m * length / 100.0))):
+            t = float(rng.uniform(lo, hi))
+            pl, pw, ph = float(rng.uniform(1.2, 2.2)), float(rng.uniform(0.6, 0.9)), float(rng.uniform(0.9, 1.5))
+            p = at(t, foot + 0.3 + pw / 2)
+            fp = polygon_tuple(rect_polygon(p, pl, pw, along_yaw))
+            add(Furniture(f"{strip.sidewalk_id}_planter{n + len(out)}", "planter", (p[0], p[1], z + ph / 2), (pl, pw, ph),
+                          along_yaw, {"box_height": float(rng.uniform(0.4, 0.6)),
+                                      "leaf_color": jitter(rng, (0.06, 0.16, 0.04), 0.25)}, fp))
+    return out
+
+
+def _lot_hedges(rng: np.random.Generator, tag: str, lot: _Rect, faces: dict, buildings: list[Building], preset: Preset,
+                taken: Occupancy) -> list[Furniture]:
+    """Hedges along the street sides of a block's lot ground (front gardens), in runs of 6 to 18 m
+    with gaps for gates and drives; none where a building stands within 0.3 m."""
+    f = preset.furniture
+    out: list[Furniture] = []
+    walls = Occupancy()
+    for b in buildings:
+        for part in b.parts:
+            walls.add(Polygon(part.footprint))
+    # (side, start, end, fixed coordinate inside the lot, axis along which the hedge runs)
+    sides = (("s", lot.x0, lot.x1, lot.y0, 0), ("n", lot.x0, lot.x1, lot.y1, 0),
+             ("w", lot.y0, lot.y1, lot.x0, 1), ("e", lot.y0, lot.y1, lot.x1, 1))
+    for side, a, b, edge, axis in sides:
+        if not faces[side]:
+            continue
+        inward = 1.0 if side in ("s", "w") else -1.0
+        t = a + float(rng.uniform(0.5, 3.0))
+        while t < b - 3.0:
+            length = min(float(rng.uniform(6.0, 18.0)), b - 0.5 - t)
+            width, height = float(rng.uniform(0.6, 1.0)), float(rng.uniform(0.8, 1.6))
+            if length >= 3.0 and rng.random() < f.hedge_probability:
+                off = edge + inward * (0.3 + width / 2.0)
+                mid = t + length / 2.0
+                c = (mid, off) if axis == 0 else (off, mid)
+                yaw = 0.0 if axis == 0 else math.pi / 2
+                poly = rect_polygon(c, length, width, yaw)
+                if not walls.collides(poly, 0.3):
+                    item = Furniture(f"{tag}_hedge{len(out)}", "hedge", (c[0], c[1], preset.grid.curb_height + height / 2),
+                                     (length, width, height), yaw, {"leaf_color": jitter(rng, (0.05, 0.14, 0.035), 0.2)},
+                                     polygon_tuple(poly))
+                    _add_if_free(item, out, taken)
+            t += length + float(rng.uniform(1.5, 4.0))
     return out
 
 
@@ -490,6 +630,22 @@ def _corner_furniture(rng, inter: Intersection, crosswalks, g, preset: Preset, t
         out.append(_furniture(f"{inter.intersection_id}_tl{k}", "traffic_light", (px, py), (-dims[0] / 2 + 0.12, 0.0), dims, yaw, z,
                               {"arm": arm, "pole_radius": 0.1, "clearance": height - 1.3, "faces": math.atan2(-hy, -hx)},
                               _footprint_square((px, py), 0.45)))
+    if preset.furniture.corner_poles:
+        # A tall street light on each corner, its arm reaching over the junction: the poles
+        # roadside cameras share at signalised junctions (DAIR-V2X's infrastructure views).
+        for k, (sx, sy) in enumerate(((1, 1), (-1, 1), (-1, -1), (1, -1))):
+            # By the kerb just past the crosswalk's landing, off the corner's diagonal, so a camera
+            # on it looks across the junction past (not into) the corner's traffic light.
+            a, b = CORNER_POLE if k % 2 == 0 else CORNER_POLE[::-1]
+            px, py = cx + sx * (wy / 2 + a), cy + sy * (wx / 2 + b)
+            h, arm = float(rng.uniform(8.0, 10.0)), float(rng.uniform(1.8, 2.8))
+            dims = (arm + 0.35, 0.45, h)
+            # The arm reaches over the road and away from the junction: out of the mounted camera's view.
+            ax, ay = (0.5 * sx, -sy) if k % 2 == 0 else (-sx, 0.5 * sy)
+            item = _furniture(f"{inter.intersection_id}_pole{k}", "street_light", (px, py), (-dims[0] / 2 + 0.12, 0.0), dims,
+                              math.atan2(ay, ax), z, {"arm": arm, "pole_radius": 0.12, "lamp": True, "clearance": h - 0.6},
+                              _footprint_square((px, py), 0.45))
+            _add_if_free(item, out, taken, 0.2)
     for k, (sx, sy) in enumerate(((1, 1), (-1, 1), (-1, -1), (1, -1))):
         for b in range(preset.furniture.bollards_per_corner):
             d = 1.2 + 1.3 * b

@@ -1,5 +1,6 @@
-"""Agents in the city: vehicles in lanes or parked at the kerb, people on sidewalks and
-crosswalks, riders near the right edge of the road, lines of traffic cones.
+"""Agents in the city: vehicles and trams in lanes or parked at the kerb, people (some pushing
+barrows) on sidewalks and crosswalks, riders and tricycles near the right edge of the road,
+traffic cones singly, in lines and around road works.
 
 Rules (each tested):
 - moving vehicles and motorcyclists sit in a driving lane, heading along it with yaw noise
@@ -80,6 +81,16 @@ class _Placer:
                           if lane.kind == "driving" and not any(o.kind == "driving" and o.lane_id[:-1] == lane.lane_id[:-1]
                                                                 and int(o.lane_id[-1]) > int(lane.lane_id[-1]) for o in road.lanes)]
 
+    def inner_lanes(self, min_lanes: int) -> list[Lane]:
+        """The innermost driving lane each way of roads with at least `min_lanes` lanes a
+        direction: where trams run when the city has no separate tracks."""
+        out = []
+        for road in self.city.roads:
+            driving = [lane for lane in road.lanes if lane.kind == "driving"]
+            if len(driving) >= 2 * min_lanes:
+                out += [lane for lane in driving if lane.lane_id.endswith(("/fwd0", "/bwd0"))]
+        return out
+
     # -- drawing assets ---------------------------------------------------------------------
 
     def asset(self, category: str, state: str = "") -> tuple[tuple[float, float, float], AssetSpec]:
@@ -159,14 +170,16 @@ class _Placer:
         zones += [rect_polygon(c.center, c.length, c.width + 3.0, c.yaw) for c in self.city.crosswalks]
         return zones
 
-    def pedestrian_on_sidewalk(self) -> bool:
+    def pedestrian_on_sidewalk(self, category: str = "pedestrian", walking: bool | None = None) -> bool:
+        """A pedestrian (or a person pushing a barrow) walking along the street or standing."""
         strips = [s for s in self.city.sidewalks if s.kind == "sidewalk"]
         if not strips:
             return False
         areas = np.array([s.length * s.width for s in strips])
-        walking = bool(self.rng.random() < 0.7)
+        if walking is None:
+            walking = bool(self.rng.random() < 0.7)
         state = "walking" if walking else "standing"
-        dims, spec = self.asset("pedestrian", state)
+        dims, spec = self.asset(category, state)
         for _ in range(TRIES):
             s = strips[choice_index(self.rng, areas / areas.sum())]
             along = float(self.rng.uniform(-s.length / 2 + 0.5, s.length / 2 - 0.5))
@@ -177,7 +190,7 @@ class _Placer:
             else:
                 yaw = float(self.rng.uniform(-math.pi, math.pi))
             inside = rect_polygon(s.center, s.length, s.width, s.yaw)
-            if self.try_add("pedestrian", state, dims, spec, xy, yaw, s.height, inside):
+            if self.try_add(category, state, dims, spec, xy, yaw, s.height, inside):
                 return True
         return False
 
@@ -194,6 +207,66 @@ class _Placer:
             inside = rect_polygon(c.center, c.length, c.width, c.yaw)
             if self.try_add("pedestrian", "crossing", dims, spec, xy, yaw, 0.0, inside):
                 return True
+        return False
+
+    def _clear_of_junctions(self, poly: Polygon) -> bool:
+        """True when `poly` keeps out of every intersection box (grown by 3 m) and crosswalk."""
+        zones = [rect_polygon(i.center, i.size[0] + 6.0, i.size[1] + 6.0, 0.0) for i in self.city.intersections]
+        zones += [rect_polygon(c.center, c.length, c.width + 1.0, c.yaw) for c in self.city.crosswalks]
+        return not any(poly.intersects(z) for z in zones)
+
+    def single_cone(self) -> bool:
+        """A lone cone by the kerb: in a parking lane or at the right edge of the outer driving lane."""
+        lanes = self.parking + self.rightmost
+        if not lanes:
+            return False
+        dims, spec = self.asset("traffic_cone")
+        for _ in range(TRIES):
+            lane = self.pick_lane(lanes)
+            t = float(self.rng.uniform(1.0, lane.length - 1.0))
+            across = -lane.width / 2 + 0.3 + dims[1] / 2 + float(self.rng.uniform(0.0, 0.4))
+            xy = to_world(lane.start, lane.heading, t, across)
+            if self.try_add("traffic_cone", "placed", dims, spec, xy, float(self.rng.uniform(-math.pi, math.pi)), 0.0):
+                return True
+        return False
+
+    def work_zone(self) -> bool:
+        """Road works closing a stretch of the outer driving lane: a taper of cones leading
+        traffic out of the lane, a line along its inner edge, two cones closing its end. The
+        closed stretch becomes an obstacle, so no vehicle or person is placed inside it."""
+        if not self.rightmost:
+            return False
+        for _ in range(TRIES):
+            lane = self.pick_lane(self.rightmost)
+            length, taper = float(self.rng.uniform(8.0, 24.0)), float(self.rng.uniform(5.0, 10.0))
+            if lane.length < length + taper + 12.0:
+                continue
+            t0 = float(self.rng.uniform(taper + 4.0, lane.length - length - 4.0))
+            mid = to_world(lane.start, lane.heading, t0 + (length - taper) / 2.0, 0.0)
+            area = rect_polygon(mid, length + taper + 1.0, lane.width, lane.heading)
+            if not self._clear_of_junctions(area) or not self.world.free(area, 1.0):
+                continue
+            half = lane.width / 2.0 - 0.35
+            spots = []  # (along, across): the taper from the right edge to the inner edge, ...
+            n_taper = max(3, int(math.ceil(taper / 2.0)) + 1)
+            for k in range(n_taper):
+                f = k / (n_taper - 1)
+                spots.append((t0 - taper * (1.0 - f), -half + 2.0 * half * f))
+            spacing = float(self.rng.uniform(2.0, 3.5))
+            t = t0 + spacing
+            while t < t0 + length:  # ... along the inner edge, ...
+                spots.append((t, half))
+                t += spacing
+            for f in (0.5, 0.0):  # ... and across the end, back to the right edge
+                spots.append((t0 + length + 0.8, -half + 2.0 * half * f))
+            placed = 0
+            for along, across in spots:
+                dims, spec = self.asset("traffic_cone")
+                xy = to_world(lane.start, lane.heading, along, across)
+                placed += self.try_add("traffic_cone", "placed", dims, spec, xy, lane.heading + float(self.rng.uniform(-0.3, 0.3)), 0.0)
+            inner = rect_polygon(to_world(lane.start, lane.heading, t0 + length / 2.0, -0.3), length - 0.6, lane.width - 1.4, lane.heading)
+            self.world.ground.add(inner)
+            return placed > 0
         return False
 
     def cone_line(self) -> None:
@@ -214,18 +287,31 @@ def place_agents(city: City, spec: AgentSpec, rng: np.random.Generator, user_ass
     """All agents of one frame, drawn from `rng`; instance ids 1..N in placement order."""
     p = _Placer(city, rng, user_assets, spec.user_asset_probability)
     count = lambda r: int(rng.integers(int(r[0]), int(r[1]) + 1))  # noqa: E731
+    # Classes a preset leaves at (0, 0) draw nothing, so adding one leaves other presets' streams.
+    optional = lambda r: count(r) if r[1] > 0 else 0  # noqa: E731
     n_cones, n_moving = count(spec.cone_groups), count(spec.moving_vehicles)
     n_cyc, n_moto, n_ped = count(spec.cyclists), count(spec.motorcyclists), count(spec.pedestrians)
     parked_fraction = float(rng.uniform(*spec.parked_fraction))
-    # Big, constrained things first: cones and parked rows, then traffic, then people.
+    n_zones, n_single = optional(spec.work_zones), optional(spec.single_cones)
+    n_tram, n_tri, n_barrow = optional(spec.trams), optional(spec.tricyclists), optional(spec.barrows)
+    # Big, constrained things first: road works, cones and parked rows, then traffic, then people.
+    for _ in range(n_zones):
+        p.work_zone()
     for _ in range(n_cones):
         p.cone_line()
+    for _ in range(n_single):
+        p.single_cone()
     if p.parking and parked_fraction > 0:
         p.parked(parked_fraction, spec.parked_mix)
+    tram_lanes = p.inner_lanes(spec.tram_min_lanes)
+    for _ in range(n_tram):
+        p.in_lane("tram", tram_lanes)
     for _ in range(n_moving):
         p.in_lane(pick(rng, spec.vehicle_mix), p.driving)
     for _ in range(n_moto):
         p.in_lane("motorcyclist", p.driving)
+    for _ in range(n_tri):
+        p.in_lane("tricyclist", p.rightmost, edge="right")
     for _ in range(n_cyc):
         p.in_lane("cyclist", p.rightmost, edge="right")
     n_cross = int(round(n_ped * spec.crossing_fraction))
@@ -233,4 +319,9 @@ def place_agents(city: City, spec: AgentSpec, rng: np.random.Generator, user_ass
         p.pedestrian_on_crosswalk()
     for _ in range(n_ped - n_cross):
         p.pedestrian_on_sidewalk()
+    for _ in range(n_barrow):  # on the footway mostly; some pushed along the road's edge
+        if rng.random() < 0.7:
+            p.pedestrian_on_sidewalk("barrow", walking=True)
+        else:
+            p.in_lane("barrow", p.rightmost, edge="right")
     return tuple(p.agents)

@@ -41,6 +41,9 @@ class GridSpec:
     curb_height: float = 0.15
     crosswalk_probability: float = 0.9  # per intersection approach
     traffic_light_probability: float = 1.0  # per intersection
+    turn_lanes: bool = False  # the inner lane of a 2+ lane approach is a left-turn lane before the stop line
+    turn_lane_length: float = 30.0  # metres of solid divider and arrows before the stop line
+    verge_width: Range = (0.0, 0.0)  # grass verge between kerb and footway (0: none); trees stand on it
 
 
 @dataclass(frozen=True)
@@ -68,6 +71,9 @@ class FurnitureSpec:
     benches_per_100m: float = 1.0
     hydrants_per_100m: float = 0.7
     bollards_per_corner: int = 2
+    corner_poles: bool = False  # a street light on every junction corner (where roadside cameras hang)
+    hedge_probability: float = 0.0  # per lot street side: a hedge along the lot's front (lawn lots)
+    planters_per_100m: float = 0.0  # planters (shrub boxes) on the footway by the kerb
 
 
 @dataclass(frozen=True)
@@ -79,6 +85,12 @@ class AgentSpec:
     cyclists: IntRange = (2, 5)
     motorcyclists: IntRange = (1, 3)
     cone_groups: IntRange = (0, 2)  # a line of 3 to 6 cones along a lane edge
+    single_cones: IntRange = (0, 0)  # lone cones at a lane's kerb side or in a parking lane
+    work_zones: IntRange = (0, 0)  # road works closing a stretch of a lane, ringed by a taper of cones
+    tricyclists: IntRange = (0, 0)  # three-wheeled cargo tricycles and rickshaws at the right edge
+    barrows: IntRange = (0, 0)  # people pushing hand carts, on footways or at the road's right edge
+    trams: IntRange = (0, 0)  # trams in the inner lane of roads with at least tram_min_lanes a direction
+    tram_min_lanes: int = 3
     vehicle_mix: dict[str, float] = field(default_factory=lambda: {"car": 0.72, "van": 0.12, "truck": 0.08, "bus": 0.08})
     parked_mix: dict[str, float] = field(default_factory=lambda: {"car": 0.85, "van": 0.12, "truck": 0.03})
     user_assets: str = ""  # folder with assets.toml; relative paths are relative to the preset
@@ -134,6 +146,35 @@ def load_preset(name_or_path: str | Path = DEFAULT_PRESET) -> Preset:
     return preset
 
 
+MIX_SEPARATOR = ","
+
+
+def mix_names(scene: str | Path) -> list[str]:
+    """The presets of a mix, "downtown,suburban,arterial,intersection" (names or TOML paths); a
+    single name or path is a mix of one. Every name is checked, so a typo fails before a render."""
+    text = str(scene)
+    if MIX_SEPARATOR not in text or Path(text).exists():
+        return [text]
+    names = [n.strip() for n in text.split(MIX_SEPARATOR)]
+    if any(not n for n in names):
+        raise ValueError(f"scene mix {text!r}: an empty name (write NAME,NAME,...)")
+    for n in names:
+        path = Path(n)
+        if not (path.suffix == ".toml" or path.exists()) and not (PRESET_DIR / f"{n}.toml").exists():
+            raise ValueError(f"scene mix {text!r}: unknown preset {n!r}; available: {', '.join(available_presets())}")
+    return names
+
+
+def preset_for_seed(scene: str | Path, seed: int) -> str:
+    """The one preset a city seed draws from a mix: the (seed mod n)-th name.
+
+    Why round robin and not a random draw: consecutive seeds (validate's cities, a cluster's
+    shards of seeds) then cover the mix evenly, and which preset a seed got is obvious from the
+    seed; the city itself is still drawn from `city_rng(seed)`."""
+    names = mix_names(scene)
+    return names[int(seed) % len(names)]
+
+
 def with_overrides(preset: Preset, overrides: dict[str, Any]) -> Preset:
     """A copy with dotted-key overrides, e.g. {"grid.blocks_x": 1, "agents.pedestrians": (2, 4)}."""
     for key, value in overrides.items():
@@ -174,3 +215,18 @@ def validate(preset: Preset) -> None:
         raise ValueError("buildings.footprints: kinds are rect, l_shape, tower")
     if preset.buildings.lot_surface not in ("plaza", "lawn"):
         raise ValueError("buildings.lot_surface is plaza or lawn")
+    a = preset.agents
+    for label in ("moving_vehicles", "pedestrians", "cyclists", "motorcyclists", "cone_groups", "single_cones",
+                  "work_zones", "tricyclists", "barrows", "trams"):
+        lo, hi = getattr(a, label)
+        if not 0 <= lo <= hi:
+            raise ValueError(f"agents.{label} must be [min, max] counts with 0 <= min <= max, got {[lo, hi]}")
+    if a.tram_min_lanes < 1:
+        raise ValueError("agents.tram_min_lanes must be >= 1")
+    if not 0 <= g.verge_width[0] <= g.verge_width[1]:
+        raise ValueError("grid.verge_width must be [min, max] metres with 0 <= min <= max")
+    f = preset.furniture
+    if f.corner_poles and g.sidewalk_width[0] < 3.5:
+        raise ValueError("furniture.corner_poles needs sidewalks at least 3.5 m wide (the poles stand 1 m from the kerb)")
+    if not 0 <= f.hedge_probability <= 1 or f.planters_per_100m < 0:
+        raise ValueError("furniture.hedge_probability is in [0, 1] and planters_per_100m >= 0")
