@@ -298,6 +298,14 @@ def render(rig: str, out: Path, frames: int, width: int, height: int, seed: int,
     return out
 
 
+def shown(path: Path) -> str:
+    """A path as the repository-relative one where it lies inside the repository (for printing)."""
+    try:
+        return str(path.resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
 def rig_dataset(work: Path, rig: str, frames: int, size: int, seed: int, stamp: str, scene: str | None) -> Path:
     """The benchmark's square renders of one rig in the work folder (the figure script reads the same)."""
     tag = f"-{Path(scene).stem}" if scene else ""
@@ -399,11 +407,11 @@ def run(args: argparse.Namespace) -> dict:
     if kitti is not None:
         sets["kitti"] = set_stats("kitti", [read_rgb(p, args.size) for p in sorted((kitti / "image_2").glob("*.png"))])
     print(f"realism: {args.frames} frames a rig at {args.size}x{args.size}, raster preview, scene "
-          f"{', '.join(scenes)}, seed {args.seed}; work folder {work}")
+          f"{', '.join(scenes)}, seed {args.seed}; renders in {shown(work)}")
     for n in notes:
         print(n)
     print_table("image statistics (median over frames)",
-                ["frames", "n", "lum mean", "lum std", "edges", "colourful"],
+                ["set", "frames", "lum mean", "lum std", "edges", "colourful"],
                 [[s.name, s.frames, f"{s.lum_mean:.1f}", f"{s.lum_std:.1f}", f"{s.edge_density:.3f}",
                   f"{s.colourfulness:.1f}"] for s in sets.values()])
     distances = {}
