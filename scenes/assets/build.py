@@ -25,6 +25,9 @@ AGENT_BUILDERS = {
     "pedestrian": people.pedestrian,
     "cyclist": people.cyclist,
     "motorcyclist": people.motorcyclist,
+    "tricyclist": people.tricyclist,
+    "barrow": people.barrow,
+    "tram": vehicles.tram,
     "traffic_cone": props.traffic_cone,
 }
 
@@ -67,6 +70,9 @@ def agent_parts(asset: AssetSpec, dims) -> tuple[dict[str, trimesh.Trimesh], np.
 
 
 def furniture_parts(kind: str, dims, params: dict) -> dict[str, trimesh.Trimesh]:
+    """Parts of a furniture item of `kind` (props.FURNITURE_BUILDERS) fitted exactly to `dims`."""
+    if kind not in props.FURNITURE_BUILDERS:
+        raise ValueError(f"no furniture builder for kind {kind!r} (known: {', '.join(sorted(props.FURNITURE_BUILDERS))})")
     key = json.dumps(["furniture", kind, to_dict(tuple(dims)), to_dict(params)], sort_keys=True)
 
     def make():

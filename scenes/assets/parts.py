@@ -50,8 +50,11 @@ class Piece:
 
 
 def box(lo, hi) -> Piece:
-    """Axis-aligned box between corners lo and hi."""
-    (x0, y0, z0), (x1, y1, z1) = (float(c) for c in lo), (float(c) for c in hi)
+    """Axis-aligned box between corners lo and hi (in any order: the faces always face out)."""
+    (a0, b0, c0), (a1, b1, c1) = (float(c) for c in lo), (float(c) for c in hi)
+    x0, x1 = (a0, a1) if a0 <= a1 else (a1, a0)
+    y0, y1 = (b0, b1) if b0 <= b1 else (b1, b0)
+    z0, z1 = (c0, c1) if c0 <= c1 else (c1, c0)
     quad = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
     return hexahedron(quad, z0, quad, z1)
 
@@ -70,6 +73,42 @@ def trapezoid_x(x0b: float, x1b: float, x0t: float, x1t: float, wb: float, wt: f
         [(x0b, -wb / 2), (x1b, -wb / 2), (x1b, wb / 2), (x0b, wb / 2)], z0,
         [(x0t, -wt / 2), (x1t, -wt / 2), (x1t, wt / 2), (x0t, wt / 2)], z1,
     )
+
+
+def prism_y(profile_xz, y0: float, y1: float) -> Piece:
+    """A convex x-z profile (a side view: a car's body, a wheel arch) extruded from y0 to y1.
+
+    Why: a vehicle's silhouette (sloped bonnet, raked nose, upright tail) is a side profile; a
+    hexahedron has only four corners. The profile's points may come in either turning order;
+    the faces are wound to face outward (the raster backend culls back faces).
+    """
+    pts = np.asarray(profile_xz, dtype=np.float64)
+    n = len(pts)
+    x, z = pts[:, 0], pts[:, 1]
+    area = float(np.dot(x, np.roll(z, -1)) - np.dot(np.roll(x, -1), z))
+    if area < 0:  # make the profile counter-clockwise with x right and z up
+        pts = pts[::-1]
+    ya, yb = (y0, y1) if y0 <= y1 else (y1, y0)
+    v = np.empty((2 * n, 3))
+    v[:n, 0], v[:n, 1], v[:n, 2] = pts[:, 0], ya, pts[:, 1]
+    v[n:, 0], v[n:, 1], v[n:, 2] = pts[:, 0], yb, pts[:, 1]
+    return Piece(v, _prism_faces(n))
+
+
+@lru_cache(maxsize=None)
+def _prism_faces(n: int) -> np.ndarray:
+    """Faces of `prism_y` for an n-gon: fans on both caps and a quad per edge, outward."""
+    # A triangle counter-clockwise in (x right, z up) faces -y (x cross z = -y): the ya cap's fan
+    # runs forwards, the yb cap's backwards; a side quad i, j runs ya -> yb on its right.
+    k = np.arange(1, n - 1)
+    cap_a = np.column_stack([np.zeros(n - 2, dtype=np.int64), k, k + 1])
+    cap_b = np.column_stack([np.full(n - 2, n), n + k + 1, n + k])
+    i = np.arange(n)
+    j = (i + 1) % n
+    side = np.concatenate([np.column_stack([i, j + n, j]), np.column_stack([i, i + n, j + n])])
+    faces = np.concatenate([cap_a, cap_b, side]).astype(np.int64)
+    faces.flags.writeable = False
+    return faces
 
 
 def frustum(center_xy, z0: float, z1: float, r0: float, r1: float, sections: int = 16) -> Piece:

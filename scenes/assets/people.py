@@ -118,6 +118,9 @@ def _rider(parts: Parts, s: float, hip: np.ndarray, shoulder: np.ndarray, grips:
     neck = shoulder + u * 0.05 * s
     _limb(parts, "skin", shoulder, neck, 0.03 * s)
     _head(parts, neck + [0.03 * s, 0, 0.14 * s], s, p, helmet)
+    if p.get("bag"):  # a backpack on the rider's back, behind the torso's middle
+        back = np.array([-u[2], 0.0, u[0]])
+        parts.add("bag", ellipsoid(hip + 0.55 * up + back * 0.13 * s, (0.06 * s, 0.1 * s, 0.12 * s)))
 
 
 def cyclist(dims, p: dict) -> Parts:
@@ -198,4 +201,151 @@ def motorcyclist(dims, p: dict) -> Parts:
     grips = [bar + [0, -(half - 0.05), 0], bar + [0, half - 0.05, 0]]
     feet = [np.array([hip[0] + 0.12, side * 0.22, 0.38]) for side in (-1.0, 1.0)]
     _rider(parts, s, hip, shoulder, grips, feet, p, helmet=True)
+    if p.get("top_box"):  # a luggage box over the tail
+        parts.add("trim", box((xr - 0.12, -0.17, 0.78), (xr + 0.25, 0.17, 1.1)))
+    return parts
+
+
+def _wheel_pair(parts: Parts, x: float, y: float, z_hub: float, r: float, width: float) -> None:
+    """A small wheel: tyre and rim discs (12-gons), axle along y."""
+    parts.add("tyre", wheel((x, y, z_hub), r, width, 12))
+    parts.add("rim", wheel((x, y, z_hub), 0.55 * r, width + 0.01, 12))
+
+
+def tricyclist(dims, p: dict) -> Parts:
+    """A rider on a three-wheeled cargo tricycle (box over the rear axle) or a cycle rickshaw.
+
+    The front is a bicycle's (one steered wheel, handlebar, the rider pedalling); behind the
+    rider, across the whole drawn width, the cargo box or the passenger bench under its hood.
+    """
+    l, w, h = dims
+    parts = Parts()
+    style = p.get("style", "cargo")
+    r = 0.3
+    box_len = float(np.clip(0.42 * l, 0.7, 1.3))
+    x_box = -l / 2 + box_len  # front of the cargo box or bench
+    x_ra = -l / 2 + box_len / 2
+    for side in (-1.0, 1.0):
+        _wheel_pair(parts, x_ra, side * (w / 2 - 0.1), r, r, 0.07)
+    parts.add("frame", box((x_ra - 0.03, -(w / 2 - 0.1), r - 0.03), (x_ra + 0.03, w / 2 - 0.1, r + 0.03)))  # rear axle
+    if style == "rickshaw":
+        parts.add("cargo", box((-l / 2 + 0.1, -w / 2, 0.55), (x_box - 0.05, w / 2, 0.68)))  # seat
+        parts.add("cargo", box((-l / 2 + 0.05, -w / 2, 0.68), (-l / 2 + 0.15, w / 2, 1.1)))  # backrest
+        parts.add("cargo", trapezoid_x(-l / 2, -l / 2 + 0.5 * box_len, -l / 2 + 0.05, -l / 2 + 0.35 * box_len, w, w - 0.1, 1.1, h - 0.12))  # hood
+        for side in (-1.0, 1.0):
+            parts.add("frame", box((-l / 2 + 0.1, side * (w / 2 - 0.02), 0.3), (x_box - 0.1, side * (w / 2 - 0.05), 0.55)))
+    else:
+        parts.add("cargo", box((-l / 2, -w / 2, 0.5), (x_box, w / 2, 0.95)))
+        if p.get("load"):
+            parts.add("crate", box((-l / 2 + 0.1, -w / 2 + 0.1, 0.95), (x_box - 0.15, 0.05, 1.25)))
+    parts.add("taillight", box((-l / 2 - 0.0, -0.08, 0.62), (-l / 2 + 0.02, 0.08, 0.68)) if style == "cargo" else
+              box((-l / 2 + 0.0, -0.06, 0.45), (-l / 2 + 0.06, 0.06, 0.5)))
+    xf = l / 2 - r
+    _wheel_pair(parts, xf, 0.0, r, r, 0.06)
+    s = (h - 0.09) / 0.95  # stature: an upright rider's head then lands near h
+    seat = np.array([x_box + 0.25, 0.0, 0.5 * s])
+    bb = np.array([seat[0] + 0.2, 0.0, 0.3])
+    head_top = np.array([xf - 0.22, 0.0, seat[2] + 0.05])
+    head_bot = np.array([xf - 0.17, 0.0, seat[2] - 0.2])
+    front_hub = np.array([xf, 0.0, r])
+    for a, b in ((np.array([x_box, 0.0, 0.5]), bb), (np.array([x_box, 0.0, 0.7]), seat - [0, 0, 0.05]), (bb, seat),
+                 (bb, head_bot), (seat - [0, 0, 0.05], head_top), (head_bot, head_top)):
+        _limb(parts, "frame", a, b, 0.022)
+    for side in (-1.0, 1.0):
+        _limb(parts, "frame", head_bot, front_hub + [0, side * 0.05, 0.0], 0.015)
+    parts.add("seat", box(seat + [-0.12, -0.08, 0.0], seat + [0.12, 0.08, 0.07]))
+    bar = np.array([head_top[0] - 0.05, 0.0, head_top[2] + 0.15])
+    half = min(0.3, w / 2 - 0.05)
+    _limb(parts, "frame", head_top, bar, 0.016)
+    _limb(parts, "trim", bar - [0, half, 0], bar + [0, half, 0], 0.017)
+    parts.add("headlight", box((xf - 0.12, -0.05, head_top[2] - 0.1), (xf - 0.06, 0.05, head_top[2] - 0.02)))
+    crank = float(p.get("crank", 0.0))
+    feet = []
+    for side, phase in ((-1.0, crank + math.pi), (1.0, crank)):
+        pedal = bb + [0.16 * math.cos(phase), side * 0.12, 0.16 * math.sin(phase)]
+        _limb(parts, "trim", bb + [0, side * 0.06, 0], pedal, 0.012)
+        feet.append(pedal + [0.0, 0.0, 0.03])
+    hip = seat + [0.0, 0.0, 0.09]
+    torso = 0.29 * s
+    cos_b = float(np.clip((h - hip[2] - 0.14 * s) / (torso + 0.05 * s), math.cos(math.radians(60)), 1.0))
+    beta = math.acos(cos_b)
+    shoulder = hip + torso * np.array([math.sin(beta), 0.0, cos_b])
+    grips = [bar + [0, -(half - 0.05), 0], bar + [0, half - 0.05, 0]]
+    _rider(parts, s, hip, shoulder, grips, feet, {**p, "bag": False}, bool(p.get("helmet", False)))
+    return parts
+
+
+def barrow(dims, p: dict) -> Parts:
+    """A walker pushing a wheelbarrow or a two-wheeled hand cart ahead of them (+x).
+
+    The walker fills the rear ~0.6 m of the cuboid (legs in stride), hands on the handles at hip
+    height; the barrow runs from the hands to the front, its wheel (or the cart's front) at +l/2.
+    """
+    l, w, h = dims
+    parts = Parts()
+    s = h
+    x_w = -l / 2 + 0.3  # the walker's hips
+    leg_len, ankle_z, foot_len = 0.491 * s, 0.039 * s, 0.152 * s
+    stride = 0.6
+    theta = math.asin(float(np.clip((stride - foot_len) / (2 * leg_len), 0.0, math.sin(math.radians(25)))))
+    hip_z = ankle_z + leg_len * math.cos(theta)
+    lead = 1.0 if float(p.get("phase", 0.5)) >= 0 else -1.0
+    hip_half = 0.055 * s
+    for side in (-1.0, 1.0):
+        sgn = lead * side
+        hip = np.array([x_w, side * hip_half, hip_z])
+        ankle = np.array([x_w + sgn * leg_len * math.sin(theta) - 0.036 * s + 0.03, side * hip_half, ankle_z])
+        knee = hip + (ankle - hip) * 0.5 + [0.02 * s, 0, 0]
+        _limb(parts, "bottom", hip, knee, 0.036 * s)
+        _limb(parts, "bottom", knee, ankle, 0.028 * s)
+        parts.add("shoes", box((ankle[0] - 0.04 * s, side * hip_half - 0.03 * s, 0.0), (ankle[0] + 0.112 * s, side * hip_half + 0.03 * s, ankle_z + 0.02 * s)))
+    # Torso leaning into the push, head topping the cuboid.
+    lean = math.radians(12)
+    hip_c = np.array([x_w, 0.0, hip_z])
+    up = np.array([math.sin(lean), 0.0, math.cos(lean)])
+    shoulder = hip_c + up * 0.288 * s
+    depth = 0.11 * s
+    parts.add("bottom", ellipsoid(hip_c + [0, 0, 0.01 * s], (depth / 2, 0.09 * s, 0.06 * s)))
+    _limb(parts, "top", hip_c + up * 0.04 * s, shoulder, 0.085 * s)
+    neck = shoulder + up * 0.05 * s
+    _limb(parts, "skin", shoulder, neck, 0.03 * s)
+    head_top = np.array([neck[0] + 0.02 * s, 0.0, h])
+    _head(parts, head_top, s, p)
+    # Handles at the hands: a little ahead of the hips, at about the wrist height of hanging arms.
+    grip_x, grip_z = x_w + 0.42, 0.47 * s
+    grip_y = min(0.26, w / 2 - 0.05)
+    b = 0.19 * s
+    for side in (-1.0, 1.0):
+        sh = shoulder + [0.0, side * b / 2, 0.0]
+        grip = np.array([grip_x, side * grip_y, grip_z])
+        elbow = (sh + grip) / 2 + [-0.03 * s, side * 0.02 * s, -0.03 * s]
+        _limb(parts, "top", sh, elbow, 0.026 * s)
+        _limb(parts, "skin", elbow, grip, 0.022 * s)
+    front = l / 2
+    if p.get("style") == "cart":
+        bed0, bed_z = grip_x + 0.25, 0.5
+        parts.add("cargo", box((bed0, -w / 2, bed_z), (front - 0.02, w / 2, bed_z + 0.05)))
+        for side in (-1.0, 1.0):  # low side boards
+            parts.add("cargo", box((bed0, side * w / 2, bed_z + 0.05), (front - 0.02, side * (w / 2 - 0.03), bed_z + 0.2)))
+            _limb(parts, "frame", (grip_x, side * grip_y, grip_z), (bed0 + 0.1, side * grip_y, bed_z), 0.018)
+        _limb(parts, "frame", (grip_x, -grip_y, grip_z), (grip_x, grip_y, grip_z), 0.018)
+        parts.add("cargo", box((front - 0.04, -w / 2, bed_z), (front, w / 2, bed_z + 0.25)))  # front board
+        rw = 0.26
+        xc = (bed0 + front) / 2
+        for side in (-1.0, 1.0):
+            _wheel_pair(parts, xc, side * (w / 2 - 0.06), rw, rw, 0.05)
+        _limb(parts, "frame", (front - 0.1, 0.0, bed_z), (front - 0.1, 0.0, 0.02), 0.02)  # stand
+        if p.get("load"):
+            parts.add("crate", box((bed0 + 0.1, -w / 2 + 0.08, bed_z + 0.05), (front - 0.15, w / 2 - 0.08, bed_z + 0.4)))
+    else:
+        rw = 0.2
+        xw = front - rw
+        _wheel_pair(parts, xw, 0.0, rw, rw, 0.08)
+        t0, t1 = grip_x + 0.3, front - 0.15  # tray: narrow bottom, flared top
+        parts.add("cargo", trapezoid_x(t0 + 0.12, t1 - 0.15, t0, t1, 0.45 * w, w, 0.38, 0.72))
+        for side in (-1.0, 1.0):
+            _limb(parts, "frame", (grip_x, side * grip_y, grip_z), (xw, side * 0.06, rw), 0.018)
+            _limb(parts, "frame", (t0 + 0.2, side * 0.2, 0.4), (t0 + 0.15, side * 0.22, 0.02), 0.018)  # leg
+        if p.get("load"):
+            parts.add("crate", ellipsoid(((t0 + t1) / 2, 0.0, 0.72), ((t1 - t0) / 2 - 0.05, 0.4 * w, 0.1), 1))
     return parts
