@@ -16,7 +16,7 @@ from scenes.generate import SceneGenerator
 from scenes.meshes import compile_scene
 from scenes.preset import load_preset, with_overrides
 
-FAMILIES = ("car", "van", "truck", "bus", "pedestrian", "cyclist", "motorcyclist", "traffic_cone")
+FAMILIES = ("car", "van", "truck", "bus", "tram", "pedestrian", "cyclist", "motorcyclist", "tricyclist", "barrow", "traffic_cone")
 TIGHT = 0.02  # metres: each axis of the cuboid within 2 cm of the mesh's extent
 DESIGN = 0.12  # the design before the exact fit is within 12% of the drawn dims per axis
 
@@ -88,6 +88,9 @@ PARTS = {
     "pedestrian": {"skin", "hair", "top", "bottom", "shoes"},
     "cyclist": {"skin", "top", "bottom", "tyre", "frame", "seat"},
     "motorcyclist": {"skin", "helmet", "top", "tyre", "engine", "headlight"},
+    "tram": {"paint", "glass", "headlight", "taillight", "sign", "metal", "tyre"},
+    "tricyclist": {"skin", "top", "bottom", "tyre", "frame", "cargo", "seat"},
+    "barrow": {"skin", "hair", "top", "bottom", "shoes", "cargo", "frame", "tyre"},
     "traffic_cone": {"cone", "cone_stripe", "cone_base"},
 }
 

@@ -82,12 +82,13 @@ def prism_y(profile_xz, y0: float, y1: float) -> Piece:
     hexahedron has only four corners. The profile's points may come in either turning order;
     the faces are wound to face outward (the raster backend culls back faces).
     """
-    pts = np.asarray(profile_xz, dtype=np.float64)
-    n = len(pts)
-    x, z = pts[:, 0], pts[:, 1]
-    area = float(np.dot(x, np.roll(z, -1)) - np.dot(np.roll(x, -1), z))
+    prof = [(float(a), float(b)) for a, b in profile_xz]
+    n = len(prof)
+    # Shoelace in plain floats (a car has two dozen of these; numpy's per-call overhead dominated).
+    area = sum(prof[i - 1][0] * prof[i][1] - prof[i][0] * prof[i - 1][1] for i in range(n))
     if area < 0:  # make the profile counter-clockwise with x right and z up
-        pts = pts[::-1]
+        prof.reverse()
+    pts = np.array(prof)
     ya, yb = (y0, y1) if y0 <= y1 else (y1, y0)
     v = np.empty((2 * n, 3))
     v[:n, 0], v[:n, 1], v[:n, 2] = pts[:, 0], ya, pts[:, 1]

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import math
 
-from scenes.assets.parts import Parts, box, cylinder_between, hexahedron, prism_y, trapezoid_x, wheel
+import numpy as np
+
+from scenes.assets.parts import Parts, Piece, box, cylinder_between, hexahedron, prism_y, trapezoid_x, wheel
 
 TYRE_WIDTH = 0.22
 WHEEL_SECTIONS = 12
@@ -41,17 +43,33 @@ def _wheels(parts: Parts, xs, y_outer: float, radius: float, width: float = TYRE
                 parts.add("tyre", wheel((x, y2, radius), radius, width, sections))
 
 
+_ARCH = np.radians([15.0, 65.0, 115.0, 165.0])
+
+
 def _arches(parts: Parts, role: str, xs, radius: float, y_in: float, y_out: float) -> None:
-    """A lip over each wheel on both sides: three segments of a band around the upper half."""
+    """A lip over each wheel on both sides: three segments of a band around the upper half.
+
+    Each segment is a quad profile extruded across (prism_y's solid), built for all segments at
+    once: a car has 24 of them and this runs for every car in view every frame.
+    """
     ri, ro = radius + 0.03, radius + 0.09
-    angles = [math.radians(a) for a in (15.0, 65.0, 115.0, 165.0)]
+    c, s = np.cos(_ARCH), np.sin(_ARCH)
+    # (3, 4, 2) profiles, counter-clockwise in (x, z): inner a0, outer a0, outer a1, inner a1.
+    prof = np.stack([np.stack([ri * c[:-1], ri * s[:-1]], -1), np.stack([ro * c[:-1], ro * s[:-1]], -1),
+                     np.stack([ro * c[1:], ro * s[1:]], -1), np.stack([ri * c[1:], ri * s[1:]], -1)], axis=1)
+    prof[..., 1] += radius
+    faces = prism_y(prof[0], 0.0, 1.0).faces
+    verts = []
     for x in xs:
-        for a0, a1 in zip(angles[:-1], angles[1:]):
-            c0, s0, c1, s1 = math.cos(a0), math.sin(a0), math.cos(a1), math.sin(a1)
-            prof = [(x + ri * c0, radius + ri * s0), (x + ro * c0, radius + ro * s0),
-                    (x + ro * c1, radius + ro * s1), (x + ri * c1, radius + ri * s1)]
-            for side in (-1.0, 1.0):
-                parts.add(role, prism_y(prof, side * y_in, side * y_out))
+        for ya, yb in ((-y_out, -y_in), (y_in, y_out)):
+            v = np.empty((3, 8, 3))
+            v[:, :4, 0], v[:, 4:, 0] = prof[..., 0] + x, prof[..., 0] + x
+            v[:, :4, 2], v[:, 4:, 2] = prof[..., 1], prof[..., 1]
+            v[:, :4, 1], v[:, 4:, 1] = ya, yb
+            verts.append(v.reshape(-1, 3))
+    v = np.concatenate(verts)
+    k = len(v) // 8
+    parts.add(role, Piece(v, (faces[None, :, :] + 8 * np.arange(k)[:, None, None]).reshape(-1, 3)))
 
 
 def _pair(parts: Parts, role: str, x0: float, x1: float, y_out: float, width: float, z0: float, z1: float) -> None:
