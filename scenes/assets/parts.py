@@ -191,12 +191,22 @@ def wheel(center, radius: float, width: float, sections: int = 16) -> Piece:
 
 def ring_y(center, r_in: float, r_out: float, width: float, sections: int = 20) -> Piece:
     """A flat annulus (bicycle tyre) in the x-z plane, axle along y."""
+    v, f = _ring_y_at_origin(float(r_in), float(r_out), float(width), int(sections))
+    return Piece(v + np.asarray(center, dtype=np.float64), f)
+
+
+@lru_cache(maxsize=64)
+def _ring_y_at_origin(r_in: float, r_out: float, width: float, sections: int) -> tuple[np.ndarray, np.ndarray]:
+    """ring_y's mesh at the origin, made once per size: trimesh builds an annulus from scratch (a
+    cyclist's four rings were most of its build time) and the wheels of every cyclist are alike."""
     m = trimesh.creation.annulus(r_min=r_in, r_max=r_out, height=width, sections=sections)
     rot = np.eye(4)
     rot[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]  # z axis -> y axis
     m.apply_transform(rot)
-    m.apply_translation(center)
-    return Piece(m.vertices, m.faces)
+    v, f = np.array(m.vertices, dtype=np.float64), np.array(m.faces, dtype=np.int64)
+    v.flags.writeable = False
+    f.flags.writeable = False
+    return v, f
 
 
 def ellipsoid(center, radii, subdivisions: int = 1) -> Piece:
