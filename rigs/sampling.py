@@ -104,7 +104,7 @@ def leaders(scene: Scene) -> list:
     return [a for a in scene.agents if a.state == "moving" and a.category in FOLLOWED]
 
 
-POLE_MOUNT = 0.8
+POLE_MOUNT = 0.9
 """Metres from a corner pole's axis to a camera mounted on it: outside the pole's obstacle
 footprint grown by CLEARANCE, on the side facing the junction."""
 CORNERS = ((1.0, 1.0), (-1.0, 1.0), (-1.0, -1.0), (1.0, -1.0))

@@ -461,7 +461,7 @@ def _kerb_sign(strip: Sidewalk, block: _Rect) -> float:
 
 
 CORNER_POLE = (5.8, 1.0)  # metres from the junction box's corner along one road and in from its kerb
-VERGE_END = 5.5  # metres of paving kept at each end of a verged strip: crosswalk landings and corners
+VERGE_END = 6.5  # metres of paving kept at each end of a verged strip: crosswalk landings, corner poles
 MIN_FOOTWAY = 1.8  # a verge never narrows the footway below this
 
 

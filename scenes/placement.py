@@ -35,6 +35,7 @@ from scenes.weather import pick
 AGENT_GAP = 0.1  # metres between annotated footprints
 OBSTACLE_GAP = 0.05
 TRIES = 40
+JUNCTION_CONES = 0.8  # of single cones, the share placed near a junction
 YAW_NOISE = math.radians(2.0)
 YAW_NOISE_MAX = math.radians(6.0)
 
@@ -139,7 +140,10 @@ class _Placer:
             else:
                 across = float(np.clip(self.rng.normal(0.0, 0.15), -room, room))
             xy = to_world(lane.start, lane.heading, t, across)
-            if self.try_add(category, "moving", dims, spec, xy, lane.heading + self.yaw_noise(), 0.0):
+            # The turned footprint must stay in the lane too: a 12 m bus turned 3 degrees reaches
+            # 0.3 m further out at its ends than its centre does.
+            inside = rect_polygon(to_world(lane.start, lane.heading, lane.length / 2.0, 0.0), lane.length, lane.width, lane.heading)
+            if self.try_add(category, "moving", dims, spec, xy, lane.heading + self.yaw_noise(), 0.0, inside):
                 return True
         return False
 
@@ -215,17 +219,39 @@ class _Placer:
         zones += [rect_polygon(c.center, c.length, c.width + 1.0, c.yaw) for c in self.city.crosswalks]
         return not any(poly.intersects(z) for z in zones)
 
+    def junction_spans(self, lane: Lane) -> list[tuple[float, float]]:
+        """The stretches (along the lane, from its start) where it crosses an intersection box."""
+        return sorted(self._span(lane, i) for i in self.city.intersections if self._crosses(lane, i))
+
+    def near_junction(self, lane: Lane, lo: float, hi: float) -> float | None:
+        """A distance along `lane` between `lo` and `hi` metres before or after one of its junctions
+        (where the camera of a pole looks, and where cones mark works and turns), or None."""
+        spans = self.junction_spans(lane)
+        if not spans:
+            return None
+        a, b = spans[int(self.rng.integers(len(spans)))]
+        gap = float(self.rng.uniform(lo, hi))
+        t = b + gap if self.rng.random() < 0.5 else a - gap
+        return t if 1.0 < t < lane.length - 1.0 else None
+
     def single_cone(self) -> bool:
-        """A lone cone by the kerb: in a parking lane or at the right edge of the outer driving lane."""
+        """A lone cone by the kerb: in a parking lane or at the right edge of the outer driving
+        lane; most (JUNCTION_CONES) within 5-20 m of a junction, where works, turns and
+        crossings are marked (and where pole cameras look)."""
         lanes = self.parking + self.rightmost
         if not lanes:
             return False
         dims, spec = self.asset("traffic_cone")
+        at_junction = bool(self.rng.random() < JUNCTION_CONES)
         for _ in range(TRIES):
             lane = self.pick_lane(lanes)
-            t = float(self.rng.uniform(1.0, lane.length - 1.0))
+            t = self.near_junction(lane, 5.0, 20.0) if at_junction else None
+            if t is None:
+                t = float(self.rng.uniform(1.0, lane.length - 1.0))
             across = -lane.width / 2 + 0.3 + dims[1] / 2 + float(self.rng.uniform(0.0, 0.4))
             xy = to_world(lane.start, lane.heading, t, across)
+            if not self._clear_of_junctions(rect_polygon(xy, dims[0], dims[1], 0.0)):
+                continue
             if self.try_add("traffic_cone", "placed", dims, spec, xy, float(self.rng.uniform(-math.pi, math.pi)), 0.0):
                 return True
         return False
@@ -236,12 +262,19 @@ class _Placer:
         closed stretch becomes an obstacle, so no vehicle or person is placed inside it."""
         if not self.rightmost:
             return False
+        after_junction = bool(self.rng.random() < 0.5)  # half start just past a junction
         for _ in range(TRIES):
             lane = self.pick_lane(self.rightmost)
             length, taper = float(self.rng.uniform(8.0, 24.0)), float(self.rng.uniform(5.0, 10.0))
             if lane.length < length + taper + 12.0:
                 continue
             t0 = float(self.rng.uniform(taper + 4.0, lane.length - length - 4.0))
+            if after_junction:
+                ends = [b for _, b in self.junction_spans(lane)]
+                if ends:
+                    t0 = ends[int(self.rng.integers(len(ends)))] + float(self.rng.uniform(6.0, 14.0)) + taper
+                    if t0 + length + 4.0 > lane.length:
+                        continue
             mid = to_world(lane.start, lane.heading, t0 + (length - taper) / 2.0, 0.0)
             area = rect_polygon(mid, length + taper + 1.0, lane.width, lane.heading)
             if not self._clear_of_junctions(area) or not self.world.free(area, 1.0):
@@ -269,6 +302,53 @@ class _Placer:
             return placed > 0
         return False
 
+    def junction_works(self, probability: float) -> None:
+        """At each junction with `probability`: a ring of 4 to 7 cones around a work spot (an
+        open manhole, a repaired patch) in one of its approach lanes, 4 to 15 m from the box."""
+        for inter in self.city.intersections:
+            if self.rng.random() >= probability:
+                continue
+            lanes = [lane for lane in self.driving if self._crosses(lane, inter)]
+            if not lanes:
+                continue
+            for _ in range(TRIES):
+                lane = lanes[int(self.rng.integers(len(lanes)))]
+                a, b = self._span(lane, inter)
+                gap = float(self.rng.uniform(4.0, 15.0))
+                t = b + gap if self.rng.random() < 0.5 else a - gap
+                radius = float(self.rng.uniform(0.8, 1.4))
+                room = lane.width / 2.0 - 0.3
+                if not radius + 1.0 < t < lane.length - radius - 1.0:
+                    continue
+                center = to_world(lane.start, lane.heading, t, float(self.rng.uniform(-0.3, 0.3)))
+                spot = rect_polygon(center, 2 * radius + 0.6, min(2 * radius + 0.6, 2 * room + 0.6), lane.heading)
+                if not self._clear_of_junctions(spot) or not self.world.free(spot, 1.0):
+                    continue
+                n = int(self.rng.integers(4, 8))
+                phase = float(self.rng.uniform(0, 2 * math.pi))
+                for k in range(n):
+                    ang = phase + 2 * math.pi * k / n
+                    along, across = radius * math.cos(ang), float(np.clip(radius * math.sin(ang), -room + 0.3, room - 0.3))
+                    dims, spec = self.asset("traffic_cone")
+                    xy = to_world(center, lane.heading, along, across)
+                    self.try_add("traffic_cone", "placed", dims, spec, xy, float(self.rng.uniform(-math.pi, math.pi)), 0.0)
+                self.world.ground.add(rect_polygon(center, max(2 * radius - 0.9, 0.2), max(min(2 * radius, 2 * room - 0.6) - 0.9, 0.2),
+                                                   lane.heading))
+                break
+
+    @staticmethod
+    def _crosses(lane: Lane, inter) -> bool:
+        d = np.subtract(lane.end, lane.start) / lane.length
+        off = abs(float(np.cross(d, np.subtract(inter.center, lane.start))))
+        return off < abs(d[1]) * inter.size[0] / 2 + abs(d[0]) * inter.size[1] / 2
+
+    @staticmethod
+    def _span(lane: Lane, inter) -> tuple[float, float]:
+        d = np.subtract(lane.end, lane.start) / lane.length
+        t = float(np.dot(np.subtract(inter.center, lane.start), d))
+        half = abs(d[0]) * inter.size[0] / 2 + abs(d[1]) * inter.size[1] / 2
+        return t - half, t + half
+
     def cone_line(self) -> None:
         """3 to 6 cones 1.5 to 3 m apart along the right edge of a driving lane (road works)."""
         if not self.rightmost:
@@ -295,6 +375,8 @@ def place_agents(city: City, spec: AgentSpec, rng: np.random.Generator, user_ass
     n_zones, n_single = optional(spec.work_zones), optional(spec.single_cones)
     n_tram, n_tri, n_barrow = optional(spec.trams), optional(spec.tricyclists), optional(spec.barrows)
     # Big, constrained things first: road works, cones and parked rows, then traffic, then people.
+    if spec.junction_works > 0:
+        p.junction_works(spec.junction_works)
     for _ in range(n_zones):
         p.work_zone()
     for _ in range(n_cones):

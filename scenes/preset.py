@@ -87,6 +87,7 @@ class AgentSpec:
     cone_groups: IntRange = (0, 2)  # a line of 3 to 6 cones along a lane edge
     single_cones: IntRange = (0, 0)  # lone cones at a lane's kerb side or in a parking lane
     work_zones: IntRange = (0, 0)  # road works closing a stretch of a lane, ringed by a taper of cones
+    junction_works: float = 0.0  # per junction: a ring of cones around a work spot in an approach lane
     tricyclists: IntRange = (0, 0)  # three-wheeled cargo tricycles and rickshaws at the right edge
     barrows: IntRange = (0, 0)  # people pushing hand carts, on footways or at the road's right edge
     trams: IntRange = (0, 0)  # trams in the inner lane of roads with at least tram_min_lanes a direction
@@ -221,6 +222,8 @@ def validate(preset: Preset) -> None:
         lo, hi = getattr(a, label)
         if not 0 <= lo <= hi:
             raise ValueError(f"agents.{label} must be [min, max] counts with 0 <= min <= max, got {[lo, hi]}")
+    if not 0 <= a.junction_works <= 1:
+        raise ValueError("agents.junction_works is a probability in [0, 1]")
     if a.tram_min_lanes < 1:
         raise ValueError("agents.tram_min_lanes must be >= 1")
     if not 0 <= g.verge_width[0] <= g.verge_width[1]:

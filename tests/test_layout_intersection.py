@@ -1,0 +1,151 @@
+"""scenes/layout.py: the intersection preset (wide approaches, turn lanes, crosswalks on every arm,
+corner poles the pole rig mounts on), grass verges, hedges; rigs/sampling.py on those corners."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from shapely.geometry import Polygon
+from shapely.ops import unary_union
+
+from rigs.rig import load_rig
+from rigs.sampling import POLE_MOUNT, Obstacles, corner_pole, draw_camera, rig_rng
+from scenes.generate import SceneGenerator
+from scenes.layout import build_city
+from scenes.preset import load_preset, with_overrides
+from scenes.shapes import rect_polygon
+
+
+def road_polygon(r) -> Polygon:
+    return rect_polygon(((r.start[0] + r.end[0]) / 2, (r.start[1] + r.end[1]) / 2), math.dist(r.start, r.end), r.width,
+                        math.atan2(r.end[1] - r.start[1], r.end[0] - r.start[0]))
+
+
+@pytest.fixture(scope="module")
+def city():
+    return build_city(load_preset("intersection"), 4)
+
+
+def test_intersection_junctions_are_wide_signalised_and_crossed_on_every_arm(city):
+    assert len(city.intersections) == 4
+    assert all(i.traffic_lights for i in city.intersections)
+    assert len(city.crosswalks) == 4 * 4  # every approach of every junction
+    for r in city.roads:
+        assert sum(lane.kind == "driving" for lane in r.lanes) >= 6  # 3 or 4 lanes each way
+    for i in city.intersections:
+        assert min(i.size) >= 6 * 3.5
+    lights = [f for f in city.furniture if f.kind == "traffic_light"]
+    assert len(lights) == 16
+
+
+def test_turn_lanes_have_solid_dividers_and_arrows_on_the_road(city):
+    kinds = {m.kind for m in city.markings}
+    assert {"turn_divider", "arrow", "stop_line"} <= kinds
+    roads = [road_polygon(r) for r in city.roads]
+    boxes = [rect_polygon(i.center, i.size[0], i.size[1], 0.0) for i in city.intersections]
+    for m in city.markings:
+        if m.kind in ("turn_divider", "arrow"):
+            poly = rect_polygon(m.center, m.length, m.width, m.yaw)
+            assert any(r.contains(poly) for r in roads), m
+            assert not any(b.intersects(poly) for b in boxes), m  # before the junction, not in it
+    # one solid divider per approach (4 junctions x 4 approaches, roads end at the city bounds)
+    assert sum(m.kind == "turn_divider" for m in city.markings) == 16
+    # no dashes overlap a solid divider
+    solids = [rect_polygon(m.center, m.length, 0.3, m.yaw) for m in city.markings if m.kind == "turn_divider"]
+    dashes = [rect_polygon(m.center, m.length, m.width, m.yaw) for m in city.markings if m.kind == "lane_divider"]
+    assert not any(s.intersection(d).area > 1e-6 for s in solids for d in dashes)
+
+
+def test_presets_without_turn_lanes_have_none():
+    city = build_city(load_preset("downtown"), 4)
+    assert not any(m.kind in ("turn_divider", "arrow") for m in city.markings)
+
+
+def test_corner_poles_stand_on_the_footway_and_carry_the_pole_camera(city):
+    walk = unary_union([rect_polygon(s.center, s.length + 0.01, s.width + 0.01, s.yaw)
+                        for s in city.sidewalks if s.kind == "sidewalk"])
+    roads = [road_polygon(r) for r in city.roads]
+    for inter in city.intersections:
+        for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
+            pole = corner_pole(city, inter, sx, sy)
+            assert pole is not None and pole.kind == "street_light"
+            foot = Polygon(pole.footprint)
+            assert walk.contains(foot)  # paved (the verges stop short of the corners)
+            assert not any(r.intersects(foot) for r in roads)
+            axis = np.mean(np.asarray(pole.footprint), axis=0)
+            # on the corner's quadrant
+            assert np.sign(axis[0] - inter.center[0]) == sx and np.sign(axis[1] - inter.center[1]) == sy
+
+    scene = SceneGenerator("intersection", 4).frame(4, 0)
+    rig = load_rig("pole")
+    obstacles = Obstacles(scene)
+    mounted = 0
+    for i in range(40):
+        cam = draw_camera(rig, scene, rig_rng(4, i), 320, 240)
+        if cam.anchor != "intersection":
+            continue
+        poles = [f for f in scene.city.furniture if f.furniture_id.split("_pole")[0].startswith("int_") and "_pole" in f.furniture_id]
+        d = min(math.dist(cam.position[:2], np.mean(np.asarray(f.footprint), axis=0)) for f in poles)
+        assert d == pytest.approx(POLE_MOUNT, abs=1e-6)  # on a pole, not anywhere near the corner
+        # looking into the junction
+        inter = min(scene.city.intersections, key=lambda j: math.dist(j.center, cam.position[:2]))
+        to_center = math.atan2(inter.center[1] - cam.position[1], inter.center[0] - cam.position[0])
+        assert abs(math.remainder(cam.yaw - to_center, 2 * math.pi)) <= math.radians(25) + 1e-6
+        mounted += not obstacles.blocked(cam.position)
+    assert mounted >= 10
+
+
+def test_cities_without_corner_poles_keep_the_old_corner_anchor():
+    scene = SceneGenerator("downtown", 1).frame(1, 0)
+    assert not any("_pole" in f.furniture_id for f in scene.city.furniture)
+    cam = next(c for i in range(40) if (c := draw_camera(load_rig("pole"), scene, rig_rng(1, i), 320, 240)).anchor == "intersection")
+    inter = min(scene.city.intersections, key=lambda j: math.dist(j.center, cam.position[:2]))
+    off = np.abs(np.asarray(cam.position[:2]) - inter.center) - np.asarray(inter.size) / 2
+    assert ((off >= 1.0 - 1e-9) & (off <= 3.0 + 1e-9)).all()
+
+
+def test_verges_lie_between_kerb_and_footway_and_carry_the_trees():
+    city = build_city(load_preset("arterial"), 2)
+    verges = [s for s in city.sidewalks if s.sidewalk_id.endswith("_verge")]
+    assert verges and all(v.kind == "lawn" and v.height == city.curb_height for v in verges)
+    roads = [road_polygon(r) for r in city.roads]
+    by_id = {s.sidewalk_id: s for s in city.sidewalks}
+    for v in verges:
+        vp = rect_polygon(v.center, v.length, v.width, v.yaw)
+        assert any(vp.distance(r) < 1e-5 for r in roads), v.sidewalk_id  # at the kerb
+        foot = by_id[v.sidewalk_id[: -len("_verge")]]
+        fp = rect_polygon(foot.center, foot.length, foot.width, foot.yaw)
+        assert fp.distance(vp) < 1e-5 and fp.intersection(vp).area < 1e-4  # beside it (to the rounding), not under it
+        assert not any(fp.intersection(r).area > 1e-4 for r in roads)
+        assert foot.width >= 1.8 - 1e-9
+    # every piece of the split strips is disjoint from every other
+    pieces = [rect_polygon(s.center, s.length, s.width, s.yaw) for s in city.sidewalks if s.kind in ("sidewalk", "lawn")
+              and not s.sidewalk_id.endswith("_lot")]
+    for i in range(len(pieces)):
+        for j in range(i + 1, len(pieces)):
+            assert pieces[i].intersection(pieces[j]).area < 1e-4
+    verge_polys = [rect_polygon(v.center, v.length + 0.01, v.width + 0.01, v.yaw) for v in verges]
+    trees = [f for f in city.furniture if f.kind == "tree"]
+    on_verge = [t for t in trees if any(vp.contains(Polygon(t.footprint)) for vp in verge_polys)]
+    assert len(on_verge) >= 0.5 * len(trees)
+
+
+def test_hedges_front_the_lots_and_never_touch_a_building():
+    preset = with_overrides(load_preset("suburban"), {"furniture.hedge_probability": 1.0})
+    city = build_city(preset, 3)
+    hedges = [f for f in city.furniture if f.kind == "hedge"]
+    assert len(hedges) >= 5
+    walls = [Polygon(p.footprint) for b in city.buildings for p in b.parts]
+    lots = [rect_polygon(s.center, s.length + 0.01, s.width + 0.01, s.yaw) for s in city.sidewalks if s.sidewalk_id.endswith("_lot")]
+    for h in hedges:
+        poly = Polygon(h.footprint)
+        assert poly.area == pytest.approx(h.dims[0] * h.dims[1], rel=1e-5)
+        assert not any(poly.distance(w) < 0.3 - 1e-6 for w in walls)
+        assert any(lot.contains(poly) for lot in lots)
+    # agents keep out of hedges (they are ground obstacles like trunks)
+    scene = SceneGenerator(preset, 3).frame(3, 0)
+    for a in scene.agents:
+        fp = rect_polygon(a.center[:2], a.dims[0], a.dims[1], a.yaw)
+        assert not any(fp.intersects(Polygon(h.footprint)) for h in hedges), a.name
