@@ -204,6 +204,10 @@ def _run_stats(args: argparse.Namespace) -> int:
     sigma = FAR_SIGMA if args.prior_sigma is None else args.prior_sigma
     r = write_report(ds, args.out, args.gallery, args.check_images, sigma, args.seed, jobs)
     health = r.stats["health"]
+    overall = r.stats["overall"]
+    print_table("classes", ["class", "objects", "share", "frames holding it"],
+                [[c, n, f"{100 * overall['class_fractions'][c]:.1f}%", overall["class_frames"][c]]
+                 for c, n in overall["classes"].items() if n])
     print_table("health", ["check", "count"], [[c["title"], c["count"]] for c in health["checks"]])
     steps = {"open dataset": opened, **r.timings, "total": time.perf_counter() - start}
     print_table("seconds", ["step", "seconds"], [[k, round(v, 2)] for k, v in steps.items()])

@@ -110,6 +110,8 @@ def test_counts_match_the_records(report, raw):
     assert s["overall"]["objects"] == sum(len(f["objects"]) for f in raw)
     by_class = Counter(o["category"] for o in _objects(raw))
     assert s["overall"]["classes"] == {c: by_class.get(c, 0) for c in FINE_CLASSES}
+    holding = Counter(c for f in raw for c in {o["category"] for o in f["objects"]})
+    assert s["overall"]["class_frames"] == {c: holding.get(c, 0) for c in FINE_CLASSES}
     for key, part in (("source", "by_source"), ("view", "by_view")):
         groups = Counter(f[key] for f in raw)
         assert {g: sec["frames"] for g, sec in s[part].items()} == dict(groups)

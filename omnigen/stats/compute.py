@@ -308,6 +308,9 @@ def section(d: Derived, fmask: np.ndarray, bins: dict[str, Any], title: str) -> 
         "ignore_regions": int(d.ignore_regions[fmask].sum()),
         "classes": {c: int(class_counts[i]) for i, c in enumerate(FINE_CLASSES)},
         "class_fractions": dict(zip(FINE_CLASSES, fractions(class_counts, n_obj))),
+        # frames holding at least one object of the class: how often a class shows up, the
+        # frequency a scene preset's [agents] sets (objects alone hide 30 cones in one frame)
+        "class_frames": dict(zip(FINE_CLASSES, _frames_per_class(d.obj_frame[omask], cat).tolist())),
         "image_sizes": dict(Counter(d.image_size[fmask].tolist()).most_common(8)),
         "objects_per_frame": {"summary": summary(npf), "counts": np.bincount(npf).tolist() if n_frames else []},
         "distance_m": {**histogram(dist, bins["distance_m"]), "summary": summary(dist),
@@ -323,6 +326,13 @@ def section(d: Derived, fmask: np.ndarray, bins: dict[str, Any], title: str) -> 
         "conditions": _conditions(d, fmask, bins),
     }
     return out
+
+
+def _frames_per_class(frame: np.ndarray, cat: np.ndarray) -> np.ndarray:
+    """Per fine class, the number of distinct frames among `frame` whose objects include it."""
+    k = len(FINE_CLASSES)
+    pairs = np.unique(frame.astype(np.int64) * k + cat)
+    return np.bincount(pairs % k, minlength=k)
 
 
 def _dims(d: Derived, omask: np.ndarray, per_class: dict[str, np.ndarray]) -> dict[str, Any]:
