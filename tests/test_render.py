@@ -165,6 +165,9 @@ def _iou(a, b) -> float:
     return inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter)
 
 
+VEHICLES = ("car", "van", "truck", "bus", "tram")  # bodies that fill their cuboid
+
+
 def test_visible_untruncated_boxes_match_masks(datasets):
     n = 0
     for rig in RIGS:
@@ -179,6 +182,8 @@ def test_visible_untruncated_boxes_match_masks(datasets):
                 assert np.allclose(mbox, o.bbox_visible)
                 if (o.bbox[2] - o.bbox[0]) * (o.bbox[3] - o.bbox[1]) < 100:
                     continue  # a few pixels: the 1-px rasterisation dominates
+                if o.category not in VEHICLES:
+                    continue  # a rider seen end-on and off-axis fills half its cuboid's projected width
                 assert _iou(mbox, o.bbox) >= 0.7, (rec.frame_id, o.instance_id, o.category, _iou(mbox, o.bbox))
                 n += 1
     assert n >= 3
