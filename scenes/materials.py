@@ -8,17 +8,25 @@ Weather on surfaces: wetness darkens a surface (water fills its pores: up to 40%
 makes it glossy (roughness down to 20%); snow cover blends upward-facing surfaces (roads,
 sidewalks, lawns, roofs, ground) towards snow white. Night: lit windows, street lamps, vehicle
 head- and taillights and bus signs emit; traffic signals always do.
+
+Surfaces: beside its Material, a part's role names a procedural surface pattern (Surface):
+asphalt, worn paint, paving with kerb stones, grass, facades with storey bands, window glass,
+roofs, foliage, car paint, concrete. The raster shader draws them from world position alone
+(scenes/gl_raster.py), so a surface looks the same from every camera and every frame. Asphalt's
+albedo is that of aged asphalt (about 0.09, twice a fresh surface's): roads people drive on are
+worn grey, not black; both backends get it from ground_material.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from scenes.description import Agent, Building, City, Furniture, Lighting, Material, Weather
 
 SNOW = (0.82, 0.84, 0.88)
+AGED_ASPHALT = 2.0  # aged asphalt reflects about twice what a fresh surface does (0.09 vs 0.045)
 GROUND_ROLES = ("ground", "road", "sidewalk", "lawn", "marking_white", "marking_yellow")
 
 _FIXED: dict[str, Material] = {
@@ -32,6 +40,14 @@ _FIXED: dict[str, Material] = {
     "engine": Material((0.12, 0.12, 0.13), roughness=0.35, metallic=0.8),
     "cone_stripe": Material((0.85, 0.85, 0.85), roughness=0.3),
     "cone_base": Material((0.02, 0.02, 0.02), roughness=0.8),
+    "plate": Material((0.7, 0.7, 0.66), roughness=0.4),
+    "plate_yellow": Material((0.75, 0.55, 0.03), roughness=0.4),
+    "sign_white": Material((0.8, 0.8, 0.78), roughness=0.4),
+    "sign_red": Material((0.6, 0.03, 0.03), roughness=0.4),
+    "sign_blue": Material((0.03, 0.12, 0.5), roughness=0.4),
+    "sign_yellow": Material((0.8, 0.6, 0.03), roughness=0.4),
+    "concrete": Material((0.4, 0.39, 0.37), roughness=0.9),
+    "soil": Material((0.08, 0.05, 0.03), roughness=1.0),
     "metal": Material((0.09, 0.1, 0.1), roughness=0.45, metallic=0.7),
     "bark": Material((0.07, 0.045, 0.03), roughness=0.95),
     "plastic": Material((0.03, 0.12, 0.05), roughness=0.6),
@@ -72,6 +88,9 @@ def ground_material(role: str, city: City, weather: Weather) -> Material:
         "sidewalk": city.sidewalk_material,
         "lawn": city.lawn_material,
     }.get(role) or _FIXED[role]
+    if role == "road":
+        c = np.clip(np.asarray(base.base_color) * AGED_ASPHALT, 0.0, 1.0)
+        base = replace(base, base_color=(float(c[0]), float(c[1]), float(c[2])))
     return weathered(base, weather, upward=True)
 
 
@@ -126,3 +145,68 @@ def agent_material(role: str, agent: Agent, lighting: Lighting) -> Material:
     if role == "user":
         return Material(_rgb(p.get("color")), roughness=0.5)
     return _FIXED[role]
+
+
+# ---------------------------------------------------------------------------------------------
+# Procedural surfaces (drawn by the raster shader; plain data like Material)
+# ---------------------------------------------------------------------------------------------
+
+# Pattern ids as the shader knows them (gl_raster._PATTERNS_GLSL switches on these numbers).
+PATTERNS = {"plain": 0, "asphalt": 1, "paint": 2, "paving": 3, "grass": 4, "facade": 5, "glass": 6, "roof": 7,
+            "foliage": 8, "car_paint": 9, "concrete": 10}
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A procedural pattern over a part's Material: which one, and three numbers it reads.
+
+    scale: the pattern's own length in metres (a storey's height for facades and windows, a tile's
+    side for paving); variant: in [0, 1), picks a look among a pattern's variants (a facade's band
+    lighter or darker, which windows have blinds) so neighbouring buildings differ; spacing: a
+    second length (window spacing along a facade).
+    """
+
+    pattern: str = "plain"
+    scale: float = 1.0
+    variant: float = 0.0
+    spacing: float = 1.0
+
+    def row(self) -> tuple[float, float, float, float]:
+        return (float(PATTERNS[self.pattern]), self.scale, self.variant, self.spacing)
+
+
+_ROLE_SURFACES = {"road": Surface("asphalt"), "marking_white": Surface("paint"), "marking_yellow": Surface("paint"),
+                  "sidewalk": Surface("paving", 0.6), "lawn": Surface("grass"), "leaves": Surface("foliage"),
+                  "paint": Surface("car_paint")}
+
+
+def _variant(seed: int) -> float:
+    """A number in [0, 1) from a seed, the same on every machine (no global random state)."""
+    return float(np.random.default_rng(seed & 0xFFFFFFFF).random())
+
+
+def ground_surface(role: str, city: City) -> Surface:
+    if role == "ground":
+        lawn = any(s.kind == "lawn" for s in city.sidewalks)
+        return Surface("grass") if lawn else Surface("concrete", 2.5)
+    return _ROLE_SURFACES.get(role, Surface())
+
+
+def building_surface(role: str, b: Building) -> Surface:
+    f = b.facade
+    v = _variant(f.seed)
+    if role == "wall":
+        return Surface("facade", f.floor_height, v, f.window_spacing)
+    if role in ("window", "window_lit"):
+        return Surface("glass", f.floor_height, v, f.window_spacing)
+    if role == "roof":
+        return Surface("roof", 1.0, v)
+    return Surface()
+
+
+def furniture_surface(role: str) -> Surface:
+    return _ROLE_SURFACES.get(role, Surface()) if role == "leaves" else Surface()
+
+
+def agent_surface(role: str) -> Surface:
+    return Surface("car_paint") if role == "paint" else Surface()
