@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from detector.assign import TaskAlignedAssigner
 from detector.boxes import bbox2dist, box_area, box_ciou
 from detector.outputs import REG_MAX, HeadOutput, decode_boxes, head_keypoints
-from omnigen.conventions import NUM_KEYPOINTS
+from omnigen.conventions import NUM_KEYPOINTS, TURN_IDX
 
 OKS_SIGMA = 0.125
 """sigma_j of the design's keypoint loss, the same for all eight corners."""
@@ -44,9 +44,12 @@ class LossGains:
     kpt: float = 6.0
     kvis: float = 1.0
     kpt_l1: float = 0.0  # the scale-free L1 corner term (keypoint_l1_loss); 0 leaves the design's loss alone
+    turn: float = 1.0  # BCE of a turn-aware head's turn logit (turn_targets); no term without one
 
 
-PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1")
+PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn")
+
+_TURN = list(TURN_IDX)
 
 
 def oks_keypoint_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, area: torch.Tensor,
@@ -91,6 +94,30 @@ def keypoint_l1_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, a
     keep = labelled > 0
     per_instance = (err * m).sum(1) / labelled.clamp(min=1)
     return (per_instance * keep).sum() / keep.sum().clamp(min=1)
+
+
+def turn_targets(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, area: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: the prediction's corners fit the object turned 180 degrees better than as labelled.
+
+    Why a turn-aware head learns corners this way: a cuboid turned 180 degrees about its vertical
+    axis occupies the same space, so the eight projected points are the same set and only their
+    labels (front/rear) change. Where the image does not say which end is the front (a boxy van,
+    a car seen from above, a low-resolution aerial view), a loss that compares corner k with
+    corner k drives the branch towards the mean of the two labellings: a collapsed layout that fits
+    neither (measured: predicted layouts at about half the true spread). Regressing the corners up
+    to the turn (the order that fits the prediction better, its target) and learning the turn as a
+    binary class keeps the layouts sharp; the ambiguity is left to the classifier, which can be
+    unsure without blurring the geometry. The fit is the scale-free L1 distance, mean over the
+    corners labelled in each order (it stays informative where the OKS kernel saturates).
+    """
+    turned_gt, turned_mask = gt[:, _TURN], mask[:, _TURN]
+
+    def mean_err(g: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+        g = torch.where(m[..., None], g, pred)
+        err = (pred - g).abs().sum(-1) * m
+        return err.sum(1) / m.sum(1).clamp(min=1) / area.clamp(min=1.0).sqrt()
+
+    return mean_err(turned_gt, turned_mask.bool()) < mean_err(gt, mask.bool())
 
 
 @dataclass
@@ -177,7 +204,8 @@ class DetectionLoss:
         targets = {k: v.to(device) for k, v in targets.items()}
         # Float32 whatever the autocast dtype: IoU^6 and exp(-e) underflow in half precision.
         out = HeadOutput(box=out.box.float(), cls=out.cls.float(), kpt=out.kpt.float(),
-                         anchors=out.anchors.float(), strides=out.strides.float(), kpt_mode=out.kpt_mode)
+                         anchors=out.anchors.float(), strides=out.strides.float(), kpt_mode=out.kpt_mode,
+                         turn=None if out.turn is None else out.turn.float())
         gt = pad_targets(targets, b)
 
         cls_logits = out.cls.transpose(1, 2)  # (B, A, nc)
@@ -202,13 +230,24 @@ class DetectionLoss:
         kmask = targets["kpt_mask"].bool()[obj]
         area = box_area(targets["bboxes"].to(kpts.dtype)[obj])
         kpt_gt = targets["keypoints"].to(kpts.dtype)[obj]
+        vis_gt = targets["kpt_visible"].to(kpts.dtype)[obj]
+        turn_loss = kpts.new_zeros(())
+        if out.turn is not None:
+            turned = turn_targets(kpts[..., :2].detach(), kpt_gt, kmask, area)  # (N,)
+            kpt_gt = torch.where(turned[:, None, None], kpt_gt[:, _TURN], kpt_gt)
+            kmask = torch.where(turned[:, None], kmask[:, _TURN], kmask)
+            vis_gt = torch.where(turned[:, None], vis_gt[:, _TURN], vis_gt)
+            # mean over the positive anchor-object pairs (their count is a shape, known on the host)
+            turn_loss = F.binary_cross_entropy_with_logits(out.turn[bi, ai], turned.to(kpts.dtype),
+                                                           reduction="sum") / max(len(obj), 1)
         kpt_loss = oks_keypoint_loss(kpts[..., :2], kpt_gt, kmask, area, sigma=self.kpt_sigma)
         kpt_l1 = keypoint_l1_loss(kpts[..., :2], kpt_gt, kmask, area)
-        vis_target = torch.where(kmask, targets["kpt_visible"].to(kpts.dtype)[obj], torch.zeros_like(kpts[..., 2]))
+        vis_target = torch.where(kmask, vis_gt, torch.zeros_like(kpts[..., 2]))
         kvis_loss = (F.binary_cross_entropy_with_logits(kpts[..., 2], vis_target, reduction="none") * kmask
                      ).sum() / kmask.sum().clamp(min=1)
 
-        parts_t = {"box": box_loss, "dfl": dfl_loss, "cls": cls_loss, "kpt": kpt_loss, "kvis": kvis_loss, "kpt_l1": kpt_l1}
+        parts_t = {"box": box_loss, "dfl": dfl_loss, "cls": cls_loss, "kpt": kpt_loss, "kvis": kvis_loss, "kpt_l1": kpt_l1,
+                   "turn": turn_loss}
         gains = asdict(self.gains)
         total = sum(gains[k] * parts_t[k] for k in PARTS)
         # detached 0-dim tensors, not floats: a float() per part would wait for the device six

@@ -53,6 +53,8 @@ class DetectorConfig:
     max_channels: int | None = None
     reg_max: int = REG_MAX
     kpt_mode: str = "anchor"  # how corners decode: offsets from the anchor, or in units of the box (outputs.py)
+    kpt_turn: bool = False  # corners learned up to the 180-degree turn, the turn a class of its own (loss.py)
+    kpt_hidden: int | None = None  # keypoint-branch width; None: max(stride-8 width / 4, 24) as Ultralytics' pose head
 
     def __post_init__(self) -> None:
         self.validate()
@@ -73,6 +75,8 @@ class DetectorConfig:
             raise ValueError(f"DetectorConfig.max_channels: must be >= 8, got {self.max_channels!r}")
         if self.kpt_mode not in KPT_MODES:
             raise ValueError(f"DetectorConfig.kpt_mode: {self.kpt_mode!r} is not one of {', '.join(KPT_MODES)}")
+        if self.kpt_hidden is not None and (not isinstance(self.kpt_hidden, int) or self.kpt_hidden < 8):
+            raise ValueError(f"DetectorConfig.kpt_hidden: must be an integer >= 8 or None, got {self.kpt_hidden!r}")
         if self.reg_max != REG_MAX:
             raise ValueError(f"DetectorConfig.reg_max: decoding is built for {REG_MAX} bins, got {self.reg_max}")
 
@@ -114,7 +118,7 @@ class KeypointDetector(nn.Module):
         self.neck = PAN(self.backbone.channels, self.strides, cfg.backbone, width, depth, max_channels, heavy)
         chans = [self.neck.out_channels[s] for s in self.strides]
         self.head = KeypointHead(chans, self.strides, cfg.num_classes, self.neck.out_channels[8], cfg.reg_max,
-                                 cfg.kpt_mode)
+                                 cfg.kpt_mode, cfg.kpt_turn, cfg.kpt_hidden)
 
     def forward(self, images: torch.Tensor) -> HeadOutput:
         top = self.strides[-1]

@@ -79,6 +79,8 @@ class TrainConfig:
     kpt_sigma_end: float = KPT_SIGMA  # the design's 0.125; 0.25 is the kernel of the OKS metric itself
     kpt_mode: str = "anchor"  # corners as offsets from the anchor, or in units of the anchor's box (outputs.py)
     kpt_l1: float = 0.0  # gain of the scale-free L1 corner term beside the OKS loss (loss.keypoint_l1_loss)
+    kpt_turn: bool = False  # corners up to the 180-degree turn plus a turn class (loss.turn_targets)
+    kpt_hidden: int | None = None  # keypoint-branch width (DetectorConfig.kpt_hidden)
     taxonomy: str = "fine"
     train_split: str = "train"
     val_split: str | None = None  # None: 'val' if the dataset has it, else 'test', else all frames
@@ -96,7 +98,7 @@ class TrainConfig:
 
     def model_config(self, num_classes: int) -> DetectorConfig:
         return DetectorConfig(scale=self.model, backbone=self.backbone, p2=self.p2, p6=self.p6, kpt_mode=self.kpt_mode,
-                              num_classes=num_classes, width=self.width, depth=self.depth)
+                              kpt_turn=self.kpt_turn, kpt_hidden=self.kpt_hidden, num_classes=num_classes, width=self.width, depth=self.depth)
 
 
 def param_groups(model: torch.nn.Module, weight_decay: float) -> list[dict[str, Any]]:

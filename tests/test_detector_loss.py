@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from detector.assign import TaskAlignedAssigner
-from detector.boxes import bbox2dist, box_ciou, box_iou, box_iou_pairwise, dist2bbox
+from detector.boxes import bbox2dist, box_area, box_ciou, box_iou, box_iou_pairwise, dist2bbox
 from detector.loss import PARTS, DetectionLoss, LossGains, keypoint_l1_loss, oks_keypoint_loss
 from detector.outputs import REG_MAX, HeadOutput, decode_keypoints, make_anchors
 
@@ -344,3 +344,86 @@ def test_box_mode_corners_do_not_pull_the_box():
     total, _ = loss_fn(out, _targets())
     total.backward()
     assert out.kpt.grad.abs().sum() > 0 and (out.box.grad is None or out.box.grad.abs().sum() == 0)
+
+
+def test_turn_targets_pick_the_order_the_prediction_fits():
+    from detector.loss import turn_targets
+    from omnigen.conventions import TURN_IDX
+
+    t = _targets()
+    gt, mask, area = t["keypoints"], t["kpt_mask"], box_area(t["bboxes"])
+    assert not turn_targets(gt.clone(), gt, mask, area).any()
+    assert turn_targets(gt[:, list(TURN_IDX)], gt, mask, area).all()  # the same points, labelled turned
+    # near the turned layout, not on it: still turned; masked corners (object 1's bottom) do not count
+    noisy = gt[:, list(TURN_IDX)] + 0.5
+    noisy[1, :4] = gt[1, list(TURN_IDX)][:4] + 0.5
+    assert turn_targets(noisy, gt, mask, area).tolist() == [True, True, True]
+
+
+def test_turn_aware_loss_accepts_either_labelling_and_learns_the_turn():
+    """A turn-aware head whose corners are the object turned 180 degrees pays the same corner loss
+    as one that matches it as labelled; the turn logit is what tells them apart, and decode puts
+    the corners back in the labelled order."""
+    from detector.outputs import apply_turn
+    from omnigen.conventions import TURN_IDX
+
+    a = _anchors()[0].shape[0]
+    k = torch.arange(2 * 24 * a, dtype=torch.float32).view(2, 8, 3, a)
+    flipped = apply_turn(k, torch.ones(2, a))
+    assert torch.equal(flipped, k[:, list(TURN_IDX)]) and torch.equal(apply_turn(k, -torch.ones(2, a)), k)
+    out = _head(2, 3, a)
+    out.turn = torch.zeros(2, a, requires_grad=True)
+    loss_fn = DetectionLoss(3, gains=LossGains(box=0, dfl=0, cls=0, kvis=0, kpt=6.0))
+    total, parts = loss_fn(out, _targets())
+    total.backward()
+    assert parts["turn"] == pytest.approx(math.log(2), abs=1e-5)  # logit 0: BCE log 2 whatever the target
+    assert out.turn.grad.abs().sum() > 0 and out.kpt.grad.abs().sum() > 0
+    # without a turn logit there is no turn term and no change to the design's loss
+    plain = _head(2, 3, a)
+    _, plain_parts = loss_fn(plain, _targets())
+    assert plain_parts["turn"] == 0 and plain_parts["kpt"] >= parts["kpt"] - 1e-6
+
+
+def test_turn_aware_model_decodes_in_the_labelled_order():
+    """The turn logit rides in the keypoint branch's 25th channel; decode hands back the same
+    24-value corner layout as before, turned where the logit says so."""
+    from dataclasses import replace
+
+    from detector.model import DetectorConfig, KeypointDetector
+    from detector.outputs import decode
+    from omnigen.conventions import TURN_IDX
+
+    cfg = DetectorConfig(width=0.0625, depth=0.33, max_channels=64, num_classes=3, kpt_turn=True)
+    model = KeypointDetector(cfg).eval()
+    images = torch.rand(1, 3, 64, 64)
+    with torch.no_grad():
+        for level in model.head.kpt:  # every anchor says "turned"
+            level[-1].weight[24].zero_()
+            level[-1].bias[24] = 5.0
+        out = model(images)
+        assert out.turn is not None and out.turn.shape == (1, out.cls.shape[2]) and out.kpt.shape[1] == 24
+        turned = decode(out)
+        plain = decode(replace(out, turn=None))
+    assert turned.shape == plain.shape == (1, 4 + 3 + 24, out.cls.shape[2])
+    k_t, k_p = turned[:, 7:].view(1, 8, 3, -1), plain[:, 7:].view(1, 8, 3, -1)
+    assert torch.equal(k_t, k_p[:, list(TURN_IDX)]) and not torch.equal(k_t, k_p)
+
+
+def test_free_turn_aware_head_learns_corners_and_turn():
+    """Adam on raw head tensors with a turn logit: corners and the turn both converge (the turn
+    loss falls well below log 2, so its target is consistent from step to step)."""
+    torch.manual_seed(0)
+    a = _anchors()[0].shape[0]
+    out = _head(2, 3, a, kpt_mode="box")
+    out.turn = torch.zeros(2, a, requires_grad=True)
+    opt = torch.optim.Adam([out.box, out.cls, out.kpt, out.turn], lr=0.05)
+    loss_fn = DetectionLoss(3, gains=LossGains(kpt_l1=2.0))
+    t = _targets()
+    first, first_parts = loss_fn(out, t)
+    for _ in range(100):
+        opt.zero_grad()
+        total, parts = loss_fn(out, t)
+        total.backward()
+        opt.step()
+    assert parts["kpt"] < 0.2 * first_parts["kpt"] and parts["kpt_l1"] < 0.3 * first_parts["kpt_l1"]
+    assert parts["turn"] < 0.2 * first_parts["turn"]
