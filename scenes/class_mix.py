@@ -27,10 +27,11 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from omnigen.geometry import project_box
+import numpy as np
+
 from rigs.annotate import MIN_VISIBLE_PIXELS
 from rigs.rig import load_rig
-from rigs.sampling import MAX_DISTANCE, Obstacles, agent_box, rig_rng, sample_camera
+from rigs.sampling import MAX_DISTANCE, Obstacles, projected_agents, rig_rng, sample_camera
 from scenes.generate import SceneGenerator
 
 SEEN_BOX_PIXELS = 2 * MIN_VISIBLE_PIXELS
@@ -79,19 +80,12 @@ class ClassMix:
 
 def seen_agents(scene, cam) -> list:
     """The agents a camera would annotate by geometry alone (see the module doc)."""
-    out = []
-    for a in scene.agents:
-        box = agent_box(a, cam.R, cam.t)
-        if not 0.5 < box.center[2] < MAX_DISTANCE:
-            continue
-        proj = project_box(box, cam.K, cam.width, cam.height)
-        if proj.bbox is None:
-            continue
-        x0, y0, x1, y1 = proj.bbox
-        w, h = min(x1, cam.width) - max(x0, 0.0), min(y1, cam.height) - max(y0, 0.0)
-        if w > 0 and h > 0 and w * h >= SEEN_BOX_PIXELS:
-            out.append(a)
-    return out
+    depth, bbox = projected_agents(scene, cam)
+    w = np.minimum(bbox[:, 2], cam.width) - np.maximum(bbox[:, 0], 0.0)
+    h = np.minimum(bbox[:, 3], cam.height) - np.maximum(bbox[:, 1], 0.0)
+    ok = (depth > 0.5) & (depth < MAX_DISTANCE) & (np.nan_to_num(w) > 0) & (np.nan_to_num(h) > 0)
+    ok &= np.nan_to_num(w * h) >= SEEN_BOX_PIXELS
+    return [a for a, keep in zip(scene.agents, ok) if keep]
 
 
 def class_counts(preset: str = "downtown", seeds=(0,), rigs=DEFAULT_RIGS, width: int = 320, height: int = 240,

@@ -537,12 +537,15 @@ def _strip_furniture(rng: np.random.Generator, strip: Sidewalk, block: _Rect, pr
         t = lo + float(rng.uniform(0, f.tree_spacing))
         while t <= hi:
             if rng.random() < f.tree_probability:
-                trunk, crown = float(rng.uniform(2.3, 3.5)), float(rng.uniform(1.2, min(2.2, strip.width)))
+                species = pick(rng, f.tree_species) if len(f.tree_species) > 1 else next(iter(f.tree_species))
+                trunk, dims = _tree_shape(rng, species, strip.width)
                 p = at(t, tree_at)
-                dims = (2 * crown, 2 * crown, trunk + 1.8 * crown)
+                params = {"trunk_height": trunk, "trunk_radius": float(rng.uniform(0.1, 0.18)), "clearance": trunk,
+                          "leaf_color": jitter(rng, (0.06, 0.16, 0.04), 0.25)}
+                if species != "round":  # round is the builder's default; its params stay as they were
+                    params["species"] = species
                 add(_furniture(f"{strip.sidewalk_id}_tree{n + len(out)}", "tree", p, (0.0, 0.0), dims, float(rng.uniform(0, 2 * math.pi)), z,
-                               {"trunk_height": trunk, "trunk_radius": float(rng.uniform(0.1, 0.18)), "clearance": trunk,
-                                "leaf_color": jitter(rng, (0.06, 0.16, 0.04), 0.25)}, _footprint_square(p, 0.8)))
+                               params, _footprint_square(p, 0.8)))
             t += f.tree_spacing
     length = hi - lo
     for kind, rate in (("bin", f.bins_per_100m), ("hydrant", f.hydrants_per_100m), ("bench", f.benches_per_100m)):
@@ -571,6 +574,23 @@ def _strip_furniture(rng: np.random.Generator, strip: Sidewalk, block: _Rect, pr
                           along_yaw, {"box_height": float(rng.uniform(0.4, 0.6)),
                                       "leaf_color": jitter(rng, (0.06, 0.16, 0.04), 0.25)}, fp))
     return out
+
+
+def _tree_shape(rng: np.random.Generator, species: str, strip_width: float) -> tuple[float, tuple[float, float, float]]:
+    """(trunk height, cuboid dims) of a street tree of `species`, in the ranges of the tree
+    builder's contract (scenes/assets/props.py): round limes and maples, conical conifers,
+    columnar poplars, spreading plane trees."""
+    if species == "conical":
+        trunk, d = float(rng.uniform(0.8, 1.5)), float(rng.uniform(1.8, 3.2))
+        return trunk, (d, d, float(rng.uniform(6.0, 11.0)))
+    if species == "columnar":
+        trunk, d = float(rng.uniform(1.0, 2.0)), float(rng.uniform(1.2, 2.2))
+        return trunk, (d, d, float(rng.uniform(8.0, 14.0)))
+    if species == "spreading":
+        trunk, d = float(rng.uniform(2.6, 3.5)), float(rng.uniform(5.0, 8.0))
+        return trunk, (d, d, float(rng.uniform(8.0, 11.0)))
+    trunk, crown = float(rng.uniform(2.3, 3.5)), float(rng.uniform(1.2, min(2.2, strip_width)))
+    return trunk, (2 * crown, 2 * crown, trunk + 1.8 * crown)
 
 
 def _lot_hedges(rng: np.random.Generator, tag: str, lot: _Rect, faces: dict, buildings: list[Building], preset: Preset,

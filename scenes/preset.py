@@ -67,6 +67,7 @@ class FurnitureSpec:
     street_light_spacing: float = 28.0  # 0: none
     tree_spacing: float = 14.0  # 0: none
     tree_probability: float = 0.5  # per tree slot
+    tree_species: dict[str, float] = field(default_factory=lambda: {"round": 1.0})  # round, conical, columnar, spreading
     bins_per_100m: float = 1.5
     benches_per_100m: float = 1.0
     hydrants_per_100m: float = 0.7
@@ -199,6 +200,7 @@ def validate(preset: Preset) -> None:
         raise ValueError("every road needs at least one lane per direction")
     for label, dist in (
         ("buildings.footprints", preset.buildings.footprints),
+        ("furniture.tree_species", preset.furniture.tree_species),
         ("agents.vehicle_mix", preset.agents.vehicle_mix),
         ("agents.parked_mix", preset.agents.parked_mix),
         ("weather.kinds", preset.weather.kinds),
@@ -214,6 +216,8 @@ def validate(preset: Preset) -> None:
         raise ValueError(f"lighting.times: unknown times {sorted(set(preset.lighting.times) - set(TIMES_OF_DAY))}")
     if set(preset.buildings.footprints) - {"rect", "l_shape", "tower"}:
         raise ValueError("buildings.footprints: kinds are rect, l_shape, tower")
+    if set(preset.furniture.tree_species) - {"round", "conical", "columnar", "spreading"}:
+        raise ValueError("furniture.tree_species: kinds are round, conical, columnar, spreading")
     if preset.buildings.lot_surface not in ("plaza", "lawn"):
         raise ValueError("buildings.lot_surface is plaza or lawn")
     a = preset.agents
