@@ -114,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from benchmarks.validate import fmt
     from detector.box_template import evaluate_with_baseline
+    from detector.corner_order import corner_order_counts
     from detector.predict import predict_dataset
     from detector.train import TrainConfig, train
     from omnigen.dataset import Dataset
@@ -141,11 +142,14 @@ def main(argv: list[str] | None = None) -> int:
     ds = Dataset.open(args.dataset, show_progress=False)
     report, baseline = evaluate_with_baseline(ds, preds, split="test", taxonomy=cfg.taxonomy)
     model_rows, base_rows = rows_of(report), rows_of(baseline)
+    orders = corner_order_counts(ds, preds, split="test")
     main_key = next(iter(model_rows))
     result = {"dataset": str(args.dataset), "name": name, "steps": epochs * per_epoch, "epochs": epochs,
               "train_seconds": round(train_s, 1), "config": asdict(cfg),
               "final_losses": {k: last.get(k) for k in ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn")},
-              "model": model_rows, "baseline": base_rows}
+              "model": model_rows, "baseline": base_rows,
+              "corner_order": {"matched": orders.matched,
+                               **{k: orders.fraction(k) if orders.matched else None for k in orders.best}}}
 
     print(f"\n{name}: {result['steps']} steps ({epochs} epochs of {per_epoch}), {train_s:.0f} s of training")
     print("| rows | model mAP50:95 | AP50 | adherence (deg) | corner error px | rel | spread | baseline mAP50:95 | "
@@ -157,6 +161,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{fmt(m['corner_error_px'], 2)} | {fmt(m['corner_error_rel'])} | {fmt(m['corner_spread'], 2)} | "
               f"{fmt(b['oks_map50_95'])} | "
               f"{fmt(b['ap_oks50'])} | {fmt(b['corner_error_px'], 2)} | {fmt(b['corner_error_rel'])} |")
+    # a heading the model cannot tell shows as objects whose corners fit best turned 180 degrees
+    print(f"box-matched objects ({orders.matched}): as labelled {fmt(orders.fraction('as labelled'), 2)}, "
+          f"turned 180 {fmt(orders.fraction('turned 180'), 2)}")
     if args.out:
         from omnigen.files import atomic_write_json
 

@@ -22,6 +22,7 @@ def test_bench_learning_prints_model_and_baseline(tmp_path, capsys):
     out = tmp_path / "result.json"
     argv = [str(ds.root), "--steps", "2", "--batch", "3", "--imgsz", "64", "--crop", "0", "--amp", "off",
             "--width", "0.125", "--depth", "0.34", "--workers", "0", "--kpt-mode", "box", "--kpt-l1", "1",
+            "--kpt-turn", "--kpt-hidden", "16",
             "--work", str(tmp_path / "runs"), "--out", str(out)]
     assert main(argv) == 0
     lines = capsys.readouterr().out.strip().splitlines()
@@ -29,6 +30,9 @@ def test_bench_learning_prints_model_and_baseline(tmp_path, capsys):
     assert "corner error rel" in lines[-1]
     result = json.loads(out.read_text())
     assert result["steps"] == 2 and result["config"]["kpt_mode"] == "box" and result["config"]["kpt_l1"] == 1.0
+    assert result["config"]["kpt_turn"] is True and result["config"]["kpt_hidden"] == 16
+    assert "turn" in result["final_losses"] and any(line.startswith("box-matched objects (") for line in lines)
+    assert set(result["corner_order"]) >= {"matched", "as labelled", "turned 180"}
     assert set(result["model"]) == set(result["baseline"]) and "synthetic" in result["model"]
     for row in (*result["model"].values(), *result["baseline"].values()):
         assert {"oks_map50_95", "ap_oks50", "corner_error_px", "corner_error_rel"} <= set(row)
