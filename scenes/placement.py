@@ -306,7 +306,8 @@ class _Placer:
         """At each junction with `probability`: a ring of 4 to 7 cones around a work spot (an
         open manhole, a repaired patch) in one of the lanes through it, from 10 m inside the
         junction box to 5 m beyond it (crosswalks may be fenced off too): where the junction's
-        pole cameras see cones at the 10-25 m a 0.7 m cone needs to fill 16 pixels at 320 x 240."""
+        pole cameras look, near enough for a cone to fill the annotator's 16 pixels at 320 x 240
+        (works farther down the approaches were too small to count in 10-frame sets)."""
         for inter in self.city.intersections:
             if self.rng.random() >= probability:
                 continue
