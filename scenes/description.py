@@ -127,7 +127,8 @@ class Marking:
 class Sidewalk:
     """A raised, paved or planted slab (top at `height`) as an oriented rectangle.
 
-    `kind`: "sidewalk" (pedestrians walk here), "plaza", or "lawn" (lot ground around buildings).
+    `kind`: "sidewalk" (pedestrians walk here), "plaza", or "lawn" (lot ground around buildings,
+    or a grass verge between kerb and footway: ids ending in "_verge").
     `road_yaw` is the direction of the road the sidewalk runs along (pedestrians walk that way).
     """
 
@@ -179,7 +180,9 @@ class Building:
 class Furniture:
     """Street furniture (not annotated): its bounding cuboid, like an agent's, plus parameters.
 
-    kind: street_light, traffic_light, tree, bin, bench, bollard, hydrant.
+    kind: street_light, traffic_light, tree, bin, bench, bollard, hydrant, hedge, planter (and the
+    other kinds scenes/assets/props.py builds). A junction's corner poles are street lights with
+    ids "<intersection_id>_pole<k>" (rigs/sampling.py mounts cameras on them).
     `params` holds plain data (arm length, trunk height, colours; `clearance`: the height below
     which only the pole or trunk stands). `footprint` is the world polygon of what stands on the
     ground (pole, trunk, bench), the obstacle agents must keep clear of.
