@@ -131,9 +131,9 @@ def test_front_and_back_differ(family, style):
         front_run = bottom[:, 0].max() - top[:, 0].max()
         rear_run = top[:, 0].min() - bottom[:, 0].min()
         assert front_run > rear_run > -1e-9, (style, front_run, rear_run)  # a raked windscreen, an upright(er) rear
-        mirrors = parts.get("trim", parts["paint"]).vertices
-        assert np.isclose(np.abs(np.vstack([m.vertices for m in parts.values()])[:, 1]).max(), dims[1] / 2)
-        assert mirrors.size
+        v = np.vstack([m.vertices for m in parts.values()])
+        widest = v[np.abs(v[:, 1]) > dims[1] / 2 - 0.04]  # only the mirrors stand out this far
+        assert len(widest) and np.all(widest[:, 0] > 0.0)  # by the windscreen, in the front half
 
 
 def test_cone_styles():
