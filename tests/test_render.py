@@ -187,8 +187,8 @@ def test_visible_untruncated_boxes_match_masks(datasets):
                 # A gross misalignment check, not a tightness one (tests/test_assets_shapes.py checks the
                 # cuboid is the mesh's tight box): a car's bonnet and narrower roof leave its cuboid's
                 # corners empty. Measured once (a throwaway script, 30 tiny-city frames per rig, seed 9,
-                # 128x96): vehicles of >= 100 px
-                # had a smallest IoU of 0.574 with the boxy assets of 79ec642 and 0.591 with issue 26's.
+                # 128x96): vehicles of >= 100 px had a smallest IoU of 0.574 with the boxy assets of
+                # 79ec642 and 0.591 with issue 26's.
                 assert _iou(mbox, o.bbox) >= 0.55, (rec.frame_id, o.instance_id, o.category, _iou(mbox, o.bbox))
                 n += 1
     assert n >= 3
