@@ -460,6 +460,7 @@ def _kerb_sign(strip: Sidewalk, block: _Rect) -> float:
     return -1.0 if float(left @ to_center) > 0 else 1.0
 
 
+SIGNS = (("round", "red"), ("round", "blue"), ("triangle", "red"), ("square", "blue"), ("rect", "blue"))
 CORNER_POLE = (5.8, 1.0)  # metres from the junction box's corner along one road and in from its kerb
 VERGE_END = 6.5  # metres of paving kept at each end of a verged strip: crosswalk landings, corner poles
 MIN_FOOTWAY = 1.8  # a verge never narrows the footway below this
@@ -572,7 +573,8 @@ def _strip_furniture(rng: np.random.Generator, strip: Sidewalk, block: _Rect, pr
             fp = polygon_tuple(rect_polygon(p, pl, pw, along_yaw))
             add(Furniture(f"{strip.sidewalk_id}_planter{n + len(out)}", "planter", (p[0], p[1], z + ph / 2), (pl, pw, ph),
                           along_yaw, {"box_height": float(rng.uniform(0.4, 0.6)),
-                                      "leaf_color": jitter(rng, (0.06, 0.16, 0.04), 0.25)}, fp))
+                                      "leaf_color": jitter(rng, (0.06, 0.16, 0.04), 0.25),
+                                      "material": ("concrete", "wood", "metal")[int(rng.integers(3))]}, fp))
     return out
 
 
@@ -650,6 +652,20 @@ def _corner_furniture(rng, inter: Intersection, crosswalks, g, preset: Preset, t
         out.append(_furniture(f"{inter.intersection_id}_tl{k}", "traffic_light", (px, py), (-dims[0] / 2 + 0.12, 0.0), dims, yaw, z,
                               {"arm": arm, "pole_radius": 0.1, "clearance": height - 1.3, "faces": math.atan2(-hy, -hx)},
                               _footprint_square((px, py), 0.45)))
+    if preset.furniture.signpost_probability > 0:
+        # A sign at the right kerb of an approach, 7-10 m before the junction, facing its traffic.
+        for k, (hx, hy) in enumerate(((1, 0), (-1, 0), (0, 1), (0, -1))):
+            if rng.random() >= preset.furniture.signpost_probability:
+                continue
+            road_half, cross_half = (wx / 2, wy / 2) if hx else (wy / 2, wx / 2)
+            back = float(rng.uniform(7.0, 10.0))
+            px = cx - hx * (cross_half + back) + hy * (road_half + 0.5)
+            py = cy - hy * (cross_half + back) - hx * (road_half + 0.5)
+            shape, color = SIGNS[int(rng.integers(len(SIGNS)))]
+            dims = (0.1, float(rng.uniform(0.55, 0.85)), float(rng.uniform(2.3, 3.0)))
+            item = Furniture(f"{inter.intersection_id}_sign{k}", "signpost", (px, py, z + dims[2] / 2), dims,
+                             math.atan2(-hy, -hx), {"shape": shape, "color": color}, _footprint_square((px, py), 0.2))
+            _add_if_free(item, out, taken, 0.3)
     if preset.furniture.corner_poles:
         # A tall street light on each corner, its arm reaching over the junction: the poles
         # roadside cameras share at signalised junctions (DAIR-V2X's infrastructure views).

@@ -75,6 +75,7 @@ class FurnitureSpec:
     corner_poles: bool = False  # a street light on every junction corner (where roadside cameras hang)
     hedge_probability: float = 0.0  # per lot street side: a hedge along the lot's front (lawn lots)
     planters_per_100m: float = 0.0  # planters (shrub boxes) on the footway by the kerb
+    signpost_probability: float = 0.0  # per junction approach: a traffic sign at its right kerb
 
 
 @dataclass(frozen=True)
@@ -235,5 +236,5 @@ def validate(preset: Preset) -> None:
     f = preset.furniture
     if f.corner_poles and g.sidewalk_width[0] < 3.5:
         raise ValueError("furniture.corner_poles needs sidewalks at least 3.5 m wide (the poles stand 1 m from the kerb)")
-    if not 0 <= f.hedge_probability <= 1 or f.planters_per_100m < 0:
-        raise ValueError("furniture.hedge_probability is in [0, 1] and planters_per_100m >= 0")
+    if not 0 <= f.hedge_probability <= 1 or not 0 <= f.signpost_probability <= 1 or f.planters_per_100m < 0:
+        raise ValueError("furniture.hedge_probability and signpost_probability are in [0, 1], planters_per_100m >= 0")

@@ -149,3 +149,21 @@ def test_hedges_front_the_lots_and_never_touch_a_building():
     for a in scene.agents:
         fp = rect_polygon(a.center[:2], a.dims[0], a.dims[1], a.yaw)
         assert not any(fp.intersects(Polygon(h.footprint)) for h in hedges), a.name
+
+
+def test_signposts_and_planters_stand_on_the_footway_facing_their_traffic():
+    city = build_city(load_preset("downtown"), 6)
+    walk = unary_union([rect_polygon(s.center, s.length + 0.01, s.width + 0.01, s.yaw)
+                        for s in city.sidewalks if s.kind in ("sidewalk", "lawn") and not s.sidewalk_id.endswith("_lot")])
+    signs = [f for f in city.furniture if f.kind == "signpost"]
+    planters = [f for f in city.furniture if f.kind == "planter"]
+    assert signs and planters
+    for f in signs + planters:
+        assert walk.contains(Polygon(f.footprint)), f.furniture_id
+    by_id = {i.intersection_id: i for i in city.intersections}
+    for f in signs:
+        inter = by_id[f.furniture_id.rsplit("_sign", 1)[0]]
+        # the face (+x) looks back along the approach: away from the junction it guards
+        away = np.subtract(f.center[:2], inter.center)
+        face = np.array([math.cos(f.yaw), math.sin(f.yaw)])
+        assert float(face @ away) > 0.9 * float(np.abs(away).max())
