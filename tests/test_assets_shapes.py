@@ -115,7 +115,8 @@ def test_front_and_back_differ(family, style):
     parts, _ = agent_parts(AssetSpec(family, params), dims)
     l, h = dims[0], dims[2]
     head, tail = parts["headlight"].vertices, parts["taillight"].vertices
-    assert head[:, 0].min() > 0.35 * l and tail[:, 0].max() < -0.35 * l  # white at the front, red at the back
+    assert head[:, 0].min() > 0.35 * l and head[:, 0].max() > 0.45 * l  # white at the front,
+    assert tail[:, 0].max() < 0.0 and tail[:, 0].min() < -0.45 * l  # red at the back (a car's stop lamp atop the rear window)
     if family != "tram":  # plates at both ends
         plates = np.vstack([parts[r].vertices for r in ("plate", "plate_yellow") if r in parts])
         assert plates[:, 0].max() > 0.45 * l and plates[:, 0].min() < -0.45 * l

@@ -164,6 +164,10 @@ def car(dims, p: dict) -> Parts:
     _greenhouse_strip(parts, pillar, xm - 0.05, xm + 0.05, yb, yt, belt, top)
     if style in ("wagon", "suv"):
         _greenhouse_strip(parts, pillar, xr1 + 0.25, xr1 + 0.4, yb, yt, belt, top)
+    # The windscreen's dark cowl at its base (seen from the front and above), and the high-mounted
+    # stop lamp at the rear window's top (seen from behind; red at night).
+    parts.add("trim", box((xf0 - 0.1, -(yb - 0.12), belt - 0.01), (xf0 + 0.03, yb - 0.12, belt + 0.03)))
+    parts.add("taillight", box((xr1 - 0.06, -0.2, top - 0.05), (xr1 + 0.02, 0.2, top - 0.01)))
     # Front: headlights at the nose's top corners, grille and intake, plate low on the bumper.
     lamp_h, lamp_w = {0: (0.07, 0.36), 1: (0.11, 0.3), 2: (0.14, 0.24)}[int(p.get("lamp_style", 1)) % 3]
     _pair(parts, "headlight", l / 2 - 0.26, l / 2 - 0.055, bw / 2 - 0.04, lamp_w, nose_z - lamp_h, nose_z + 0.015)
