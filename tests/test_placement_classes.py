@@ -150,3 +150,21 @@ def test_junction_works_ring_a_spot_near_each_junction_they_draw():
         if len(ring) >= 4:
             near += 1
     assert near >= 0.75 * len(scene.city.intersections)
+
+
+@pytest.mark.parametrize("preset", ["intersection", "downtown"])
+def test_every_preset_keeps_the_rules_and_is_deterministic(preset):
+    """The rules (disjoint annotated footprints 0.1 m apart, nothing in buildings or furniture
+    footprints) with every class and cone form the preset draws; the same seed, the same bytes."""
+    gen = SceneGenerator(preset, 8)
+    scene = gen.frame(8, 2)
+    assert to_json(scene) == to_json(SceneGenerator(preset, 8).frame(8, 2))
+    polys = [footprint(a) for a in scene.agents]
+    for i in range(len(polys)):
+        for j in range(i + 1, len(polys)):
+            assert polys[i].distance(polys[j]) >= 0.1 - 1e-6, (scene.agents[i].name, scene.agents[j].name)
+    ground = [Polygon(p.footprint) for b in scene.city.buildings for p in b.parts]
+    ground += [Polygon(f.footprint) for f in scene.city.furniture if f.footprint]
+    for a, poly in zip(scene.agents, polys):
+        assert not any(poly.intersects(g) for g in ground), a.name
+    assert len({a.category for a in scene.agents}) >= 7
