@@ -8,7 +8,8 @@ R's rows are (right, down, forward). Pitch 90 degrees looks straight down, the h
 which way is "up" in the image.
 
 Rejection (`pose_problem`): a pose is redrawn when the camera stands inside or within 0.5 m of
-a building, an agent's cuboid or a furniture footprint (below its top; 1.5 m of a tree's crown), or when fewer than the
+a building, an agent's cuboid or a furniture footprint (below its top; 1.5 m of a tree's crown
+between the crown's base and the tree's top), or when fewer than the
 rig's `min_objects` agents would be annotated by a cheap geometric estimate (cuboid in front, in
 the image, at least MIN_BOX_PIXELS tall and wide, nearer than MAX_DISTANCE). The renderer checks
 the real count after annotation and redraws again if the estimate was optimistic (buildings hide
@@ -170,32 +171,40 @@ class Obstacles:
     """What a camera may not stand in: buildings, agents' cuboids, furniture; built per scene."""
 
     def __init__(self, scene: Scene) -> None:
-        polys, tops = [], []
+        polys, tops, bottoms = [], [], []
         for b in scene.city.buildings:
             for part in b.parts:
                 polys.append(Polygon(part.footprint))
                 tops.append(part.top_z + part.roof_height)
+                bottoms.append(-math.inf)
         for f in scene.city.furniture:
-            if f.kind == "tree":  # the crown, not the trunk: a camera in or just beside it sees leaves
+            top = f.center[2] + f.dims[2] / 2
+            polys.append(Polygon(f.footprint) if len(f.footprint) >= 3 else Point(f.center[:2]).buffer(0.2))
+            tops.append(top)
+            bottoms.append(-math.inf)
+            if f.kind == "tree":  # and its crown: a camera in or just beside it sees a wall of leaves
                 crown = shapely.box(f.center[0] - f.dims[0] / 2, f.center[1] - f.dims[1] / 2,
                                     f.center[0] + f.dims[0] / 2, f.center[1] + f.dims[1] / 2)
                 polys.append(crown.buffer(CROWN_CLEARANCE - CLEARANCE))
-            else:
-                polys.append(Polygon(f.footprint) if len(f.footprint) >= 3 else Point(f.center[:2]).buffer(0.2))
-            tops.append(f.center[2] + f.dims[2] / 2)
+                tops.append(top)
+                # below the crown (a dashcam under a street tree) the view is open
+                bottoms.append(f.center[2] - f.dims[2] / 2 + float(f.params.get("clearance", 0.0)) - CLEARANCE)
         for a in scene.agents:
             box = shapely.box(-a.dims[0] / 2, -a.dims[1] / 2, a.dims[0] / 2, a.dims[1] / 2)
             c, s = math.cos(a.yaw), math.sin(a.yaw)
             polys.append(shapely.affinity.affine_transform(box, [c, -s, s, c, a.center[0], a.center[1]]))
             tops.append(a.center[2] + a.dims[2] / 2)
+            bottoms.append(-math.inf)
         self.polys = np.asarray(polys, dtype=object)
         self.tops = np.asarray(tops)
+        self.bottoms = np.asarray(bottoms)
         self.tree = shapely.STRtree(self.polys)
 
     def blocked(self, position: np.ndarray) -> bool:
         pt = Point(position[:2])
         idx = self.tree.query(pt, predicate="dwithin", distance=CLEARANCE)
-        return bool((self.tops[idx] + CLEARANCE > position[2]).any())
+        z = position[2]
+        return bool(((self.tops[idx] + CLEARANCE > z) & (self.bottoms[idx] < z)).any())
 
 
 def projected_agents(scene: Scene, cam: Camera) -> tuple[np.ndarray, np.ndarray]:

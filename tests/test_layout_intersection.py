@@ -167,3 +167,16 @@ def test_signposts_and_planters_stand_on_the_footway_facing_their_traffic():
         away = np.subtract(f.center[:2], inter.center)
         face = np.array([math.cos(f.yaw), math.sin(f.yaw)])
         assert float(face @ away) > 0.9 * float(np.abs(away).max())
+
+
+def test_cameras_keep_clear_of_tree_crowns_but_not_from_under_them():
+    scene = SceneGenerator("suburban", 1).frame(1, 0)
+    obstacles = Obstacles(scene)
+    tree = max((f for f in scene.city.furniture if f.kind == "tree"), key=lambda f: f.dims[0])
+    x, y, zc = tree.center
+    r, top, base = tree.dims[0] / 2, zc + tree.dims[2] / 2, zc - tree.dims[2] / 2 + tree.params["clearance"]
+    beside = np.array([x + r + 1.0, y, (base + top) / 2])  # 1 m from the crown, at its height
+    assert obstacles.blocked(beside)
+    assert not obstacles.blocked(np.array([x + r + 1.0, y, base - 1.0]))  # under the crown's edge
+    assert not obstacles.blocked(np.array([x + r + 1.0, y, top + 1.0]))  # above the tree
+    assert obstacles.blocked(np.array([x + 0.3, y, 1.0]))  # in the trunk
