@@ -106,7 +106,7 @@ def test_a_training_cut_off_with_other_arguments_starts_over(tmp_path, monkeypat
 
 
 def test_a_folder_rendered_with_other_data_arguments_is_refused(tmp_path):
-    args = argparse.Namespace(frames=200, cities=5, size=640, backend="raster", seed=0,
+    args = argparse.Namespace(frames=200, cities=5, size=640, backend="raster", seed=0, scene="downtown,suburban",
                               kitti=Path("../shared/realdata/kitti"), dair=None, epochs=150)
     check_data_arguments(tmp_path, args)  # first run: recorded
     check_data_arguments(tmp_path, argparse.Namespace(**{**vars(args), "epochs": 30}))  # training may change
