@@ -149,7 +149,7 @@ def build_city(preset: Preset, seed: int) -> City:
                 faces = {k: v > 0 for k, v in sw.items()}
                 new_buildings = _block_buildings(rng, tag, lot, faces, preset)
                 buildings.extend(new_buildings)
-                if preset.furniture.hedge_probability > 0:
+                if preset.furniture.hedge_probability > 0 and preset.buildings.lot_surface == "lawn":  # front gardens
                     furniture.extend(_lot_hedges(rng, tag, lot, faces, new_buildings, preset, taken))
             for strip in strips:
                 furniture.extend(_strip_furniture(rng, strip, block, preset, taken, verges[strip.sidewalk_id]))
@@ -565,6 +565,15 @@ def _strip_furniture(rng: np.random.Generator, strip: Sidewalk, block: _Rect, pr
                 p, dims, size = at(t, foot + 0.35), (0.35, 0.35, 0.75), 0.35
             add(Furniture(f"{strip.sidewalk_id}_{kind}{n + len(out)}", kind, (p[0], p[1], z + dims[2] / 2), dims, road_yaw, {},
                           _footprint_square(p, size)))
+    if f.bus_shelters_per_100m > 0 and strip.width - foot >= 3.4:  # a shelter and a footway behind it
+        for _ in range(int(rng.poisson(f.bus_shelters_per_100m * length / 100.0))):
+            t = float(rng.uniform(lo, hi))
+            sl, sw_, sh = float(rng.uniform(3.5, 5.5)), float(rng.uniform(1.3, 1.6)), float(rng.uniform(2.4, 2.7))
+            p = at(t, foot + 0.5 + sw_ / 2)
+            fp = polygon_tuple(rect_polygon(p, sl, sw_, along_yaw))
+            # open side (+y) towards the road, like a bench
+            add(Furniture(f"{strip.sidewalk_id}_shelter{n + len(out)}", "bus_shelter", (p[0], p[1], z + sh / 2), (sl, sw_, sh),
+                          road_yaw - math.pi / 2, {"ad_panel": bool(rng.random() < 0.7)}, fp))
     if f.planters_per_100m > 0 and strip.width - foot >= 2.6:  # leave a footway beside the planter
         for _ in range(int(rng.poisson(f.planters_per_100m * length / 100.0))):
             t = float(rng.uniform(lo, hi))

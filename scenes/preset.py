@@ -76,6 +76,7 @@ class FurnitureSpec:
     hedge_probability: float = 0.0  # per lot street side: a hedge along the lot's front (lawn lots)
     planters_per_100m: float = 0.0  # planters (shrub boxes) on the footway by the kerb
     signpost_probability: float = 0.0  # per junction approach: a traffic sign at its right kerb
+    bus_shelters_per_100m: float = 0.0  # bus shelters at the kerb side of wide footways
 
 
 @dataclass(frozen=True)
@@ -236,5 +237,5 @@ def validate(preset: Preset) -> None:
     f = preset.furniture
     if f.corner_poles and g.sidewalk_width[0] < 3.5:
         raise ValueError("furniture.corner_poles needs sidewalks at least 3.5 m wide (the poles stand 1 m from the kerb)")
-    if not 0 <= f.hedge_probability <= 1 or not 0 <= f.signpost_probability <= 1 or f.planters_per_100m < 0:
-        raise ValueError("furniture.hedge_probability and signpost_probability are in [0, 1], planters_per_100m >= 0")
+    if not 0 <= f.hedge_probability <= 1 or not 0 <= f.signpost_probability <= 1 or min(f.planters_per_100m, f.bus_shelters_per_100m) < 0:
+        raise ValueError("furniture.hedge_probability and signpost_probability are in [0, 1], planters_per_100m and bus_shelters_per_100m >= 0")
