@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+from dataclasses import dataclass, field
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
@@ -34,52 +35,192 @@ from OpenGL import GL as gl  # noqa: E402
 ZNEAR, ZFAR = 0.25, 3000.0
 MSAA_SAMPLES = 4
 SLOTS_PER_ROW = 1024  # material texture: slot s at (s % 1024, 2 * (s // 1024)) and the row below
+MAX_LAMPS = 16  # street lamps lighting a frame (the nearest to the view)
+SHADOW_SIZE = 1024  # the sun's shadow map, texels a side
+NOISE_SIZE = 256  # the value-noise table, cells a side (it repeats)
+NOISE_SEED = 26  # fixed: the same surfaces on every machine and every run
 
 _COLOR_VS = """#version 330 core
 layout(location = 0) in vec3 position;
 layout(location = 1) in vec3 normal;
 layout(location = 2) in float slot;
+layout(location = 4) in vec4 surface_row;
+layout(location = 5) in vec4 surface_amp;
+layout(location = 6) in vec4 surface_cell;
 uniform mat4 VP;
+uniform mat4 shadow_matrix;
+uniform float normal_bias;
 uniform sampler2D materials;
+out vec3 shadow_coord;  // affine in the position: exact when interpolated
 out vec3 frag_position;
 out vec3 frag_normal;
 flat out vec4 base_metal;
 flat out vec4 emis_rough;
+flat out vec4 pattern;
+flat out vec4 amp;
+flat out vec3 cell_w;
 void main() {
     gl_Position = VP * vec4(position, 1.0);
     frag_position = position;
     frag_normal = normalize(normal);
+    shadow_coord = (shadow_matrix * vec4(position + frag_normal * normal_bias, 1.0)).xyz;
     int s = int(slot + 0.5);
     ivec2 c = ivec2(s % %SLOTS%, 2 * (s / %SLOTS%));
     base_metal = texelFetch(materials, c, 0);
     emis_rough = texelFetch(materials, c + ivec2(0, 1), 0);
+    pattern = surface_row;
+    amp = surface_amp;
+    cell_w = surface_cell.xyz;
 }
 """.replace("%SLOTS%", str(SLOTS_PER_ROW))
 
-# pyrender 0.1.45 mesh.frag, metallic-roughness branch with one directional light, no textures.
+# Procedural surfaces: pure functions of the world position (and the face's normal), so a surface
+# looks the same from every camera and every frame. The noise is value noise: a 256 x 256 table of
+# random values (computed at start-up from a fixed seed, nothing downloaded) sampled with bilinear
+# filtering as a repeating texture; one texel is one noise cell, so N(p * f) is noise with f cells
+# a metre. Its mipmaps average the noise where a pixel spans many cells (no shimmering grain at a
+# distance). Joints (tiles, kerbs) and storey bands are antialiased with the pixel's footprint `fp`
+# (metres, from fwidth).
+#
+# Written branch-free on purpose: llvmpipe runs both sides of an `if` under a mask, so a shader
+# with a branch per pattern pays for every pattern at every pixel. Instead every pixel takes the
+# same four noise octaves (two fetches) and one value per tile cell, and a pattern is a row of
+# weights (SURFACE_WEIGHTS, per vertex: indexing a constant array per pixel is a chain of selects
+# on llvmpipe) plus a few masked terms.
+# Per pattern (materials.PATTERNS order): amplitudes of the octaves at 0.6, 9 and 0.75 cells a
+# metre and of the 20 m patches (asphalt repairs, dry grass); a tile cell's tint amplitude, its
+# joints' darkness and their half width (m).
+SURFACE_WEIGHTS = np.array([
+    # amp: lo,  hi,   mid,  big    cell: tint, joint, half width
+    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # plain
+    [0.22, 0.22, 0.2, 1.0, 0.0, 0.0, 0.0],  # asphalt
+    [0.0, 0.05, 0.05, 0.0, 0.0, 0.0, 0.0],  # paint
+    [0.2, 0.0, 0.06, 0.0, 0.14, 0.45, 0.01],  # paving (kerb stones on its sides)
+    [0.4, 0.2, 0.1, 1.0, 0.0, 0.0, 0.0],  # grass
+    [0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # facade
+    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # glass
+    [0.2, 0.15, 0.0, 0.0, 0.0, 0.0, 0.0],  # roof
+    [0.55, 0.3, 0.0, 0.0, 0.0, 0.0, 0.0],  # foliage
+    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # car paint
+    [0.2, 0.0, 0.05, 0.0, 0.12, 0.4, 0.008],  # concrete
+], dtype=np.float32)
+
+
+def surface_attributes(rows: np.ndarray) -> np.ndarray:
+    """(N, 4) surface rows (materials.Surface.row) -> (N, 12) vertex attributes: the row, then its
+    pattern's weights (SURFACE_WEIGHTS) padded to two vec4s."""
+    rows = np.asarray(rows, dtype=np.float32).reshape(-1, 4)
+    out = np.zeros((len(rows), 12), dtype=np.float32)
+    out[:, :4] = rows
+    out[:, 4:11] = SURFACE_WEIGHTS[rows[:, 0].astype(np.int64)]
+    return out
+
+
+_SURFACES_GLSL = """
+vec2 N(vec2 p) { return texture(noise, p * (1.0 / %NOISE%.0)).rg; }
+float H(vec2 cell) { return texelFetch(noise, ivec2(mod(cell, %NOISE%.0)), 0).r; }  // one value a cell
+vec3 sky_along(vec3 r) {  // the sky a mirror shows in direction r (below the horizon: the street)
+    vec3 sky = mix(horizon, zenith, sqrt(clamp(r.z, 0.0, 1.0)));
+    return r.z > 0.0 ? sky : horizon * 0.18;
+}
+vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3 v, float fp, out vec3 reflected) {
+    bool up = n.z > 0.5;
+    float s = dot(P.xy, vec2(-n.y, n.x));  // along a vertical face
+    vec2 uv = up ? P.xy : vec2(s, P.z);
+    vec2 n1 = N(uv * (up ? vec2(0.6) : vec2(0.8, 0.06)));  // facades: vertical rain streaks
+    vec2 n2 = N(uv * 9.0 + 31.7);
+    float lo = n1.x - 0.5;
+    float big = n1.y;  // features 12 cells wide: 20 m on the ground
+    float hi = n2.x - 0.5;
+    float fine = n2.y - 0.5;  // 0.75 cells a metre, a second mid octave
+    float m = (1.0 + 2.0 * a.x * lo) * (1.0 + 2.0 * a.y * hi) * (1.0 + 2.0 * a.z * fine);
+    // asphalt: darker repairs and lighter worn stretches; grass: dry patches (below)
+    m *= mix(1.0, mix(1.0, 0.65, smoothstep(0.72, 0.74, big)) * mix(1.0, 1.2, smoothstep(0.35, 0.15, big)), a.w * float(kind == 1));
+    // tiles (paving, slabs: prm.y square), kerb stones (1 m), windows (prm.w wide, a storey high)
+    vec2 tile = up ? prm.yy : vec2(kind == 3 ? 1.0 : prm.w, prm.y);
+    vec2 t = uv / tile;
+    vec2 e2 = min(fract(t), 1.0 - fract(t)) * tile;
+    float cell = H(floor(t) + vec2(97.0 * prm.z + 11.0, 0.0));  // one value a tile, pane or stone
+    float e = up ? min(e2.x, e2.y) : e2.x;
+    float joint = (1.0 - smoothstep(c.z, c.z + fp, e)) * (1.0 - smoothstep(2.0 * c.z, 12.0 * c.z, fp));
+    m *= (1.0 + 2.0 * c.x * (cell - 0.5)) * (1.0 - c.y * joint);
+    // facades: a band at each floor slab (lighter or darker by variant), a darker plinth, grime
+    float facade = float(kind == 5 && !up && n.z > -0.5);
+    float fz = fract(P.z / prm.y) * prm.y;
+    float band = smoothstep(0.32 + 0.5 * fp, 0.32 - 0.5 * fp, fz) * (1.0 - smoothstep(0.3, 0.8, fp));
+    m *= mix(1.0, mix(1.0, prm.z < 0.5 ? 0.72 : 1.22, band) * mix(0.68, 1.0, smoothstep(0.7, 0.9, P.z))
+                  * (0.8 + 0.2 * smoothstep(0.0, 2.5, P.z)), facade);
+    vec3 albedo = base * m;
+    // kerb stones are granite, lighter than the paving
+    albedo = mix(albedo, vec3(0.36, 0.355, 0.34) * m, 0.7 * float(kind == 3 && !up));
+    // road paint worn where wheels pass: asphalt shows through
+    albedo = mix(albedo, vec3(0.09), 0.6 * float(kind == 2) * smoothstep(0.5, 0.9, 0.55 * (lo + 0.5) + 0.45 * (hi + 0.5)));
+    // grass: dry patches; foliage: some clusters yellower
+    albedo = mix(albedo, vec3(0.15, 0.13, 0.06) * m, 0.65 * float(kind == 4) * smoothstep(0.55, 0.8, big));
+    albedo = mix(albedo, albedo * vec3(1.5, 1.25, 0.55), float(kind == 8) * smoothstep(0.1, 0.3, hi));
+    // windows: rooms and blinds behind (a value per pane), the sky and street mirrored in front;
+    // car paint: a clear coat mirrors the sky
+    float glass = float(kind == 6);
+    albedo *= mix(1.0, 0.6 + 9.0 * cell * cell * cell, glass);
+    vec3 r = reflect(-v, n);
+    float F = 0.04 + 0.96 * pow(1.0 - clamp(abs(dot(n, v)), 0.0, 1.0), 5.0);
+    reflected = sky_along(r) * (glass * (0.1 + 0.9 * F) * (0.35 + 0.65 * step(0.3, cell)) + float(kind == 9) * 0.8 * F);
+    return albedo;
+}
+"""
+
+
+
+# pyrender 0.1.45's metallic-roughness shading (one directional sun) with what the preview adds:
+# procedural surfaces, the sun's shadow map (PCF), a sky/ground hemisphere ambient, street lamps
+# at night and the camera's exposure; then fog over the ray length, in linear colour.
 _COLOR_FS = """#version 330 core
 const float PI = 3.141592653589793;
 const float min_roughness = 0.04;
+in vec3 shadow_coord;
 in vec3 frag_position;
 in vec3 frag_normal;
 flat in vec4 base_metal;
 flat in vec4 emis_rough;
+flat in vec4 pattern;
+flat in vec4 amp;
+flat in vec3 cell_w;
 uniform vec3 cam_pos;
 uniform vec3 light_direction;
 uniform vec3 light_radiance;
-uniform vec3 ambient_light;
+uniform vec3 sky_ambient;
+uniform vec3 ground_ambient;
+uniform vec3 zenith;
+uniform vec3 horizon;
+uniform float exposure;
 uniform int effects;
 uniform float fog_density;
 uniform vec3 fog_color;
+uniform int shadows;
+uniform sampler2DShadow shadow_map;
+uniform sampler2D noise;
+uniform float shadow_radius;
+uniform int n_lamps;
+uniform vec4 lamps[%LAMPS%];
+uniform vec3 lamp_color;
 out vec4 frag_color;
+%SURFACES%
+float sun_visibility(vec3 q) {
+    if (q.x <= 0.0 || q.y <= 0.0 || q.x >= 1.0 || q.y >= 1.0 || q.z >= 1.0) return 1.0;
+    vec2 r = vec2(0.7, 0.35) * shadow_radius;  // two bilinear (2x2) PCF taps: an 8-texel penumbra
+    return 0.5 * (texture(shadow_map, vec3(q.xy + r, q.z)) + texture(shadow_map, vec3(q.xy - r, q.z)));
+}
 void main() {
+    vec3 P = frag_position;
     float roughness = clamp(emis_rough.a, min_roughness, 1.0);
     float metallic = clamp(base_metal.a, 0.0, 1.0);
-    vec3 base = base_metal.rgb;
+    vec3 n = normalize(frag_normal);
+    vec3 v = normalize(cam_pos - P);
+    float fp = max(length(fwidth(P)), 1e-4);
+    vec3 reflected;
+    vec3 base = surface(int(pattern.x + 0.5), pattern, amp, cell_w, base_metal.rgb, P, n, v, fp, reflected);
     vec3 c_diff = mix(vec3(0.0), base * (1 - min_roughness), 1.0 - metallic);
     vec3 f0 = mix(vec3(min_roughness), base, metallic);
-    vec3 n = normalize(frag_normal);
-    vec3 v = normalize(cam_pos - frag_position);
     vec3 l = normalize(-1.0 * light_direction);
     vec3 h = normalize(l + v);
     float nl = clamp(dot(n, l), 0.001, 1.0);
@@ -96,16 +237,36 @@ void main() {
     float D = a2 / (PI * denom * denom);
     vec3 diffuse_contrib = (1.0 - F) * c_diff / PI;
     vec3 spec_contrib = F * G * D / (4.0 * nl * nv + 0.001);
-    vec3 color = nl * light_radiance * (diffuse_contrib + spec_contrib);
-    color += base * ambient_light;
-    color += emis_rough.rgb;
-    color = clamp(color, 0.0, 1.0);
-    if (effects != 0) {  // fog and haze over the ray length, in linear colour
-        float T = exp(-fog_density * length(frag_position - cam_pos));
-        color = color * T + fog_color * (1.0 - T);
+    float sun = (shadows != 0 && dot(n, l) > 0.0) ? sun_visibility(shadow_coord) : 1.0;
+    vec3 color = sun * nl * light_radiance * (diffuse_contrib + spec_contrib);
+    color += base * mix(ground_ambient, sky_ambient, 0.5 + 0.5 * n.z);
+    color += reflected * (sky_ambient.g > 0.0 ? 1.0 : 0.0);
+#ifdef LAMPS
+    for (int i = 0; i < %LAMPS%; ++i) {  // street lamps: downward lights, inverse-square falloff
+        if (i >= n_lamps) break;
+        vec3 d = lamps[i].xyz - P;
+        float d2 = dot(d, d);
+        vec3 ld = d * inversesqrt(d2);
+        color += base * lamp_color * (lamps[i].w * max(dot(n, ld), 0.0) * smoothstep(0.15, 0.6, ld.z) / (d2 + 1.0));
     }
-    frag_color = clamp(vec4(pow(color, vec3(1.0 / 2.2)), 1.0), 0.0, 1.0);
+#endif
+    color = color * exposure + emis_rough.rgb;
+    if (effects != 0) {  // fog and haze over the ray length, in linear colour
+        float T = exp(-fog_density * length(P - cam_pos));
+        color = color * T + fog_color * exposure * (1.0 - T);
+    }
+    frag_color = clamp(vec4(pow(clamp(color, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0), 0.0, 1.0);
 }
+""".replace("%SURFACES%", _SURFACES_GLSL).replace("%LAMPS%", str(MAX_LAMPS)).replace("%NOISE%", str(NOISE_SIZE))
+
+_SHADOW_VS = """#version 330 core
+layout(location = 0) in vec3 position;
+uniform mat4 LVP;
+void main() { gl_Position = LVP * vec4(position, 1.0); }
+"""
+
+_SHADOW_FS = """#version 330 core
+void main() {}
 """
 
 # The sky: one screen-covering triangle at the far plane, drawn last where nothing else was.
@@ -123,13 +284,14 @@ uniform vec3 zenith;
 uniform vec3 horizon;
 uniform vec3 fog_color;
 uniform float sky_transmittance;
+uniform float exposure;
 out vec4 frag_color;
 void main() {
     vec2 ndc = 2.0 * gl_FragCoord.xy / viewport - 1.0;
     vec3 d = normalize(ndc_to_world * vec3(ndc, 1.0));
     float e = clamp(d.z, 0.0, 1.0);
     vec3 sky = horizon * (1.0 - e) * (1.0 - e) + zenith * (1.0 - (1.0 - e) * (1.0 - e));
-    vec3 c = sky * sky_transmittance + fog_color * (1.0 - sky_transmittance);
+    vec3 c = (sky * sky_transmittance + fog_color * (1.0 - sky_transmittance)) * exposure;
     frag_color = vec4(pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
 }
 """
@@ -191,16 +353,19 @@ def _program(vs: str, fs: str) -> int:
 
 
 class _Mesh:
-    """One vertex array: positions, normals, material slots and (optionally) instance ids."""
+    """One vertex array: positions, normals, material slots, (optionally) instance ids and the
+    surface pattern rows (materials.Surface.row: fixed per part, so not in the per-frame table)."""
 
     def __init__(self) -> None:
         self.vao = gl.glGenVertexArrays(1)
-        self.buffers = list(gl.glGenBuffers(4))
+        self.buffers = list(gl.glGenBuffers(5))
         self.count = 0
 
-    def upload(self, positions: np.ndarray, normals: np.ndarray, slots: np.ndarray, ids: np.ndarray | None) -> None:
+    def upload(self, positions: np.ndarray, normals: np.ndarray, slots: np.ndarray, ids: np.ndarray | None,
+               surfaces: np.ndarray | None = None) -> None:
         gl.glBindVertexArray(self.vao)
-        arrays = [(0, positions, 3), (1, normals, 3), (2, slots, 1), (3, ids, 1)]
+        surf = None if surfaces is None else surface_attributes(surfaces)
+        arrays = [(0, positions, 3), (1, normals, 3), (2, slots, 1), (3, ids, 1), (4, surf, 12)]
         for (loc, data, size), buf in zip(arrays, self.buffers):
             if data is None:
                 gl.glDisableVertexAttribArray(loc)
@@ -208,13 +373,18 @@ class _Mesh:
             data = np.ascontiguousarray(data, dtype=np.float32)
             gl.glBindBuffer(gl.GL_ARRAY_BUFFER, buf)
             gl.glBufferData(gl.GL_ARRAY_BUFFER, data.nbytes, data if data.size else None, gl.GL_STATIC_DRAW)
-            gl.glEnableVertexAttribArray(loc)
-            gl.glVertexAttribPointer(loc, size, gl.GL_FLOAT, gl.GL_FALSE, 0, ctypes.c_void_p(0))
+            for k in range(0, size, 4):  # 12 floats a vertex: three vec4 attributes (locations 4, 5, 6)
+                gl.glEnableVertexAttribArray(loc + k // 4)
+                gl.glVertexAttribPointer(loc + k // 4, min(size - k, 4), gl.GL_FLOAT, gl.GL_FALSE, 4 * size if size > 4 else 0,
+                                         ctypes.c_void_p(4 * k))
         gl.glBindVertexArray(0)
         self.count = len(positions)
 
-    def draw(self) -> None:
-        if self.count:
+    def draw(self, ranges: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """All triangles, or only the vertex ranges (first, count) given."""
+        if ranges is not None:
+            self.draw_ranges(*ranges)
+        elif self.count:
             gl.glBindVertexArray(self.vao)
             gl.glDrawArrays(gl.GL_TRIANGLES, 0, self.count)
 
@@ -229,6 +399,33 @@ class _Mesh:
         gl.glDeleteVertexArrays(1, [self.vao])
 
 
+@dataclass
+class Light:
+    """What lights a colour pass (linear rgb; radiance as pyrender's: diffuse = albedo / pi * nl * it).
+
+    sky_ambient and ground_ambient light a face pointing up and down (mixed by its normal's z);
+    zenith and horizon are the sky mirrored by glass and car paint; exposure scales all scene light
+    (the camera's, not the surfaces'); emission is added after it, as drawn. shadow_lvp is the sun's
+    light view-projection (None: no shadow pass); shadow_radius the PCF radius in shadow-map texels;
+    normal_bias (m) moves the looked-up point off its face (no self-shadowing acne). lamps: (N, 4)
+    xyz and intensity, point lights shining downwards.
+    """
+
+    direction: tuple = (0.0, 0.0, -1.0)
+    radiance: tuple = (0.0, 0.0, 0.0)
+    sky_ambient: tuple = (0.0, 0.0, 0.0)
+    ground_ambient: tuple = (0.0, 0.0, 0.0)
+    zenith: tuple = (0.0, 0.0, 0.0)
+    horizon: tuple = (0.0, 0.0, 0.0)
+    exposure: float = 1.0
+    shadow_lvp: np.ndarray | None = None
+    shadow_radius: float = 1.5
+    normal_bias: float = 0.05
+    lamps: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    lamp_color: tuple = (1.0, 0.82, 0.55)
+    sun_share: float = 0.0  # the sun's share of the daylight on a horizontal face (the backend's cue for shadows)
+
+
 class GLRaster:
     """The GL context, programs, framebuffers and the two meshes; see the module doc."""
 
@@ -238,21 +435,35 @@ class GLRaster:
         self._platform = EGLPlatform(1, 1)
         self._platform.init_context()
         self._platform.make_current()
-        self._color_prog = _program(_COLOR_VS, _COLOR_FS)
+        # Two builds of the colour shader: llvmpipe pays for the lamp loop even when it runs no
+        # iteration (~100 ms of CPU a 640x640 frame), so frames without lamps use one without it.
+        self._color_progs = {lamps: _program(_COLOR_VS, _COLOR_FS.replace("#version 330 core", "#version 330 core\n#define LAMPS" if lamps else "#version 330 core"))
+                             for lamps in (False, True)}
         self._id_prog = _program(_ID_VS, _ID_FS)
+        self._shadow_prog = _program(_SHADOW_VS, _SHADOW_FS)
         self._sky_prog = _program(_SKY_VS, _SKY_FS)
         self._sky_vao = gl.glGenVertexArrays(1)
         self.static = _Mesh()
         self.agents = _Mesh()
+        # What of the static city to draw (vertex ranges; None: all), set per camera by the backend:
+        # the parts whose bounds reach the view, and the shadow casters reaching the sun's map.
+        self.static_view: tuple[np.ndarray, np.ndarray] | None = None
+        self.static_shadow: tuple[np.ndarray, np.ndarray] | None = None
         self._materials = gl.glGenTextures(1)
         self._size: tuple[int, int] | None = None
         self._fbos: list[int] = []
         self._rbos: list[int] = []
-        self._loc = {name: gl.glGetUniformLocation(self._color_prog, name)
-                     for name in ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "ambient_light",
-                                  "effects", "fog_density", "fog_color")}
+        self._locs = {lamps: {name: gl.glGetUniformLocation(prog, name)
+                              for name in ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "sky_ambient",
+                                  "ground_ambient", "zenith", "horizon", "exposure", "effects", "fog_density", "fog_color",
+                                  "shadows", "shadow_matrix", "shadow_map", "noise", "shadow_radius", "normal_bias", "n_lamps",
+                                  "lamps", "lamp_color")} for lamps, prog in self._color_progs.items()}
         self._sky_loc = {name: gl.glGetUniformLocation(self._sky_prog, name)
-                         for name in ("ndc_to_world", "viewport", "zenith", "horizon", "fog_color", "sky_transmittance")}
+                         for name in ("ndc_to_world", "viewport", "zenith", "horizon", "fog_color", "sky_transmittance",
+                                      "exposure")}
+        self._shadow_lvp_loc = gl.glGetUniformLocation(self._shadow_prog, "LVP")
+        self._shadow_fbo, self._shadow_tex = self._shadow_target(SHADOW_SIZE)
+        self._noise_tex = self._noise_texture()
         self._id_loc = {name: gl.glGetUniformLocation(self._id_prog, name) for name in ("VP", "has_ids")}
 
     def make_current(self) -> None:
@@ -276,6 +487,49 @@ class GLRaster:
         gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
 
     # -- framebuffers -------------------------------------------------------------------------
+
+    @staticmethod
+    def _noise_texture() -> int:
+        """The value-noise table as a repeating, mipmapped single-channel float texture."""
+        rng = np.random.default_rng(NOISE_SEED)
+        fine = rng.random((NOISE_SIZE, NOISE_SIZE))
+        # a periodic Gaussian blur (sigma 4 cells) of another table, ranked back to uniform [0, 1)
+        k = np.fft.fftfreq(NOISE_SIZE)
+        blur = np.exp(-2.0 * (np.pi * 4.0) ** 2 * (k[:, None] ** 2 + k[None, :] ** 2))
+        coarse = np.fft.ifft2(np.fft.fft2(rng.random((NOISE_SIZE, NOISE_SIZE))) * blur).real
+        coarse = np.argsort(np.argsort(coarse, axis=None, kind="stable"), kind="stable").reshape(coarse.shape) / coarse.size
+        values = np.ascontiguousarray(np.stack([fine, coarse], axis=-1), dtype=np.float32)
+        tex = gl.glGenTextures(1)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, tex)
+        gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_RG32F, NOISE_SIZE, NOISE_SIZE, 0, gl.GL_RG, gl.GL_FLOAT, values.tobytes())
+        gl.glGenerateMipmap(gl.GL_TEXTURE_2D)
+        for name, value in ((gl.GL_TEXTURE_MIN_FILTER, gl.GL_LINEAR_MIPMAP_NEAREST), (gl.GL_TEXTURE_MAG_FILTER, gl.GL_LINEAR),
+                            (gl.GL_TEXTURE_WRAP_S, gl.GL_REPEAT), (gl.GL_TEXTURE_WRAP_T, gl.GL_REPEAT)):
+            gl.glTexParameteri(gl.GL_TEXTURE_2D, name, value)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
+        return tex
+
+    @staticmethod
+    def _shadow_target(size: int) -> tuple[int, int]:
+        """A depth texture (compared on lookup: hardware 2x2 PCF) and its framebuffer."""
+        tex = gl.glGenTextures(1)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, tex)
+        gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_DEPTH_COMPONENT24, size, size, 0, gl.GL_DEPTH_COMPONENT, gl.GL_FLOAT, None)
+        for name, value in ((gl.GL_TEXTURE_MIN_FILTER, gl.GL_LINEAR), (gl.GL_TEXTURE_MAG_FILTER, gl.GL_LINEAR),
+                            (gl.GL_TEXTURE_WRAP_S, gl.GL_CLAMP_TO_EDGE), (gl.GL_TEXTURE_WRAP_T, gl.GL_CLAMP_TO_EDGE),
+                            (gl.GL_TEXTURE_COMPARE_MODE, gl.GL_COMPARE_REF_TO_TEXTURE), (gl.GL_TEXTURE_COMPARE_FUNC, gl.GL_LEQUAL)):
+            gl.glTexParameteri(gl.GL_TEXTURE_2D, name, value)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
+        fbo = gl.glGenFramebuffers(1)
+        gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, fbo)
+        gl.glFramebufferTexture2D(gl.GL_FRAMEBUFFER, gl.GL_DEPTH_ATTACHMENT, gl.GL_TEXTURE_2D, tex, 0)
+        gl.glDrawBuffer(gl.GL_NONE)
+        gl.glReadBuffer(gl.GL_NONE)
+        status = gl.glCheckFramebufferStatus(gl.GL_FRAMEBUFFER)
+        gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)
+        if status != gl.GL_FRAMEBUFFER_COMPLETE:
+            raise RuntimeError(f"shadow framebuffer incomplete: {status}")
+        return fbo, tex
 
     def _framebuffers(self, width: int, height: int) -> None:
         if self._size == (width, height):
@@ -319,13 +573,38 @@ class GLRaster:
         gl.glCullFace(gl.GL_BACK)
         gl.glDisable(gl.GL_BLEND)
 
-    def color_pass(self, VP: np.ndarray, cam_pos, light_direction, light_radiance, ambient, width: int, height: int,
+    def shadow_pass(self, lvp: np.ndarray) -> None:
+        """The sun's depth map: the static city and this frame's agents seen along the sunlight.
+
+        No face culling (the ground and markings are single faces) and a slope-scaled depth offset:
+        with the lookup's normal offset, lit faces do not shadow themselves.
+        """
+        gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, self._shadow_fbo)
+        gl.glViewport(0, 0, SHADOW_SIZE, SHADOW_SIZE)
+        self._state()
+        gl.glDisable(gl.GL_CULL_FACE)
+        gl.glDisable(gl.GL_MULTISAMPLE)
+        gl.glEnable(gl.GL_POLYGON_OFFSET_FILL)
+        gl.glPolygonOffset(1.5, 4.0)
+        gl.glClear(gl.GL_DEPTH_BUFFER_BIT)
+        gl.glUseProgram(self._shadow_prog)
+        gl.glUniformMatrix4fv(self._shadow_lvp_loc, 1, gl.GL_TRUE, np.asarray(lvp, dtype=np.float32))
+        self.static.draw(self.static_shadow)
+        self.agents.draw()
+        gl.glDisable(gl.GL_POLYGON_OFFSET_FILL)
+        gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)
+
+    def color_pass(self, VP: np.ndarray, cam_pos, light: Light, width: int, height: int,
                    atmosphere: dict | None = None) -> np.ndarray:
-        """The shaded image, (H, W, 3) uint8 (top row first).
+        """The shaded image, (H, W, 3) uint8 (top row first); the sun's shadow pass first when
+        `light.shadow_lvp` is given.
 
         `atmosphere` (None: none; background black): fog_density (1/m), fog_color, zenith and
         horizon (linear rgb), sky_distance (m) and ndc_to_world (3x3, see _SKY_FS).
         """
+        shadows = light.shadow_lvp is not None
+        if shadows:
+            self.shadow_pass(light.shadow_lvp)
         self._framebuffers(width, height)
         ms_fb, color_fb, _ = self._fbos
         gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, ms_fb)
@@ -334,24 +613,46 @@ class GLRaster:
         gl.glEnable(gl.GL_MULTISAMPLE)
         gl.glClearColor(0.0, 0.0, 0.0, 0.0)
         gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
-        gl.glUseProgram(self._color_prog)
-        loc = self._loc
+        lamps = np.asarray(light.lamps, dtype=np.float32).reshape(-1, 4)[:MAX_LAMPS]
+        gl.glUseProgram(self._color_progs[len(lamps) > 0])
+        loc = self._locs[len(lamps) > 0]
+        vec3 = lambda name, x: gl.glUniform3f(loc[name], *(float(c) for c in x))  # noqa: E731
         gl.glUniformMatrix4fv(loc["VP"], 1, gl.GL_TRUE, np.asarray(VP, dtype=np.float32))
-        gl.glUniform3f(loc["cam_pos"], *(float(x) for x in cam_pos))
-        gl.glUniform3f(loc["light_direction"], *(float(x) for x in light_direction))
-        gl.glUniform3f(loc["light_radiance"], *(float(x) for x in light_radiance))
-        gl.glUniform3f(loc["ambient_light"], *(float(x) for x in ambient))
+        vec3("cam_pos", cam_pos)
+        vec3("light_direction", light.direction)
+        vec3("light_radiance", light.radiance)
+        vec3("sky_ambient", light.sky_ambient)
+        vec3("ground_ambient", light.ground_ambient)
+        vec3("zenith", light.zenith)
+        vec3("horizon", light.horizon)
+        vec3("lamp_color", light.lamp_color)
+        gl.glUniform1f(loc["exposure"], float(light.exposure))
         gl.glUniform1i(loc["effects"], int(atmosphere is not None))
         if atmosphere is not None:
             gl.glUniform1f(loc["fog_density"], float(atmosphere["fog_density"]))
-            gl.glUniform3f(loc["fog_color"], *(float(x) for x in atmosphere["fog_color"]))
+            vec3("fog_color", atmosphere["fog_color"])
+        gl.glUniform1i(loc["n_lamps"], len(lamps))
+        if len(lamps):
+            gl.glUniform4fv(loc["lamps"], len(lamps), np.ascontiguousarray(lamps))
+        gl.glUniform1i(loc["shadows"], int(shadows))
+        gl.glActiveTexture(gl.GL_TEXTURE1)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, self._shadow_tex)
+        gl.glUniform1i(loc["shadow_map"], 1)
+        if shadows:
+            bias = np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
+            gl.glUniformMatrix4fv(loc["shadow_matrix"], 1, gl.GL_TRUE, np.asarray(bias @ light.shadow_lvp, dtype=np.float32))
+            gl.glUniform1f(loc["shadow_radius"], float(light.shadow_radius) / SHADOW_SIZE)
+            gl.glUniform1f(loc["normal_bias"], float(light.normal_bias))
+        gl.glActiveTexture(gl.GL_TEXTURE2)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, self._noise_tex)
+        gl.glUniform1i(loc["noise"], 2)
         gl.glActiveTexture(gl.GL_TEXTURE0)
         gl.glBindTexture(gl.GL_TEXTURE_2D, self._materials)
         gl.glUniform1i(loc["materials"], 0)
-        self.static.draw()
+        self.static.draw(self.static_view)
         self.agents.draw()
         if atmosphere is not None:
-            self._sky(atmosphere, width, height)
+            self._sky(atmosphere, width, height, light.exposure)
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, ms_fb)
         gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, color_fb)
         gl.glBlitFramebuffer(0, 0, width, height, 0, 0, width, height, gl.GL_COLOR_BUFFER_BIT, gl.GL_NEAREST)
@@ -360,7 +661,7 @@ class GLRaster:
         gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)
         return rgba[::-1, :, :3]
 
-    def _sky(self, a: dict, width: int, height: int) -> None:
+    def _sky(self, a: dict, width: int, height: int, exposure: float) -> None:
         gl.glUseProgram(self._sky_prog)
         loc = self._sky_loc
         gl.glUniformMatrix3fv(loc["ndc_to_world"], 1, gl.GL_TRUE, np.asarray(a["ndc_to_world"], dtype=np.float32))
@@ -368,6 +669,7 @@ class GLRaster:
         for name in ("zenith", "horizon", "fog_color"):
             gl.glUniform3f(loc[name], *(float(x) for x in a[name]))
         gl.glUniform1f(loc["sky_transmittance"], float(np.exp(-a["fog_density"] * a["sky_distance"])))
+        gl.glUniform1f(loc["exposure"], float(exposure))
         gl.glDepthFunc(gl.GL_LEQUAL)
         gl.glDepthMask(gl.GL_FALSE)
         gl.glDisable(gl.GL_CULL_FACE)
@@ -395,7 +697,7 @@ class GLRaster:
         """First half of the id pass: clear, draw the static city; its camera z (what hides agents)."""
         self._id_setup(VP, width, height)
         gl.glUniform1i(self._id_loc["has_ids"], 0)
-        self.static.draw()
+        self.static.draw(self.static_view)
         z = self._read_z(width, height)
         gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)
         return z
@@ -439,8 +741,11 @@ class GLRaster:
         self._delete_framebuffers()
         self.static.delete()
         self.agents.delete()
-        gl.glDeleteTextures([self._materials])
-        gl.glDeleteProgram(self._color_prog)
+        gl.glDeleteTextures([self._materials, self._shadow_tex, self._noise_tex])
+        gl.glDeleteFramebuffers(1, [self._shadow_fbo])
+        for prog in self._color_progs.values():
+            gl.glDeleteProgram(prog)
+        gl.glDeleteProgram(self._shadow_prog)
         gl.glDeleteProgram(self._id_prog)
         gl.glDeleteProgram(self._sky_prog)
         gl.glDeleteVertexArrays(1, [self._sky_vao])

@@ -24,19 +24,28 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import numpy as np  # noqa: E402
 
 from scenes.description import Scene  # noqa: E402
-from scenes.gl_raster import ZFAR, ZNEAR, GLRaster, projection, view_matrix  # noqa: E402
-from scenes.meshes import agent_object, compile_scene, static_materials, static_objects, world_box  # noqa: E402
+from scenes.gl_raster import MAX_LAMPS, SHADOW_SIZE, ZFAR, ZNEAR, GLRaster, Light, projection, view_matrix  # noqa: E402
+from scenes.materials import agent_surface, building_surface, furniture_surface, ground_surface  # noqa: E402
+from scenes.meshes import (agent_object, compile_scene, lamp_lights, static_materials, static_objects,  # noqa: E402
+                           world_box)
 from scenes.seeding import frame_streams  # noqa: E402
 
 SKY_DISTANCE = 2000.0
 CULL_MARGIN = 0.25  # metres added to an agent's bounding sphere when testing it against the view
+SHADOW_REACH = 160.0  # metres along a view ray that the sun's shadow map covers (beyond: unshadowed)
+SUN_SCALE = 0.9  # Lighting.sun_strength (Blender W/m^2) -> the shader's sun radiance
+EXPOSURE_KEY = 1.3  # the camera exposes a white horizontal surface in the frame's daylight to this
+MAX_EXPOSURE = 5.0  # at night the camera's gain stops here
+LAMP_INTENSITY = 16.0
+MIN_SUN_SHARE = 0.25  # below this share of the daylight the sun casts no visible shadow: no shadow pass
+NON_CASTERS = frozenset({"window", "window_lit", "frame", "marking_white", "marking_yellow"})  # lie on other faces  # a street lamp: irradiance at 1 m (inverse square beyond), before exposure
 
 
 @dataclass
@@ -61,6 +70,15 @@ def material_table(materials) -> np.ndarray:
     out[:, 4:7] = np.clip(r[:, 4:7] * r[:, 7:8], 0.0, 1.0)
     out[:, 7] = np.maximum(r[:, 8], 0.04)
     return out
+
+
+def surface_rows(surfaces, faces_per_part) -> np.ndarray:
+    """Each vertex's surface pattern row (materials.Surface.row), (3 * faces, 4) float32: a part's
+    surface repeated over its faces' vertices."""
+    if not surfaces:
+        return np.zeros((0, 4), dtype=np.float32)
+    rows = np.array([sf.row() for sf in surfaces], dtype=np.float32).reshape(-1, 4)
+    return np.repeat(rows, 3 * np.asarray(faces_per_part, dtype=np.int64), axis=0)
 
 
 def _soup(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -146,20 +164,40 @@ class RasterScene:
         self.scene = scene
         self.gl = GLRaster()
         self._statics = static_objects(scene.city)
-        verts, faces, face_slots, n_verts = [], [], [], 0
+        # Parts that cast shadows first, then those lying on other faces (windows, frames, road
+        # markings: 40% of downtown's triangles), which the sun's depth pass leaves out. Slots stay
+        # in _static_materials' order whatever the order in the buffer.
+        buildings = {b.building_id: b for b in scene.city.buildings}
+        parts = []  # (casts a shadow, slot, world vertices, faces, surface)
         for obj in self._statics:
             rot, shift = obj.matrix_world[:3, :3], obj.matrix_world[:3, 3]
-            for mesh in obj.parts.values():
-                verts.append(np.asarray(mesh.vertices, dtype=np.float64) @ rot.T + shift)
-                faces.append(np.asarray(mesh.faces) + n_verts)
-                face_slots.append(np.full(len(mesh.faces), len(face_slots), dtype=np.float32))
-                n_verts += len(mesh.vertices)
+            for role, mesh in obj.parts.items():
+                parts.append((role not in NON_CASTERS, len(parts), np.asarray(mesh.vertices, dtype=np.float64) @ rot.T + shift,
+                              np.asarray(mesh.faces), static_surface(scene.city, buildings, obj, role)))
+        self._n_static_slots = len(parts)
+        parts.sort(key=lambda q: not q[0])  # stable: casters first, each group in scene order
+        verts, faces, n_verts = [], [], 0
+        for _, _, v, f, _ in parts:
+            verts.append(v)
+            faces.append(f + n_verts)
+            n_verts += len(v)
         pos, nrm = _soup(np.concatenate(verts), np.concatenate(faces))
-        self._n_static_slots = len(face_slots)
-        self.gl.static.upload(pos, nrm, np.repeat(np.concatenate(face_slots), 3), None)
+        slots = np.repeat(np.concatenate([np.full(len(q[3]), q[1], dtype=np.float32) for q in parts]), 3)
+        self.gl.static.upload(pos, nrm, slots, None, surface_rows([q[4] for q in parts], [len(q[3]) for q in parts]))
+        # Each part's vertex range and world bounds: what a camera or the sun's map cannot reach is
+        # not drawn (conservative: a part is skipped only when its whole box is outside).
+        counts = np.array([3 * len(q[3]) for q in parts], dtype=np.int64)
+        self._part_first = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        self._part_count = counts
+        self._part_lo = np.array([q[2].min(axis=0) if len(q[2]) else np.zeros(3) for q in parts])
+        self._part_hi = np.array([q[2].max(axis=0) if len(q[2]) else np.zeros(3) for q in parts])
+        self._part_casts = np.array([q[0] for q in parts], dtype=bool)
         self._static_table = self._static_materials(scene)
         self._agents_key: tuple | None = None
         self._ranges: dict[int, tuple[int, int]] = {}
+        self._top = max((p.top_z + p.roof_height for b in scene.city.buildings for p in b.parts), default=10.0)
+        lamps = lamp_lights(replace(scene, lighting=replace(scene.lighting, street_lights_on=True)))
+        self._lamps = np.array([lamp.position for lamp in lamps], dtype=np.float64).reshape(-1, 3)
 
     def _static_materials(self, scene: Scene) -> np.ndarray:
         return material_table([m for obj in self._statics for m in static_materials(scene, obj).values()])
@@ -187,7 +225,7 @@ class RasterScene:
         chosen = visible_agents(agents, K, R, t, width, height)
         if static_z is not None:
             chosen = unoccluded_agents(agents, chosen, K, R, t, static_z)
-        verts, faces, face_slots, face_ids, materials = [], [], [], [], []
+        verts, faces, face_slots, face_ids, materials, surfaces, part_faces = [], [], [], [], [], [], []
         self._ranges = {}
         n_verts = n_faces = 0
         for k in chosen:
@@ -199,6 +237,8 @@ class RasterScene:
                 faces.append(np.asarray(mesh.faces) + n_verts)
                 face_slots.append(np.full(len(mesh.faces), self._n_static_slots + len(materials), dtype=np.float32))
                 materials.append(obj.materials[role])
+                surfaces.append(agent_surface(role))
+                part_faces.append(len(mesh.faces))
                 n_verts += len(mesh.vertices)
                 n_faces += len(mesh.faces)
             face_ids.append(np.full(n_faces - begin, obj.instance_id, dtype=np.float32))
@@ -210,10 +250,27 @@ class RasterScene:
             pos = nrm = np.zeros((0, 3))
             slots = ids = np.zeros(0)
         self.gl.make_current()
-        self.gl.agents.upload(pos, nrm, slots, ids)
+        self.gl.agents.upload(pos, nrm, slots, ids, surface_rows(surfaces, part_faces))
         table = np.concatenate([self._static_table, material_table(materials)])
         self.gl.set_materials(table)
         self._agents_key = key
+
+    def _static_ranges(self, M: np.ndarray, keep: np.ndarray, near: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Vertex ranges (first, count) of the static parts in `keep` whose bounding box reaches
+        the clip volume of the 4x4 `M` (world -> clip): a part is left out only when all eight
+        corners of its box lie outside one of the volume's side planes (or, with `near`, all
+        behind the camera's near plane), so no part that can touch a pixel is ever left out."""
+        lo, hi = self._part_lo, self._part_hi
+        corners = np.stack([np.stack([np.where(i & 1, hi[:, 0], lo[:, 0]), np.where(i & 2, hi[:, 1], lo[:, 1]),
+                                      np.where(i & 4, hi[:, 2], lo[:, 2])], axis=-1) for i in range(8)], axis=1)
+        c = corners @ M[:3, :3].T + M[:3, 3]  # (P, 8, 3) clip x, y, z
+        w = corners @ M[3, :3] + M[3, 3]  # (P, 8)
+        out = ((c[..., 0] < -w).all(axis=1) | (c[..., 0] > w).all(axis=1) | (c[..., 1] < -w).all(axis=1)
+               | (c[..., 1] > w).all(axis=1))
+        if near:
+            out |= (c[..., 2] < -w).all(axis=1)
+        idx = np.nonzero(keep & ~out & (self._part_count > 0))[0]
+        return self._part_first[idx].astype(np.int32), self._part_count[idx].astype(np.int32)
 
     # -- inspection -------------------------------------------------------------------------
 
@@ -234,14 +291,15 @@ class RasterScene:
         self.gl.make_current()
         if prepare:
             self._prepare_agents(K, R, t, width, height)
-        return K, R, t, projection(K, width, height) @ view_matrix(R, t)
+        VP = projection(K, width, height) @ view_matrix(R, t)
+        self.gl.static_view = self._static_ranges(VP, np.ones(len(self._part_count), dtype=bool), near=True)
+        return K, R, t, VP
 
     def render(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int, effects: bool = True) -> RasterFrame:
         """Render with an OpenCV camera: X_cam = R X_world + t, pixels as in the contract."""
         K, R, t, VP = self._camera(K, R, t, width, height, prepare=False)
         depth, instance = self._id_pass(K, R, t, VP, width, height)
-        light_dir, radiance, ambient = self._light()
-        rgb = self.gl.color_pass(VP, -R.T @ t, light_dir, radiance, ambient, width, height,
+        rgb = self.gl.color_pass(VP, -R.T @ t, self._light(K, R, t, width, height), width, height,
                                  self._atmosphere(K, R, width, height) if effects else None)
         rgb = np.ascontiguousarray(rgb)
         weather = self.scene.weather
@@ -278,19 +336,20 @@ class RasterScene:
         count = np.array([r[1] for r in ranges], dtype=np.int32)
         return self.gl.ids_of_ranges(VP, width, height, first, count)
 
-    def _light(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(direction the sunlight travels, sun radiance, ambient) of the current scene."""
-        scene = self.scene
-        light = scene.lighting
-        d = np.asarray(light.sun_direction, dtype=np.float64)
-        n = np.linalg.norm(d)
-        direction = -d / n if n > 0 else np.array([0.0, 0.0, -1.0])
-        sun = max(light.sun_strength, 0.0) * (1.0 if light.sun_elevation > 0 else 0.0)
-        radiance = np.asarray(_sun_color(light.sun_elevation)) * 1.2 * sun
-        amb = 0.05 + 0.45 * light.sky_strength
-        if light.street_lights_on and light.sky_strength < 0.3:
-            amb += 0.08  # street lighting, approximated as ambient in the preview
-        return direction, radiance, np.array(_sky_colors(scene)[1]) * amb * 1.6
+    def _light(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> Light:
+        """The frame's light for this camera: illumination(scene), the sun's shadow map over the
+        view and the street lamps nearest to it."""
+        light = illumination(self.scene)
+        ground = view_ground(K, R, t, width, height)
+        if light.sun_share >= MIN_SUN_SHARE:
+            lvp, texel = shadow_projection(ground, light.direction, self.scene.city.bounds, self._top)
+            light.shadow_lvp, light.normal_bias = lvp, 1.5 * texel
+            self.gl.static_shadow = self._static_ranges(lvp, self._part_casts, near=False)
+        if self.scene.lighting.street_lights_on and self._lamps is not None and len(self._lamps):
+            focus = ground[1:].mean(axis=0)
+            near = np.argsort(np.linalg.norm(self._lamps - focus, axis=1), kind="stable")[:MAX_LAMPS]
+            light.lamps = np.column_stack([self._lamps[near], np.full(len(near), LAMP_INTENSITY)])
+        return light
 
     def _atmosphere(self, K: np.ndarray, R: np.ndarray, width: int, height: int) -> dict:
         """What the colour pass needs for fog, haze and sky (gl_raster.GLRaster.color_pass).
@@ -304,11 +363,100 @@ class RasterScene:
         A = np.array([[width / (2 * K[0, 0]), 0.0, (width / 2 - 0.5 - K[0, 2]) / K[0, 0]],
                       [0.0, -height / (2 * K[1, 1]), (height / 2 - 0.5 - K[1, 2]) / K[1, 1]],
                       [0.0, 0.0, 1.0]])
-        return {"fog_density": float(self.scene.weather.fog_density), "fog_color": np.asarray(horizon) * 0.9,
+        h = np.asarray(horizon)
+        fog = 0.9 * (0.5 * h + 0.5 * _luminance(h))  # haze scatters nearly white: half the horizon's tint
+        return {"fog_density": float(self.scene.weather.fog_density), "fog_color": fog,
                 "zenith": zenith, "horizon": horizon, "sky_distance": SKY_DISTANCE, "ndc_to_world": R.T @ A}
 
     def close(self) -> None:
         self.gl.close()
+
+
+def static_surface(city, buildings: dict, obj, role: str):
+    """The procedural surface of a static part (materials.py decides; see materials.Surface)."""
+    if obj.kind in ("ground", "markings"):
+        return ground_surface(role, city)
+    if obj.kind == "building":
+        return building_surface(role, buildings[obj.name])
+    return furniture_surface(role)
+
+
+def _luminance(c) -> float:
+    return float(np.dot(np.asarray(c, dtype=np.float64), (0.2126, 0.7152, 0.0722)))
+
+
+def illumination(scene: Scene) -> Light:
+    """Sun, sky and ground light and the camera's exposure for a frame's weather and hour.
+
+    Units: a white horizontal face receives E = E_sun + E_sky. The sun's radiance follows
+    Lighting.sun_strength (already dimmed by cloud and by a low sun); the sky gives a clear day
+    about a fifth of its daylight and an overcast day most of it (diffuse: soft, no hard
+    shadows), tinted like the sky; the ground returns 15% of what falls on it to faces looking
+    down. The exposure is a camera's: a white horizontal face in the frame's daylight reads
+    EXPOSURE_KEY, but the horizon is not blown out (dusk), and at night the gain stops at
+    MAX_EXPOSURE, so the night stays dark except under lamps and lit windows.
+    """
+    light, w = scene.lighting, scene.weather
+    zenith, horizon = (np.asarray(c) for c in _sky_colors(scene))
+    d = np.asarray(light.sun_direction, dtype=np.float64)
+    n = np.linalg.norm(d)
+    direction = -d / n if n > 0 else np.array([0.0, 0.0, -1.0])
+    sun = max(light.sun_strength, 0.0) * (1.0 if light.sun_elevation > 0 else 0.0)
+    radiance = np.asarray(_sun_color(light.sun_elevation)) * SUN_SCALE * sun
+    e_sun = _luminance(radiance) * max(math.sin(math.radians(light.sun_elevation)), 0.0) / math.pi
+    e_sky = light.sky_strength * (0.15 + 0.45 * w.cloud_cover)
+    tint = 0.5 * (zenith + horizon)
+    tint = 0.3 * tint / max(_luminance(tint), 1e-6) + 0.7
+    sky_ambient = tint * e_sky
+    ground_ambient = np.array([1.0, 0.95, 0.88]) * 0.15 * (e_sun + e_sky)
+    exposure = min(EXPOSURE_KEY / max(e_sun + e_sky, 1e-6), 1.1 / max(_luminance(horizon), 1e-6), MAX_EXPOSURE)
+    return Light(direction=tuple(direction), radiance=tuple(radiance), sky_ambient=tuple(sky_ambient),
+                 ground_ambient=tuple(ground_ambient), zenith=tuple(zenith), horizon=tuple(horizon),
+                 exposure=float(max(exposure, 0.2)), shadow_radius=1.0 + 8.0 * float(w.cloud_cover),
+                 sun_share=e_sun / max(e_sun + e_sky, 1e-9))
+
+
+def view_ground(K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> np.ndarray:
+    """The camera centre and where rays through the image's corners, edge midpoints and centre
+    meet the ground (z = 0), or SHADOW_REACH along them when sooner: (10, 3), what the view spans."""
+    cam = -R.T @ t.reshape(3)
+    u = np.array([-0.5, width / 2, width - 0.5])
+    v = np.array([-0.5, height / 2, height - 0.5])
+    uu, vv = np.meshgrid(u, v)
+    pix = np.stack([uu.ravel(), vv.ravel(), np.ones(9)])
+    rays = (R.T @ np.linalg.solve(K, pix)).T
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    reach = np.full(9, SHADOW_REACH)
+    down = rays[:, 2] < -1e-9
+    reach[down] = np.minimum(reach[down], -cam[2] / rays[down, 2])
+    return np.vstack([cam, cam + rays * np.maximum(reach, 0.0)[:, None]])
+
+
+def shadow_projection(points: np.ndarray, direction, bounds, top: float) -> tuple[np.ndarray, float]:
+    """The sun's orthographic view-projection over `points` (what the camera sees), and its texel (m).
+
+    Across the sunlight it spans the points (plus 3 m); along it, the whole city from the ground
+    to its highest roof, so every caster between the sun and a seen point is in the map.
+    """
+    f = np.asarray(direction, dtype=np.float64)
+    f = f / np.linalg.norm(f)
+    up = np.array([0.0, 0.0, 1.0]) if abs(f[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
+    right = np.cross(f, up)
+    right /= np.linalg.norm(right)
+    L = np.stack([right, np.cross(right, f), f])
+    p = points @ L.T
+    lo, hi = p[:, :2].min(axis=0) - 3.0, p[:, :2].max(axis=0) + 3.0
+    xmin, ymin, xmax, ymax = bounds
+    corners = np.array([[x, y, z] for x in (xmin - 5, xmax + 5) for y in (ymin - 5, ymax + 5) for z in (-1.0, top + 2.0)])
+    depth = corners @ f
+    d0, d1 = float(depth.min()), float(depth.max())
+    O = np.eye(4)
+    O[0, 0], O[0, 3] = 2.0 / (hi[0] - lo[0]), -(hi[0] + lo[0]) / (hi[0] - lo[0])
+    O[1, 1], O[1, 3] = 2.0 / (hi[1] - lo[1]), -(hi[1] + lo[1]) / (hi[1] - lo[1])
+    O[2, 2], O[2, 3] = 2.0 / (d1 - d0), -(d1 + d0) / (d1 - d0)
+    V = np.eye(4)
+    V[:3, :3] = L
+    return O @ V, float(max(hi - lo)) / SHADOW_SIZE
 
 
 def _sun_color(elevation: float) -> list[float]:

@@ -27,12 +27,15 @@ WEATHER_KINDS = ("clear", "overcast", "rain", "snow", "fog")
 TIMES_OF_DAY = ("dawn", "morning", "noon", "afternoon", "dusk", "night")
 
 # (cloud cover, haze/fog density 1/m, precipitation, wetness, snow cover): uniform ranges.
+# Haze is thin enough that a drone 40-120 m up sees cars clearly: clear air keeps 95-99% of the
+# contrast over 120 m (visibility 10-40 km), overcast 89-96%, rain 70-89%; fog is fog (visibility
+# 330 m to 1 km, under the 1 km that defines it) yet still shows a car 100 m away at 30-67%.
 _WEATHER_RANGES: dict[str, dict[str, tuple[float, float]]] = {
-    "clear": {"cloud": (0.0, 0.3), "fog": (0.0002, 0.0008), "precip": (0.0, 0.0), "wet": (0.0, 0.0), "snow": (0.0, 0.0)},
-    "overcast": {"cloud": (0.7, 1.0), "fog": (0.0005, 0.002), "precip": (0.0, 0.0), "wet": (0.0, 0.3), "snow": (0.0, 0.0)},
-    "rain": {"cloud": (0.85, 1.0), "fog": (0.002, 0.006), "precip": (0.2, 1.0), "wet": (0.6, 1.0), "snow": (0.0, 0.0)},
-    "snow": {"cloud": (0.8, 1.0), "fog": (0.002, 0.008), "precip": (0.2, 1.0), "wet": (0.2, 0.5), "snow": (0.3, 1.0)},
-    "fog": {"cloud": (0.5, 1.0), "fog": (0.008, 0.04), "precip": (0.0, 0.0), "wet": (0.0, 0.4), "snow": (0.0, 0.0)},
+    "clear": {"cloud": (0.0, 0.3), "fog": (0.0001, 0.0004), "precip": (0.0, 0.0), "wet": (0.0, 0.0), "snow": (0.0, 0.0)},
+    "overcast": {"cloud": (0.7, 1.0), "fog": (0.0003, 0.001), "precip": (0.0, 0.0), "wet": (0.0, 0.3), "snow": (0.0, 0.0)},
+    "rain": {"cloud": (0.85, 1.0), "fog": (0.001, 0.003), "precip": (0.2, 1.0), "wet": (0.6, 1.0), "snow": (0.0, 0.0)},
+    "snow": {"cloud": (0.8, 1.0), "fog": (0.0015, 0.004), "precip": (0.2, 1.0), "wet": (0.2, 0.5), "snow": (0.3, 1.0)},
+    "fog": {"cloud": (0.5, 1.0), "fog": (0.004, 0.012), "precip": (0.0, 0.0), "wet": (0.0, 0.4), "snow": (0.0, 0.0)},
 }
 
 
@@ -112,6 +115,11 @@ def _hour_for(rng: np.random.Generator, time_of_day: str, latitude: float, day: 
     raise ValueError(f"unknown time of day {time_of_day!r}; one of {', '.join(TIMES_OF_DAY)}")
 
 
+def direct_sun(cloud_cover: float) -> float:
+    """The fraction of the clear-sky direct sunlight that clouds let through: 1 - cover^2 / 0.75."""
+    return float(np.clip(1.0 - cloud_cover * cloud_cover / 0.75, 0.0, 1.0))
+
+
 def draw_lighting(rng: np.random.Generator, times: dict[str, float], latitude: float, weather: Weather,
                   time_of_day: str | None = None) -> Lighting:
     """Time of day (drawn from `times` unless fixed), the sun, the sky and which lights are on."""
@@ -120,8 +128,10 @@ def draw_lighting(rng: np.random.Generator, times: dict[str, float], latitude: f
     hour = _hour_for(rng, time_of_day, latitude, day)
     elevation, azimuth = solar_position(latitude, day, hour)
     clear_sky = 1.0 - 0.85 * weather.cloud_cover
-    # Direct sun fades near the horizon (longer path through the air) and behind clouds.
-    sun = 4.0 * float(np.clip(math.sin(math.radians(max(elevation, 0.0))) * 2.5, 0.0, 1.0)) * clear_sky
+    # Direct sun fades near the horizon (longer path through the air) and behind clouds: scattered
+    # clouds (cover up to 0.3) hide it a little, an overcast deck (0.87 and more) entirely, so
+    # overcast light is the sky's alone: soft, no hard shadows.
+    sun = 4.0 * float(np.clip(math.sin(math.radians(max(elevation, 0.0))) * 2.5, 0.0, 1.0)) * direct_sun(weather.cloud_cover)
     twilight = float(np.clip((elevation + 12.0) / 16.0, 0.0, 1.0))  # 0 at -12 deg, 1 at +4 deg
     sky = 0.02 + 0.98 * twilight * (0.6 + 0.4 * clear_sky)
     dark = elevation < 4.0

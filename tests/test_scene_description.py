@@ -236,7 +236,7 @@ def test_time_of_day_matches_sun_and_lights(time_of_day):
 def test_weather_kinds():
     rng = np.random.default_rng(1)
     fog = draw_weather(rng, {"fog": 1.0})
-    assert 97 < fog.visibility < 490 and fog.precipitation == 0
+    assert 320 < fog.visibility < 980 and fog.precipitation == 0
     rain = draw_weather(rng, {"rain": 1.0})
     assert rain.wetness >= 0.6 and rain.precipitation > 0 and rain.snow_cover == 0
     snow = draw_weather(rng, {"snow": 1.0})
