@@ -141,7 +141,7 @@ def build_city(preset: Preset, seed: int) -> City:
             strips = _block_sidewalks(tag, block, sw, g.curb_height)
             verges = {s.sidewalk_id: _verge_width(rng, g, s) for s in strips}
             for strip in strips:
-                sidewalks.extend(_split_verge(strip, block, verges[strip.sidewalk_id], sw))
+                sidewalks.extend(_split_verge(strip, block, verges[strip.sidewalk_id]))
             lot = _Rect(block.x0 + sw["w"], block.y0 + sw["s"], block.x1 - sw["e"], block.y1 - sw["n"])
             if lot.w > 0.5 and lot.h > 0.5:
                 sidewalks.append(Sidewalk(f"{tag}_lot", preset.buildings.lot_surface, ((lot.x0 + lot.x1) / 2, (lot.y0 + lot.y1) / 2),
@@ -475,12 +475,11 @@ def _verge_width(rng: np.random.Generator, g, strip: Sidewalk) -> float:
     return v if v >= 0.6 and strip.length - 2 * VERGE_END > 3.0 else 0.0
 
 
-def _split_verge(strip: Sidewalk, block: _Rect, verge: float, sw: dict) -> list[Sidewalk]:
+def _split_verge(strip: Sidewalk, block: _Rect, verge: float) -> list[Sidewalk]:
     """A road-side strip as footway (building side, full length), and, when it has a verge, a
     grass verge along the kerb with paved ends (where crosswalks land and corners are walked)."""
     if verge <= 0:
         return [strip]
-    del sw
     k = _kerb_sign(strip, block)
     half_w = strip.width / 2.0
 

@@ -3,14 +3,20 @@ barrows) on sidewalks and crosswalks, riders and tricycles near the right edge o
 traffic cones singly, in lines and around road works.
 
 Rules (each tested):
-- moving vehicles and motorcyclists sit in a driving lane, heading along it with yaw noise
-  (normal, 2 degrees, cut at 6) and a small lateral offset that keeps them inside the lane;
+- moving vehicles, trams and riders sit in a driving lane, heading along it with yaw noise
+  (normal, 2 degrees, cut at 6) and a small lateral offset, their turned footprint inside the
+  lane; trams in the innermost lanes of wide roads, riders, tricycles and some barrows near the
+  outer lane's right edge;
 - parked vehicles sit in the kerb-side parking lanes, nose to tail with 0.8 to 2.5 m gaps, away
   from intersections and crosswalks;
 - pedestrians stand or walk on sidewalks (walking along the street) or cross on crosswalks;
+  people pushing barrows walk along sidewalks;
+- cones stand on the road; a work zone's closed stretch and a junction work spot are obstacles
+  once ringed, so nothing else is placed inside them;
 - no two annotated cuboids intersect: footprints (all agents stand on the ground, so disjoint
   footprints mean disjoint cuboids) keep 0.1 m apart, tested with shapely;
-- nothing stands inside a building or on a pole, trunk or bench (furniture footprints), and
+- nothing stands inside a building or on a pole, trunk, bench, hedge or planter (furniture
+  footprints), and
   nothing taller than a lamp arm's or tree crown's clearance stands under it.
 
 A drawn agent that finds no free spot in 40 tries is dropped, so counts can fall short of the
