@@ -3,7 +3,8 @@ barrows) on sidewalks and crosswalks, riders and tricycles near the right edge o
 traffic cones singly, in lines and around road works.
 
 Rules (each tested):
-- moving vehicles, trams and riders sit in a driving lane, heading along it with yaw noise
+- moving vehicles (some queued behind the stop lines of signalised junctions), trams and
+  riders sit in a driving lane, heading along it with yaw noise
   (normal, 2 degrees, cut at 6) and a small lateral offset, their turned footprint inside the
   lane; trams in the innermost lanes of wide roads, riders, tricycles and some barrows near the
   outer lane's right edge;
@@ -358,6 +359,31 @@ class _Placer:
         half = abs(d[0]) * inter.size[0] / 2 + abs(d[1]) * inter.size[1] / 2
         return t - half, t + half
 
+    def queues(self, probability: float, length, mix: dict[str, float]) -> None:
+        """Traffic waiting at signalised junctions: in each lane approaching one, with
+        `probability`, a queue of `length` vehicles nose to tail (1.5-3 m apart) behind the stop
+        line and crosswalk, as pole cameras see at a red light."""
+        for inter in self.city.intersections:
+            if not inter.traffic_lights:
+                continue
+            for lane in self.driving:
+                if not self._crosses(lane, inter) or self.rng.random() >= probability:
+                    continue
+                a, _ = self._span(lane, inter)
+                front = a - float(self.rng.uniform(6.5, 7.5))  # behind the widest crosswalk and stop line
+                for _ in range(int(self.rng.integers(int(length[0]), int(length[1]) + 1))):
+                    category = pick(self.rng, mix)
+                    dims, spec = self.asset(category)
+                    t = front - dims[0] / 2
+                    if t - dims[0] / 2 < 1.0:
+                        break
+                    xy = to_world(lane.start, lane.heading, t, float(np.clip(self.rng.normal(0.0, 0.1), -0.2, 0.2)))
+                    inside = rect_polygon(to_world(lane.start, lane.heading, lane.length / 2.0, 0.0), lane.length, lane.width,
+                                          lane.heading)
+                    if not self.try_add(category, "moving", dims, spec, xy, lane.heading + self.yaw_noise(0.5), 0.0, inside):
+                        break  # something stands in the queue's way: it ends there
+                    front = t - dims[0] / 2 - float(self.rng.uniform(1.5, 3.0))
+
     def cone_line(self) -> None:
         """3 to 6 cones 1.5 to 3 m apart along the right edge of a driving lane (road works)."""
         if not self.rightmost:
@@ -394,6 +420,8 @@ def place_agents(city: City, spec: AgentSpec, rng: np.random.Generator, user_ass
         p.single_cone()
     if p.parking and parked_fraction > 0:
         p.parked(parked_fraction, spec.parked_mix)
+    if spec.queue_probability > 0:
+        p.queues(spec.queue_probability, spec.queue_length, spec.vehicle_mix)
     tram_lanes = p.inner_lanes(spec.tram_min_lanes)
     for _ in range(n_tram):
         p.in_lane("tram", tram_lanes)

@@ -83,6 +83,8 @@ class FurnitureSpec:
 class AgentSpec:
     moving_vehicles: IntRange = (8, 16)
     parked_fraction: Range = (0.3, 0.7)  # of the kerb-side parking slots
+    queue_probability: float = 0.0  # per lane approaching a signalised junction: vehicles queued at its stop line
+    queue_length: IntRange = (1, 5)  # vehicles in such a queue (drawn from vehicle_mix, on top of moving_vehicles)
     pedestrians: IntRange = (20, 40)
     crossing_fraction: float = 0.2  # of pedestrians drawn on crosswalks
     cyclists: IntRange = (2, 5)
@@ -228,6 +230,8 @@ def validate(preset: Preset) -> None:
         lo, hi = getattr(a, label)
         if not 0 <= lo <= hi:
             raise ValueError(f"agents.{label} must be [min, max] counts with 0 <= min <= max, got {[lo, hi]}")
+    if not 0 <= a.queue_probability <= 1 or not 1 <= a.queue_length[0] <= a.queue_length[1]:
+        raise ValueError("agents.queue_probability is in [0, 1]; agents.queue_length is [min, max] with 1 <= min <= max")
     if not 0 <= a.junction_works <= 1:
         raise ValueError("agents.junction_works is a probability in [0, 1]")
     if a.tram_min_lanes < 1:

@@ -9,7 +9,7 @@ from collections import Counter
 
 import numpy as np
 import pytest
-from shapely.geometry import Polygon
+from shapely.geometry import LineString, Polygon
 
 from scenes.class_mix import class_counts
 from scenes.description import to_json
@@ -168,3 +168,21 @@ def test_every_preset_keeps_the_rules_and_is_deterministic(preset):
     for a, poly in zip(scene.agents, polys):
         assert not any(poly.intersects(g) for g in ground), a.name
     assert len({a.category for a in scene.agents}) >= 7
+
+
+def test_queues_wait_nose_to_tail_behind_the_stop_lines():
+    preset = with_overrides(load_preset("intersection"), {"agents.queue_probability": 1.0, "agents.queue_length": (3, 3),
+                                                           "agents.moving_vehicles": (0, 0), "agents.junction_works": 0.0,
+                                                           "agents.work_zones": (0, 0), "agents.cone_groups": (0, 0),
+                                                           "agents.single_cones": (0, 0), "agents.trams": (0, 0)})
+    scene = SceneGenerator(preset, 1).frame(1, 0)
+    vehicles = [a for a in scene.agents if a.category in ("car", "van", "truck", "bus")]
+    lanes = [lane for r in scene.city.roads for lane in r.lanes if lane.kind == "driving"]
+    # every lane approaching each of the 4 junctions holds its queue of 3 (unless the city ends first)
+    approaches = sum(1 for lane in lanes for i in scene.city.intersections
+                     if LineString([lane.start, lane.end]).intersects(rect_polygon(i.center, i.size[0], i.size[1], 0.0)))
+    assert approaches == 4 * 2 * (3 + 4) and len(vehicles) >= 0.8 * 3 * approaches
+    boxes = [rect_polygon(i.center, i.size[0] + 2 * 6.4, i.size[1] + 2 * 6.4, 0.0) for i in scene.city.intersections]
+    for v in vehicles:
+        assert v.state == "moving"
+        assert not any(footprint(v).intersects(b) for b in boxes), v.name  # behind stop line and crosswalk
