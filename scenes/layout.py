@@ -87,7 +87,7 @@ def _axis_positions(rng: np.random.Generator, n_roads: int, road_widths: list[fl
 
 
 def _road_width(lanes: int, grid) -> float:
-    return 2 * lanes * grid.lane_width + (2 * grid.parking_width if grid.parking_lanes else 0.0)
+    return 2 * lanes * grid.lane_width + (2 * grid.parking_width if grid.parking_lanes else 0.0) + grid.median_width
 
 
 def build_city(preset: Preset, seed: int) -> City:
@@ -119,15 +119,17 @@ def build_city(preset: Preset, seed: int) -> City:
             lights = bool(rng.random() < g.traffic_light_probability)
             intersections.append(Intersection(f"int_{i}_{j}", (x, y), (width_y[i], width_x[j]), lights))
 
-    crosswalks, markings = _crossings_and_markings(rng, roads, xs, ys, width_x, width_y, lanes_x, lanes_y, g, bounds)
+    crosswalks, markings, medians = _crossings_and_markings(rng, roads, xs, ys, width_x, width_y, lanes_x, lanes_y, g, bounds)
 
     # Blocks: the cells between kerbs. Edge cells face a road on their inner sides only.
     x_edges = [bounds[0]] + [v for i, x in enumerate(xs) for v in (x - width_y[i] / 2, x + width_y[i] / 2)] + [bounds[2]]
     y_edges = [bounds[1]] + [v for j, y in enumerate(ys) for v in (y - width_x[j] / 2, y + width_x[j] / 2)] + [bounds[3]]
-    sidewalks: list[Sidewalk] = []
+    sidewalks: list[Sidewalk] = list(medians)
     buildings: list[Building] = []
     furniture: list[Furniture] = []
     taken = Occupancy()
+    if preset.furniture.median_hedges:
+        furniture.extend(_median_hedges(rng, medians, preset, taken))
     for bj in range(n_xroads + 1):
         for bi in range(n_yroads + 1):
             block = _Rect(x_edges[2 * bi], y_edges[2 * bj], x_edges[2 * bi + 1], y_edges[2 * bj + 1])
@@ -188,10 +190,10 @@ def _make_road(road_id: str, axis: str, start, end, lanes: int, g) -> Road:
         # Right of the travel direction is -left; "fwd" lanes lie to the right of the centreline.
         side = -1.0 if direction == "fwd" else 1.0
         for i in range(lanes):
-            off = side * (i + 0.5) * g.lane_width
+            off = side * (g.median_width / 2.0 + (i + 0.5) * g.lane_width)
             out.append(Lane(f"{road_id}/{direction}{i}", "driving", to_world(a, heading, 0, off), to_world(b, heading, 0, off), g.lane_width))
         if g.parking_lanes:
-            off = side * (lanes * g.lane_width + g.parking_width / 2.0)
+            off = side * (g.median_width / 2.0 + lanes * g.lane_width + g.parking_width / 2.0)
             out.append(Lane(f"{road_id}/park_{direction}", "parking", to_world(a, heading, 0, off), to_world(b, heading, 0, off), g.parking_width))
     return Road(road_id, axis, start, end, _road_width(lanes, g), tuple(out))
 
@@ -200,6 +202,7 @@ def _crossings_and_markings(rng, roads, xs, ys, width_x, width_y, lanes_x, lanes
     """Crosswalks and stop lines at each intersection approach; lane markings in between."""
     crosswalks: list[Crosswalk] = []
     markings: list[Marking] = []
+    medians: list[Sidewalk] = []
     # blocked[road_id] = intervals along the road's axis (intersection boxes, crossings).
     for road in roads:
         along_axis = 0 if road.axis == "x" else 1
@@ -222,14 +225,18 @@ def _crossings_and_markings(rng, roads, xs, ys, width_x, width_y, lanes_x, lanes
                 # Stop line across the lanes that approach from this side: from the low side
                 # traffic travels +axis ("fwd" lanes, right of the centreline, across < 0).
                 stop_along = edge + sign * (reach + 0.2)
-                center = _road_point(road.axis, center_across, stop_along, sign * lanes * g.lane_width / 2.0)
+                center = _road_point(road.axis, center_across, stop_along, sign * (g.median_width + lanes * g.lane_width) / 2.0)
                 markings.append(Marking("stop_line", center, 0.4, lanes * g.lane_width, heading, "white"))
                 blocked.append(tuple(sorted((edge, edge + sign * (reach + 0.4)))))
             blocked.append((c - cross_w / 2.0, c + cross_w / 2.0))
         lo, hi = (bounds[0], bounds[2]) if road.axis == "x" else (bounds[1], bounds[3])
         for a, b in _free_intervals(lo, hi, blocked):
             markings.extend(_segment_markings(road, heading, center_across, a, b, lanes, g, rng, (lo, hi)))
-    return crosswalks, markings
+            if g.median_width > 0 and b - a > 4.0:  # the median stops short of stop lines and crosswalks
+                center = _road_point(road.axis, center_across, (a + b) / 2.0, 0.0)
+                medians.append(Sidewalk(f"{road.road_id}_median{len(medians)}", "lawn", center, b - a - 1.0, g.median_width,
+                                        heading, g.curb_height, heading))
+    return crosswalks, markings, medians
 
 
 def _free_intervals(lo: float, hi: float, blocked: list) -> list[tuple[float, float]]:
@@ -260,8 +267,12 @@ def _segment_markings(road, heading, center_across, a, b, lanes, g, rng, bounds=
     out = []
     mid, length = (a + b) / 2.0, b - a
     lo, hi = bounds if bounds is not None else (a, b)
-    for off in (-0.1, 0.1):
-        out.append(Marking("center_line", at(mid, off), length, 0.1, heading, "yellow"))
+    if g.median_width > 0:  # a raised median: a white line along each of its kerbs
+        for off in (-g.median_width / 2.0 - 0.2, g.median_width / 2.0 + 0.2):
+            out.append(Marking("edge_line", at(mid, off), length, 0.12, heading, "white"))
+    else:
+        for off in (-0.1, 0.1):
+            out.append(Marking("center_line", at(mid, off), length, 0.1, heading, "yellow"))
     dash, gap = 3.0, 6.0
     phase = float(rng.uniform(0, dash + gap))
     for side in (-1.0, 1.0):
@@ -269,7 +280,7 @@ def _segment_markings(road, heading, center_across, a, b, lanes, g, rng, bounds=
         at_junction = b < hi - 1e-6 if side < 0 else a > lo + 1e-6
         turn = min(g.turn_lane_length, 0.45 * length) if g.turn_lanes and lanes >= 2 and at_junction else 0.0
         for i in range(1, lanes):
-            off = side * i * g.lane_width
+            off = side * (g.median_width / 2.0 + i * g.lane_width)
             da, db = a, b
             if i == 1 and turn > 0:
                 da, db = (a, b - turn) if side < 0 else (a + turn, b)
@@ -284,10 +295,11 @@ def _segment_markings(road, heading, center_across, a, b, lanes, g, rng, bounds=
             end = b if side < 0 else a
             travel = heading if side < 0 else heading + math.pi
             for i in range(lanes):
-                base = at(end + side * (7.0 + 3.0), side * (i + 0.5) * g.lane_width)
+                base = at(end + side * (7.0 + 3.0), side * (g.median_width / 2.0 + (i + 0.5) * g.lane_width))
                 out.extend(_arrow(base, travel, left=(i == 0)))
         if g.parking_lanes:
-            out.append(Marking("edge_line", at(mid, side * lanes * g.lane_width), length, 0.12, heading, "white"))
+            out.append(Marking("edge_line", at(mid, side * (g.median_width / 2.0 + lanes * g.lane_width)), length, 0.12,
+                               heading, "white"))
     return out
 
 
@@ -583,6 +595,28 @@ def _strip_furniture(rng: np.random.Generator, strip: Sidewalk, block: _Rect, pr
                           along_yaw, {"box_height": float(rng.uniform(0.4, 0.6)),
                                       "leaf_color": jitter(rng, (0.06, 0.16, 0.04), 0.25),
                                       "material": ("concrete", "wood", "metal")[int(rng.integers(3))]}, fp))
+    return out
+
+
+def _median_hedges(rng: np.random.Generator, medians: list[Sidewalk], preset: Preset, taken: Occupancy) -> list[Furniture]:
+    """Clipped shrub rows along the middle of each median (a green belt, as on DAIR-V2X's
+    junction roads), 0.5 m in from each kerb, in runs of 8-25 m with gaps."""
+    out: list[Furniture] = []
+    for m in medians:
+        width = m.width - 1.0
+        if width < 0.4:
+            continue
+        t = -m.length / 2.0 + float(rng.uniform(0.5, 2.0))
+        while t < m.length / 2.0 - 2.0:
+            length = min(float(rng.uniform(8.0, 25.0)), m.length / 2.0 - 0.5 - t)
+            height = float(rng.uniform(0.6, 1.1))
+            if length >= 2.0:
+                c = to_world(m.center, m.yaw, t + length / 2.0, 0.0)
+                poly = rect_polygon(c, length, width, m.yaw)
+                item = Furniture(f"{m.sidewalk_id}_hedge{len(out)}", "hedge", (c[0], c[1], m.height + height / 2), (length, width, height),
+                                 m.yaw, {"leaf_color": jitter(rng, (0.05, 0.14, 0.035), 0.2)}, polygon_tuple(poly))
+                _add_if_free(item, out, taken)
+            t += length + float(rng.uniform(1.0, 3.0))
     return out
 
 

@@ -44,6 +44,7 @@ class GridSpec:
     turn_lanes: bool = False  # the inner lane of a 2+ lane approach is a left-turn lane before the stop line
     turn_lane_length: float = 30.0  # metres of solid divider and arrows before the stop line
     verge_width: Range = (0.0, 0.0)  # grass verge between kerb and footway (0: none); trees stand on it
+    median_width: float = 0.0  # a raised grass median between the two directions of every road (0: none)
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,7 @@ class FurnitureSpec:
     bollards_per_corner: int = 2
     corner_poles: bool = False  # a street light on every junction corner (where roadside cameras hang)
     hedge_probability: float = 0.0  # per lot street side: a hedge along the lot's front (lawn lots)
+    median_hedges: bool = False  # shrub rows along the medians (grid.median_width)
     planters_per_100m: float = 0.0  # planters (shrub boxes) on the footway by the kerb
     signpost_probability: float = 0.0  # per junction approach: a traffic sign at its right kerb
     bus_shelters_per_100m: float = 0.0  # bus shelters at the kerb side of wide footways
@@ -236,6 +238,8 @@ def validate(preset: Preset) -> None:
         raise ValueError("agents.junction_works is a probability in [0, 1]")
     if a.tram_min_lanes < 1:
         raise ValueError("agents.tram_min_lanes must be >= 1")
+    if g.median_width < 0:
+        raise ValueError("grid.median_width must be >= 0 metres")
     if not 0 <= g.verge_width[0] <= g.verge_width[1]:
         raise ValueError("grid.verge_width must be [min, max] metres with 0 <= min <= max")
     f = preset.furniture

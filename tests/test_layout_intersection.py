@@ -180,3 +180,25 @@ def test_cameras_keep_clear_of_tree_crowns_but_not_from_under_them():
     assert not obstacles.blocked(np.array([x + r + 1.0, y, base - 1.0]))  # under the crown's edge
     assert not obstacles.blocked(np.array([x + r + 1.0, y, top + 1.0]))  # above the tree
     assert obstacles.blocked(np.array([x + 0.3, y, 1.0]))  # in the trunk
+
+
+def test_medians_split_the_directions_and_stop_short_of_junctions_and_crosswalks(city):
+    medians = [s for s in city.sidewalks if "_median" in s.sidewalk_id]
+    assert medians and all(m.kind == "lawn" and m.width == pytest.approx(3.0) for m in medians)
+    polys = [rect_polygon(m.center, m.length, m.width, m.yaw) for m in medians]
+    lanes = [lane for r in city.roads for lane in r.lanes if lane.kind == "driving"]
+    lane_polys = [rect_polygon(((ln.start[0] + ln.end[0]) / 2, (ln.start[1] + ln.end[1]) / 2), ln.length, ln.width, ln.heading)
+                  for ln in lanes]
+    boxes = [rect_polygon(i.center, i.size[0], i.size[1], 0.0) for i in city.intersections]
+    cross = [rect_polygon(c.center, c.length, c.width, c.yaw) for c in city.crosswalks]
+    for m in polys:
+        assert not any(m.intersection(lp).area > 1e-3 for lp in lane_polys)  # touching, to the rounding
+        assert not any(m.intersects(b) for b in boxes + cross)
+    # the inner lanes run along the median's kerbs, one direction on each side
+    for r in city.roads:
+        inner = [ln for ln in r.lanes if ln.lane_id.endswith(("/fwd0", "/bwd0"))]
+        gap = math.dist(*(np.mean([ln.start, ln.end], axis=0) for ln in inner))
+        assert gap == pytest.approx(3.0 + 3.5, abs=1e-6)
+    hedges = [f for f in city.furniture if f.kind == "hedge"]
+    assert hedges and all(any(m.contains(Polygon(h.footprint)) for m in polys) for h in hedges)
+    assert not any(m.kind == "center_line" for m in city.markings)  # no painted centre line where a median runs
