@@ -38,6 +38,7 @@ RECIPE = {"imgsz": 640, "crop": 320, "batch": 16, "lr0": 2e-3, "kpt_sigma_end": 
 """make validate's CPU recipe (benchmarks/validate.py), the point every change is compared from."""
 
 FIELDS = ("oks_map50_95", "ap_oks50", "ground_adherence_deg", "corner_error_px", "corner_error_rel", "corner_spread",
+          "layout_error_rel",
           "corner_objects")
 
 
@@ -152,15 +153,16 @@ def main(argv: list[str] | None = None) -> int:
                                **{k: orders.fraction(k) if orders.matched else None for k in orders.best}}}
 
     print(f"\n{name}: {result['steps']} steps ({epochs} epochs of {per_epoch}), {train_s:.0f} s of training")
-    print("| rows | model mAP50:95 | AP50 | adherence (deg) | corner error px | rel | spread | baseline mAP50:95 | "
-          "AP50 | px | rel |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| rows | model mAP50:95 | AP50 | adherence (deg) | corner error px | rel | layout rel | spread | "
+          "baseline mAP50:95 | AP50 | px | rel | layout rel |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for key, m in model_rows.items():
         b = base_rows[key]
         print(f"| {key} | {fmt(m['oks_map50_95'])} | {fmt(m['ap_oks50'])} | {fmt(m['ground_adherence_deg'], 2)} | "
-              f"{fmt(m['corner_error_px'], 2)} | {fmt(m['corner_error_rel'])} | {fmt(m['corner_spread'], 2)} | "
-              f"{fmt(b['oks_map50_95'])} | "
-              f"{fmt(b['ap_oks50'])} | {fmt(b['corner_error_px'], 2)} | {fmt(b['corner_error_rel'])} |")
+              f"{fmt(m['corner_error_px'], 2)} | {fmt(m['corner_error_rel'])} | {fmt(m.get('layout_error_rel'))} | "
+              f"{fmt(m['corner_spread'], 2)} | {fmt(b['oks_map50_95'])} | "
+              f"{fmt(b['ap_oks50'])} | {fmt(b['corner_error_px'], 2)} | {fmt(b['corner_error_rel'])} | "
+              f"{fmt(b.get('layout_error_rel'))} |")
     # a heading the model cannot tell shows as objects whose corners fit best turned 180 degrees
     print(f"box-matched objects ({orders.matched}): as labelled {fmt(orders.fraction('as labelled'), 2)}, "
           f"turned 180 {fmt(orders.fraction('turned 180'), 2)}")

@@ -24,6 +24,11 @@ template baseline, detector/box_template.py). These numbers do.
   centroid, over the object's labelled corners, at least three). 1 is a layout of the right size;
   well under 1 is a collapsed one, what a model predicts when it averages over layouts it cannot
   tell apart (a car's front and back), so the errors say how far off, this says in what way.
+- `layout_error_rel`: corner_error_rel with the heading forgiven: per object the corners are
+  compared as labelled or turned 180 degrees (TURN_IDX), whichever fits better (mean over its
+  labelled corners). The same cuboid turned 180 degrees projects to the same eight points, so this
+  says how well the layout (where the corners are) was learned apart from the heading (which one
+  is the front); the gap to corner_error_rel is what wrong headings cost.
 
 Everything after the matching is numpy over all matched objects at once.
 """
@@ -37,7 +42,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from omnigen.conventions import NUM_KEYPOINTS
+from omnigen.conventions import NUM_KEYPOINTS, TURN_IDX
 
 BOX_MATCH_IOU = 0.5
 
@@ -52,6 +57,7 @@ class CornerErrors:
     per_corner_px: list[float]
     per_corner_rel: list[float]
     spread: float = math.nan  # median predicted / true corner spread (module docstring)
+    layout_rel: float = math.nan  # corner_error_rel up to the 180-degree turn (module docstring)
 
     @classmethod
     def none(cls) -> "CornerErrors":
@@ -68,16 +74,19 @@ class MatchedCorners:
     err_px: np.ndarray  # (M, 8) pixels; NaN where the corner is not labelled (v = 0)
     err_rel: np.ndarray  # (M, 8) err_px / sqrt(box area)
     spread: np.ndarray | None = None  # (M,) predicted / true corner spread; NaN under 3 labelled corners
+    layout_rel: np.ndarray | None = None  # (M, 8) err_rel in the order (as labelled or turned) that fits better
 
     def summary(self, mask: np.ndarray | None = None) -> CornerErrors:
         """Medians over the rows `mask` selects (all rows when None)."""
         px = self.err_px if mask is None else self.err_px[mask]
         rel = self.err_rel if mask is None else self.err_rel[mask]
         spread = np.full(len(self.err_px), np.nan) if self.spread is None else self.spread
+        layout = np.full_like(self.err_rel, np.nan) if self.layout_rel is None else self.layout_rel
         return CornerErrors(px=_median(px.ravel()), rel=_median(rel.ravel()),
                             objects=int(np.isfinite(px).any(axis=1).sum()),
                             per_corner_px=_column_medians(px), per_corner_rel=_column_medians(rel),
-                            spread=_median(spread if mask is None else spread[mask]))
+                            spread=_median(spread if mask is None else spread[mask]),
+                            layout_rel=_median((layout if mask is None else layout[mask]).ravel()))
 
 
 def _median(values: np.ndarray) -> float:
@@ -162,8 +171,15 @@ def matched_corners(gt_anns: Sequence[dict[str, Any]], det_anns: Sequence[dict[s
     area = np.fromiter((gt_anns[i]["area"] for i in gi.tolist()), np.float64, len(gi))
     with np.errstate(invalid="ignore", divide="ignore"):
         scale = np.where(area > 0, np.sqrt(np.clip(area, 0, None)), np.nan)
+    err_turned = np.hypot(*np.moveaxis(dt_kp[:, list(TURN_IDX), :2] - gt_kp[:, :, :2], 2, 0))
+    err_turned[gt_kp[:, :, 2] <= 0] = np.nan
+    with warnings.catch_warnings():  # an object without labelled corners: NaN either way
+        warnings.simplefilter("ignore", RuntimeWarning)
+        turned = np.nanmean(err_turned, axis=1) < np.nanmean(err, axis=1)
+    layout = np.where(turned[:, None], err_turned, err)
     return MatchedCorners(gt_index=gi, det_index=di, err_px=err, err_rel=err / scale[:, None],
-                          spread=spread_ratio(dt_kp[:, :, :2], gt_kp[:, :, :2], gt_kp[:, :, 2] > 0))
+                          spread=spread_ratio(dt_kp[:, :, :2], gt_kp[:, :, :2], gt_kp[:, :, 2] > 0),
+                          layout_rel=layout / scale[:, None])
 
 
 def spread_ratio(pred: np.ndarray, gt: np.ndarray, labelled: np.ndarray) -> np.ndarray:

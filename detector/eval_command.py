@@ -107,11 +107,12 @@ def run(args: argparse.Namespace) -> int:
         f"omnigen eval: {args.predictions.name} on {args.dataset} ({args.split}). mAP: OKS 0.50:0.95, sigma "
         f"{report.oks_sigma}, maxDets {report.max_dets}; P/R/F1 at OKS 0.5 and the best-F1 conf; adh°: mean "
         f"ground-plane adherence of matched predictions; err px / rel: median corner error of the objects matched "
-        f"by box IoU >= {report.box_match_iou}, in pixels and / sqrt(box area)",
-        ["group", "imgs", "objs", "mAP", "AP50", "P", "R", "F1", "conf", "adh°", "err px", "err rel"],
+        f"by box IoU >= {report.box_match_iou}, in pixels and / sqrt(box area); layout: err rel up to the 180° turn",
+        ["group", "imgs", "objs", "mAP", "AP50", "P", "R", "F1", "conf", "adh°", "err px", "err rel", "layout"],
         [[r.group, r.images, r.objects, *(_cell(v) for v in (r.oks_map50_95, r.ap_oks50, r.precision, r.recall,
                                                               r.f1, r.conf_threshold, r.ground_adherence_deg,
-                                                              r.corner_error_px, r.corner_error_rel))]
+                                                              r.corner_error_px, r.corner_error_rel,
+                                                              r.layout_error_rel))]
          for r in report.rows])
     if args.per_corner:
         print_per_corner(report, baseline)
@@ -136,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
 
 COMPARED = (("mAP50:95", "oks_map50_95"), ("AP50", "ap_oks50"), ("adherence_deg", "ground_adherence_deg"),
             ("corner_error_px", "corner_error_px"), ("corner_error_rel", "corner_error_rel"),
-            ("corner_spread", "corner_spread"))
+            ("corner_spread", "corner_spread"), ("layout_error_rel", "layout_error_rel"))
 
 
 def print_comparison(report: "EvalReport", baseline: "EvalReport") -> None:

@@ -95,6 +95,7 @@ class EvalRow:
     corner_error_rel: float = math.nan  # each corner's error / sqrt(the object's 2D box area)
     corner_objects: int = 0  # box-matched objects with a labelled corner
     corner_spread: float = math.nan  # median predicted / true corner spread (corner_errors.spread_ratio)
+    layout_error_rel: float = math.nan  # corner_error_rel up to the 180-degree turn (corner_errors)
     corner_errors_per_corner: list[float] | None = None  # px medians per corner 0..7 (per_corner=True)
     corner_errors_rel_per_corner: list[float] | None = None
 
@@ -593,6 +594,6 @@ def _set_corner_errors(row: EvalRow, c: CornerErrors | None, per_corner: bool) -
     """A row's corner fields; a group without box-matched objects keeps NaN (and NaN per corner)."""
     c = c or CornerErrors.none()
     row.corner_error_px, row.corner_error_rel, row.corner_objects = c.px, c.rel, c.objects
-    row.corner_spread = c.spread
+    row.corner_spread, row.layout_error_rel = c.spread, c.layout_rel
     if per_corner:
         row.corner_errors_per_corner, row.corner_errors_rel_per_corner = c.per_corner_px, c.per_corner_rel

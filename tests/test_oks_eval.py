@@ -519,3 +519,23 @@ def test_corner_spread_says_how_collapsed_the_predicted_layouts_are(ds):
     overall = evaluate(ds, preds, split="test", adherence=False, sizes=False).row("overall")
     exact = evaluate(ds, perfect(ds), split="test", adherence=False, sizes=False).row("overall")
     assert exact.corner_spread == pytest.approx(1.0) and 0.4 < overall.corner_spread < 0.6
+
+
+def test_layout_error_forgives_the_heading_and_only_the_heading(ds):
+    """Predictions turned 180 degrees (the same eight points, front and rear labels swapped) have
+    large corner errors but no layout error; a mirrored order (not a turn) is not forgiven."""
+    from omnigen.conventions import FLIP_IDX, TURN_IDX
+
+    def reorder(preds, order):
+        out = []
+        for p in preds:
+            k = np.asarray(p["keypoints"], dtype=float).reshape(8, 3)
+            out.append({**p, "keypoints": k[list(order)].ravel().tolist()})
+        return out
+
+    turned = evaluate(ds, reorder(perfect(ds), TURN_IDX), split="test", adherence=False, sizes=False).row("overall")
+    assert turned.corner_error_rel > 0.1 and turned.layout_error_rel == pytest.approx(0.0)
+    exact = evaluate(ds, perfect(ds), split="test", adherence=False, sizes=False).row("overall")
+    assert exact.layout_error_rel == exact.corner_error_rel == pytest.approx(0.0)
+    mirrored = evaluate(ds, reorder(perfect(ds), FLIP_IDX), split="test", adherence=False, sizes=False).row("overall")
+    assert mirrored.layout_error_rel > 0.05
