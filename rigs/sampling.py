@@ -9,7 +9,8 @@ which way is "up" in the image.
 
 Rejection (`pose_problem`): a pose is redrawn when the camera stands inside or within 0.5 m of
 a building, an agent's cuboid or a furniture footprint (below its top; 1.5 m of a tree's crown
-between the crown's base and the tree's top), or when fewer than the
+between the crown's base and the tree's top), when something taller than the camera stands
+within 3 m in front of it, or when fewer than the
 rig's `min_objects` agents would be annotated by a cheap geometric estimate (cuboid in front, in
 the image, at least MIN_BOX_PIXELS tall and wide, nearer than MAX_DISTANCE). The renderer checks
 the real count after annotation and redraws again if the estimate was optimistic (buildings hide
@@ -35,6 +36,9 @@ _RIG_SPAWN_KEY = (0x0416,)
 MIN_BOX_PIXELS = 6.0
 MAX_DISTANCE = 250.0
 CLEARANCE = 0.5
+WALL_AHEAD, WALL_WIDTH = 3.0, 1.2
+"""A pose is redrawn when something taller than the camera stands within 3 m in front of it, in a
+1.2 m wide corridor (the traffic anchor's leader is at least 4 m ahead)."""
 CROWN_CLEARANCE = 1.5
 """Metres a camera keeps from a tree's crown (its cuboid's footprint) below the tree's top: a
 camera closer sees a wall of leaves (the trunk's footprint alone let pole cameras stand in crowns)."""
@@ -206,6 +210,16 @@ class Obstacles:
         z = position[2]
         return bool(((self.tops[idx] + CLEARANCE > z) & (self.bottoms[idx] < z)).any())
 
+    def wall_ahead(self, position: np.ndarray, yaw: float) -> bool:
+        """True when something taller than the camera stands within WALL_AHEAD metres in front
+        of it (a corridor WALL_WIDTH wide): a dashcam right behind a queued bus sees only its back."""
+        d = np.array([math.cos(yaw), math.sin(yaw)])
+        corridor = shapely.box(0.0, -WALL_WIDTH / 2, WALL_AHEAD, WALL_WIDTH / 2)
+        corridor = shapely.affinity.affine_transform(corridor, [d[0], -d[1], d[1], d[0], position[0], position[1]])
+        idx = self.tree.query(corridor, predicate="intersects")
+        z = position[2]
+        return bool(((self.tops[idx] > z) & (self.bottoms[idx] < z)).any())
+
 
 def projected_agents(scene: Scene, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
     """(N,) camera depth of each agent's centre and (N, 4) its projected cuboid's box (NaN rows
@@ -257,7 +271,7 @@ def sample_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, 
     while tries < rig.max_tries:
         tries += 1
         cam = draw_camera(rig, scene, rng, width, height)
-        if obstacles.blocked(cam.position):
+        if obstacles.blocked(cam.position) or obstacles.wall_ahead(cam.position, cam.yaw):
             fallback = fallback or cam
             continue
         cam = Camera(**{**cam.__dict__, "tries": tries})

@@ -87,7 +87,8 @@ def _axis_positions(rng: np.random.Generator, n_roads: int, road_widths: list[fl
 
 
 def _road_width(lanes: int, grid) -> float:
-    return 2 * lanes * grid.lane_width + (2 * grid.parking_width if grid.parking_lanes else 0.0) + grid.median_width
+    return (2 * lanes * grid.lane_width + (2 * grid.parking_width if grid.parking_lanes else 0.0) + grid.median_width
+            + 2 * grid.bike_lane_width)
 
 
 def build_city(preset: Preset, seed: int) -> City:
@@ -183,7 +184,8 @@ def build_city(preset: Preset, seed: int) -> City:
 
 
 def _make_road(road_id: str, axis: str, start, end, lanes: int, g) -> Road:
-    """Lanes of a road: n each way, driving on the right, parking lanes at the kerbs."""
+    """Lanes of a road: n each way, driving on the right; outside them a bike lane (if the preset
+    has them), then a parking lane at the kerb."""
     heading = math.atan2(end[1] - start[1], end[0] - start[0])
     out = []
     for direction, (a, b) in (("fwd", (start, end)), ("bwd", (end, start))):
@@ -192,8 +194,14 @@ def _make_road(road_id: str, axis: str, start, end, lanes: int, g) -> Road:
         for i in range(lanes):
             off = side * (g.median_width / 2.0 + (i + 0.5) * g.lane_width)
             out.append(Lane(f"{road_id}/{direction}{i}", "driving", to_world(a, heading, 0, off), to_world(b, heading, 0, off), g.lane_width))
+        outer = g.median_width / 2.0 + lanes * g.lane_width
+        if g.bike_lane_width > 0:
+            off = side * (outer + g.bike_lane_width / 2.0)
+            out.append(Lane(f"{road_id}/bike_{direction}", "bike", to_world(a, heading, 0, off), to_world(b, heading, 0, off),
+                            g.bike_lane_width))
+            outer += g.bike_lane_width
         if g.parking_lanes:
-            off = side * (g.median_width / 2.0 + lanes * g.lane_width + g.parking_width / 2.0)
+            off = side * (outer + g.parking_width / 2.0)
             out.append(Lane(f"{road_id}/park_{direction}", "parking", to_world(a, heading, 0, off), to_world(b, heading, 0, off), g.parking_width))
     return Road(road_id, axis, start, end, _road_width(lanes, g), tuple(out))
 
@@ -225,8 +233,9 @@ def _crossings_and_markings(rng, roads, xs, ys, width_x, width_y, lanes_x, lanes
                 # Stop line across the lanes that approach from this side: from the low side
                 # traffic travels +axis ("fwd" lanes, right of the centreline, across < 0).
                 stop_along = edge + sign * (reach + 0.2)
-                center = _road_point(road.axis, center_across, stop_along, sign * (g.median_width + lanes * g.lane_width) / 2.0)
-                markings.append(Marking("stop_line", center, 0.4, lanes * g.lane_width, heading, "white"))
+                across = lanes * g.lane_width + g.bike_lane_width  # the bike lane stops at the line too
+                center = _road_point(road.axis, center_across, stop_along, sign * (g.median_width / 2.0 + across / 2.0))
+                markings.append(Marking("stop_line", center, 0.4, across, heading, "white"))
                 blocked.append(tuple(sorted((edge, edge + sign * (reach + 0.4)))))
             blocked.append((c - cross_w / 2.0, c + cross_w / 2.0))
         lo, hi = (bounds[0], bounds[2]) if road.axis == "x" else (bounds[1], bounds[3])
@@ -297,9 +306,12 @@ def _segment_markings(road, heading, center_across, a, b, lanes, g, rng, bounds=
             for i in range(lanes):
                 base = at(end + side * (7.0 + 3.0), side * (g.median_width / 2.0 + (i + 0.5) * g.lane_width))
                 out.extend(_arrow(base, travel, left=(i == 0)))
+        outer = g.median_width / 2.0 + lanes * g.lane_width
+        if g.bike_lane_width > 0:  # a solid line between the traffic and the bike lane
+            out.append(Marking("edge_line", at(mid, side * outer), length, 0.15, heading, "white"))
+            outer += g.bike_lane_width
         if g.parking_lanes:
-            out.append(Marking("edge_line", at(mid, side * (g.median_width / 2.0 + lanes * g.lane_width)), length, 0.12,
-                               heading, "white"))
+            out.append(Marking("edge_line", at(mid, side * outer), length, 0.12, heading, "white"))
     return out
 
 

@@ -6,8 +6,8 @@ Rules (each tested):
 - moving vehicles (some queued behind the stop lines of signalised junctions), trams and
   riders sit in a driving lane, heading along it with yaw noise
   (normal, 2 degrees, cut at 6) and a small lateral offset, their turned footprint inside the
-  lane; trams in the innermost lanes of wide roads, riders, tricycles and some barrows near the
-  outer lane's right edge;
+  lane; trams in the innermost lanes of wide roads, riders, tricycles and some barrows in the
+  bike lanes, or near the outer lane's right edge where there are none;
 - parked vehicles sit in the kerb-side parking lanes, nose to tail with 0.8 to 2.5 m gaps, away
   from intersections and crosswalks;
 - pedestrians stand or walk on sidewalks (walking along the street) or cross on crosswalks;
@@ -85,6 +85,7 @@ class _Placer:
         self.user_probability = user_probability
         self.driving = [lane for road in city.roads for lane in road.lanes if lane.kind == "driving"]
         self.parking = [lane for road in city.roads for lane in road.lanes if lane.kind == "parking"]
+        self.bike = [lane for road in city.roads for lane in road.lanes if lane.kind == "bike"]
         self.rightmost = [lane for road in city.roads for lane in road.lanes
                           if lane.kind == "driving" and not any(o.kind == "driving" and o.lane_id[:-1] == lane.lane_id[:-1]
                                                                 and int(o.lane_id[-1]) > int(lane.lane_id[-1]) for o in road.lanes)]
@@ -429,10 +430,12 @@ def place_agents(city: City, spec: AgentSpec, rng: np.random.Generator, user_ass
         p.in_lane(pick(rng, spec.vehicle_mix), p.driving)
     for _ in range(n_moto):
         p.in_lane("motorcyclist", p.driving)
+    # Riders keep to the bike lanes where the city has them, else to the outer lane's right edge.
+    ride, edge = (p.bike, "centre") if p.bike else (p.rightmost, "right")
     for _ in range(n_tri):
-        p.in_lane("tricyclist", p.rightmost, edge="right")
+        p.in_lane("tricyclist", ride, edge=edge)
     for _ in range(n_cyc):
-        p.in_lane("cyclist", p.rightmost, edge="right")
+        p.in_lane("cyclist", ride, edge=edge)
     n_cross = int(round(n_ped * spec.crossing_fraction))
     for _ in range(n_cross):
         p.pedestrian_on_crosswalk()
@@ -442,5 +445,5 @@ def place_agents(city: City, spec: AgentSpec, rng: np.random.Generator, user_ass
         if rng.random() < 0.7:
             p.pedestrian_on_sidewalk("barrow", walking=True)
         else:
-            p.in_lane("barrow", p.rightmost, edge="right")
+            p.in_lane("barrow", ride, edge=edge)
     return tuple(p.agents)

@@ -45,6 +45,7 @@ class GridSpec:
     turn_lane_length: float = 30.0  # metres of solid divider and arrows before the stop line
     verge_width: Range = (0.0, 0.0)  # grass verge between kerb and footway (0: none); trees stand on it
     median_width: float = 0.0  # a raised grass median between the two directions of every road (0: none)
+    bike_lane_width: float = 0.0  # a bike lane outside the driving lanes each way (0: none); riders keep to it
 
 
 @dataclass(frozen=True)
@@ -238,8 +239,8 @@ def validate(preset: Preset) -> None:
         raise ValueError("agents.junction_works is a probability in [0, 1]")
     if a.tram_min_lanes < 1:
         raise ValueError("agents.tram_min_lanes must be >= 1")
-    if g.median_width < 0:
-        raise ValueError("grid.median_width must be >= 0 metres")
+    if g.median_width < 0 or g.bike_lane_width < 0 or 0 < g.bike_lane_width < 1.5:
+        raise ValueError("grid.median_width must be >= 0 metres; grid.bike_lane_width 0 or at least 1.5 m (a tricycle's width)")
     if not 0 <= g.verge_width[0] <= g.verge_width[1]:
         raise ValueError("grid.verge_width must be [min, max] metres with 0 <= min <= max")
     f = preset.furniture

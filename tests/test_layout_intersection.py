@@ -202,3 +202,16 @@ def test_medians_split_the_directions_and_stop_short_of_junctions_and_crosswalks
     hedges = [f for f in city.furniture if f.kind == "hedge"]
     assert hedges and all(any(m.contains(Polygon(h.footprint)) for m in polys) for h in hedges)
     assert not any(m.kind == "center_line" for m in city.markings)  # no painted centre line where a median runs
+
+
+def test_a_camera_right_behind_a_taller_agent_is_redrawn():
+    scene = SceneGenerator("intersection", 3).frame(3, 0)
+    obstacles = Obstacles(scene)
+    bus = max((a for a in scene.agents if a.category in ("bus", "truck", "van")), key=lambda a: a.dims[2])
+    d = np.array([math.cos(bus.yaw), math.sin(bus.yaw)])
+    behind = np.asarray(bus.center[:2]) - d * (bus.dims[0] / 2 + 1.5)
+    cam = np.array([behind[0], behind[1], 1.6])
+    assert not obstacles.blocked(cam)  # 1.5 m from its back: clear of the 0.5 m margin ...
+    assert obstacles.wall_ahead(cam, bus.yaw)  # ... but its back fills the view
+    assert not obstacles.wall_ahead(cam, bus.yaw + math.pi)  # looking the other way
+    assert not obstacles.wall_ahead(np.array([behind[0], behind[1], bus.dims[2] + 1.0]), bus.yaw)  # above it

@@ -10,6 +10,7 @@ from collections import Counter
 import numpy as np
 import pytest
 from shapely.geometry import LineString, Polygon
+from shapely.ops import unary_union
 
 from scenes.class_mix import class_counts
 from scenes.description import to_json
@@ -186,3 +187,19 @@ def test_queues_wait_nose_to_tail_behind_the_stop_lines():
     for v in vehicles:
         assert v.state == "moving"
         assert not any(footprint(v).intersects(b) for b in boxes), v.name  # behind stop line and crosswalk
+
+
+def test_riders_keep_to_the_bike_lanes_where_there_are_some():
+    scene = SceneGenerator("intersection", 3).frame(3, 1)
+    bike = [lane for r in scene.city.roads for lane in r.lanes if lane.kind == "bike"]
+    assert len(bike) == 2 * len(scene.city.roads)
+    riders = [a for a in scene.agents if a.category in ("cyclist", "tricyclist") or (a.category == "barrow" and a.state == "moving")]
+    assert riders
+    for a in riders:
+        homes = [lane for lane in bike if lane_polygon(lane).contains(footprint(a))]
+        assert homes, a.name
+        assert min(abs(math.remainder(a.yaw - lane.heading, 2 * math.pi)) for lane in homes) <= math.radians(6) + 1e-6
+    # and nothing else rides there (outside the junctions, which every lane crosses)
+    boxes = unary_union([rect_polygon(i.center, i.size[0], i.size[1], 0.0) for i in scene.city.intersections])
+    others = [a for a in scene.agents if a.state == "moving" and a not in riders]
+    assert not any(lane_polygon(lane).difference(boxes).intersection(footprint(a)).area > 0.05 for lane in bike for a in others)
