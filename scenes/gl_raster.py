@@ -150,6 +150,7 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     float band = smoothstep(0.32 + 0.5 * fp, 0.32 - 0.5 * fp, fz) * (1.0 - smoothstep(0.3, 0.8, fp));
     m *= mix(1.0, mix(1.0, prm.z < 0.5 ? 0.72 : 1.22, band) * mix(0.68, 1.0, smoothstep(0.7, 0.9, P.z))
                   * (0.8 + 0.2 * smoothstep(0.0, 2.5, P.z)), facade);
+    m = mix(m, 1.0, snow_cover * float(up));  // snow hides the ground's texture
     vec3 albedo = base * m;
     // kerb stones are granite, lighter than the paving
     albedo = mix(albedo, vec3(0.36, 0.355, 0.34) * m, 0.7 * float(kind == 3 && !up));
@@ -158,13 +159,14 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     // grass: dry patches; foliage: some clusters yellower
     albedo = mix(albedo, vec3(0.15, 0.13, 0.06) * m, 0.65 * float(kind == 4) * smoothstep(0.55, 0.8, big));
     albedo = mix(albedo, albedo * vec3(1.5, 1.25, 0.55), float(kind == 8) * smoothstep(0.1, 0.3, hi));
-    // windows: rooms and blinds behind (a value per pane), the sky and street mirrored in front;
+    // windows: rooms and blinds behind (a value per pane), the sky and street mirrored in front
+    // (glass's Fresnel reflectance: 4% head-on, most of it at grazing angles);
     // car paint: a clear coat mirrors the sky
     float glass = float(kind == 6);
-    albedo *= mix(1.0, 0.6 + 9.0 * cell * cell * cell, glass);
+    albedo *= mix(1.0, 0.5 + 6.0 * cell * cell * cell, glass);
     vec3 r = reflect(-v, n);
     float F = 0.04 + 0.96 * pow(1.0 - clamp(abs(dot(n, v)), 0.0, 1.0), 5.0);
-    reflected = sky_along(r) * (glass * (0.1 + 0.9 * F) * (0.35 + 0.65 * step(0.3, cell)) + float(kind == 9) * 0.8 * F);
+    reflected = sky_along(r) * (glass * F * (0.3 + 0.7 * step(0.3, cell)) + float(kind == 9) * 0.8 * F);
     return albedo;
 }
 """
@@ -193,6 +195,7 @@ uniform vec3 ground_ambient;
 uniform vec3 zenith;
 uniform vec3 horizon;
 uniform float exposure;
+uniform float snow_cover;
 uniform int effects;
 uniform float fog_density;
 uniform vec3 fog_color;
@@ -423,6 +426,7 @@ class Light:
     normal_bias: float = 0.05
     lamps: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     lamp_color: tuple = (1.0, 0.82, 0.55)
+    snow_cover: float = 0.0  # of the ground (Weather.snow_cover): fades the ground's patterns
     sun_share: float = 0.0  # the sun's share of the daylight on a horizontal face (the backend's cue for shadows)
 
 
@@ -441,6 +445,7 @@ class GLRaster:
                              for lamps in (False, True)}
         self._id_prog = _program(_ID_VS, _ID_FS)
         self._shadow_prog = _program(_SHADOW_VS, _SHADOW_FS)
+
         self._sky_prog = _program(_SKY_VS, _SKY_FS)
         self._sky_vao = gl.glGenVertexArrays(1)
         self.static = _Mesh()
@@ -455,7 +460,7 @@ class GLRaster:
         self._rbos: list[int] = []
         self._locs = {lamps: {name: gl.glGetUniformLocation(prog, name)
                               for name in ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "sky_ambient",
-                                  "ground_ambient", "zenith", "horizon", "exposure", "effects", "fog_density", "fog_color",
+                                  "ground_ambient", "zenith", "horizon", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
                                   "shadows", "shadow_matrix", "shadow_map", "noise", "shadow_radius", "normal_bias", "n_lamps",
                                   "lamps", "lamp_color")} for lamps, prog in self._color_progs.items()}
         self._sky_loc = {name: gl.glGetUniformLocation(self._sky_prog, name)
@@ -464,6 +469,7 @@ class GLRaster:
         self._shadow_lvp_loc = gl.glGetUniformLocation(self._shadow_prog, "LVP")
         self._shadow_fbo, self._shadow_tex = self._shadow_target(SHADOW_SIZE)
         self._noise_tex = self._noise_texture()
+
         self._id_loc = {name: gl.glGetUniformLocation(self._id_prog, name) for name in ("VP", "has_ids")}
 
     def make_current(self) -> None:
@@ -605,6 +611,7 @@ class GLRaster:
         shadows = light.shadow_lvp is not None
         if shadows:
             self.shadow_pass(light.shadow_lvp)
+
         self._framebuffers(width, height)
         ms_fb, color_fb, _ = self._fbos
         gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, ms_fb)
@@ -627,6 +634,7 @@ class GLRaster:
         vec3("horizon", light.horizon)
         vec3("lamp_color", light.lamp_color)
         gl.glUniform1f(loc["exposure"], float(light.exposure))
+        gl.glUniform1f(loc["snow_cover"], float(light.snow_cover))
         gl.glUniform1i(loc["effects"], int(atmosphere is not None))
         if atmosphere is not None:
             gl.glUniform1f(loc["fog_density"], float(atmosphere["fog_density"]))
@@ -646,6 +654,7 @@ class GLRaster:
         gl.glActiveTexture(gl.GL_TEXTURE2)
         gl.glBindTexture(gl.GL_TEXTURE_2D, self._noise_tex)
         gl.glUniform1i(loc["noise"], 2)
+
         gl.glActiveTexture(gl.GL_TEXTURE0)
         gl.glBindTexture(gl.GL_TEXTURE_2D, self._materials)
         gl.glUniform1i(loc["materials"], 0)

@@ -88,8 +88,10 @@ def ground_material(role: str, city: City, weather: Weather) -> Material:
         "sidewalk": city.sidewalk_material,
         "lawn": city.lawn_material,
     }.get(role) or _FIXED[role]
-    if role == "road":
-        c = np.clip(np.asarray(base.base_color) * AGED_ASPHALT, 0.0, 1.0)
+    if role == "road":  # aged asphalt is grey: the city's tint kept at a third
+        c = np.asarray(base.base_color) * AGED_ASPHALT
+        grey = float(np.dot(c, (0.2126, 0.7152, 0.0722)))
+        c = np.clip(grey + (c - grey) / 3.0, 0.0, 1.0)
         base = replace(base, base_color=(float(c[0]), float(c[1]), float(c[2])))
     return weathered(base, weather, upward=True)
 

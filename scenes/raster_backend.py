@@ -45,6 +45,7 @@ EXPOSURE_KEY = 1.3  # the camera exposes a white horizontal surface in the frame
 MAX_EXPOSURE = 5.0  # at night the camera's gain stops here
 LAMP_INTENSITY = 16.0
 MIN_SUN_SHARE = 0.25  # below this share of the daylight the sun casts no visible shadow: no shadow pass
+DRAW_ORDER = {"road": 1, "sidewalk": 1, "lawn": 1, "marking_white": 2, "marking_yellow": 2, "ground": 3}  # others 0
 NON_CASTERS = frozenset({"window", "window_lit", "frame", "marking_white", "marking_yellow"})  # lie on other faces  # a street lamp: irradiance at 1 m (inverse square beyond), before exposure
 
 
@@ -164,20 +165,23 @@ class RasterScene:
         self.scene = scene
         self.gl = GLRaster()
         self._statics = static_objects(scene.city)
-        # Parts that cast shadows first, then those lying on other faces (windows, frames, road
-        # markings: 40% of downtown's triangles), which the sun's depth pass leaves out. Slots stay
-        # in _static_materials' order whatever the order in the buffer.
+        # One vertex range a part (an object's role); slots stay in _static_materials' order
+        # whatever the order in the buffer. Parts lying on other faces (windows, frames, road
+        # markings: 40% of downtown's triangles) cast no shadow: the sun's depth pass leaves them out.
         buildings = {b.building_id: b for b in scene.city.buildings}
-        parts = []  # (casts a shadow, slot, world vertices, faces, surface)
+        parts = []  # (casts a shadow, slot, world vertices, faces, surface, role)
         for obj in self._statics:
             rot, shift = obj.matrix_world[:3, :3], obj.matrix_world[:3, 3]
             for role, mesh in obj.parts.items():
                 parts.append((role not in NON_CASTERS, len(parts), np.asarray(mesh.vertices, dtype=np.float64) @ rot.T + shift,
-                              np.asarray(mesh.faces), static_surface(scene.city, buildings, obj, role)))
+                              np.asarray(mesh.faces), static_surface(scene.city, buildings, obj, role), role))
         self._n_static_slots = len(parts)
-        parts.sort(key=lambda q: not q[0])  # stable: casters first, each group in scene order
+        # Drawn nearest-first, roughly: buildings and furniture, then the street surfaces, the
+        # ground under everything last, so the depth test rejects hidden fragments before the
+        # (costly) surface shading runs on them. Stable: scene order within each group.
+        parts.sort(key=lambda q: DRAW_ORDER.get(q[5], 0))
         verts, faces, n_verts = [], [], 0
-        for _, _, v, f, _ in parts:
+        for _, _, v, f, _, _ in parts:
             verts.append(v)
             faces.append(f + n_verts)
             n_verts += len(v)
@@ -413,7 +417,7 @@ def illumination(scene: Scene) -> Light:
     return Light(direction=tuple(direction), radiance=tuple(radiance), sky_ambient=tuple(sky_ambient),
                  ground_ambient=tuple(ground_ambient), zenith=tuple(zenith), horizon=tuple(horizon),
                  exposure=float(max(exposure, 0.2)), shadow_radius=1.0 + 8.0 * float(w.cloud_cover),
-                 sun_share=e_sun / max(e_sun + e_sky, 1e-9))
+                 sun_share=e_sun / max(e_sun + e_sky, 1e-9), snow_cover=float(w.snow_cover))
 
 
 def view_ground(K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> np.ndarray:
