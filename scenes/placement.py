@@ -86,6 +86,8 @@ class _Placer:
         self.driving = [lane for road in city.roads for lane in road.lanes if lane.kind == "driving"]
         self.parking = [lane for road in city.roads for lane in road.lanes if lane.kind == "parking"]
         self.bike = [lane for road in city.roads for lane in road.lanes if lane.kind == "bike"]
+        self._junction_zones: Occupancy | None = None
+        self._lane_areas: dict[str, Polygon] = {}
         self.rightmost = [lane for road in city.roads for lane in road.lanes
                           if lane.kind == "driving" and not any(o.kind == "driving" and o.lane_id[:-1] == lane.lane_id[:-1]
                                                                 and int(o.lane_id[-1]) > int(lane.lane_id[-1]) for o in road.lanes)]
@@ -150,8 +152,7 @@ class _Placer:
             xy = to_world(lane.start, lane.heading, t, across)
             # The turned footprint must stay in the lane too: a 12 m bus turned 3 degrees reaches
             # 0.3 m further out at its ends than its centre does.
-            inside = rect_polygon(to_world(lane.start, lane.heading, lane.length / 2.0, 0.0), lane.length, lane.width, lane.heading)
-            if self.try_add(category, "moving", dims, spec, xy, lane.heading + self.yaw_noise(), 0.0, inside):
+            if self.try_add(category, "moving", dims, spec, xy, lane.heading + self.yaw_noise(), 0.0, self.lane_area(lane)):
                 return True
         return False
 
@@ -223,9 +224,22 @@ class _Placer:
 
     def _clear_of_junctions(self, poly: Polygon) -> bool:
         """True when `poly` keeps out of every intersection box (grown by 3 m) and crosswalk."""
-        zones = [rect_polygon(i.center, i.size[0] + 6.0, i.size[1] + 6.0, 0.0) for i in self.city.intersections]
-        zones += [rect_polygon(c.center, c.length, c.width + 1.0, c.yaw) for c in self.city.crosswalks]
-        return not any(poly.intersects(z) for z in zones)
+        if self._junction_zones is None:  # built once per frame: placement asks for every cone try
+            zones = Occupancy()
+            for i in self.city.intersections:
+                zones.add(rect_polygon(i.center, i.size[0] + 6.0, i.size[1] + 6.0, 0.0))
+            for c in self.city.crosswalks:
+                zones.add(rect_polygon(c.center, c.length, c.width + 1.0, c.yaw))
+            self._junction_zones = zones
+        return not self._junction_zones.collides(poly)
+
+    def lane_area(self, lane: Lane) -> Polygon:
+        """The lane's rectangle (cached: every try of every moving agent checks containment)."""
+        area = self._lane_areas.get(lane.lane_id)
+        if area is None:
+            area = self._lane_areas[lane.lane_id] = rect_polygon(to_world(lane.start, lane.heading, lane.length / 2.0, 0.0),
+                                                                 lane.length, lane.width, lane.heading)
+        return area
 
     def junction_spans(self, lane: Lane) -> list[tuple[float, float]]:
         """The stretches (along the lane, from its start) where it crosses an intersection box."""
@@ -379,9 +393,8 @@ class _Placer:
                     if t - dims[0] / 2 < 1.0:
                         break
                     xy = to_world(lane.start, lane.heading, t, float(np.clip(self.rng.normal(0.0, 0.1), -0.2, 0.2)))
-                    inside = rect_polygon(to_world(lane.start, lane.heading, lane.length / 2.0, 0.0), lane.length, lane.width,
-                                          lane.heading)
-                    if not self.try_add(category, "moving", dims, spec, xy, lane.heading + self.yaw_noise(0.5), 0.0, inside):
+                    if not self.try_add(category, "moving", dims, spec, xy, lane.heading + self.yaw_noise(0.5), 0.0,
+                                        self.lane_area(lane)):
                         break  # something stands in the queue's way: it ends there
                     front = t - dims[0] / 2 - float(self.rng.uniform(1.5, 3.0))
 

@@ -123,20 +123,18 @@ def test_bad_counts_are_refused():
 def test_issue_figure_six_classes_with_cones_car_and_people_sizes():
     """Issue 26's figure at the scene level: the 6 drone + 4 pole frames (320 x 240) of the
     default preset hold at least 6 classes including traffic cones; the median car is 3.6-4.9 m
-    long; pedestrians are 1.5-1.95 m tall. The geometric count (no occlusion): the issue's frames
-    (seed 0) hold it, and so do at least 5 of the 10-frame sets of seeds 0-5 (cones are small at
-    320 x 240: a pole camera must have one within about 20 m)."""
-    holds, heights = 0, []
-    for seed in range(6):
+    long; pedestrians are 1.5-1.95 m tall. The geometric count (no occlusion), for the issue's
+    frames (seed 0) and those of seeds 1-3 (cones are small at 320 x 240: a pole camera must
+    look at works near it, so the preset makes them common)."""
+    heights = []
+    for seed in range(4):
         mix = class_counts("downtown", seeds=(seed,))
         assert mix.frames == 10
+        assert len(mix.classes) >= 6 and "traffic_cone" in mix.classes, mix.table()
         assert 3.6 <= mix.median_car_length <= 4.9
         assert all(1.5 <= h <= 1.95 for h in mix.pedestrian_heights), mix.table()
         heights += mix.pedestrian_heights
-        ok = len(mix.classes) >= 6 and "traffic_cone" in mix.classes
-        assert (ok and mix.pedestrian_heights) or seed > 0, mix.table()  # the issue's frames: all of it
-        holds += ok
-    assert holds >= 5 and len(heights) >= 10
+    assert len(heights) >= 5
 
 
 def test_junction_works_ring_a_spot_near_each_junction_they_draw():
