@@ -58,6 +58,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--kpt-l1", type=float, default=0.0)
     ap.add_argument("--kpt-turn", action="store_true", help="corners up to the 180-degree turn plus a turn class")
     ap.add_argument("--kpt-hidden", type=int, default=None, help="keypoint-branch width (train --kpt-hidden)")
+    ap.add_argument("--kpt-labelled", type=float, default=0.0, help="with --kpt-turn: the labelled-order OKS gain")
     ap.add_argument("--amp", default=RECIPE["amp"], choices=["auto", "bf16", "fp16", "off"])
     ap.add_argument("--model", default="n")
     ap.add_argument("--width", type=float, default=None, help="override the scale's width (tiny test models)")
@@ -124,13 +125,15 @@ def main(argv: list[str] | None = None) -> int:
     frames = len(read_split(args.dataset, "train"))
     per_epoch = math.ceil(frames / args.batch)
     epochs = max(1, math.ceil(args.steps / per_epoch))
-    name = args.name or (f"{args.model}-{args.kpt_mode}{'-turn' if args.kpt_turn else ''}{f'-h{args.kpt_hidden}' if args.kpt_hidden else ''}-l1{args.kpt_l1:g}-s{args.steps}"
+    name = args.name or (f"{args.model}-{args.kpt_mode}{'-turn' if args.kpt_turn else ''}{f'-h{args.kpt_hidden}' if args.kpt_hidden else ''}"
+                         f"{f'-lab{args.kpt_labelled:g}' if args.kpt_labelled else ''}-l1{args.kpt_l1:g}-s{args.steps}"
                          f"-c{args.crop}-lr{args.lr0:g}-seed{args.seed}")
     run = args.work / name
     cfg = TrainConfig(dataset=str(args.dataset), out=str(run), model=args.model, width=args.width, depth=args.depth,
                       imgsz=args.imgsz, crop=args.crop or None, epochs=epochs, batch=args.batch, lr0=args.lr0,
                       kpt_sigma_end=args.kpt_sigma_end, kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1,
-                      kpt_turn=args.kpt_turn, kpt_hidden=args.kpt_hidden, amp=args.amp, workers=args.workers, seed=args.seed, device=args.device,
+                      kpt_turn=args.kpt_turn, kpt_hidden=args.kpt_hidden,
+                      kpt_labelled=args.kpt_labelled, amp=args.amp, workers=args.workers, seed=args.seed, device=args.device,
                       val_every=0)  # no validation while training: the test split is scored below, once
     t0 = time.perf_counter()
     last = finished(run, cfg, epochs)
@@ -147,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     main_key = next(iter(model_rows))
     result = {"dataset": str(args.dataset), "name": name, "steps": epochs * per_epoch, "epochs": epochs,
               "train_seconds": round(train_s, 1), "config": asdict(cfg),
-              "final_losses": {k: last.get(k) for k in ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn")},
+              "final_losses": {k: last.get(k) for k in ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn",
+                                                                     "kpt_labelled")},
               "model": model_rows, "baseline": base_rows,
               "corner_order": {"matched": orders.matched,
                                **{k: orders.fraction(k) if orders.matched else None for k in orders.best}}}

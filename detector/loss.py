@@ -45,9 +45,13 @@ class LossGains:
     kvis: float = 1.0
     kpt_l1: float = 0.0  # the scale-free L1 corner term (keypoint_l1_loss); 0 leaves the design's loss alone
     turn: float = 1.0  # BCE of a turn-aware head's turn logit (turn_targets); no term without one
+    # a turn-aware head's OKS loss in the labelled order beside the one up to the turn: a weak pull
+    # that makes the branch's own choice of order the labelled one wherever the image tells the
+    # front (turn_targets); 0: the branch picks an order freely, and the turn class learns all of it
+    kpt_labelled: float = 0.0
 
 
-PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn")
+PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn", "kpt_labelled")
 
 _TURN = list(TURN_IDX)
 
@@ -231,8 +235,10 @@ class DetectionLoss:
         area = box_area(targets["bboxes"].to(kpts.dtype)[obj])
         kpt_gt = targets["keypoints"].to(kpts.dtype)[obj]
         vis_gt = targets["kpt_visible"].to(kpts.dtype)[obj]
-        turn_loss = kpts.new_zeros(())
+        turn_loss = kpt_labelled = kpts.new_zeros(())
         if out.turn is not None:
+            if self.gains.kpt_labelled:
+                kpt_labelled = oks_keypoint_loss(kpts[..., :2], kpt_gt, kmask, area, sigma=self.kpt_sigma)
             turned = turn_targets(kpts[..., :2].detach(), kpt_gt, kmask, area)  # (N,)
             kpt_gt = torch.where(turned[:, None, None], kpt_gt[:, _TURN], kpt_gt)
             kmask = torch.where(turned[:, None], kmask[:, _TURN], kmask)
@@ -247,7 +253,7 @@ class DetectionLoss:
                      ).sum() / kmask.sum().clamp(min=1)
 
         parts_t = {"box": box_loss, "dfl": dfl_loss, "cls": cls_loss, "kpt": kpt_loss, "kvis": kvis_loss, "kpt_l1": kpt_l1,
-                   "turn": turn_loss}
+                   "turn": turn_loss, "kpt_labelled": kpt_labelled}
         gains = asdict(self.gains)
         total = sum(gains[k] * parts_t[k] for k in PARTS)
         # detached 0-dim tensors, not floats: a float() per part would wait for the device six

@@ -81,6 +81,7 @@ class TrainConfig:
     kpt_l1: float = 0.0  # gain of the scale-free L1 corner term beside the OKS loss (loss.keypoint_l1_loss)
     kpt_turn: bool = False  # corners up to the 180-degree turn plus a turn class (loss.turn_targets)
     kpt_hidden: int | None = None  # keypoint-branch width (DetectorConfig.kpt_hidden)
+    kpt_labelled: float = 0.0  # gain of the labelled-order OKS term beside the turn-aware one (LossGains)
     taxonomy: str = "fine"
     train_split: str = "train"
     val_split: str | None = None  # None: 'val' if the dataset has it, else 'test', else all frames
@@ -297,7 +298,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
         ema.updates = int(state["ema_updates"])
         optimizer.load_state_dict(state["optimizer"])
         start_epoch, best, history = int(state["epoch"]) + 1, float(state["best_fitness"]), list(state["history"])
-    criterion = DetectionLoss(model.cfg.num_classes, gains=LossGains(kpt_l1=cfg.kpt_l1))
+    criterion = DetectionLoss(model.cfg.num_classes, gains=LossGains(kpt_l1=cfg.kpt_l1, kpt_labelled=cfg.kpt_labelled))
     amp_dtype = autocast_dtype(cfg.amp, device)
     # fp16 gradients underflow without scaling; bf16 has float32's range and needs none
     scaler = torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16)

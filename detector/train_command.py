@@ -47,6 +47,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="learn corners up to the 180-degree turn, the turn as a class of its own (loss.turn_targets)")
     p.add_argument("--kpt-hidden", type=int, default=None,
                    help="keypoint-branch width (default: max(stride-8 width / 4, 24), as Ultralytics' pose head)")
+    p.add_argument("--kpt-labelled", type=float, default=0.0,
+                   help="with --kpt-turn: gain of the OKS loss in the labelled order, a pull towards the true heading")
     p.add_argument("--kpt-l1", type=float, default=0.0,
                    help="gain of a scale-free L1 corner term beside the OKS keypoint loss (0: the design's loss)")
     p.add_argument("--amp", default="auto", choices=["auto", "bf16", "fp16", "off"],
@@ -78,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
         out_of_image=args.out_of_image, augment=asdict(Augment.off() if args.no_augment else Augment()),
         workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every,
         kpt_sigma_start=args.kpt_sigma_start, kpt_sigma_end=args.kpt_sigma_end, kpt_sigma_anneal=args.kpt_sigma_anneal,
-        kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1, kpt_turn=args.kpt_turn, kpt_hidden=args.kpt_hidden, amp=args.amp,
+        kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1, kpt_turn=args.kpt_turn, kpt_hidden=args.kpt_hidden,
+        kpt_labelled=args.kpt_labelled, amp=args.amp,
         time_minutes=args.time, weights=args.weights, channels_last=args.channels_last)
     start = time.perf_counter()
 
