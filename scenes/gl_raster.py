@@ -99,7 +99,7 @@ SURFACE_WEIGHTS = np.array([
     [0.4, 0.2, 0.1, 1.0, 0.0, 0.0, 0.0],  # grass
     [0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # facade
     [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # glass
-    [0.2, 0.15, 0.0, 0.0, 0.0, 0.0, 0.0],  # roof
+    [0.2, 0.15, 0.0, 1.0, 0.0, 0.0, 0.0],  # roof
     [0.55, 0.3, 0.0, 0.0, 0.0, 0.0, 0.0],  # foliage
     [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # car paint
     [0.2, 0.0, 0.05, 0.0, 0.12, 0.4, 0.008],  # concrete
@@ -134,8 +134,9 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     float hi = n2.x - 0.5;
     float fine = n2.y - 0.5;  // 0.75 cells a metre, a second mid octave
     float m = (1.0 + 2.0 * a.x * lo) * (1.0 + 2.0 * a.y * hi) * (1.0 + 2.0 * a.z * fine);
-    // asphalt: darker repairs and lighter worn stretches; grass: dry patches (below)
-    m *= mix(1.0, mix(1.0, 0.65, smoothstep(0.72, 0.74, big)) * mix(1.0, 1.2, smoothstep(0.35, 0.15, big)), a.w * float(kind == 1));
+    // asphalt and roofs: darker resurfaced or repaired stretches and lighter worn ones (tens of
+    // metres: a city's roads and roofs are a patchwork of ages); grass: dry patches (below)
+    m *= mix(1.0, mix(1.0, 0.6, smoothstep(0.62, 0.66, big)) * mix(1.0, 1.3, smoothstep(0.42, 0.22, big)), a.w * float(kind == 1 || kind == 7));
     // tiles (paving, slabs: prm.y square), kerb stones (1 m), windows (prm.w wide, a storey high)
     vec2 tile = up ? prm.yy : vec2(kind == 3 ? 1.0 : prm.w, prm.y);
     vec2 t = uv / tile;
