@@ -308,6 +308,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--results", type=Path, default=Path("docs"), help="where RESULTS.md and results.json go")
     ap.add_argument("--fresh", action="store_true", help="delete the working folder first")
+    ap.add_argument("--data-only", action="store_true",
+                    help="stop once the dataset (WORK/uov) is merged: the data bench_learning.py compares recipes on")
     args = ap.parse_args(argv)
     args.amp = args.amp or default_amp(args.device)  # resolved, so RESULTS.md's command line says which
 
@@ -328,6 +330,9 @@ def main(argv: list[str] | None = None) -> int:
     uov = work / "uov"
     run(["merge", *map(str, sources + real), "--out", str(uov), "--test-fraction", "0.2", "--seed", str(args.seed)],
         uov / "manifest.json")
+    if args.data_only:
+        print(f"validate: the dataset is {uov} (--data-only: no training)")
+        return 0
 
     from detector.corner_order import corner_order_counts
     from omnigen.dataset import Dataset

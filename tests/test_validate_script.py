@@ -263,3 +263,22 @@ def test_results_markdown_puts_the_model_beside_the_box_template_baseline():
     assert "| ground-plane adherence (deg) | 4.50 | - |" in md
     assert "| the same, relative to sqrt(box area) | 0.081 | 0.200 |" in md and "Made by X." in md
     assert baseline_table({"oks_map50_95": 0.1}, "Made by X.") == []  # results from before the baseline
+
+
+def test_data_only_stops_at_the_merged_dataset(tmp_path, monkeypatch):
+    """--data-only renders (here: renders already done), merges and stops: no training command."""
+    calls: list[list[str]] = []
+
+    def fake(argv: list[str]) -> int:
+        calls.append(argv)
+        out = Path(argv[argv.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "manifest.json").write_text("{}")
+        return 0
+
+    monkeypatch.setattr(validate, "omnigen", fake)
+    for folder in ("render-ego-s0", "render-pole-s100", "render-drone-s200"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "manifest.json").write_text("{}")
+    assert validate.main(["--work", str(tmp_path), "--frames", "2", "--cities", "1", "--data-only"]) == 0
+    assert [c[0] for c in calls] == ["merge"]
