@@ -42,18 +42,15 @@ NOISE_SEED = 26  # fixed: the same surfaces on every machine and every run
 
 _COLOR_VS = """#version 330 core
 layout(location = 0) in vec3 position;
-layout(location = 1) in vec3 normal;
 layout(location = 2) in float slot;
 layout(location = 4) in vec4 surface_row;
 layout(location = 5) in vec4 surface_amp;
 layout(location = 6) in vec4 surface_cell;
 uniform mat4 VP;
 uniform mat4 shadow_matrix;
-uniform float normal_bias;
 uniform sampler2D materials;
 out vec3 shadow_coord;  // affine in the position: exact when interpolated
 out vec3 frag_position;
-out vec3 frag_normal;
 flat out vec4 base_metal;
 flat out vec4 emis_rough;
 flat out vec4 pattern;
@@ -62,8 +59,7 @@ flat out vec3 cell_w;
 void main() {
     gl_Position = VP * vec4(position, 1.0);
     frag_position = position;
-    frag_normal = normalize(normal);
-    shadow_coord = (shadow_matrix * vec4(position + frag_normal * normal_bias, 1.0)).xyz;
+    shadow_coord = (shadow_matrix * vec4(position, 1.0)).xyz;
     int s = int(slot + 0.5);
     ivec2 c = ivec2(s % %SLOTS%, 2 * (s / %SLOTS%));
     base_metal = texelFetch(materials, c, 0);
@@ -182,7 +178,6 @@ const float PI = 3.141592653589793;
 const float min_roughness = 0.04;
 in vec3 shadow_coord;
 in vec3 frag_position;
-in vec3 frag_normal;
 flat in vec4 base_metal;
 flat in vec4 emis_rough;
 flat in vec4 pattern;
@@ -201,6 +196,8 @@ uniform int effects;
 uniform float fog_density;
 uniform vec3 fog_color;
 uniform int shadows;
+uniform mat4 shadow_matrix;
+uniform float normal_bias;
 uniform sampler2DShadow shadow_map;
 uniform sampler2D noise;
 uniform float shadow_radius;
@@ -218,7 +215,9 @@ void main() {
     vec3 P = frag_position;
     float roughness = clamp(emis_rough.a, min_roughness, 1.0);
     float metallic = clamp(base_metal.a, 0.0, 1.0);
-    vec3 n = normalize(frag_normal);
+    // The face's normal from the position's screen derivatives (flat shading without per-face
+    // vertex copies); it faces the camera, as every drawn face does (back faces are culled).
+    vec3 n = normalize(cross(dFdx(P), dFdy(P)));
     vec3 v = normalize(cam_pos - P);
     float fp = max(length(fwidth(P)), 1e-4);
     vec3 reflected;
@@ -241,7 +240,7 @@ void main() {
     float D = a2 / (PI * denom * denom);
     vec3 diffuse_contrib = (1.0 - F) * c_diff / PI;
     vec3 spec_contrib = F * G * D / (4.0 * nl * nv + 0.001);
-    float sun = (shadows != 0 && dot(n, l) > 0.0) ? sun_visibility(shadow_coord) : 1.0;
+    float sun = (shadows != 0 && dot(n, l) > 0.0) ? sun_visibility(shadow_coord + mat3(shadow_matrix) * n * normal_bias) : 1.0;
     vec3 color = sun * nl * light_radiance * (diffuse_contrib + spec_contrib);
     color += base * mix(ground_ambient, sky_ambient, 0.5 + 0.5 * n.z);
     color += reflected * (sky_ambient.g > 0.0 ? 1.0 : 0.0);
@@ -357,20 +356,27 @@ def _program(vs: str, fs: str) -> int:
 
 
 class _Mesh:
-    """One vertex array: positions, normals, material slots, (optionally) instance ids and the
-    surface pattern rows (materials.Surface.row: fixed per part, so not in the per-frame table)."""
+    """One indexed vertex array: positions, material slots, (optionally) instance ids and the surface
+    pattern rows (materials.Surface.row: fixed per part, so not in the per-frame table), and the
+    triangles as indices into them.
+
+    Vertices are shared between a part's faces (no per-face copies for flat shading): the colour
+    shader takes each face's normal from the screen-space derivatives of its position, so a city
+    is about a third of the vertices a triangle soup needs. Ranges are index ranges (first index,
+    index count); each part's and each agent's triangles are contiguous.
+    """
 
     def __init__(self) -> None:
         self.vao = gl.glGenVertexArrays(1)
         self.buffers = list(gl.glGenBuffers(5))
-        self.count = 0
+        self.count = 0  # indices
 
-    def upload(self, positions: np.ndarray, normals: np.ndarray, slots: np.ndarray, ids: np.ndarray | None,
+    def upload(self, positions: np.ndarray, triangles: np.ndarray, slots: np.ndarray, ids: np.ndarray | None,
                surfaces: np.ndarray | None = None) -> None:
         gl.glBindVertexArray(self.vao)
         surf = None if surfaces is None else surface_attributes(surfaces)
-        arrays = [(0, positions, 3), (1, normals, 3), (2, slots, 1), (3, ids, 1), (4, surf, 12)]
-        for (loc, data, size), buf in zip(arrays, self.buffers):
+        arrays = [(0, positions, 3), (2, slots, 1), (3, ids, 1), (4, surf, 12)]
+        for (loc, data, size), buf in zip(arrays, self.buffers[:4]):
             if data is None:
                 gl.glDisableVertexAttribArray(loc)
                 continue
@@ -381,22 +387,26 @@ class _Mesh:
                 gl.glEnableVertexAttribArray(loc + k // 4)
                 gl.glVertexAttribPointer(loc + k // 4, min(size - k, 4), gl.GL_FLOAT, gl.GL_FALSE, 4 * size if size > 4 else 0,
                                          ctypes.c_void_p(4 * k))
+        index = np.ascontiguousarray(triangles, dtype=np.uint32).reshape(-1)
+        gl.glBindBuffer(gl.GL_ELEMENT_ARRAY_BUFFER, self.buffers[4])
+        gl.glBufferData(gl.GL_ELEMENT_ARRAY_BUFFER, index.nbytes, index if index.size else None, gl.GL_STATIC_DRAW)
         gl.glBindVertexArray(0)
-        self.count = len(positions)
+        self.count = len(index)
 
     def draw(self, ranges: tuple[np.ndarray, np.ndarray] | None = None) -> None:
-        """All triangles, or only the vertex ranges (first, count) given."""
+        """All triangles, or only the index ranges (first, count) given."""
         if ranges is not None:
             self.draw_ranges(*ranges)
         elif self.count:
             gl.glBindVertexArray(self.vao)
-            gl.glDrawArrays(gl.GL_TRIANGLES, 0, self.count)
+            gl.glDrawElements(gl.GL_TRIANGLES, self.count, gl.GL_UNSIGNED_INT, ctypes.c_void_p(0))
 
     def draw_ranges(self, first: np.ndarray, count: np.ndarray) -> None:
         if len(first):
             gl.glBindVertexArray(self.vao)
-            gl.glMultiDrawArrays(gl.GL_TRIANGLES, np.ascontiguousarray(first, dtype=np.int32),
-                                 np.ascontiguousarray(count, dtype=np.int32), len(first))
+            offsets = (ctypes.c_void_p * len(first))(*(4 * int(f) for f in first))
+            gl.glMultiDrawElements(gl.GL_TRIANGLES, np.ascontiguousarray(count, dtype=np.int32), gl.GL_UNSIGNED_INT,
+                                   offsets, len(first))
 
     def delete(self) -> None:
         gl.glDeleteBuffers(len(self.buffers), self.buffers)

@@ -73,26 +73,13 @@ def material_table(materials) -> np.ndarray:
     return out
 
 
-def surface_rows(surfaces, faces_per_part) -> np.ndarray:
-    """Each vertex's surface pattern row (materials.Surface.row), (3 * faces, 4) float32: a part's
-    surface repeated over its faces' vertices."""
+def surface_rows(surfaces, vertices_per_part) -> np.ndarray:
+    """Each vertex's surface pattern row (materials.Surface.row), (vertices, 4) float32: a part's
+    surface repeated over its vertices."""
     if not surfaces:
         return np.zeros((0, 4), dtype=np.float32)
     rows = np.array([sf.row() for sf in surfaces], dtype=np.float32).reshape(-1, 4)
-    return np.repeat(rows, 3 * np.asarray(faces_per_part, dtype=np.int64), axis=0)
-
-
-def _soup(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Triangles as a flat-shaded soup: (positions, per-face normals), float32, 3 vertices a face.
-
-    Flat shading needs vertices split per face; soups of many parts and objects concatenate into
-    one vertex buffer, so this runs once over all of them.
-    """
-    tri = vertices[faces]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    n = np.where(length > 0, n / np.where(length > 0, length, 1.0), 0.0)
-    return tri.reshape(-1, 3).astype(np.float32), np.repeat(n, 3, axis=0).astype(np.float32)
+    return np.repeat(rows, np.asarray(vertices_per_part, dtype=np.int64), axis=0)
 
 
 def visible_agents(agents, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> list[int]:
@@ -185,10 +172,10 @@ class RasterScene:
             verts.append(v)
             faces.append(f + n_verts)
             n_verts += len(v)
-        pos, nrm = _soup(np.concatenate(verts), np.concatenate(faces))
-        slots = np.repeat(np.concatenate([np.full(len(q[3]), q[1], dtype=np.float32) for q in parts]), 3)
-        self.gl.static.upload(pos, nrm, slots, None, surface_rows([q[4] for q in parts], [len(q[3]) for q in parts]))
-        # Each part's vertex range and world bounds: what a camera or the sun's map cannot reach is
+        slots = np.concatenate([np.full(len(q[2]), q[1], dtype=np.float32) for q in parts])
+        self.gl.static.upload(np.concatenate(verts), np.concatenate(faces), slots, None,
+                              surface_rows([q[4] for q in parts], [len(q[2]) for q in parts]))
+        # Each part's index range and world bounds: what a camera or the sun's map cannot reach is
         # not drawn (conservative: a part is skipped only when its whole box is outside).
         counts = np.array([3 * len(q[3]) for q in parts], dtype=np.int64)
         self._part_first = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
@@ -229,32 +216,32 @@ class RasterScene:
         chosen = visible_agents(agents, K, R, t, width, height)
         if static_z is not None:
             chosen = unoccluded_agents(agents, chosen, K, R, t, static_z)
-        verts, faces, face_slots, face_ids, materials, surfaces, part_faces = [], [], [], [], [], [], []
+        verts, faces, vert_slots, vert_ids, materials, surfaces, part_verts = [], [], [], [], [], [], []
         self._ranges = {}
         n_verts = n_faces = 0
         for k in chosen:
             obj = agent_object(agents[k], self.scene)
             rot, shift = obj.matrix_world[:3, :3], obj.matrix_world[:3, 3]
-            begin = n_faces
+            begin, first_vert = n_faces, n_verts
             for role, mesh in obj.parts.items():
                 verts.append(np.asarray(mesh.vertices) @ rot.T + shift)
                 faces.append(np.asarray(mesh.faces) + n_verts)
-                face_slots.append(np.full(len(mesh.faces), self._n_static_slots + len(materials), dtype=np.float32))
+                vert_slots.append(np.full(len(mesh.vertices), self._n_static_slots + len(materials), dtype=np.float32))
                 materials.append(obj.materials[role])
                 surfaces.append(agent_surface(role))
-                part_faces.append(len(mesh.faces))
+                part_verts.append(len(mesh.vertices))
                 n_verts += len(mesh.vertices)
                 n_faces += len(mesh.faces)
-            face_ids.append(np.full(n_faces - begin, obj.instance_id, dtype=np.float32))
+            vert_ids.append(np.full(n_verts - first_vert, obj.instance_id, dtype=np.float32))
             self._ranges[obj.instance_id] = (3 * begin, 3 * (n_faces - begin))
         if faces:
-            pos, nrm = _soup(np.concatenate(verts), np.concatenate(faces))
-            slots, ids = np.repeat(np.concatenate(face_slots), 3), np.repeat(np.concatenate(face_ids), 3)
+            pos, tri = np.concatenate(verts), np.concatenate(faces)
+            slots, ids = np.concatenate(vert_slots), np.concatenate(vert_ids)
         else:
-            pos = nrm = np.zeros((0, 3))
+            pos, tri = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint32)
             slots = ids = np.zeros(0)
         self.gl.make_current()
-        self.gl.agents.upload(pos, nrm, slots, ids, surface_rows(surfaces, part_faces))
+        self.gl.agents.upload(pos, tri, slots, ids, surface_rows(surfaces, part_verts))
         table = np.concatenate([self._static_table, material_table(materials)])
         self.gl.set_materials(table)
         self._agents_key = key
