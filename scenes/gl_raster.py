@@ -3,18 +3,20 @@
 Why not pyrender's renderer: on software GL (Mesa llvmpipe) a frame's cost was Python work per
 draw call (pyrender binds every uniform, light and material per primitive: ~0.35 ms a call,
 ~870 calls a colour pass) plus a multisampled segmentation pass and framebuffer reads nobody
-used. Here the geometry is uploaded as two vertex buffers (the static city, once; this frame's
-agents) whose vertices carry a material slot and an instance id; materials live in a small float
-texture, so restyling the city for the frame's weather is one texture upload and each pass is one
-or two draw calls:
-- colour: 4x multisampled, pyrender's metallic-roughness shading kept verbatim (one directional
-  sun, ambient, emission, the same `pow(c, 1/2.2)` output), so previews look as before; fog over
-  the ray length and the sky gradient (raster_backend's atmosphere) are applied here too, per
-  fragment, instead of in numpy over the finished image (that was ~40 ms a frame);
+used. Here the geometry is uploaded as two indexed vertex buffers (the static city, once; this
+frame's agents) whose vertices carry a material slot, a surface pattern and an instance id;
+materials live in a small float texture, so restyling the city for the frame's weather is one
+texture upload and each pass is one or two draw calls:
+- sun shadow map (when the sun casts shadows): depth only, from the sun, orthographic;
+- colour: 4x multisampled, pyrender's metallic-roughness shading (one directional sun, emission,
+  the same `pow(c, 1/2.2)` output) with procedural surfaces, the shadow lookup, a sky/ground
+  hemisphere light, lamps at night (a second build of the shader) and the exposure (see Light);
+  fog over the ray length and the sky gradient (raster_backend's atmosphere) are applied here
+  too, per fragment;
 - ids and depth: not multisampled, an unsigned-integer target, so ids are exact (never averaged at
-  edges) and each pixel's depth belongs to the object its id names;
-- ids of chosen agents alone (silhouettes): the agents' vertex ranges drawn with one
-  glMultiDrawArrays, nothing else.
+  edges) and each pixel's depth belongs to the object its id names; the look never touches it;
+- ids of chosen agents alone (silhouettes): the agents' index ranges drawn with one
+  glMultiDrawElements, nothing else.
 
 The context comes from pyrender's EGL platform (headless; llvmpipe needs no GPU). Camera: the
 projection is pyrender's IntrinsicsCamera matrix given cx + 0.5, cy + 0.5 (pixel centres at

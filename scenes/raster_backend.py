@@ -5,16 +5,23 @@ software EGL (Debian: libegl1, libegl-mesa0, libgl1-mesa-dri; llvmpipe, no GPU n
 with pyrender's EGL context and pyrender's shading (see gl_raster.py for why not its renderer).
 
 What a frame costs is kept small on two CPU cores by drawing few, large vertex buffers: the static
-city is built into one buffer once per process (restyled per frame through a material table, not
-rebuilt), and the frame's agents into another, built only for the agents whose cuboid reaches the
-camera's view (nothing outside the view can change a pixel: no shadows, no reflections here).
-What it is not: no shadows, no global illumination, no volumes. What it adds so previews still
-look like the weather (all documented approximations):
+city is built into one indexed buffer once per process (restyled per frame through a material
+table, not rebuilt; parts whose bounds miss the view, or the sun's map, are not drawn), and the
+frame's agents into another, built only for the agents whose cuboid reaches the camera's view.
+What it is not: no global illumination, no volumes, no reflections but the sky's. What it draws so
+previews look like the world (issue 26; all documented approximations, docs/scenes.md):
+- procedural surfaces by role (materials.Surface), from world position alone (gl_raster.py);
+- sun shadows: a depth map from the sun over what the camera sees (view_ground,
+  shadow_projection); none when the sun gives under MIN_SUN_SHARE of the daylight;
+- light (illumination): sun, sky and ground light, the camera's exposure, and at night the
+  street lamps nearest the view;
 - fog and haze: c = c_surface T + c_fog (1 - T), T = exp(-density d) with d the ray length,
   in linear colour, per fragment in the colour pass; the sky is at 2 km;
 - the sky: a vertical gradient by ray elevation, tinted by time of day and cloud cover, drawn
   where no geometry is;
 - rain and snow: screen-space streaks and flakes over the image, from the frame's own generator.
+Agents outside the view cast no shadow into it (they are not built): a car just outside the frame
+loses the shadow it would throw inside it.
 
 Pixel convention: pyrender's IntrinsicsCamera measures the principal point from the image's
 corner, so it is given cx + 0.5, cy + 0.5 (conventions.md, "Measured facts about the renderers").
