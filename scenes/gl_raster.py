@@ -197,7 +197,6 @@ uniform float snow_cover;
 uniform int effects;
 uniform float fog_density;
 uniform vec3 fog_color;
-uniform int shadows;
 uniform mat4 shadow_matrix;
 uniform float normal_bias;
 uniform sampler2DShadow shadow_map;
@@ -207,6 +206,14 @@ uniform int n_lamps;
 uniform vec4 lamps[%LAMPS%];
 uniform vec3 lamp_color;
 out vec4 frag_color;
+// A build per surface pattern (KIND defined) draws the static parts of that pattern: the compiler
+// drops every other pattern's terms (llvmpipe would run them all, masked). Without KIND (agents,
+// whose parts mix patterns) the pattern is read per vertex.
+#ifdef KIND
+#define SURFACE_KIND KIND
+#else
+#define SURFACE_KIND int(pattern.x + 0.5)
+#endif
 %SURFACES%
 float sun_visibility(vec3 q) {
     if (q.x <= 0.0 || q.y <= 0.0 || q.x >= 1.0 || q.y >= 1.0 || q.z >= 1.0) return 1.0;
@@ -223,7 +230,7 @@ void main() {
     vec3 v = normalize(cam_pos - P);
     float fp = max(length(fwidth(P)), 1e-4);
     vec3 reflected;
-    vec3 base = surface(int(pattern.x + 0.5), pattern, amp, cell_w, base_metal.rgb, P, n, v, fp, reflected);
+    vec3 base = surface(SURFACE_KIND, pattern, amp, cell_w, base_metal.rgb, P, n, v, fp, reflected);
     vec3 c_diff = mix(vec3(0.0), base * (1 - min_roughness), 1.0 - metallic);
     vec3 f0 = mix(vec3(min_roughness), base, metallic);
     vec3 l = normalize(-1.0 * light_direction);
@@ -242,7 +249,11 @@ void main() {
     float D = a2 / (PI * denom * denom);
     vec3 diffuse_contrib = (1.0 - F) * c_diff / PI;
     vec3 spec_contrib = F * G * D / (4.0 * nl * nv + 0.001);
-    float sun = (shadows != 0 && dot(n, l) > 0.0) ? sun_visibility(shadow_coord + mat3(shadow_matrix) * n * normal_bias) : 1.0;
+#ifdef SHADOWS
+    float sun = dot(n, l) > 0.0 ? sun_visibility(shadow_coord + mat3(shadow_matrix) * n * normal_bias) : 1.0;
+#else
+    float sun = 1.0;  // no shadow pass this frame (a uniform test would still pay for the lookup)
+#endif
     vec3 color = sun * nl * light_radiance * (diffuse_contrib + spec_contrib);
     color += base * mix(ground_ambient, sky_ambient, 0.5 + 0.5 * n.z);
     color += reflected * (sky_ambient.g > 0.0 ? 1.0 : 0.0);
@@ -443,6 +454,11 @@ class Light:
     sun_share: float = 0.0  # the sun's share of the daylight on a horizontal face (the backend's cue for shadows)
 
 
+_COLOR_UNIFORMS = ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "sky_ambient", "ground_ambient",
+                   "zenith", "horizon", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
+                   "shadow_matrix", "shadow_map", "noise", "shadow_radius", "normal_bias", "n_lamps", "lamps", "lamp_color")
+
+
 class GLRaster:
     """The GL context, programs, framebuffers and the two meshes; see the module doc."""
 
@@ -452,13 +468,13 @@ class GLRaster:
         self._platform = EGLPlatform(1, 1)
         self._platform.init_context()
         self._platform.make_current()
-        # Two builds of the colour shader: llvmpipe pays for the lamp loop even when it runs no
-        # iteration (~100 ms of CPU a 640x640 frame), so frames without lamps use one without it.
-        self._color_progs = {lamps: _program(_COLOR_VS, _COLOR_FS.replace("#version 330 core", "#version 330 core\n#define LAMPS" if lamps else "#version 330 core"))
-                             for lamps in (False, True)}
+        # Builds of the colour shader, made when first needed, per (surface pattern or None, lamps,
+        # shadows): llvmpipe pays for the lamp loop even when it runs no iteration (~100 ms of CPU
+        # a 640x640 frame), for the shadow lookup behind a uniform test and for every pattern's
+        # terms at every pixel, so each draw gets only what it needs.
+        self._color_progs: dict[tuple[int | None, bool, bool], tuple[int, dict]] = {}
         self._id_prog = _program(_ID_VS, _ID_FS)
         self._shadow_prog = _program(_SHADOW_VS, _SHADOW_FS)
-
         self._sky_prog = _program(_SKY_VS, _SKY_FS)
         self._sky_vao = gl.glGenVertexArrays(1)
         self.static = _Mesh()
@@ -467,26 +483,33 @@ class GLRaster:
         # the parts whose bounds reach the view, and the shadow casters reaching the sun's map.
         self.static_view: tuple[np.ndarray, np.ndarray] | None = None
         self.static_shadow: tuple[np.ndarray, np.ndarray] | None = None
+        self.static_view_kinds: np.ndarray | None = None  # the surface pattern of each static_view range
         self._materials = gl.glGenTextures(1)
         self._size: tuple[int, int] | None = None
         self._fbos: list[int] = []
         self._rbos: list[int] = []
-        self._locs = {lamps: {name: gl.glGetUniformLocation(prog, name)
-                              for name in ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "sky_ambient",
-                                  "ground_ambient", "zenith", "horizon", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
-                                  "shadows", "shadow_matrix", "shadow_map", "noise", "shadow_radius", "normal_bias", "n_lamps",
-                                  "lamps", "lamp_color")} for lamps, prog in self._color_progs.items()}
         self._sky_loc = {name: gl.glGetUniformLocation(self._sky_prog, name)
                          for name in ("ndc_to_world", "viewport", "zenith", "horizon", "fog_color", "sky_transmittance",
                                       "exposure")}
         self._shadow_lvp_loc = gl.glGetUniformLocation(self._shadow_prog, "LVP")
         self._shadow_fbo, self._shadow_tex = self._shadow_target(SHADOW_SIZE)
         self._noise_tex = self._noise_texture()
-
         self._id_loc = {name: gl.glGetUniformLocation(self._id_prog, name) for name in ("VP", "has_ids")}
 
     def make_current(self) -> None:
         self._platform.make_current()
+
+    def _color_program(self, kind: int | None, lamps: bool, shadows: bool) -> tuple[int, dict]:
+        """The colour shader built for one surface pattern (None: any, read per vertex), with or
+        without the lamp loop and the shadow lookup, and its uniform locations."""
+        key = (kind, lamps, shadows)
+        if key not in self._color_progs:
+            defines = (("#define LAMPS\n" if lamps else "") + ("#define SHADOWS\n" if shadows else "")
+                       + (f"#define KIND {int(kind)}\n" if kind is not None else ""))
+            prog = _program(_COLOR_VS, _COLOR_FS.replace("#version 330 core\n", "#version 330 core\n" + defines, 1))
+            loc = {name: gl.glGetUniformLocation(prog, name) for name in _COLOR_UNIFORMS}
+            self._color_progs[key] = (prog, loc)
+        return self._color_progs[key]
 
     # -- data ---------------------------------------------------------------------------------
 
@@ -634,8 +657,39 @@ class GLRaster:
         gl.glClearColor(0.0, 0.0, 0.0, 0.0)
         gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
         lamps = np.asarray(light.lamps, dtype=np.float32).reshape(-1, 4)[:MAX_LAMPS]
-        gl.glUseProgram(self._color_progs[len(lamps) > 0])
-        loc = self._locs[len(lamps) > 0]
+        gl.glActiveTexture(gl.GL_TEXTURE1)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, self._shadow_tex)
+        gl.glActiveTexture(gl.GL_TEXTURE2)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, self._noise_tex)
+        gl.glActiveTexture(gl.GL_TEXTURE0)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, self._materials)
+        groups: list[tuple[int | None, _Mesh, tuple | None]] = []
+        if self.static_view is not None and self.static_view_kinds is not None:
+            first, count = self.static_view
+            kinds = np.asarray(self.static_view_kinds)
+            for k in np.unique(kinds):
+                sel = kinds == k
+                groups.append((int(k), self.static, (first[sel], count[sel])))
+        else:
+            groups.append((None, self.static, self.static_view))
+        groups.append((None, self.agents, None))
+        for kind, mesh, ranges in groups:
+            prog, loc = self._color_program(kind, len(lamps) > 0, shadows)
+            gl.glUseProgram(prog)
+            self._color_uniforms(loc, VP, cam_pos, light, atmosphere, lamps, shadows)
+            mesh.draw(ranges)
+        if atmosphere is not None:
+            self._sky(atmosphere, width, height, light.exposure)
+        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, ms_fb)
+        gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, color_fb)
+        gl.glBlitFramebuffer(0, 0, width, height, 0, 0, width, height, gl.GL_COLOR_BUFFER_BIT, gl.GL_NEAREST)
+        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, color_fb)
+        rgba = _read_pixels(width, height, gl.GL_RGBA, gl.GL_UNSIGNED_BYTE, np.uint8, 4)
+        gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)
+        return rgba[::-1, :, :3]
+
+    @staticmethod
+    def _color_uniforms(loc: dict, VP, cam_pos, light: Light, atmosphere: dict | None, lamps: np.ndarray, shadows: bool) -> None:
         vec3 = lambda name, x: gl.glUniform3f(loc[name], *(float(c) for c in x))  # noqa: E731
         gl.glUniformMatrix4fv(loc["VP"], 1, gl.GL_TRUE, np.asarray(VP, dtype=np.float32))
         vec3("cam_pos", cam_pos)
@@ -655,33 +709,14 @@ class GLRaster:
         gl.glUniform1i(loc["n_lamps"], len(lamps))
         if len(lamps):
             gl.glUniform4fv(loc["lamps"], len(lamps), np.ascontiguousarray(lamps))
-        gl.glUniform1i(loc["shadows"], int(shadows))
-        gl.glActiveTexture(gl.GL_TEXTURE1)
-        gl.glBindTexture(gl.GL_TEXTURE_2D, self._shadow_tex)
+        gl.glUniform1i(loc["materials"], 0)
         gl.glUniform1i(loc["shadow_map"], 1)
+        gl.glUniform1i(loc["noise"], 2)
         if shadows:
             bias = np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
             gl.glUniformMatrix4fv(loc["shadow_matrix"], 1, gl.GL_TRUE, np.asarray(bias @ light.shadow_lvp, dtype=np.float32))
             gl.glUniform1f(loc["shadow_radius"], float(light.shadow_radius) / SHADOW_SIZE)
             gl.glUniform1f(loc["normal_bias"], float(light.normal_bias))
-        gl.glActiveTexture(gl.GL_TEXTURE2)
-        gl.glBindTexture(gl.GL_TEXTURE_2D, self._noise_tex)
-        gl.glUniform1i(loc["noise"], 2)
-
-        gl.glActiveTexture(gl.GL_TEXTURE0)
-        gl.glBindTexture(gl.GL_TEXTURE_2D, self._materials)
-        gl.glUniform1i(loc["materials"], 0)
-        self.static.draw(self.static_view)
-        self.agents.draw()
-        if atmosphere is not None:
-            self._sky(atmosphere, width, height, light.exposure)
-        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, ms_fb)
-        gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, color_fb)
-        gl.glBlitFramebuffer(0, 0, width, height, 0, 0, width, height, gl.GL_COLOR_BUFFER_BIT, gl.GL_NEAREST)
-        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, color_fb)
-        rgba = _read_pixels(width, height, gl.GL_RGBA, gl.GL_UNSIGNED_BYTE, np.uint8, 4)
-        gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)
-        return rgba[::-1, :, :3]
 
     def _sky(self, a: dict, width: int, height: int, exposure: float) -> None:
         gl.glUseProgram(self._sky_prog)
@@ -765,7 +800,7 @@ class GLRaster:
         self.agents.delete()
         gl.glDeleteTextures([self._materials, self._shadow_tex, self._noise_tex])
         gl.glDeleteFramebuffers(1, [self._shadow_fbo])
-        for prog in self._color_progs.values():
+        for prog, _ in self._color_progs.values():
             gl.glDeleteProgram(prog)
         gl.glDeleteProgram(self._shadow_prog)
         gl.glDeleteProgram(self._id_prog)

@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 
 from scenes.description import Scene  # noqa: E402
 from scenes.gl_raster import MAX_LAMPS, SHADOW_SIZE, ZFAR, ZNEAR, GLRaster, Light, projection, view_matrix  # noqa: E402
-from scenes.materials import agent_surface, building_surface, furniture_surface, ground_surface  # noqa: E402
+from scenes.materials import PATTERNS, agent_surface, building_surface, furniture_surface, ground_surface  # noqa: E402
 from scenes.meshes import (agent_object, compile_scene, lamp_lights, static_materials, static_objects,  # noqa: E402
                            world_box)
 from scenes.seeding import frame_streams  # noqa: E402
@@ -190,6 +190,7 @@ class RasterScene:
         self._part_lo = np.array([q[2].min(axis=0) if len(q[2]) else np.zeros(3) for q in parts])
         self._part_hi = np.array([q[2].max(axis=0) if len(q[2]) else np.zeros(3) for q in parts])
         self._part_casts = np.array([q[0] for q in parts], dtype=bool)
+        self._part_kind = np.array([PATTERNS[q[4].pattern] for q in parts], dtype=np.int64)
         self._static_table = self._static_materials(scene)
         self._agents_key: tuple | None = None
         self._ranges: dict[int, tuple[int, int]] = {}
@@ -253,7 +254,7 @@ class RasterScene:
         self.gl.set_materials(table)
         self._agents_key = key
 
-    def _static_ranges(self, M: np.ndarray, keep: np.ndarray, near: bool) -> tuple[np.ndarray, np.ndarray]:
+    def _static_ranges(self, M: np.ndarray, keep: np.ndarray, near: bool, kinds: bool = False):
         """Vertex ranges (first, count) of the static parts in `keep` whose bounding box reaches
         the clip volume of the 4x4 `M` (world -> clip): a part is left out only when all eight
         corners of its box lie outside one of the volume's side planes (or, with `near`, all
@@ -268,7 +269,8 @@ class RasterScene:
         if near:
             out |= (c[..., 2] < -w).all(axis=1)
         idx = np.nonzero(keep & ~out & (self._part_count > 0))[0]
-        return self._part_first[idx].astype(np.int32), self._part_count[idx].astype(np.int32)
+        ranges = (self._part_first[idx].astype(np.int32), self._part_count[idx].astype(np.int32))
+        return (ranges, self._part_kind[idx]) if kinds else ranges
 
     # -- inspection -------------------------------------------------------------------------
 
@@ -290,7 +292,8 @@ class RasterScene:
         if prepare:
             self._prepare_agents(K, R, t, width, height)
         VP = projection(K, width, height) @ view_matrix(R, t)
-        self.gl.static_view = self._static_ranges(VP, np.ones(len(self._part_count), dtype=bool), near=True)
+        self.gl.static_view, self.gl.static_view_kinds = self._static_ranges(VP, np.ones(len(self._part_count), dtype=bool),
+                                                                             near=True, kinds=True)
         return K, R, t, VP
 
     def render(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int, effects: bool = True) -> RasterFrame:
