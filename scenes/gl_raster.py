@@ -37,6 +37,7 @@ from OpenGL import GL as gl  # noqa: E402
 ZNEAR, ZFAR = 0.25, 3000.0
 MSAA_SAMPLES = 4
 SLOTS_PER_ROW = 1024  # material texture: slot s at (s % 1024, 2 * (s // 1024)) and the row below
+AGENT_KINDS = -1  # the colour shader's build for agents (their parts are plain or car paint)
 MAX_LAMPS = 16  # street lamps lighting a frame (the nearest to the view)
 SHADOW_SIZE = 1024  # the sun's shadow map, texels a side
 NOISE_SIZE = 256  # the value-noise table, cells a side (it repeats)
@@ -207,8 +208,8 @@ uniform vec4 lamps[%LAMPS%];
 uniform vec3 lamp_color;
 out vec4 frag_color;
 // A build per surface pattern (KIND defined) draws the static parts of that pattern: the compiler
-// drops every other pattern's terms (llvmpipe would run them all, masked). Without KIND (agents,
-// whose parts mix patterns) the pattern is read per vertex.
+// drops every other pattern's terms (llvmpipe would run them all, masked). The agents' build
+// (AGENTS) reads the pattern per vertex and knows only theirs: plain and car paint.
 #ifdef KIND
 #define SURFACE_KIND KIND
 #else
@@ -230,7 +231,14 @@ void main() {
     vec3 v = normalize(cam_pos - P);
     float fp = max(length(fwidth(P)), 1e-4);
     vec3 reflected;
+#ifdef AGENTS
+    // agents' parts are plain or car paint (materials.agent_surface): surface() reduced to those two
+    vec3 base = base_metal.rgb;
+    float F_coat = 0.04 + 0.96 * pow(1.0 - clamp(abs(dot(n, v)), 0.0, 1.0), 5.0);
+    reflected = sky_along(reflect(-v, n)) * (0.0 + float(int(pattern.x + 0.5) == 9) * 0.8 * F_coat);
+#else
     vec3 base = surface(SURFACE_KIND, pattern, amp, cell_w, base_metal.rgb, P, n, v, fp, reflected);
+#endif
     vec3 c_diff = mix(vec3(0.0), base * (1 - min_roughness), 1.0 - metallic);
     vec3 f0 = mix(vec3(min_roughness), base, metallic);
     vec3 l = normalize(-1.0 * light_direction);
@@ -500,12 +508,13 @@ class GLRaster:
         self._platform.make_current()
 
     def _color_program(self, kind: int | None, lamps: bool, shadows: bool) -> tuple[int, dict]:
-        """The colour shader built for one surface pattern (None: any, read per vertex), with or
-        without the lamp loop and the shadow lookup, and its uniform locations."""
+        """The colour shader built for one surface pattern (AGENT_KINDS: the agents', plain or car
+        paint, read per vertex; None: any, read per vertex), with or without the lamp loop and the
+        shadow lookup, and its uniform locations."""
         key = (kind, lamps, shadows)
         if key not in self._color_progs:
             defines = (("#define LAMPS\n" if lamps else "") + ("#define SHADOWS\n" if shadows else "")
-                       + (f"#define KIND {int(kind)}\n" if kind is not None else ""))
+                       + {None: "", AGENT_KINDS: "#define AGENTS\n"}.get(kind, f"#define KIND {kind}\n"))
             prog = _program(_COLOR_VS, _COLOR_FS.replace("#version 330 core\n", "#version 330 core\n" + defines, 1))
             loc = {name: gl.glGetUniformLocation(prog, name) for name in _COLOR_UNIFORMS}
             self._color_progs[key] = (prog, loc)
@@ -671,8 +680,8 @@ class GLRaster:
                 sel = kinds == k
                 groups.append((int(k), self.static, (first[sel], count[sel])))
         else:
-            groups.append((None, self.static, self.static_view))
-        groups.append((None, self.agents, None))
+            groups.append((None, self.static, self.static_view))  # every pattern, read per vertex
+        groups.append((AGENT_KINDS, self.agents, None))
         for kind, mesh, ranges in groups:
             prog, loc = self._color_program(kind, len(lamps) > 0, shadows)
             gl.glUseProgram(prog)
