@@ -115,6 +115,14 @@ def surface_attributes(rows: np.ndarray) -> np.ndarray:
     return out
 
 
+def _kind_defines(kind: int) -> str:
+    """A pattern's build: its number and its weights as constants (the compiler then drops the
+    noise octaves and joints a pattern does not use: plain parts fetch no noise at all)."""
+    w = [f"{float(x):.6f}" for x in SURFACE_WEIGHTS[kind]]
+    return (f"#define KIND {int(kind)}\n#define SURFACE_AMP vec4({w[0]}, {w[1]}, {w[2]}, {w[3]})\n"
+            f"#define SURFACE_CELL vec3({w[4]}, {w[5]}, {w[6]})\n")
+
+
 _SURFACES_GLSL = """
 vec2 N(vec2 p) { return texture(noise, p * (1.0 / %NOISE%.0)).rg; }
 float H(vec2 cell) { return texelFetch(noise, ivec2(mod(cell, %NOISE%.0)), 0).r; }  // one value a cell
@@ -214,6 +222,8 @@ out vec4 frag_color;
 #define SURFACE_KIND KIND
 #else
 #define SURFACE_KIND int(pattern.x + 0.5)
+#define SURFACE_AMP amp
+#define SURFACE_CELL cell_w
 #endif
 %SURFACES%
 float sun_visibility(vec3 q) {
@@ -237,7 +247,7 @@ void main() {
     float F_coat = 0.04 + 0.96 * pow(1.0 - clamp(abs(dot(n, v)), 0.0, 1.0), 5.0);
     reflected = sky_along(reflect(-v, n)) * (0.0 + float(int(pattern.x + 0.5) == 9) * 0.8 * F_coat);
 #else
-    vec3 base = surface(SURFACE_KIND, pattern, amp, cell_w, base_metal.rgb, P, n, v, fp, reflected);
+    vec3 base = surface(SURFACE_KIND, pattern, SURFACE_AMP, SURFACE_CELL, base_metal.rgb, P, n, v, fp, reflected);
 #endif
     vec3 c_diff = mix(vec3(0.0), base * (1 - min_roughness), 1.0 - metallic);
     vec3 f0 = mix(vec3(min_roughness), base, metallic);
@@ -514,7 +524,7 @@ class GLRaster:
         key = (kind, lamps, shadows)
         if key not in self._color_progs:
             defines = (("#define LAMPS\n" if lamps else "") + ("#define SHADOWS\n" if shadows else "")
-                       + {None: "", AGENT_KINDS: "#define AGENTS\n"}.get(kind, f"#define KIND {kind}\n"))
+                       + {None: "", AGENT_KINDS: "#define AGENTS\n"}.get(kind, _kind_defines(kind)))
             prog = _program(_COLOR_VS, _COLOR_FS.replace("#version 330 core\n", "#version 330 core\n" + defines, 1))
             loc = {name: gl.glGetUniformLocation(prog, name) for name in _COLOR_UNIFORMS}
             self._color_progs[key] = (prog, loc)

@@ -191,6 +191,10 @@ class RasterScene:
         self._part_hi = np.array([q[2].max(axis=0) if len(q[2]) else np.zeros(3) for q in parts])
         self._part_casts = np.array([q[0] for q in parts], dtype=bool)
         self._part_kind = np.array([PATTERNS[q[4].pattern] for q in parts], dtype=np.int64)
+        self._all_parts = np.ones(len(parts), dtype=bool)
+        lo, hi = self._part_lo, self._part_hi
+        self._part_corners = np.stack([np.stack([np.where(i & 1, hi[:, 0], lo[:, 0]), np.where(i & 2, hi[:, 1], lo[:, 1]),
+                                                 np.where(i & 4, hi[:, 2], lo[:, 2])], axis=-1) for i in range(8)], axis=1)
         self._static_table = self._static_materials(scene)
         self._agents_key: tuple | None = None
         self._ranges: dict[int, tuple[int, int]] = {}
@@ -259,9 +263,7 @@ class RasterScene:
         the clip volume of the 4x4 `M` (world -> clip): a part is left out only when all eight
         corners of its box lie outside one of the volume's side planes (or, with `near`, all
         behind the camera's near plane), so no part that can touch a pixel is ever left out."""
-        lo, hi = self._part_lo, self._part_hi
-        corners = np.stack([np.stack([np.where(i & 1, hi[:, 0], lo[:, 0]), np.where(i & 2, hi[:, 1], lo[:, 1]),
-                                      np.where(i & 4, hi[:, 2], lo[:, 2])], axis=-1) for i in range(8)], axis=1)
+        corners = self._part_corners
         c = corners @ M[:3, :3].T + M[:3, 3]  # (P, 8, 3) clip x, y, z
         w = corners @ M[3, :3] + M[3, 3]  # (P, 8)
         out = ((c[..., 0] < -w).all(axis=1) | (c[..., 0] > w).all(axis=1) | (c[..., 1] < -w).all(axis=1)
@@ -292,8 +294,8 @@ class RasterScene:
         if prepare:
             self._prepare_agents(K, R, t, width, height)
         VP = projection(K, width, height) @ view_matrix(R, t)
-        self.gl.static_view, self.gl.static_view_kinds = self._static_ranges(VP, np.ones(len(self._part_count), dtype=bool),
-                                                                             near=True, kinds=True)
+        if not prepare:  # render and labels draw the static city (silhouettes, prepare=True, do not)
+            self.gl.static_view, self.gl.static_view_kinds = self._static_ranges(VP, self._all_parts, near=True, kinds=True)
         return K, R, t, VP
 
     def render(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int, effects: bool = True) -> RasterFrame:
