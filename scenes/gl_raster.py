@@ -293,6 +293,31 @@ void main() {
 }
 """.replace("%SURFACES%", _SURFACES_GLSL).replace("%LAMPS%", str(MAX_LAMPS)).replace("%NOISE%", str(NOISE_SIZE))
 
+# Contact shadows: a soft dark quad on the ground under each agent, drawn over the finished
+# surfaces (no depth write; multiplies what is there). Under a car hardly any sky reaches the road:
+# the dark band that makes a car sit on it in every light, overcast and night included.
+_DECAL_VS = """#version 330 core
+layout(location = 0) in vec3 position;
+layout(location = 1) in vec2 uv;
+uniform mat4 VP;
+out vec2 f_uv;
+void main() {
+    gl_Position = VP * vec4(position, 1.0);
+    f_uv = uv;
+}
+"""
+
+_DECAL_FS = """#version 330 core
+in vec2 f_uv;
+uniform float strength;
+out vec4 frag_color;
+void main() {
+    vec2 a = abs(f_uv);
+    float e = length(max(a - 0.7, 0.0)) / 0.3;  // 0 over the core (the footprint), 1 at the edge
+    frag_color = vec4(0.0, 0.0, 0.0, strength * (1.0 - smoothstep(0.0, 1.0, e)));
+}
+"""
+
 _SHADOW_VS = """#version 330 core
 layout(location = 0) in vec3 position;
 uniform mat4 LVP;
@@ -468,6 +493,7 @@ class Light:
     normal_bias: float = 0.05
     lamps: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     lamp_color: tuple = (1.0, 0.82, 0.55)
+    contact_shadow: float = 0.0  # darkening at the centre of the quads under agents (set_decals)
     snow_cover: float = 0.0  # of the ground (Weather.snow_cover): fades the ground's patterns
     sun_share: float = 0.0  # the sun's share of the daylight on a horizontal face (the backend's cue for shadows)
 
@@ -494,6 +520,11 @@ class GLRaster:
         self._id_prog = _program(_ID_VS, _ID_FS)
         self._shadow_prog = _program(_SHADOW_VS, _SHADOW_FS)
         self._sky_prog = _program(_SKY_VS, _SKY_FS)
+        self._decal_prog = _program(_DECAL_VS, _DECAL_FS)
+        self._decal_loc = {name: gl.glGetUniformLocation(self._decal_prog, name) for name in ("VP", "strength")}
+        self._decal_vao = gl.glGenVertexArrays(1)
+        self._decal_bufs = list(gl.glGenBuffers(2))
+        self._decal_count = 0
         self._sky_vao = gl.glGenVertexArrays(1)
         self.static = _Mesh()
         self.agents = _Mesh()
@@ -546,6 +577,40 @@ class GLRaster:
         gl.glTexParameteri(gl.GL_TEXTURE_2D, gl.GL_TEXTURE_MAG_FILTER, gl.GL_NEAREST)
         gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_RGBA32F, SLOTS_PER_ROW, 2 * rows, 0, gl.GL_RGBA, gl.GL_FLOAT, tex.tobytes())
         gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
+
+    def set_decals(self, positions: np.ndarray, uv: np.ndarray) -> None:
+        """The contact-shadow quads as triangles: (N, 3) world positions and (N, 2) quad coordinates
+        (-1..1 across the quad; the agent's footprint ends at about 0.6)."""
+        gl.glBindVertexArray(self._decal_vao)
+        for loc, data, size, buf in ((0, positions, 3, self._decal_bufs[0]), (1, uv, 2, self._decal_bufs[1])):
+            data = np.ascontiguousarray(data, dtype=np.float32)
+            gl.glBindBuffer(gl.GL_ARRAY_BUFFER, buf)
+            gl.glBufferData(gl.GL_ARRAY_BUFFER, data.nbytes, data if data.size else None, gl.GL_DYNAMIC_DRAW)
+            gl.glEnableVertexAttribArray(loc)
+            gl.glVertexAttribPointer(loc, size, gl.GL_FLOAT, gl.GL_FALSE, 0, ctypes.c_void_p(0))
+        gl.glBindVertexArray(0)
+        self._decal_count = len(positions)
+
+    def _decals(self, VP: np.ndarray, strength: float) -> None:
+        if not self._decal_count or strength <= 0:
+            return
+        gl.glUseProgram(self._decal_prog)
+        gl.glUniformMatrix4fv(self._decal_loc["VP"], 1, gl.GL_TRUE, np.asarray(VP, dtype=np.float32))
+        gl.glUniform1f(self._decal_loc["strength"], float(strength))
+        gl.glDepthFunc(gl.GL_LEQUAL)
+        gl.glDepthMask(gl.GL_FALSE)
+        gl.glDisable(gl.GL_CULL_FACE)
+        gl.glEnable(gl.GL_POLYGON_OFFSET_FILL)
+        gl.glPolygonOffset(-1.0, -4.0)
+        gl.glEnable(gl.GL_BLEND)
+        gl.glBlendFunc(gl.GL_ZERO, gl.GL_ONE_MINUS_SRC_ALPHA)  # what is there, darkened by alpha
+        gl.glBindVertexArray(self._decal_vao)
+        gl.glDrawArrays(gl.GL_TRIANGLES, 0, self._decal_count)
+        gl.glDisable(gl.GL_BLEND)
+        gl.glDisable(gl.GL_POLYGON_OFFSET_FILL)
+        gl.glEnable(gl.GL_CULL_FACE)
+        gl.glDepthMask(gl.GL_TRUE)
+        gl.glDepthFunc(gl.GL_LESS)
 
     # -- framebuffers -------------------------------------------------------------------------
 
@@ -697,6 +762,7 @@ class GLRaster:
             gl.glUseProgram(prog)
             self._color_uniforms(loc, VP, cam_pos, light, atmosphere, lamps, shadows)
             mesh.draw(ranges)
+        self._decals(VP, light.contact_shadow)
         if atmosphere is not None:
             self._sky(atmosphere, width, height, light.exposure)
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, ms_fb)
@@ -824,6 +890,9 @@ class GLRaster:
         gl.glDeleteProgram(self._shadow_prog)
         gl.glDeleteProgram(self._id_prog)
         gl.glDeleteProgram(self._sky_prog)
+        gl.glDeleteProgram(self._decal_prog)
+        gl.glDeleteBuffers(2, self._decal_bufs)
+        gl.glDeleteVertexArrays(1, [self._decal_vao])
         gl.glDeleteVertexArrays(1, [self._sky_vao])
         from OpenGL.EGL import eglDestroyContext
 

@@ -51,6 +51,7 @@ SUN_SCALE = 0.9  # Lighting.sun_strength (Blender W/m^2) -> the shader's sun rad
 EXPOSURE_KEY = 1.3  # the camera exposes a white horizontal surface in the frame's daylight to this
 MAX_EXPOSURE = 5.0  # at night the camera's gain stops here
 LAMP_INTENSITY = 16.0
+CONTACT_SHADOW = 0.7  # the darkening at the middle of the ground under an agent (gl_raster._DECAL_FS)
 MIN_SUN_SHARE = 0.25  # below this share of the daylight the sun casts no visible shadow: no shadow pass
 DRAW_ORDER = {"road": 1, "sidewalk": 1, "lawn": 1, "marking_white": 2, "marking_yellow": 2, "ground": 3}  # others 0
 NON_CASTERS = frozenset({"window", "window_lit", "frame", "marking_white", "marking_yellow"})  # lie on other faces  # a street lamp: irradiance at 1 m (inverse square beyond), before exposure
@@ -254,6 +255,7 @@ class RasterScene:
             slots = ids = np.zeros(0)
         self.gl.make_current()
         self.gl.agents.upload(pos, tri, slots, ids, surface_rows(surfaces, part_verts))
+        self.gl.set_decals(*contact_quads([agents[k] for k in chosen]))
         table = np.concatenate([self._static_table, material_table(materials)])
         self.gl.set_materials(table)
         self._agents_key = key
@@ -416,7 +418,8 @@ def illumination(scene: Scene) -> Light:
     return Light(direction=tuple(direction), radiance=tuple(radiance), sky_ambient=tuple(sky_ambient),
                  ground_ambient=tuple(ground_ambient), zenith=tuple(zenith), horizon=tuple(horizon),
                  exposure=float(max(exposure, 0.2)), shadow_radius=1.0 + 8.0 * float(w.cloud_cover),
-                 sun_share=e_sun / max(e_sun + e_sky, 1e-9), snow_cover=float(w.snow_cover))
+                 sun_share=e_sun / max(e_sun + e_sky, 1e-9), snow_cover=float(w.snow_cover),
+                 contact_shadow=CONTACT_SHADOW)
 
 
 def view_ground(K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -460,6 +463,27 @@ def shadow_projection(points: np.ndarray, direction, bounds, top: float) -> tupl
     V = np.eye(4)
     V[:3, :3] = L
     return O @ V, float(max(hi - lo)) / SHADOW_SIZE
+
+
+def contact_quads(agents) -> tuple[np.ndarray, np.ndarray]:
+    """The contact-shadow quads under `agents` as triangles: (6 N, 3) world positions, 3 cm above
+    the cuboid's base, and (6 N, 2) quad coordinates. A quad is the footprint grown by a quarter of
+    its shorter side (at most 0.3 m), so the shadow fades out just beyond the agent."""
+    if not agents:
+        return np.zeros((0, 3)), np.zeros((0, 2))
+    c = np.array([a.center for a in agents], dtype=np.float64)
+    d = np.array([a.dims for a in agents], dtype=np.float64)
+    yaw = np.array([a.yaw for a in agents], dtype=np.float64)
+    margin = np.minimum(0.3, 0.25 * np.minimum(d[:, 0], d[:, 1]))
+    hl, hw = d[:, 0] / 2 + margin, d[:, 1] / 2 + margin
+    corner_uv = np.array([[-1, -1], [1, -1], [1, 1], [-1, -1], [1, 1], [-1, 1]], dtype=np.float64)  # two triangles
+    lx, ly = corner_uv[None, :, 0] * hl[:, None], corner_uv[None, :, 1] * hw[:, None]
+    cs, sn = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    z = (c[:, 2] - d[:, 2] / 2 + 0.03)[:, None]
+    pos = np.stack([c[:, 0:1] + cs * lx - sn * ly, c[:, 1:2] + sn * lx + cs * ly, np.broadcast_to(z, lx.shape)], axis=-1)
+    # quad coordinates: the footprint ends 0.6-0.9 of the way out (the shader fades from 0.7)
+    uv = np.broadcast_to(corner_uv, (len(agents), 6, 2))
+    return pos.reshape(-1, 3), uv.reshape(-1, 2)
 
 
 def _sun_color(elevation: float) -> list[float]:

@@ -187,3 +187,32 @@ def test_every_ground_role_has_a_surface_and_asphalt_is_grey(noon):
     assert ground_surface("road", scene.city).pattern == "asphalt"
     c = np.asarray(ground_material("road", scene.city, scene.weather).base_color)
     assert 0.07 < c.mean() < 0.14 and c.max() - c.min() < 0.01  # aged asphalt, grey
+
+
+def test_contact_shadows_darken_the_ground_under_agents_only(noon, monkeypatch):
+    """The contact-shadow quads darken pixels only on the ground around agents' footprints (the
+    quad: the footprint grown by at most 0.3 m), and leave ids and depth alone."""
+    gen, scene, rs, K = noon
+    overcast = gen.frame(8, 0, FrameOverrides(weather="overcast", time_of_day="noon"))
+    rs.update(overcast)
+    try:
+        car = next(a for a in overcast.agents if a.category == "car")
+        R, t = look_at((car.center[0] + 6.0, car.center[1] - 6.0, 5.0), (car.center[0], car.center[1], 0.0))
+        with_ = rs.render(K, R, t, W, H)
+        monkeypatch.setattr(raster, "CONTACT_SHADOW", 0.0)
+        without = rs.render(K, R, t, W, H)
+        assert np.array_equal(with_.instance, without.instance) and np.array_equal(with_.depth, without.depth)
+        darker = _luma(with_.rgb) < _luma(without.rgb) - 3.0
+        assert darker.sum() > 20 and (_luma(with_.rgb) <= _luma(without.rgb) + 0.5).all()
+        X, _, _ = _world_points(with_.depth, K, R, t, darker & np.isfinite(with_.depth))
+        quads = []
+        for a in overcast.agents:
+            grow = min(0.3, 0.25 * min(a.dims[0], a.dims[1])) + 0.05
+            c, s = math.cos(a.yaw), math.sin(a.yaw)
+            hl, hw = a.dims[0] / 2 + grow, a.dims[1] / 2 + grow
+            quads.append(Polygon([(a.center[0] + c * x - s * y, a.center[1] + s * x + c * y)
+                                  for x, y in ((-hl, -hw), (hl, -hw), (hl, hw), (-hl, hw))]))
+        inside = [any(q.contains(Point(x[0], x[1])) for q in quads) for x in X]
+        assert np.mean(inside) > 0.98
+    finally:
+        rs.update(gen.frame(8, 0, FrameOverrides(weather="clear", time_of_day="noon")))
