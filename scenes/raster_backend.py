@@ -15,6 +15,7 @@ previews look like the world (issue 26; all documented approximations, docs/scen
   shadow_projection); none when the sun gives under MIN_SUN_SHARE of the daylight;
 - light (illumination): sun, sky and ground light, the camera's exposure, and at night the
   street lamps nearest the view;
+- contact shadows: a soft dark quad under each agent (contact_quads), colour only;
 - fog and haze: c = c_surface T + c_fog (1 - T), T = exp(-density d) with d the ray length,
   in linear colour, per fragment in the colour pass; the sky is at 2 km;
 - the sky: a vertical gradient by ray elevation, tinted by time of day and cloud cover, drawn
