@@ -153,7 +153,7 @@ def agent_material(role: str, agent: Agent, lighting: Lighting) -> Material:
 # Procedural surfaces (drawn by the raster shader; plain data like Material)
 # ---------------------------------------------------------------------------------------------
 
-# Pattern ids as the shader knows them (gl_raster._PATTERNS_GLSL switches on these numbers).
+# Pattern ids as the shader knows them (gl_raster: SURFACE_WEIGHTS rows and _SURFACES_GLSL tests).
 PATTERNS = {"plain": 0, "asphalt": 1, "paint": 2, "paving": 3, "grass": 4, "facade": 5, "glass": 6, "roof": 7,
             "foliage": 8, "car_paint": 9, "concrete": 10}
 
