@@ -9,7 +9,9 @@ of day of each frame beside its figure. Issue 26's targets: median std >= 55 for
 benchmarks/bench_realism.py; this one is the raster backend's quick check.
 
     .venv/bin/python benchmarks/bench_raster_look.py [--frames 12] [--size 640] [--scene downtown] [--seed 0]
-        [--rigs ego,pole,drone]
+        [--rigs ego,pole,drone] [--keep DIR]
+
+--keep DIR keeps the rendered frames (DIR/<rig>/...) to look at beside real ones.
 """
 
 from __future__ import annotations
@@ -34,12 +36,12 @@ def luminance_stats(png: Path) -> tuple[float, float]:
     return float(y.std()), float(y.mean())
 
 
-def run_rig(rig: str, frames: int, size: int, scene: str, seed: int) -> list[dict]:
+def run_rig(rig: str, frames: int, size: int, scene: str, seed: int, keep: str | None = None) -> list[dict]:
     from rigs.render import RenderJob, Renderer
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / rig
+        out = Path(keep or tmp) / rig
         job = RenderJob(rig=rig, frames=frames, out=out, seed=seed, scene=scene, width=size, height=size,
                         backend="raster", quality="preview", durable=False)
         r = Renderer(job)
@@ -65,10 +67,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", default="downtown")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rigs", default="ego,pole,drone")
+    ap.add_argument("--keep", default=None, help="keep the frames under this folder")
     a = ap.parse_args(argv)
     print(f"{a.frames} frames a rig, {a.size}x{a.size}, scene {a.scene}, seed {a.seed}, raster")
     for rig in a.rigs.split(","):
-        rows = run_rig(rig, a.frames, a.size, a.scene, a.seed)
+        rows = run_rig(rig, a.frames, a.size, a.scene, a.seed, a.keep)
         stds = [r["std"] for r in rows]
         med = float(np.median(stds))
         target = TARGETS.get(rig)

@@ -126,9 +126,19 @@ def _kind_defines(kind: int) -> str:
 _SURFACES_GLSL = """
 vec2 N(vec2 p) { return texture(noise, p * (1.0 / %NOISE%.0)).rg; }
 float H(vec2 cell) { return texelFetch(noise, ivec2(mod(cell, %NOISE%.0)), 0).r; }  // one value a cell
-vec3 sky_along(vec3 r) {  // the sky a mirror shows in direction r (below the horizon: the street)
+float roofline(float z) {  // sine of the elevation of the opposite roofline seen from height z
+    float h = max(canyon.x - z, 0.0);
+    return h * inversesqrt(h * h + canyon.z * canyon.z + 1e-4);
+}
+vec3 sky_along(vec3 r, float z) {  // what a mirror at height z shows in direction r
+    // the sky above the street canyon's opposite roofline; below it facades and street, lit
+    // mostly by the sky (about a fifth of the horizon's radiance), as below the horizon
     vec3 sky = mix(horizon, zenith, sqrt(clamp(r.z, 0.0, 1.0)));
-    return r.z > 0.0 ? sky : horizon * 0.18;
+    float e = roofline(z);
+    return mix(horizon * 0.18, sky, smoothstep(e - 0.08, e + 0.08, r.z) * step(0.0, r.z));
+}
+float sky_view(float z) {  // the share of the open sky's light reaching height z in a street canyon
+    return mix(canyon.y, 1.0, smoothstep(0.0, max(canyon.x, 1e-3), z));
 }
 vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3 v, float fp, out vec3 reflected) {
     bool up = n.z > 0.5;
@@ -144,6 +154,9 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     // asphalt and roofs: darker resurfaced or repaired stretches and lighter worn ones (tens of
     // metres: a city's roads and roofs are a patchwork of ages); grass: dry patches (below)
     m *= mix(1.0, mix(1.0, 0.6, smoothstep(0.62, 0.66, big)) * mix(1.0, 1.3, smoothstep(0.42, 0.22, big)), a.w * float(kind == 1 || kind == 7));
+    // flat roofs by building: a dark bitumen or rubber membrane (4 in 10), light gravel (1 in 10)
+    float rv = fract(prm.z * 7.31);
+    m *= mix(1.0, rv < 0.4 ? 0.45 : (rv > 0.9 ? 1.8 : 1.0), float(kind == 7 && up));
     // tiles (paving, slabs: prm.y square), kerb stones (1 m), windows (prm.w wide, a storey high)
     vec2 tile = up ? prm.yy : vec2(kind == 3 ? 1.0 : prm.w, prm.y);
     vec2 t = uv / tile;
@@ -167,14 +180,15 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     // grass: dry patches; foliage: some clusters yellower
     albedo = mix(albedo, vec3(0.15, 0.13, 0.06) * m, 0.65 * float(kind == 4) * smoothstep(0.55, 0.8, big));
     albedo = mix(albedo, albedo * vec3(1.5, 1.25, 0.55), float(kind == 8) * smoothstep(0.1, 0.3, hi));
-    // windows: rooms and blinds behind (a value per pane), the sky and street mirrored in front
-    // (glass's Fresnel reflectance: 4% head-on, most of it at grazing angles);
-    // car paint: a clear coat mirrors the sky
+    // windows: in daylight rooms behind glass are dark (most panes); a few show light blinds or
+    // curtains (a value per pane); the sky and the facades opposite mirrored in front (glass's
+    // Fresnel reflectance: 4% head-on, most of it at grazing angles); car paint: a clear coat
     float glass = float(kind == 6);
-    albedo *= mix(1.0, 0.5 + 6.0 * cell * cell * cell, glass);
+    float c2 = cell * cell;
+    albedo *= mix(1.0, 0.3 + 5.0 * c2 * c2 * cell, glass);
     vec3 r = reflect(-v, n);
     float F = 0.04 + 0.96 * pow(1.0 - clamp(abs(dot(n, v)), 0.0, 1.0), 5.0);
-    reflected = sky_along(r) * (glass * F * (0.3 + 0.7 * step(0.3, cell)) + float(kind == 9) * 0.8 * F);
+    reflected = sky_along(r, P.z) * (glass * F * (0.3 + 0.7 * step(0.3, cell)) + float(kind == 9) * 0.8 * F);
     return albedo;
 }
 """
@@ -201,6 +215,7 @@ uniform vec3 sky_ambient;
 uniform vec3 ground_ambient;
 uniform vec3 zenith;
 uniform vec3 horizon;
+uniform vec3 canyon;
 uniform float exposure;
 uniform float snow_cover;
 uniform int effects;
@@ -245,7 +260,7 @@ void main() {
     // agents' parts are plain or car paint (materials.agent_surface): surface() reduced to those two
     vec3 base = base_metal.rgb;
     float F_coat = 0.04 + 0.96 * pow(1.0 - clamp(abs(dot(n, v)), 0.0, 1.0), 5.0);
-    reflected = sky_along(reflect(-v, n)) * (0.0 + float(int(pattern.x + 0.5) == 9) * 0.8 * F_coat);
+    reflected = sky_along(reflect(-v, n), P.z) * (0.0 + float(int(pattern.x + 0.5) == 9) * 0.8 * F_coat);
 #else
     vec3 base = surface(SURFACE_KIND, pattern, SURFACE_AMP, SURFACE_CELL, base_metal.rgb, P, n, v, fp, reflected);
 #endif
@@ -273,7 +288,7 @@ void main() {
     float sun = 1.0;  // no shadow pass this frame (a uniform test would still pay for the lookup)
 #endif
     vec3 color = sun * nl * light_radiance * (diffuse_contrib + spec_contrib);
-    color += base * mix(ground_ambient, sky_ambient, 0.5 + 0.5 * n.z);
+    color += base * mix(ground_ambient, sky_ambient * sky_view(P.z), 0.5 + 0.5 * n.z);
     color += reflected * (sky_ambient.g > 0.0 ? 1.0 : 0.0);
 #ifdef LAMPS
     for (int i = 0; i < %LAMPS%; ++i) {  // street lamps: downward lights, inverse-square falloff
@@ -496,10 +511,13 @@ class Light:
     contact_shadow: float = 0.0  # darkening at the centre of the quads under agents (set_decals)
     snow_cover: float = 0.0  # of the ground (Weather.snow_cover): fades the ground's patterns
     sun_share: float = 0.0  # the sun's share of the daylight on a horizontal face (the backend's cue for shadows)
+    # the city's street canyon: building height (m), the sky's share at street level, street width (m)
+    # between facades; (0, 1, 1): open ground, the sky everywhere (sky_view, sky_along in the shader)
+    canyon: tuple = (0.0, 1.0, 1.0)
 
 
 _COLOR_UNIFORMS = ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "sky_ambient", "ground_ambient",
-                   "zenith", "horizon", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
+                   "zenith", "horizon", "canyon", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
                    "shadow_matrix", "shadow_map", "noise", "shadow_radius", "normal_bias", "n_lamps", "lamps", "lamp_color")
 
 
@@ -784,6 +802,7 @@ class GLRaster:
         vec3("ground_ambient", light.ground_ambient)
         vec3("zenith", light.zenith)
         vec3("horizon", light.horizon)
+        vec3("canyon", light.canyon)
         vec3("lamp_color", light.lamp_color)
         gl.glUniform1f(loc["exposure"], float(light.exposure))
         gl.glUniform1f(loc["snow_cover"], float(light.snow_cover))

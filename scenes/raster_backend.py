@@ -50,9 +50,11 @@ CULL_MARGIN = 0.25  # metres added to an agent's bounding sphere when testing it
 SHADOW_REACH = 160.0  # metres along a view ray that the sun's shadow map covers (beyond: unshadowed)
 SUN_SCALE = 0.9  # Lighting.sun_strength (Blender W/m^2) -> the shader's sun radiance
 EXPOSURE_KEY = 1.3  # the camera exposes a white horizontal surface in the frame's daylight to this
-MAX_EXPOSURE = 5.0  # at night the camera's gain stops here
+MAX_EXPOSURE = 5.0
+HORIZON_KEY = 1.6  # the exposure's cap: the horizon's sky reads at most this (white, as photographs show it; dusk's colours kept)  # at night the camera's gain stops here
 LAMP_INTENSITY = 16.0
 CONTACT_SHADOW = 0.7  # the darkening at the middle of the ground under an agent (gl_raster._DECAL_FS)
+MIN_SKY_VIEW = 0.3  # the least share of the sky a street canyon's floor sees (street_canyon)
 MIN_SUN_SHARE = 0.25  # below this share of the daylight the sun casts no visible shadow: no shadow pass
 DRAW_ORDER = {"road": 1, "sidewalk": 1, "lawn": 1, "marking_white": 2, "marking_yellow": 2, "ground": 3}  # others 0
 NON_CASTERS = frozenset({"window", "window_lit", "frame", "marking_white", "marking_yellow"})  # lie on other faces  # a street lamp: irradiance at 1 m (inverse square beyond), before exposure
@@ -201,6 +203,7 @@ class RasterScene:
         self._agents_key: tuple | None = None
         self._ranges: dict[int, tuple[int, int]] = {}
         self._top = max((p.top_z + p.roof_height for b in scene.city.buildings for p in b.parts), default=10.0)
+        self._canyon = street_canyon(scene.city)
         lamps = lamp_lights(replace(scene, lighting=replace(scene.lighting, street_lights_on=True)))
         self._lamps = np.array([lamp.position for lamp in lamps], dtype=np.float64).reshape(-1, 3)
 
@@ -345,7 +348,10 @@ class RasterScene:
     def _light(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> Light:
         """The frame's light for this camera: illumination(scene), the sun's shadow map over the
         view and the street lamps nearest to it."""
-        light = illumination(self.scene)
+        h, svf, _ = self._canyon
+        cam_z = float((-R.T @ t.reshape(3))[2])
+        light = illumination(self.scene, svf + (1.0 - svf) * _smoothstep(0.0, max(h, 1e-3), cam_z))
+        light.canyon = self._canyon
         ground = view_ground(K, R, t, width, height)
         if light.sun_share >= MIN_SUN_SHARE:
             lvp, texel = shadow_projection(ground, light.direction, self.scene.city.bounds, self._top)
@@ -387,11 +393,17 @@ def static_surface(city, buildings: dict, obj, role: str):
     return furniture_surface(role)
 
 
+def _smoothstep(a: float, b: float, x: float) -> float:
+    """GLSL's smoothstep (the shader's sky_view ramp, on the CPU)."""
+    u = min(max((x - a) / (b - a), 0.0), 1.0)
+    return u * u * (3.0 - 2.0 * u)
+
+
 def _luminance(c) -> float:
     return float(np.dot(np.asarray(c, dtype=np.float64), (0.2126, 0.7152, 0.0722)))
 
 
-def illumination(scene: Scene) -> Light:
+def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
     """Sun, sky and ground light and the camera's exposure for a frame's weather and hour.
 
     Units: a white horizontal face receives E = E_sun + E_sky. The sun's radiance follows
@@ -400,7 +412,10 @@ def illumination(scene: Scene) -> Light:
     shadows), tinted like the sky; the ground returns 15% of what falls on it to faces looking
     down. The exposure is a camera's: a white horizontal face in the frame's daylight reads
     EXPOSURE_KEY, but the horizon is not blown out (dusk), and at night the gain stops at
-    MAX_EXPOSURE, so the night stays dark except under lamps and lit windows.
+    MAX_EXPOSURE, so the night stays dark except under lamps and lit windows. `sky_view` is the
+    share of the sky that the camera's surroundings see (street_canyon; 1: open ground): a camera
+    down in a street canyon meters the light down there, as an automatic exposure does, so the
+    open sky and the sunlit tops above it come out brighter than the street.
     """
     light, w = scene.lighting, scene.weather
     zenith, horizon = (np.asarray(c) for c in _sky_colors(scene))
@@ -415,12 +430,33 @@ def illumination(scene: Scene) -> Light:
     tint = 0.3 * tint / max(_luminance(tint), 1e-6) + 0.7
     sky_ambient = tint * e_sky
     ground_ambient = np.array([1.0, 0.95, 0.88]) * 0.15 * (e_sun + e_sky)
-    exposure = min(EXPOSURE_KEY / max(e_sun + e_sky, 1e-6), 1.1 / max(_luminance(horizon), 1e-6), MAX_EXPOSURE)
+    exposure = min(EXPOSURE_KEY / max(e_sun + e_sky * sky_view, 1e-6), HORIZON_KEY / max(_luminance(horizon), 1e-6), MAX_EXPOSURE)
     return Light(direction=tuple(direction), radiance=tuple(radiance), sky_ambient=tuple(sky_ambient),
                  ground_ambient=tuple(ground_ambient), zenith=tuple(zenith), horizon=tuple(horizon),
                  exposure=float(max(exposure, 0.2)), shadow_radius=1.0 + 8.0 * float(w.cloud_cover),
                  sun_share=e_sun / max(e_sun + e_sky, 1e-9), snow_cover=float(w.snow_cover),
                  contact_shadow=CONTACT_SHADOW)
+
+
+def street_canyon(city) -> tuple[float, float, float]:
+    """The city's typical street canyon, (H, svf, W): the median building height H (m), the sky
+    view factor at the middle of its floor, svf = cos(atan(2 H / W)) (Oke's infinite canyon), and
+    W (m) between the facades: the median road width plus two median sidewalks.
+
+    Why: at the bottom of a downtown canyon the buildings hide most of the sky (H/W 1.7: a third
+    of it), so the sky's light there, on the street, the lower facades and cars in shadow, is a
+    third of the open sky's; the shader ramps it back to the whole sky at H (gl_raster sky_view),
+    and mirrors show the facades opposite below the roofline. Gaps, crossings and setbacks
+    let some sky in: svf is kept at least MIN_SKY_VIEW. No buildings: (0, 1, 1), open ground.
+    """
+    heights = [max(p.top_z for p in b.parts) for b in city.buildings if b.parts]
+    if not heights or not city.roads:
+        return (0.0, 1.0, 1.0)
+    h = float(np.median(heights))
+    walks = [s.width for s in city.sidewalks if s.kind == "sidewalk"]
+    w = float(np.median([r.width for r in city.roads])) + 2.0 * (float(np.median(walks)) if walks else 0.0)
+    svf = math.cos(math.atan(2.0 * h / max(w, 1.0)))
+    return (h, float(max(svf, MIN_SKY_VIEW)), w)
 
 
 def view_ground(K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -496,7 +532,9 @@ def _sky_colors(scene: Scene) -> tuple[tuple[float, float, float], tuple[float, 
     """(zenith, horizon) linear colours for the preview sky and fog."""
     light, w = scene.lighting, scene.weather
     s = light.sky_strength
-    clear_z, clear_h = np.array([0.12, 0.25, 0.6]), np.array([0.55, 0.65, 0.8])
+    # a clear sky is near white low over the horizon (a long path through the air scatters every
+    # colour) and deeper blue at the zenith
+    clear_z, clear_h = np.array([0.08, 0.19, 0.55]), np.array([0.68, 0.74, 0.84])
     grey = np.array([0.45, 0.47, 0.5])
     k = float(w.cloud_cover)
     z = clear_z * (1 - k) + grey * k
