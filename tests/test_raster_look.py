@@ -216,3 +216,43 @@ def test_contact_shadows_darken_the_ground_under_agents_only(noon, monkeypatch):
         assert np.mean(inside) > 0.98
     finally:
         rs.update(gen.frame(8, 0, FrameOverrides(weather="clear", time_of_day="noon")))
+
+
+def test_street_canyon_sky_view_follows_height_over_width():
+    """Oke's canyon-floor sky view cos(atan(2 H / W)) from median heights and widths, floored."""
+    from types import SimpleNamespace as NS
+
+    def city(h, road, walk):
+        parts = (NS(top_z=h),)
+        return NS(buildings=[NS(parts=parts)] * 3, roads=[NS(width=road)] * 2,
+                  sidewalks=[NS(kind="sidewalk", width=walk), NS(kind="plaza", width=50.0)])
+
+    h, svf, w = raster.street_canyon(city(40.0, 20.0, 4.0))
+    assert (h, w) == (40.0, 28.0) and svf == pytest.approx(math.cos(math.atan(80.0 / 28.0)))
+    assert raster.street_canyon(city(8.0, 20.0, 4.0))[1] > 0.8  # low houses: most of the sky
+    assert raster.street_canyon(city(200.0, 10.0, 2.0))[1] == raster.MIN_SKY_VIEW
+    assert raster.street_canyon(NS(buildings=[], roads=[], sidewalks=[])) == (0.0, 1.0, 1.0)
+
+
+def test_canyon_floor_gets_less_sky_than_the_roofs(noon, monkeypatch):
+    """Overcast (sky light only): with the canyon, the street and low facades lose more of their
+    light than the roofs do (the exposure, metered where the camera is, scales both alike); ids
+    and depth are untouched."""
+    gen, scene, rs, K = noon
+    overcast = gen.frame(8, 0, FrameOverrides(weather="overcast", time_of_day="noon"))
+    rs.update(overcast)
+    try:
+        R, t = look_at((-5.0, -45.0, 60.0), (0.0, 0.0, 0.0))
+        assert rs._canyon[0] > 0 and rs._canyon[1] < 1.0
+        canyon = rs.render(K, R, t, W, H, effects=False)
+        monkeypatch.setattr(rs, "_canyon", (0.0, 1.0, 1.0))
+        open_ = rs.render(K, R, t, W, H, effects=False)
+        assert np.array_equal(canyon.instance, open_.instance) and np.array_equal(canyon.depth, open_.depth)
+        seen = np.isfinite(canyon.depth) & (_luma(open_.rgb) > 20.0)
+        X, v, u = _world_points(canyon.depth, K, R, t, seen)
+        ratio = (_luma(canyon.rgb) / np.maximum(_luma(open_.rgb), 1.0))[v, u]
+        low, high = ratio[X[:, 2] < 0.5], ratio[X[:, 2] > rs._canyon[0]]
+        assert len(low) > 50 and len(high) > 20
+        assert np.median(low) < 0.95 * np.median(high)  # sRGB: the linear loss, to the power 1/2.2
+    finally:
+        rs.update(gen.frame(8, 0, FrameOverrides(weather="clear", time_of_day="noon")))
