@@ -185,7 +185,7 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     // Fresnel reflectance: 4% head-on, most of it at grazing angles); car paint: a clear coat
     float glass = float(kind == 6);
     float c2 = cell * cell;
-    albedo *= mix(1.0, 0.3 + 5.0 * c2 * c2 * cell, glass);
+    albedo *= mix(1.0, 0.15 + 4.0 * c2 * c2 * cell, glass);
     vec3 r = reflect(-v, n);
     float F = 0.04 + 0.96 * pow(1.0 - clamp(abs(dot(n, v)), 0.0, 1.0), 5.0);
     reflected = sky_along(r, P.z) * (glass * F * (0.3 + 0.7 * step(0.3, cell)) + float(kind == 9) * 0.8 * F);
