@@ -10,7 +10,7 @@ texture upload and each pass is one or two draw calls:
 - sun shadow map (when the sun casts shadows): depth only, from the sun, orthographic;
 - colour: 4x multisampled, pyrender's metallic-roughness shading (one directional sun, emission,
   the same `pow(c, 1/2.2)` output) with procedural surfaces, the shadow lookup, a sky/ground
-  hemisphere light, lamps at night (a second build of the shader) and the exposure (see Light);
+  hemisphere light (the sky's part scaled by the city's sky-view map, set_sky_view), lamps at night (a second build of the shader) and the exposure (see Light);
   fog over the ray length and the sky gradient (raster_backend's atmosphere) are applied here
   too, per fragment;
 - ids and depth: not multisampled, an unsigned-integer target, so ids are exact (never averaged at
@@ -137,8 +137,12 @@ vec3 sky_along(vec3 r, float z) {  // what a mirror at height z shows in directi
     float e = roofline(z);
     return mix(horizon * 0.18, sky, smoothstep(e - 0.08, e + 0.08, r.z) * step(0.0, r.z));
 }
-float sky_view(float z) {  // the share of the open sky's light reaching height z in a street canyon
-    return mix(canyon.y, 1.0, smoothstep(0.0, max(canyon.x, 1e-3), z));
+float sky_view(vec3 P, vec3 n) {  // the share of the open sky's light reaching P (face normal n)
+    // the city's sky-view map (raster_backend.sky_view_map): at the ground or roof under P for
+    // faces looking up, in front of the face for walls, rising to the whole sky at roof height
+    vec2 q = (P.xy + (n.z > 0.5 ? vec2(0.0) : n.xy * svf_xform.w) - svf_xform.xy) * svf_xform.z;
+    float g = texture(svf_map, q).r;
+    return n.z > 0.5 ? g : mix(g, 1.0, smoothstep(0.0, max(canyon.x, 1e-3), P.z));
 }
 vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3 v, float fp, out vec3 reflected) {
     bool up = n.z > 0.5;
@@ -216,6 +220,8 @@ uniform vec3 ground_ambient;
 uniform vec3 zenith;
 uniform vec3 horizon;
 uniform vec3 canyon;
+uniform sampler2D svf_map;
+uniform vec4 svf_xform;  // map origin x, y (m), 1 / its side (m), the cell (m)
 uniform float exposure;
 uniform float snow_cover;
 uniform int effects;
@@ -288,7 +294,7 @@ void main() {
     float sun = 1.0;  // no shadow pass this frame (a uniform test would still pay for the lookup)
 #endif
     vec3 color = sun * nl * light_radiance * (diffuse_contrib + spec_contrib);
-    color += base * mix(ground_ambient, sky_ambient * sky_view(P.z), 0.5 + 0.5 * n.z);
+    color += base * mix(ground_ambient, sky_ambient * sky_view(P, n), 0.5 + 0.5 * n.z);
     color += reflected * (sky_ambient.g > 0.0 ? 1.0 : 0.0);
 #ifdef LAMPS
     for (int i = 0; i < %LAMPS%; ++i) {  // street lamps: downward lights, inverse-square falloff
@@ -514,10 +520,12 @@ class Light:
     # the city's street canyon: building height (m), the sky's share at street level, street width (m)
     # between facades; (0, 1, 1): open ground, the sky everywhere (sky_view, sky_along in the shader)
     canyon: tuple = (0.0, 1.0, 1.0)
+    # where the sky-view map (GLRaster.set_sky_view) lies: origin x, y (m), 1 / side (m), cell (m)
+    svf_xform: tuple = (0.0, 0.0, 1.0, 1.0)
 
 
 _COLOR_UNIFORMS = ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "sky_ambient", "ground_ambient",
-                   "zenith", "horizon", "canyon", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
+                   "zenith", "horizon", "canyon", "svf_map", "svf_xform", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
                    "shadow_matrix", "shadow_map", "noise", "shadow_radius", "normal_bias", "n_lamps", "lamps", "lamp_color")
 
 
@@ -561,6 +569,8 @@ class GLRaster:
         self._shadow_lvp_loc = gl.glGetUniformLocation(self._shadow_prog, "LVP")
         self._shadow_fbo, self._shadow_tex = self._shadow_target(SHADOW_SIZE)
         self._noise_tex = self._noise_texture()
+        self._svf_tex = gl.glGenTextures(1)
+        self.set_sky_view(np.ones((1, 1), dtype=np.float32))
         self._id_loc = {name: gl.glGetUniformLocation(self._id_prog, name) for name in ("VP", "has_ids")}
 
     def make_current(self) -> None:
@@ -594,6 +604,17 @@ class GLRaster:
         gl.glTexParameteri(gl.GL_TEXTURE_2D, gl.GL_TEXTURE_MIN_FILTER, gl.GL_NEAREST)
         gl.glTexParameteri(gl.GL_TEXTURE_2D, gl.GL_TEXTURE_MAG_FILTER, gl.GL_NEAREST)
         gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_RGBA32F, SLOTS_PER_ROW, 2 * rows, 0, gl.GL_RGBA, gl.GL_FLOAT, tex.tobytes())
+        gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
+
+    def set_sky_view(self, svf: np.ndarray) -> None:
+        """The city's sky-view map, (ny, nx) float in [0, 1], row j at y = y0 + (j + 0.5) cell
+        (Light.svf_xform places it); outside it, its edge (the map has an open margin)."""
+        a = np.ascontiguousarray(svf, dtype=np.float32)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, self._svf_tex)
+        for name, value in ((gl.GL_TEXTURE_MIN_FILTER, gl.GL_LINEAR), (gl.GL_TEXTURE_MAG_FILTER, gl.GL_LINEAR),
+                            (gl.GL_TEXTURE_WRAP_S, gl.GL_CLAMP_TO_EDGE), (gl.GL_TEXTURE_WRAP_T, gl.GL_CLAMP_TO_EDGE)):
+            gl.glTexParameteri(gl.GL_TEXTURE_2D, name, value)
+        gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_R32F, a.shape[1], a.shape[0], 0, gl.GL_RED, gl.GL_FLOAT, a.tobytes())
         gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
 
     def set_decals(self, positions: np.ndarray, uv: np.ndarray) -> None:
@@ -763,6 +784,8 @@ class GLRaster:
         gl.glBindTexture(gl.GL_TEXTURE_2D, self._shadow_tex)
         gl.glActiveTexture(gl.GL_TEXTURE2)
         gl.glBindTexture(gl.GL_TEXTURE_2D, self._noise_tex)
+        gl.glActiveTexture(gl.GL_TEXTURE3)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, self._svf_tex)
         gl.glActiveTexture(gl.GL_TEXTURE0)
         gl.glBindTexture(gl.GL_TEXTURE_2D, self._materials)
         groups: list[tuple[int | None, _Mesh, tuple | None]] = []
@@ -816,6 +839,8 @@ class GLRaster:
         gl.glUniform1i(loc["materials"], 0)
         gl.glUniform1i(loc["shadow_map"], 1)
         gl.glUniform1i(loc["noise"], 2)
+        gl.glUniform1i(loc["svf_map"], 3)
+        gl.glUniform4f(loc["svf_xform"], *(float(x) for x in light.svf_xform))
         if shadows:
             bias = np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
             gl.glUniformMatrix4fv(loc["shadow_matrix"], 1, gl.GL_TRUE, np.asarray(bias @ light.shadow_lvp, dtype=np.float32))
@@ -902,7 +927,7 @@ class GLRaster:
         self._delete_framebuffers()
         self.static.delete()
         self.agents.delete()
-        gl.glDeleteTextures([self._materials, self._shadow_tex, self._noise_tex])
+        gl.glDeleteTextures([self._materials, self._shadow_tex, self._noise_tex, self._svf_tex])
         gl.glDeleteFramebuffers(1, [self._shadow_fbo])
         for prog, _ in self._color_progs.values():
             gl.glDeleteProgram(prog)

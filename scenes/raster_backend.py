@@ -14,7 +14,9 @@ previews look like the world (issue 26; all documented approximations, docs/scen
 - sun shadows: a depth map from the sun over what the camera sees (view_ground,
   shadow_projection); none when the sun gives under MIN_SUN_SHARE of the daylight;
 - light (illumination): sun, sky and ground light, the camera's exposure, and at night the
-  street lamps nearest the view;
+  street lamps nearest the view; the sky's light on a surface scales with the sky it sees
+  (sky_view_map: a street between towers sees a third of it, a roof all of it), and the camera
+  meters the light where it looks (metered_sky_view);
 - contact shadows: a soft dark quad under each agent (contact_quads), colour only;
 - fog and haze: c = c_surface T + c_fog (1 - T), T = exp(-density d) with d the ray length,
   in linear colour, per fragment in the colour pass; the sky is at 2 km;
@@ -55,6 +57,7 @@ HORIZON_KEY = 2.2  # the exposure's cap: the horizon's sky reads at most this (w
 LAMP_INTENSITY = 16.0
 CONTACT_SHADOW = 0.7  # the darkening at the middle of the ground under an agent (gl_raster._DECAL_FS)
 MIN_SKY_VIEW = 0.3  # the least share of the sky a street canyon's floor sees (street_canyon)
+SVF_CELL, SVF_REACH, SVF_DIRECTIONS = 2.0, 120.0, 16  # the sky-view map: cell (m), how far it looks (m), azimuths
 MIN_SUN_SHARE = 0.25  # below this share of the daylight the sun casts no visible shadow: no shadow pass
 DRAW_ORDER = {"road": 1, "sidewalk": 1, "lawn": 1, "marking_white": 2, "marking_yellow": 2, "ground": 3}  # others 0
 NON_CASTERS = frozenset({"window", "window_lit", "frame", "marking_white", "marking_yellow"})  # lie on other faces  # a street lamp: irradiance at 1 m (inverse square beyond), before exposure
@@ -204,6 +207,8 @@ class RasterScene:
         self._ranges: dict[int, tuple[int, int]] = {}
         self._top = max((p.top_z + p.roof_height for b in scene.city.buildings for p in b.parts), default=10.0)
         self._canyon = street_canyon(scene.city)
+        self._svf, self._svf_xform = sky_view_map(scene.city)
+        self.gl.set_sky_view(self._svf)
         lamps = lamp_lights(replace(scene, lighting=replace(scene.lighting, street_lights_on=True)))
         self._lamps = np.array([lamp.position for lamp in lamps], dtype=np.float64).reshape(-1, 3)
 
@@ -348,11 +353,9 @@ class RasterScene:
     def _light(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> Light:
         """The frame's light for this camera: illumination(scene), the sun's shadow map over the
         view and the street lamps nearest to it."""
-        h, svf, _ = self._canyon
-        cam_z = float((-R.T @ t.reshape(3))[2])
-        light = illumination(self.scene, svf + (1.0 - svf) * _smoothstep(0.0, max(h, 1e-3), cam_z))
-        light.canyon = self._canyon
         ground = view_ground(K, R, t, width, height)
+        light = illumination(self.scene, metered_sky_view(self._canyon, self._svf, self._svf_xform, ground))
+        light.canyon, light.svf_xform = self._canyon, self._svf_xform
         if light.sun_share >= MIN_SUN_SHARE:
             lvp, texel = shadow_projection(ground, light.direction, self.scene.city.bounds, self._top)
             light.shadow_lvp, light.normal_bias = lvp, 1.5 * texel
@@ -444,10 +447,10 @@ def street_canyon(city) -> tuple[float, float, float]:
     W (m) between the facades: the median road width plus two median sidewalks.
 
     Why: at the bottom of a downtown canyon the buildings hide most of the sky (H/W 1.7: a third
-    of it), so the sky's light there, on the street, the lower facades and cars in shadow, is a
-    third of the open sky's; the shader ramps it back to the whole sky at H (gl_raster sky_view),
-    and mirrors show the facades opposite below the roofline. Gaps, crossings and setbacks
-    let some sky in: svf is kept at least MIN_SKY_VIEW. No buildings: (0, 1, 1), open ground.
+    of it). The shader takes H and W: mirrors (windows, car paint) show the facades opposite
+    below their roofline, and a wall's sky view rises from the street's (sky_view_map) to the
+    whole sky at H (gl_raster sky_view); svf (kept at least MIN_SKY_VIEW: gaps, crossings and
+    setbacks let sky in) is the typical floor's figure, for reports. No buildings: (0, 1, 1).
     """
     heights = [max(p.top_z for p in b.parts) for b in city.buildings if b.parts]
     if not heights or not city.roads:
@@ -457,6 +460,70 @@ def street_canyon(city) -> tuple[float, float, float]:
     w = float(np.median([r.width for r in city.roads])) + 2.0 * (float(np.median(walks)) if walks else 0.0)
     svf = math.cos(math.atan(2.0 * h / max(w, 1.0)))
     return (h, float(max(svf, MIN_SKY_VIEW)), w)
+
+
+def sky_view_map(city, cell: float = SVF_CELL, reach: float = SVF_REACH, directions: int = SVF_DIRECTIONS
+                 ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """The sky view factor of the city's ground and roofs on a square grid, and where it lies.
+
+    Each cell's height is the top of the building standing on it (0: street); its sky view is what
+    an upward-facing surface there sees of an evenly bright sky, mean over `directions` azimuths of
+    cos^2 of the horizon's elevation (the highest building top within `reach`, seen from the
+    cell's own height). A street between tall buildings sees a third of the sky, a crossing or a
+    plaza more, a roof above its neighbours all of it: the sky's light on them scales with it
+    (gl_raster sky_view). The grid has an open margin (outside it: its edge). Returns (ny, nx)
+    float32 and (x0, y0, 1 / side, cell) for Light.svf_xform.
+    """
+    xmin, ymin, xmax, ymax = city.bounds
+    margin = 2.0 * cell
+    side = max(xmax - xmin, ymax - ymin) + 2.0 * margin
+    n = int(math.ceil(side / cell))
+    side = n * cell
+    x0, y0 = xmin - margin, ymin - margin
+    centres = x0 + (np.arange(n) + 0.5) * cell
+    X, Y = np.meshgrid(centres, y0 + (np.arange(n) + 0.5) * cell)  # row j: y
+    height = np.zeros((n, n), dtype=np.float64)
+    for b in city.buildings:
+        for part in b.parts:
+            poly = np.asarray(part.footprint, dtype=np.float64)
+            if len(poly) < 3:
+                continue
+            i0, i1 = np.clip(((poly[:, 0].min() - x0) / cell, (poly[:, 0].max() - x0) / cell + 1), 0, n).astype(int)
+            j0, j1 = np.clip(((poly[:, 1].min() - y0) / cell, (poly[:, 1].max() - y0) / cell + 1), 0, n).astype(int)
+            px, py = X[j0:j1, i0:i1], Y[j0:j1, i0:i1]
+            inside = np.zeros(px.shape, dtype=bool)
+            for (ax, ay), (bx, by) in zip(poly, np.roll(poly, -1, axis=0)):  # even-odd rule
+                crosses = (ay > py) != (by > py)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    xc = ax + (py - ay) * (bx - ax) / (by - ay)
+                inside ^= crosses & (px < xc)
+            top = part.top_z + 0.5 * part.roof_height
+            height[j0:j1, i0:i1] = np.where(inside, np.maximum(height[j0:j1, i0:i1], top), height[j0:j1, i0:i1])
+    jj, ii = np.mgrid[0:n, 0:n]
+    steps = np.arange(1, int(reach / cell) + 1, dtype=np.float64)
+    cos2 = np.zeros((n, n), dtype=np.float64)
+    for k in range(directions):
+        a = 2.0 * math.pi * k / directions
+        tan = np.zeros((n, n), dtype=np.float64)
+        for s in steps:
+            j = np.clip(np.rint(jj + s * math.sin(a)).astype(np.int64), 0, n - 1)
+            i = np.clip(np.rint(ii + s * math.cos(a)).astype(np.int64), 0, n - 1)
+            np.maximum(tan, (height[j, i] - height) / (s * cell), out=tan)
+        cos2 += 1.0 / (1.0 + tan * tan)
+    return (cos2 / directions).astype(np.float32), (float(x0), float(y0), float(1.0 / side), float(cell))
+
+
+def metered_sky_view(canyon: tuple[float, float, float], svf: np.ndarray, xform, ground: np.ndarray) -> float:
+    """The share of the sky seen where the camera meters: the mean of the sky view (gl_raster
+    sky_view, a wall's ramp) at the camera and at the nine points its view reaches (view_ground),
+    as a camera's average metering weighs the street below and the tops and sky above alike."""
+    x0, y0, inv_side, cell = xform
+    n = svf.shape[0]
+    i = np.clip(((ground[:, 0] - x0) / cell).astype(np.int64), 0, n - 1)
+    j = np.clip(((ground[:, 1] - y0) / cell).astype(np.int64), 0, n - 1)
+    g = svf[j, i].astype(np.float64)
+    ramp = np.array([_smoothstep(0.0, max(canyon[0], 1e-3), float(z)) for z in ground[:, 2]])
+    return float(np.mean(g + (1.0 - g) * ramp))
 
 
 def view_ground(K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> np.ndarray:

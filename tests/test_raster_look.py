@@ -234,25 +234,50 @@ def test_street_canyon_sky_view_follows_height_over_width():
     assert raster.street_canyon(NS(buildings=[], roads=[], sidewalks=[])) == (0.0, 1.0, 1.0)
 
 
+def test_sky_view_map_sees_buildings_around_a_cell():
+    """A tower hides sky from the street beside it, not from its own roof or from far away."""
+    from types import SimpleNamespace as NS
+
+    tower = NS(footprint=((0.0, 0.0), (20.0, 0.0), (20.0, 20.0), (0.0, 20.0)), top_z=60.0, roof_height=0.0)
+    city = NS(bounds=(-100.0, -100.0, 100.0, 100.0), buildings=[NS(parts=(tower,))])
+    svf, (x0, y0, inv_side, cell) = raster.sky_view_map(city)
+    assert svf.shape[0] == svf.shape[1] and inv_side == pytest.approx(1.0 / (svf.shape[0] * cell))
+    at = lambda x, y: svf[int((y - y0) / cell), int((x - x0) / cell)]  # noqa: E731
+    assert at(10.0, 10.0) == pytest.approx(1.0)  # the roof: nothing higher
+    assert at(25.0, 10.0) < 0.85  # the street beside it: a wall 60 m high 5 m away hides a side
+    assert at(-90.0, -90.0) > 0.98 and at(-90.0, -90.0) > at(25.0, 10.0)
+    assert at(40.0, 10.0) > at(25.0, 10.0)  # further off, more sky
+
+
 def test_canyon_floor_gets_less_sky_than_the_roofs(noon, monkeypatch):
-    """Overcast (sky light only): with the canyon, the street and low facades lose more of their
-    light than the roofs do (the exposure, metered where the camera is, scales both alike); ids
-    and depth are untouched."""
+    """Overcast (sky light only): with the sky-view map, ground the buildings hide sky from loses
+    more of its light than open ground does (the exposure scales both alike); ids and depth are
+    untouched."""
     gen, scene, rs, K = noon
     overcast = gen.frame(8, 0, FrameOverrides(weather="overcast", time_of_day="noon"))
     rs.update(overcast)
     try:
         R, t = look_at((-5.0, -45.0, 60.0), (0.0, 0.0, 0.0))
-        assert rs._canyon[0] > 0 and rs._canyon[1] < 1.0
+        assert rs._canyon[0] > 0 and rs._svf.min() < 0.8
         canyon = rs.render(K, R, t, W, H, effects=False)
+        svf = rs._svf
         monkeypatch.setattr(rs, "_canyon", (0.0, 1.0, 1.0))
-        open_ = rs.render(K, R, t, W, H, effects=False)
+        monkeypatch.setattr(rs, "_svf", np.ones((1, 1), dtype=np.float32))
+        rs.gl.set_sky_view(rs._svf)
+        try:
+            open_ = rs.render(K, R, t, W, H, effects=False)
+        finally:
+            rs.gl.set_sky_view(svf)
         assert np.array_equal(canyon.instance, open_.instance) and np.array_equal(canyon.depth, open_.depth)
         seen = np.isfinite(canyon.depth) & (_luma(open_.rgb) > 20.0)
         X, v, u = _world_points(canyon.depth, K, R, t, seen)
         ratio = (_luma(canyon.rgb) / np.maximum(_luma(open_.rgb), 1.0))[v, u]
-        low, high = ratio[X[:, 2] < 0.5], ratio[X[:, 2] > rs._canyon[0]]
-        assert len(low) > 50 and len(high) > 20
-        assert np.median(low) < 0.95 * np.median(high)  # sRGB: the linear loss, to the power 1/2.2
+        x0, y0, _, cell = rs._svf_xform
+        n = svf.shape[0]
+        g = svf[np.clip(((X[:, 1] - y0) / cell).astype(int), 0, n - 1), np.clip(((X[:, 0] - x0) / cell).astype(int), 0, n - 1)]
+        ground = X[:, 2] < 0.5
+        hidden, open_sky = ratio[ground & (g < 0.75)], ratio[ground & (g > 0.97)]
+        assert len(hidden) > 30 and len(open_sky) > 30
+        assert np.median(hidden) < 0.95 * np.median(open_sky)  # sRGB: the linear loss, to the power 1/2.2
     finally:
         rs.update(gen.frame(8, 0, FrameOverrides(weather="clear", time_of_day="noon")))
