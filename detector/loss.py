@@ -198,6 +198,10 @@ class DetectionLoss:
         self.gains = gains or LossGains()
         self.assigner = assigner or TaskAlignedAssigner()
         self.kpt_sigma = kpt_sigma
+        # a turn-aware head's corners are compared in the labelled order until the trainer frees
+        # them (TrainConfig.kpt_turn_start): the branch first learns the labelled order, so that its
+        # later choice between the two orders starts from the true heading wherever the image shows it
+        self.turn_free = True
 
     def __call__(self, out: HeadOutput, targets: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         b, nc, a = out.cls.shape
@@ -239,7 +243,8 @@ class DetectionLoss:
         if out.turn is not None:
             if self.gains.kpt_labelled:
                 kpt_labelled = oks_keypoint_loss(kpts[..., :2], kpt_gt, kmask, area, sigma=self.kpt_sigma)
-            turned = turn_targets(kpts[..., :2].detach(), kpt_gt, kmask, area)  # (N,)
+            turned = turn_targets(kpts[..., :2].detach(), kpt_gt, kmask, area) if self.turn_free \
+                else torch.zeros(len(obj), dtype=torch.bool, device=device)  # (N,)
             kpt_gt = torch.where(turned[:, None, None], kpt_gt[:, _TURN], kpt_gt)
             kmask = torch.where(turned[:, None], kmask[:, _TURN], kmask)
             vis_gt = torch.where(turned[:, None], vis_gt[:, _TURN], vis_gt)

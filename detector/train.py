@@ -82,6 +82,7 @@ class TrainConfig:
     kpt_turn: bool = False  # corners up to the 180-degree turn plus a turn class (loss.turn_targets)
     kpt_hidden: int | None = None  # keypoint-branch width (DetectorConfig.kpt_hidden)
     kpt_labelled: float = 0.0  # gain of the labelled-order OKS term beside the turn-aware one (LossGains)
+    kpt_turn_start: float = 0.0  # fraction of the run before a turn-aware loss may choose the order (loss.turn_free)
     taxonomy: str = "fine"
     train_split: str = "train"
     val_split: str | None = None  # None: 'val' if the dataset has it, else 'test', else all frames
@@ -350,6 +351,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
             for g in optimizer.param_groups:
                 g["lr"] = learning_rate(cfg, it, total)
             criterion.kpt_sigma = kpt_sigma(cfg, it, total)
+            criterion.turn_free = it >= cfg.kpt_turn_start * total
             sums.add(step(*to_device(images, targets, device, channels_last)))
             if rank == 0 and time.perf_counter() >= show:  # read the device's sums only when the bar may redraw
                 # refresh=False: a redraw per step would defeat the log's one line a minute

@@ -49,6 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="keypoint-branch width (default: max(stride-8 width / 4, 24), as Ultralytics' pose head)")
     p.add_argument("--kpt-labelled", type=float, default=0.0,
                    help="with --kpt-turn: gain of the OKS loss in the labelled order, a pull towards the true heading")
+    p.add_argument("--kpt-turn-start", type=float, default=0.0,
+                   help="with --kpt-turn: fraction of the run in which corners are compared as labelled only")
     p.add_argument("--kpt-l1", type=float, default=0.0,
                    help="gain of a scale-free L1 corner term beside the OKS keypoint loss (0: the design's loss)")
     p.add_argument("--amp", default="auto", choices=["auto", "bf16", "fp16", "off"],
@@ -81,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every,
         kpt_sigma_start=args.kpt_sigma_start, kpt_sigma_end=args.kpt_sigma_end, kpt_sigma_anneal=args.kpt_sigma_anneal,
         kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1, kpt_turn=args.kpt_turn, kpt_hidden=args.kpt_hidden,
-        kpt_labelled=args.kpt_labelled, amp=args.amp,
+        kpt_labelled=args.kpt_labelled, kpt_turn_start=args.kpt_turn_start, amp=args.amp,
         time_minutes=args.time, weights=args.weights, channels_last=args.channels_last)
     start = time.perf_counter()
 

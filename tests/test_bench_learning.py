@@ -49,3 +49,26 @@ def test_bench_learning_prints_model_and_baseline(tmp_path, capsys):
     with pytest.raises(SystemExit, match="other arguments.*lr0"):
         main(argv + ["--lr0", "0.01", "--name", result["name"]])
     assert (tmp_path / "runs" / result["name"] / "last.pt").read_bytes() == before
+
+
+def test_turn_targets_reads_a_turn_aware_checkpoint(tmp_path, capsys):
+    """benchmarks/turn_targets.py prints the share of turned targets of a turn-aware run and
+    refuses a model without the turn."""
+    from benchmarks.turn_targets import main as turn_main
+
+    ds = write_fake_dataset(tmp_path / "uov", 6, objects_per_frame=4, seed=3)
+    ids = [ds.table.frame_id[i] for i in range(len(ds))]
+    write_split(ds.root, "train", ids[:4])
+    write_split(ds.root, "test", ids[4:])
+    common = [str(ds.root), "--steps", "1", "--batch", "2", "--imgsz", "64", "--crop", "0", "--amp", "off",
+              "--width", "0.125", "--depth", "0.34", "--workers", "0", "--kpt-mode", "box",
+              "--work", str(tmp_path / "runs")]
+    assert main([*common, "--kpt-turn", "--name", "turn"]) == 0
+    capsys.readouterr()
+    assert turn_main([str(tmp_path / "runs" / "turn" / "last.pt"), "--batches", "2", "--batch", "2"]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    share = float(last.split("turned ")[1].split(" ")[0])
+    assert last.startswith("turn targets: turned ") and 0.0 <= share <= 1.0 and "turn loss" in last
+    assert main([*common, "--name", "plain"]) == 0
+    with pytest.raises(SystemExit, match="not a turn-aware model"):
+        turn_main([str(tmp_path / "runs" / "plain" / "last.pt")])

@@ -427,3 +427,19 @@ def test_free_turn_aware_head_learns_corners_and_turn():
         opt.step()
     assert parts["kpt"] < 0.2 * first_parts["kpt"] and parts["kpt_l1"] < 0.3 * first_parts["kpt_l1"]
     assert parts["turn"] < 0.2 * first_parts["turn"]
+
+
+def test_turn_aware_loss_compares_as_labelled_until_freed():
+    """Before the trainer frees the order (turn_free False) the turn target is 'as labelled' for
+    every positive: a turn logit saying 'turned' pays for it; once freed the same logit is judged
+    against the order the corners fit."""
+    a = _anchors()[0].shape[0]
+    loss_fn = DetectionLoss(3, gains=LossGains(box=0, dfl=0, cls=0, kvis=0, kpt=6.0))
+    out = _head(2, 3, a)
+    out.turn = torch.full((2, a), 8.0)  # "turned" everywhere, confidently
+    loss_fn.turn_free = False
+    _, parts = loss_fn(out, _targets())
+    assert parts["turn"] == pytest.approx(8.0, abs=1e-2)  # BCE(8, 0) = 8 + log(1 + e^-8)
+    loss_fn.turn_free = True
+    _, freed = loss_fn(out, _targets())
+    assert freed["turn"] < parts["turn"] - 0.5  # some positives' corners fit the turned order
