@@ -257,7 +257,8 @@ def train_arguments(uov: Path, out: Path, args: argparse.Namespace) -> list[str]
     return ["train", str(uov), "--out", str(out), "--model", "n", "--p2", "--imgsz", str(args.imgsz),
             "--batch", str(args.batch), "--workers", str(args.workers), "--seed", str(args.seed),
             "--optimizer", "adamw", "--lr0", str(args.lr0), "--val-every", str(args.val_every),
-            "--kpt-sigma-end", "0.25", "--amp", "auto", "--cache", "--device", args.device, *budget]
+            "--kpt-sigma-end", "0.25", "--amp", "auto", "--cache", "--device", args.device, *budget,
+            *shlex.split(getattr(args, "train_args", "") or "")]
 
 
 def training_speed(run_dir: Path, train_frames: int) -> dict[str, Any]:
@@ -383,7 +384,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--city-frames", type=int, default=40, help="frames of each of those cities")
     ap.add_argument("--test-fraction", type=float, default=0.2, help="of make validate's merge (its test split)")
     ap.add_argument("--size", type=int, default=640, help="rendered width and height")
-    ap.add_argument("--scene", default=None, help="city preset (default: the renderer's, as make validate)")
+    ap.add_argument("--scene", default="downtown,suburban,arterial,intersection",
+                    help="city preset or mix (default: make validate's mix, benchmarks/validate.py SCENE_MIX)")
     ap.add_argument("--minutes", type=float, default=7.0, help="training's wall-clock budget (train --time)")
     ap.add_argument("--imgsz", type=int, default=640)
     ap.add_argument("--batch", type=int, default=64)
@@ -395,6 +397,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--kitti", type=Path, default=default_kitti(), help="KITTI tree to merge (default: the shared sample)")
     ap.add_argument("--no-kitti", action="store_true", help="synthetic frames alone")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--train-args", default="",
+                    help="more `omnigen train` arguments, one string (e.g. '--kpt-mode box --kpt-l1 2 --kpt-turn')")
     ap.add_argument("--results", type=Path, default=ROOT / "docs", help="folder of RESULTS.md (its section) and gpu_results.json")
     ap.add_argument("--peer", action="store_true", help="also train Ultralytics' YOLO11n-pose (peer_ultralytics.py)")
     args = ap.parse_args(argv)

@@ -237,3 +237,20 @@ def test_make_validate_keeps_the_gpu_section_when_it_rewrites_results_md():
     assert with_section(rewritten, "gpu-validate", "## On one GPU\n\nnew figures") == \
         rewritten.replace("\nfigures\n", "\nnew figures\n")
     assert kept_sections("# Results\n\nno sections\n") == ""
+
+
+def test_training_takes_more_arguments_and_renders_make_validates_mix():
+    """--train-args reach `omnigen train` (a recipe from bench_learning tried on the GPU), and the
+    default scene is make validate's preset mix, kept in one place."""
+    import argparse
+    from pathlib import Path
+
+    from benchmarks import gpu_validate
+    from benchmarks.validate import SCENE_MIX
+
+    args = argparse.Namespace(minutes=5.0, imgsz=640, batch=64, workers=2, seed=0, lr0=2e-3, val_every=10,
+                              device="cuda", train_args="--kpt-mode box --kpt-turn")
+    argv = gpu_validate.train_arguments(Path("uov"), Path("run"), args)
+    assert argv[0] == "train" and argv[-3:] == ["--kpt-mode", "box", "--kpt-turn"]
+    assert gpu_validate.train_arguments(Path("uov"), Path("run"), argparse.Namespace(**{**vars(args), "train_args": ""}))[-1] != "--kpt-turn"
+    assert gpu_validate.parse_args(["--work", "w"]).scene == SCENE_MIX
