@@ -313,6 +313,19 @@ def test_box_mode_decodes_corners_in_units_of_the_box():
     assert decode_keypoints(kpt, anchors, strides, torch.zeros(1, 4, a))[0, 1, 0, 0].item() == -strides[0].item()
 
 
+def _fit(out, loss_fn, params, steps=100):
+    """Adam on raw head tensors: (first total, first parts, last total, last parts)."""
+    opt = torch.optim.Adam(params, lr=0.05)
+    t = _targets()
+    first, first_parts = loss_fn(out, t)
+    for _ in range(steps):
+        opt.zero_grad()
+        total, parts = loss_fn(out, t)
+        total.backward()
+        opt.step()
+    return first, first_parts, total, parts
+
+
 @pytest.mark.parametrize("kpt_mode,kpt_l1", [("anchor", 0.0), ("box", 0.0), ("box", 2.0), ("anchor", 2.0)])
 def test_free_head_outputs_learn_the_targets(kpt_mode, kpt_l1):
     """Adam on the raw head tensors (no model) must drive every part of the loss down, in both
@@ -320,15 +333,8 @@ def test_free_head_outputs_learn_the_targets(kpt_mode, kpt_l1):
     torch.manual_seed(0)
     a = _anchors()[0].shape[0]
     out = _head(2, 3, a, kpt_mode=kpt_mode)
-    opt = torch.optim.Adam([out.box, out.cls, out.kpt], lr=0.05)
-    loss_fn = DetectionLoss(3, gains=LossGains(kpt_l1=kpt_l1))
-    t = _targets()
-    first, first_parts = loss_fn(out, t)
-    for _ in range(100):
-        opt.zero_grad()
-        total, parts = loss_fn(out, t)
-        total.backward()
-        opt.step()
+    first, first_parts, total, parts = _fit(out, DetectionLoss(3, gains=LossGains(kpt_l1=kpt_l1)),
+                                            [out.box, out.cls, out.kpt])
     assert float(total.detach()) < 0.2 * float(first.detach())
     assert parts["kpt"] < 0.2 * first_parts["kpt"] and parts["box"] < 0.5 * first_parts["box"]
     if kpt_l1:
@@ -416,15 +422,8 @@ def test_free_turn_aware_head_learns_corners_and_turn():
     a = _anchors()[0].shape[0]
     out = _head(2, 3, a, kpt_mode="box")
     out.turn = torch.zeros(2, a, requires_grad=True)
-    opt = torch.optim.Adam([out.box, out.cls, out.kpt, out.turn], lr=0.05)
-    loss_fn = DetectionLoss(3, gains=LossGains(kpt_l1=2.0))
-    t = _targets()
-    first, first_parts = loss_fn(out, t)
-    for _ in range(100):
-        opt.zero_grad()
-        total, parts = loss_fn(out, t)
-        total.backward()
-        opt.step()
+    _, first_parts, _, parts = _fit(out, DetectionLoss(3, gains=LossGains(kpt_l1=2.0)),
+                                    [out.box, out.cls, out.kpt, out.turn])
     assert parts["kpt"] < 0.2 * first_parts["kpt"] and parts["kpt_l1"] < 0.3 * first_parts["kpt_l1"]
     assert parts["turn"] < 0.2 * first_parts["turn"]
 
