@@ -42,8 +42,8 @@ demo: $(STAMP) system
 	@set -e; rm -rf "$(DEMO)"; mkdir -p "$(DEMO)"; \
 	if [ -d "$(SHARED)/realdata/kitti/training" ]; then kitti="$(SHARED)/realdata/kitti"; \
 	else echo "$(SHARED)/realdata not found: generating a KITTI-format sample"; \
-	     $(BIN)/python -m converters.kitti_fixture "$(DEMO)/kitti-source" --frames 8; kitti="$(DEMO)/kitti-source"; fi; \
-	$(BIN)/python -c "from converters.dair_fixture import write_dair_tree; write_dair_tree('$(DEMO)/dair-source', 12, seed=0, variant='c')"; \
+	     $(BIN)/python -m omnigen.converters.kitti_fixture "$(DEMO)/kitti-source" --frames 8; kitti="$(DEMO)/kitti-source"; fi; \
+	$(BIN)/python -c "from omnigen.converters.dair_fixture import write_dair_tree; write_dair_tree('$(DEMO)/dair-source', 12, seed=0, variant='c')"; \
 	for rig in ego pole drone; do \
 	  $(OMNIGEN) render --rig $$rig --frames $(DEMO_FRAMES) --seed 0 $(DEMO_SIZE) --quality preview --out "$(DEMO)/render-$$rig"; done; \
 	$(OMNIGEN) convert kitti "$$kitti" --out "$(DEMO)/kitti"; \

@@ -11,7 +11,7 @@ the design's 3.57 degrees target is only reachable where this floor lies well be
 
     .venv/bin/python benchmarks/bench_adherence_floor.py runs/validate/uov --split test
 
-The predictions go through `detector.oks_eval.evaluate` unchanged (the same matching, priors
+The predictions go through `omnigen.detector.oks_eval.evaluate` unchanged (the same matching, priors
 from the train split, lifting and mean), so the figures are comparable to RESULTS.md's. Every
 corner is handed over, in or out of the image, as the model predicts all eight; objects whose
 corners are not all defined (a corner behind the camera) get no prediction.
@@ -29,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from detector.oks_eval import evaluate  # noqa: E402
+from omnigen.detector.oks_eval import evaluate  # noqa: E402
 from omnigen.dataset import Dataset  # noqa: E402
 from omnigen.splits import read_split  # noqa: E402
 from omnigen.taxonomy import Taxonomy, recorded_taxonomy  # noqa: E402

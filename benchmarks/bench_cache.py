@@ -24,7 +24,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from detector.data import Augment, KeypointDataset, collate, split_frames  # noqa: E402
+from omnigen.detector.data import Augment, KeypointDataset, collate, split_frames  # noqa: E402
 from omnigen.progress import print_table  # noqa: E402
 from omnigen.taxonomy import load_taxonomy  # noqa: E402
 

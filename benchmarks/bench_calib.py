@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from detector.lift import lift_keypoints  # noqa: E402
+from omnigen.detector.lift import lift_keypoints  # noqa: E402
 from omnigen.geometry import box_from_kitti, project_points  # noqa: E402
 
 K = np.array([[721.5, 0.0, 609.6], [0.0, 721.5, 172.9], [0.0, 0.0, 1.0]])

@@ -1,7 +1,7 @@
 """Benchmark: convert 12,424 generated DAIR-V2X-C infrastructure frames with hard links.
 
 12,424 is the number of infrastructure-side frames in DAIR-V2X-C. The frames come from
-converters.dair_fixture (tiny 96x54 JPEGs, 4-14 labelled objects each, about 9 on average, like the
+omnigen.converters.dair_fixture (tiny 96x54 JPEGs, 4-14 labelled objects each, about 9 on average, like the
 real 001366.json's 8), so the figure measures the converter (JSON parsing, geometry, record
 writing, linking, indexing); each image is decoded in full (omnigen.images.check_image), which at
 96x54 costs little: benchmarks/bench_image_check.py measures that check at real sizes. Target: under 20 s.
@@ -29,8 +29,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from converters import dair  # noqa: E402
-from converters.dair_fixture import write_dair_tree  # noqa: E402
+from omnigen.converters import dair  # noqa: E402
+from omnigen.converters.dair_fixture import write_dair_tree  # noqa: E402
 from omnigen.dataset import DatasetWriter  # noqa: E402
 
 DAIR_V2X_C_INFRASTRUCTURE_FRAMES = 12_424
@@ -56,7 +56,7 @@ def convert_once(tree: Path, out: Path, workers: int | None, quiet: bool) -> tup
 def step_costs(tree: Path, out: Path, n: int) -> list[tuple[str, float]]:
     """CPU milliseconds per frame of each step, measured serially on the first n frames.
 
-    The steps of converters.common's frame loop, done here one by one so that each can be timed;
+    The steps of omnigen.converters.common's frame loop, done here one by one so that each can be timed;
     make_objects (projection, silhouettes, self-occlusion, record assembly) is split out of the
     DAIR-specific work by timing it where convert calls it.
     """

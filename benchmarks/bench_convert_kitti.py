@@ -1,7 +1,7 @@
 """How fast `omnigen convert kitti` turns a training-split-sized tree into a dataset.
 
 Generates a KITTI-format tree of 7,481 frames (the training split's size) with tiny images
-(converters.kitti_fixture, about 5 objects and 1 DontCare a frame, like KITTI), then converts it
+(omnigen.converters.kitti_fixture, about 5 objects and 1 DontCare a frame, like KITTI), then converts it
 with hard links, exactly as the command does, into a fresh folder each run. Prints seconds, frames
 per second and CPU seconds (this process and its workers) per run, then the median and the best
 run. CPU seconds do not depend on what else runs on the machine; wall time does (compare the load
@@ -26,8 +26,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from converters.common import default_workers  # noqa: E402
-from converters.kitti_fixture import write_kitti_tree  # noqa: E402
+from omnigen.converters.common import default_workers  # noqa: E402
+from omnigen.converters.kitti_fixture import write_kitti_tree  # noqa: E402
 from omnigen.cli import main as omnigen  # noqa: E402
 
 

@@ -92,7 +92,7 @@ def finished(run: Path, cfg: Any, epochs: int) -> dict[str, Any] | None:
     (the same training arguments, its last epoch written), so a rerun only scores it; None when
     the folder has no checkpoint. A checkpoint of other arguments, or one cut off before its end,
     is refused rather than trained over: it may be the only copy of an hour's run."""
-    from detector.checkpoint import load_checkpoint
+    from omnigen.detector.checkpoint import load_checkpoint
 
     path = run / "last.pt"
     if not path.exists():
@@ -117,10 +117,10 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from benchmarks.validate import fmt
-    from detector.box_template import evaluate_with_baseline
-    from detector.corner_order import corner_order_counts
-    from detector.predict import predict_dataset
-    from detector.train import TrainConfig, train
+    from omnigen.detector.box_template import evaluate_with_baseline
+    from omnigen.detector.corner_order import corner_order_counts
+    from omnigen.detector.predict import predict_dataset
+    from omnigen.detector.train import TrainConfig, train
     from omnigen.dataset import Dataset
     from omnigen.splits import read_split
 

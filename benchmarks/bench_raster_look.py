@@ -37,7 +37,7 @@ def luminance_stats(png: Path) -> tuple[float, float]:
 
 
 def run_rig(rig: str, frames: int, size: int, scene: str, seed: int, keep: str | None = None) -> list[dict]:
-    from rigs.render import RenderJob, Renderer
+    from omnigen.rigs.render import RenderJob, Renderer
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -228,7 +228,7 @@ def synthetic_objects(name: str, dataset: Path) -> Objects:
 def kitti_objects(root: Path) -> Objects:
     """KITTI label_2 objects by fine class; [l, w, h] from KITTI's h w l; distance of the box centre
     (location is the bottom-face centre) from camera 0, which camera 2 sits 6 cm beside."""
-    from converters.kitti import parse_labels
+    from omnigen.converters.kitti import parse_labels
     from omnigen.conventions import KITTI_CLASSES
 
     objs = Objects("kitti", note="labels in the camera-0 rectified frame")

@@ -32,7 +32,7 @@ def rss_mb() -> float:
 
 
 def bench(backend: str, frames: int, size: int, quality: str, scene: str, seed: int) -> dict:
-    from rigs.render import RenderJob, Renderer
+    from omnigen.rigs.render import RenderJob, Renderer
 
     with tempfile.TemporaryDirectory() as tmp:
         job = RenderJob(rig="drone", frames=frames, out=Path(tmp) / backend, seed=seed, scene=scene,
@@ -81,7 +81,7 @@ def memory(backend: str, frames: int, size: int, scene: str, seed: int, quality:
     """Resident memory every 10 frames over a long run (leaks show as steady growth), and the change
     from frame 20 to the last (issue 6: within 10% from frame 20 to frame 200)."""
     from omnigen.progress import print_table
-    from rigs.render import RenderJob, Renderer
+    from omnigen.rigs.render import RenderJob, Renderer
 
     rows, at = [], {}
     with tempfile.TemporaryDirectory() as tmp:

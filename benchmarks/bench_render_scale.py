@@ -33,14 +33,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def _job(out: Path, frames: int, size: int, scene: str, seed: int, backend: str = "raster", quality: str = "fast"):
-    from rigs.render import RenderJob
+    from omnigen.rigs.render import RenderJob
 
     return RenderJob(rig="drone", frames=frames, out=out, seed=seed, scene=scene, width=size, height=size,
                      backend=backend, quality=quality)
 
 
 def time_local(frames: int, size: int, scene: str, seed: int) -> float:
-    from rigs.render import Renderer
+    from omnigen.rigs.render import Renderer
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -51,7 +51,7 @@ def time_local(frames: int, size: int, scene: str, seed: int) -> float:
 
 
 def time_ray(frames: int, size: int, scene: str, seed: int, workers: int) -> float:
-    from rigs.ray_executor import run_ray
+    from omnigen.rigs.ray_executor import run_ray
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -92,7 +92,7 @@ def overhead(args) -> None:
 
 
 def cost(args) -> None:
-    from rigs.render import Renderer
+    from omnigen.rigs.render import Renderer
 
     n = args.cost_frames
     print(f"cost: drone rig, {args.scene} seed {args.seed}, {args.cost_size}x{args.cost_size}, {n} timed frames after a "

@@ -34,13 +34,13 @@ def main() -> int:
     args = ap.parse_args()
 
     t0 = time.perf_counter()
-    from scenes.generate import SceneGenerator  # noqa: E402
+    from omnigen.scenes.generate import SceneGenerator  # noqa: E402
 
     gen = SceneGenerator(args.preset, args.seed)
     scene = gen.frame(args.seed, 0)
     t_desc = time.perf_counter() - t0
     ti = time.perf_counter()
-    from scenes.blender_backend import BlenderScene  # noqa: E402
+    from omnigen.scenes.blender_backend import BlenderScene  # noqa: E402
 
     t1 = time.perf_counter()
     t_import = t1 - ti
@@ -76,7 +76,7 @@ def main() -> int:
         import numpy as np
 
         from omnigen.geometry import intrinsics_from_fov
-        from scenes.raster_backend import RasterScene
+        from omnigen.scenes.raster_backend import RasterScene
 
         a = time.perf_counter()
         rs = RasterScene(scene)

@@ -36,11 +36,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from detector.data import Augment, KeypointDataset, collate  # noqa: E402
-from detector.ema import ModelEMA  # noqa: E402
-from detector.loss import DetectionLoss  # noqa: E402
-from detector.model import DetectorConfig, KeypointDetector  # noqa: E402
-from detector.train import autocast_dtype, fast_bf16  # noqa: E402
+from omnigen.detector.data import Augment, KeypointDataset, collate  # noqa: E402
+from omnigen.detector.ema import ModelEMA  # noqa: E402
+from omnigen.detector.loss import DetectionLoss  # noqa: E402
+from omnigen.detector.model import DetectorConfig, KeypointDetector  # noqa: E402
+from omnigen.detector.train import autocast_dtype, fast_bf16  # noqa: E402
 from omnigen.fakes import write_fake_dataset  # noqa: E402
 from omnigen.taxonomy import load_taxonomy  # noqa: E402
 
@@ -130,9 +130,9 @@ class LegacyEMA:
 
 def loop(args: argparse.Namespace, cfg: DetectorConfig, samples: list) -> None:
     """The loop's per-step work, before and after issue 24, float32, alternating step by step."""
-    from detector.train import TrainConfig, make_optimizer
-    from detector.train_loader import collate_uint8
-    from detector.train_step import PartSums, TrainStep, to_device
+    from omnigen.detector.train import TrainConfig, make_optimizer
+    from omnigen.detector.train_loader import collate_uint8
+    from omnigen.detector.train_step import PartSums, TrainStep, to_device
 
     device = torch.device("cpu")
     float_batch, uint8_batch = collate(samples)[:2], collate_uint8(samples)[:2]
@@ -189,7 +189,7 @@ def overfit() -> None:
     """The test suite's overfit run (test_tiny_model_overfits_four_rendered_frames) in both precisions."""
     from dataclasses import asdict
 
-    from detector.train import TrainConfig, train
+    from omnigen.detector.train import TrainConfig, train
     from omnigen.cli import main as omnigen
 
     torch.set_num_threads(1)  # as the test: the trajectory then does not depend on the thread count

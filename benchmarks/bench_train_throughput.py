@@ -43,13 +43,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from detector.data import Augment, KeypointDataset, split_frames  # noqa: E402
-from detector.ema import ModelEMA  # noqa: E402
-from detector.loss import DetectionLoss  # noqa: E402
-from detector.model import DetectorConfig, KeypointDetector  # noqa: E402
-from detector.train import TrainConfig, autocast_dtype, make_optimizer  # noqa: E402
-from detector.train_loader import PREFETCH, EpochBatches, make_loader  # noqa: E402
-from detector.train_step import TrainStep, to_device, use_channels_last  # noqa: E402
+from omnigen.detector.data import Augment, KeypointDataset, split_frames  # noqa: E402
+from omnigen.detector.ema import ModelEMA  # noqa: E402
+from omnigen.detector.loss import DetectionLoss  # noqa: E402
+from omnigen.detector.model import DetectorConfig, KeypointDetector  # noqa: E402
+from omnigen.detector.train import TrainConfig, autocast_dtype, make_optimizer  # noqa: E402
+from omnigen.detector.train_loader import PREFETCH, EpochBatches, make_loader  # noqa: E402
+from omnigen.detector.train_step import TrainStep, to_device, use_channels_last  # noqa: E402
 from omnigen.taxonomy import load_taxonomy  # noqa: E402
 
 

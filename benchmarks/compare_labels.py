@@ -23,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from omnigen.record import FrameRecord  # noqa: E402
-from rigs.render import RenderJob, Renderer, read_depth_exr, read_instance_png  # noqa: E402
+from omnigen.rigs.render import RenderJob, Renderer, read_depth_exr, read_instance_png  # noqa: E402
 
 
 def render(rig: str, labels: str, root: Path, args: argparse.Namespace) -> tuple[Path, dict]:

@@ -69,9 +69,9 @@ VERSION_OVERRIDES = {"pyopengl": "3.1.10"}
 # The modules whose imports make up what gpu_validate runs: the commands' modules, and what they
 # import inside functions (lazily) on those paths.
 ENTRY_MODULES = (
-    "omnigen.cli", "rigs.render", "scenes.generate", "scenes.raster_backend", "converters.kitti", "omnigen.merge",
-    "detector.train_command", "detector.train", "detector.eval_command", "detector.oks_eval", "detector.predict",
-    "detector.lift", "benchmarks.validate",
+    "omnigen.cli", "omnigen.rigs.render", "omnigen.scenes.generate", "omnigen.scenes.raster_backend", "omnigen.converters.kitti", "omnigen.merge",
+    "omnigen.detector.train_command", "omnigen.detector.train", "omnigen.detector.eval_command", "omnigen.detector.oks_eval", "omnigen.detector.predict",
+    "omnigen.detector.lift", "benchmarks.validate",
     # lazy: GLRaster's context, the depth EXR writer, the shader compiler, training's progress bar
     "pyrender.platforms.egl", "OpenEXR", "OpenGL.GL.shaders", "OpenGL.EGL", "PIL.Image", "tqdm",
 )

@@ -165,7 +165,7 @@ def egl_environment(env: dict[str, str], work: Path, wheels: Path | None) -> lis
 
 def gl_renderer(env: dict[str, str]) -> str:
     """The GL renderer the raster backend's context gets (a GPU's name, or llvmpipe: software)."""
-    probe = ("from scenes.gl_raster import GLRaster; from OpenGL import GL; GLRaster(); "
+    probe = ("from omnigen.scenes.gl_raster import GLRaster; from OpenGL import GL; GLRaster(); "
              "print(GL.glGetString(GL.GL_RENDERER).decode())")
     r = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, cwd=ROOT)
     if r.returncode:
@@ -177,11 +177,33 @@ def gl_renderer(env: dict[str, str]) -> str:
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
+PARTS = ("scenes", "rigs", "converters", "detector")
+
+
+def checkout_namespace(dest: Path) -> Path:
+    """A folder that holds `omnigen` as an installation lays it out, made of links into this checkout.
+
+    An installation maps the part folders into the omnigen namespace (pyproject's package-dir); a
+    machine that cannot install runs the checkout as it is, so `omnigen/`'s entries and the part
+    folders are linked side by side under dest/omnigen. Idempotent; returns dest, to go first on
+    the path."""
+    pkg = dest / "omnigen"
+    pkg.mkdir(parents=True, exist_ok=True)
+    sources = [p for p in (ROOT / "omnigen").iterdir() if p.name != "__pycache__"]
+    for src in sources + [ROOT / part for part in PARTS]:
+        link = pkg / src.name
+        if not link.is_symlink():
+            link.symlink_to(src)
+    return dest
+
+
 def child_environment(site: Path) -> dict[str, str]:
-    """The environment of the processes this run starts: our code and WORK/site importable, and
-    one thread each for the numerical libraries (--jobs renders share the cores)."""
+    """The environment of the processes this run starts: our code (as checkout_namespace lays it out
+    beside WORK/site) and WORK/site importable, and one thread each for the numerical libraries
+    (--jobs renders share the cores)."""
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(site), *filter(None, [env.get("PYTHONPATH")])])
+    ours = checkout_namespace(site.parent / "namespace")
+    env["PYTHONPATH"] = os.pathsep.join([str(ours), str(ROOT), str(site), *filter(None, [env.get("PYTHONPATH")])])
     env.update({k: "1" for k in THREAD_VARIABLES})
     return env
 
@@ -415,6 +437,7 @@ def main(argv: list[str] | None = None) -> int:
     work = args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
     site = work / "site"
+    sys.path.insert(0, str(checkout_namespace(work / "namespace")))
 
     t = time.perf_counter()
     installed = install_missing(args.wheels, site)

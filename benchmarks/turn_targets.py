@@ -33,11 +33,11 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    import detector.loss as loss_module
-    from detector.checkpoint import checkpoint_taxonomy, load_model
-    from detector.data import Augment, KeypointDataset, collate, split_frames
-    from detector.loss import DetectionLoss, LossGains
-    from detector.train import TrainConfig
+    import omnigen.detector.loss as loss_module
+    from omnigen.detector.checkpoint import checkpoint_taxonomy, load_model
+    from omnigen.detector.data import Augment, KeypointDataset, collate, split_frames
+    from omnigen.detector.loss import DetectionLoss, LossGains
+    from omnigen.detector.train import TrainConfig
 
     model, state = load_model(args.checkpoint)
     if not model.cfg.kpt_turn:

@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.bench_adherence_floor import floor_rows  # noqa: E402
-from detector.oks_eval import SIZE_BINS  # noqa: E402
+from omnigen.detector.oks_eval import SIZE_BINS  # noqa: E402
 from omnigen.cli import main as omnigen  # noqa: E402
 from omnigen.files import atomic_write_json, atomic_write_text  # noqa: E402
 
@@ -173,7 +173,7 @@ def default_amp(device: str | None) -> str:
     """bf16 when training runs on a CPU with native bf16 (the 2-core default), else train's auto."""
     import torch
 
-    from detector.train import fast_bf16
+    from omnigen.detector.train import fast_bf16
 
     on_cpu = device == "cpu" if device else not torch.cuda.is_available()
     return "bf16" if on_cpu and fast_bf16(torch.device("cpu")) else "auto"
@@ -335,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"validate: the dataset is {uov} (--data-only: no training)")
         return 0
 
-    from detector.corner_order import corner_order_counts
+    from omnigen.detector.corner_order import corner_order_counts
     from omnigen.dataset import Dataset
 
     uov_ds = Dataset.open(uov, show_progress=False)  # read once: the heading table and the object sizes
@@ -353,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
         out = work / "runs" / name
         opts = common if imgsz is None else ["--imgsz", str(imgsz), *common[2:]]  # common starts with --imgsz
         t = train_stage(run, ["train", str(dataset), "--out", str(out), *opts, *crop, *extra], out)
-        from detector.predict import predict_dataset
+        from omnigen.detector.predict import predict_dataset
 
         preds = out / "test-predictions.json"
         if not preds.exists():
@@ -530,7 +530,7 @@ def size_table(r: dict[str, Any]) -> list[str]:
 def validated_on(dataset: Path, train_args: list[str], merged: Path) -> str:
     """The split a run's periodic validation read, as train resolves it (--val-split, else val,
     else test); named with its dataset when that is not `merged`, whose test split the tables use."""
-    from detector.train import resolve_val_split
+    from omnigen.detector.train import resolve_val_split
 
     given = train_args[train_args.index("--val-split") + 1] if "--val-split" in train_args else None
     split = resolve_val_split(str(dataset), given) or "all"

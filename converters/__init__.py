@@ -5,6 +5,6 @@ CONVERTERS; `omnigen convert NAME` finds it here, so adding a dataset touches no
 """
 
 CONVERTERS: dict[str, str] = {
-    "kitti": "converters.kitti",
-    "dair": "converters.dair",
+    "kitti": "omnigen.converters.kitti",
+    "dair": "omnigen.converters.dair",
 }

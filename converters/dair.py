@@ -34,7 +34,7 @@ from typing import Any, Sequence
 import numpy as np
 import orjson
 
-from converters.common import (
+from omnigen.converters.common import (
     TEXT_FILE_MAX_BYTES,
     ConvertedFrame,
     ImageSource,
@@ -48,7 +48,7 @@ from converters.common import (
     source_image_size,
     source_path,
 )
-from converters.plausible import check_box, check_box2d, check_intrinsics, check_offset
+from omnigen.converters.plausible import check_box, check_box2d, check_intrinsics, check_offset
 from omnigen.conventions import DAIR_CLASSES, OCCLUSION_UNKNOWN
 from omnigen.geometry import (
     Box3D,
@@ -97,7 +97,7 @@ DATA_INFO_MAX_BYTES = 512 * 2**20
 """Largest data_info.json read. It holds one entry of about a kilobyte per frame, so this allows
 hundreds of thousands of frames (DAIR-V2X-C's infrastructure side has 12,424) and refuses a file
 (or a link to /dev/zero) that would fill memory. Label and calibration files have the smaller
-converters.common.TEXT_FILE_MAX_BYTES."""
+omnigen.converters.common.TEXT_FILE_MAX_BYTES."""
 
 # ---------------------------------------------------------------------------------------------
 # Decisions (docs/converters-dair.md)
@@ -140,7 +140,7 @@ def _short(value: Any, limit: int = 60) -> str:
 def read_json(path: Path, named_by: str = "", max_bytes: int = TEXT_FILE_MAX_BYTES) -> Any:
     """Parse a JSON file; a missing, broken or oversized file is a SourceError naming it (and who named it).
 
-    The file must be a regular file of at most max_bytes (converters.common.read_source_bytes),
+    The file must be a regular file of at most max_bytes (omnigen.converters.common.read_source_bytes),
     checked before it is opened. Nesting deeper than the parsers allow (orjson stops at 1024
     levels, json at Python's recursion limit) is a SourceError too, not a RecursionError that
     would stop the whole run.
@@ -704,7 +704,7 @@ class DairOptions:
 
 
 class DairConverter:
-    """Turns DAIR frame ids into ConvertedFrames; the frame loop itself is converters.common's."""
+    """Turns DAIR frame ids into ConvertedFrames; the frame loop itself is omnigen.converters.common's."""
 
     def __init__(self, src: Path, options: DairOptions = DairOptions()):
         self.options = options
@@ -745,7 +745,7 @@ class DairConverter:
 
     # -- paths ------------------------------------------------------------------------------------
     # Every path a frame needs is resolved (links followed) and must stay inside SRC (--images DIR
-    # for images found there); the file is then read through converters.common's size-capped,
+    # for images found there); the file is then read through omnigen.converters.common's size-capped,
     # regular-file-only reads. docs/untrusted-inputs.md says why.
 
     def image_path(self, f: FrameInfo) -> tuple[Path, Path]:

@@ -21,7 +21,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from converters.common import (
+from omnigen.converters.common import (
     TEXT_FILE_MAX_BYTES,
     ConvertedFrame,
     ImageSource,
@@ -35,7 +35,7 @@ from converters.common import (
     source_image_size,
     source_path,
 )
-from converters.plausible import check_angle, check_box, check_box2d, check_intrinsics, check_offset
+from omnigen.converters.plausible import check_angle, check_box, check_box2d, check_intrinsics, check_offset
 from omnigen.conventions import BOTTOM_CORNERS, DIFFICULTIES, KITTI_CLASSES, KITTI_IGNORE
 from omnigen.geometry import (
     Box3D,
@@ -239,7 +239,7 @@ def folders_for(split: str) -> tuple[str, ...]:
 
 def image_size(data: bytes | Path, file: str) -> tuple[int, int]:
     """Width and height of a whole image: the header within the pixel cap, then decoded
-    (converters.common.source_image_size: the header alone is not trusted)."""
+    (omnigen.converters.common.source_image_size: the header alone is not trusted)."""
     return source_image_size(data, file)
 
 

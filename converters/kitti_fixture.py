@@ -7,7 +7,7 @@ front of the camera, labels whose 2D boxes are the projected cuboids' extents cl
 frame, seeded from (seed, frame index), so any frame can be regenerated alone and a tree is the same
 however it is produced.
 
-    python -m converters.kitti_fixture OUT --frames 8 [--seed 0] [--split training] [--zips]
+    python -m omnigen.converters.kitti_fixture OUT --frames 8 [--seed 0] [--split training] [--zips]
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from converters.kitti import ARCHIVES, folders_for
+from omnigen.converters.kitti import ARCHIVES, folders_for
 from omnigen.geometry import box_from_kitti, kitti_alpha, project_points
 
 KITTI_SIZE = (1242, 375)

@@ -16,7 +16,7 @@ from typing import Sequence
 
 import numpy as np
 
-from converters.common import SourceError
+from omnigen.converters.common import SourceError
 
 MIN_OBJECT_SIZE_M = 0.01
 """Smallest accepted box dimension (length, width or height), metres. The smallest labelled road

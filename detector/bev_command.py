@@ -2,7 +2,7 @@
 
 PREDICTIONS is COCO-results JSON: a list of {image_id, category_id, keypoints (24 numbers: x, y, v
 per corner, contract order), bbox [x, y, w, h], score}. Detections whose ground-contact corners 4-7
-all have v > 0 define the image's homography (detector.bev.rectify); the others, and entries with
+all have v > 0 define the image's homography (omnigen.detector.bev.rectify); the others, and entries with
 no keypoints at all (an auxiliary 2D detector's), are placed in the BEV by the ridge map fitted on
 the image's keypoint detections. Per image it writes DIR/<image_id>.json and DIR/<image_id>.png.
 
@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from detector.results_file import read_results
-from detector.bev import RIDGE_LAMBDA, apply_homography, fit_ridge, rectify
+from omnigen.detector.results_file import read_results
+from omnigen.detector.bev import RIDGE_LAMBDA, apply_homography, fit_ridge, rectify
 from omnigen.conventions import BOTTOM_CORNERS, NUM_KEYPOINTS
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
@@ -148,7 +148,7 @@ def bev_for_image(dets: list[Detection], classes: list[str], lam: float) -> dict
 
 
 def run(args: argparse.Namespace) -> int:
-    from detector.bev_draw import BevScene, render_bev_figure
+    from omnigen.detector.bev_draw import BevScene, render_bev_figure
     from omnigen.files import atomic_write_bytes, atomic_write_json
     from omnigen.images import load_rgb
     from omnigen.progress import print_table, progress

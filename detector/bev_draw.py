@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from PIL import Image, ImageDraw
 
-from detector.bev import BevResult
+from omnigen.detector.bev import BevResult
 from omnigen.draw import BACKGROUND, BOTTOM_COLOR, BOX2D_COLOR, CLASS_COLORS, PLACEHOLDER, TITLE_HEIGHT, display_scale, font
 
 FRONT_COLOR = (255, 255, 255)

@@ -20,9 +20,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from converters.kitti_export import kitti_file_names, label_text
-from detector.results_file import read_results
-from detector.lift import DimensionPriors, fit_dimension_priors, ground_adherence_deg, lift_keypoints, to_kitti_lines
+from omnigen.converters.kitti_export import kitti_file_names, label_text
+from omnigen.detector.results_file import read_results
+from omnigen.detector.lift import DimensionPriors, fit_dimension_priors, ground_adherence_deg, lift_keypoints, to_kitti_lines
 from omnigen.conventions import FINE_CLASSES, NUM_KEYPOINTS
 from omnigen.dataset import Dataset
 from omnigen.files import atomic_write_bytes, atomic_write_json
@@ -294,7 +294,7 @@ def keypoint_metrics_of(args: argparse.Namespace, ds: Dataset, taxonomy: Taxonom
     """OKS mAP50:95 and AP at OKS 0.5 of the same predictions (detector/oks_eval.py), for the
     evaluated view when one is selected, else over the split; None where oks_eval is absent."""
     try:
-        from detector.oks_eval import evaluate as oks_evaluate
+        from omnigen.detector.oks_eval import evaluate as oks_evaluate
     except ImportError:
         return None
     predictions = read_results(args.predictions)
@@ -320,7 +320,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"{args.dataset}: no frame of split {args.split!r} with views {args.views} and sources "
                          f"{args.sources} (try --views all)")
     try:
-        from detector.kitti_eval import evaluate_folders
+        from omnigen.detector.kitti_eval import evaluate_folders
     except ImportError as exc:
         print(f"KITTI AP unavailable ({exc}); reporting the lift only")
         evaluate_folders = None

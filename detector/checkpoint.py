@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from detector.model import DetectorConfig, KeypointDetector
+from omnigen.detector.model import DetectorConfig, KeypointDetector
 from omnigen.files import atomic_write_bytes
 from omnigen.taxonomy import Taxonomy, load_taxonomy
 

@@ -10,7 +10,7 @@ template baseline, detector/box_template.py). These numbers do.
   evaluation matches. Matching by OKS would keep only the predictions whose corners are already
   close to the truth, so their error would be small by construction; matching by box measures the
   corners of every object the detector found, good or bad. The prediction's box is its `bbox`
-  (x, y, w, h, what detector.predict writes); a prediction without one is matched by its corners'
+  (x, y, w, h, what omnigen.detector.predict writes); a prediction without one is matched by its corners'
   extent clipped to the image.
 - Errors are measured on the object's **labelled corners**, the ones OKS uses: in the image and
   in front of the camera (v > 0). `corner_error_px` is the median over every such corner of the

@@ -18,7 +18,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from detector.nms import box_iou
+from omnigen.detector.nms import box_iou
 from omnigen.conventions import FLIP_IDX, TURN_IDX
 from omnigen.dataset import Dataset
 from omnigen.splits import read_split
@@ -48,7 +48,7 @@ def corner_order_counts(ds: Dataset, predictions: Sequence[dict[str, Any]], spli
     """Count, over the split's objects, the corner order that fits each one's matched prediction.
 
     `predictions` are COCO results with `frame_id`, `bbox` (x, y, w, h) and `keypoints`, as
-    `omnigen predict` and detector.predict.predict_dataset write them.
+    `omnigen predict` and omnigen.detector.predict.predict_dataset write them.
     """
     frames = read_split(ds.root, split) if split else list(ds.table.frame_id)
     by_frame: dict[str, list[dict[str, Any]]] = {}

@@ -5,8 +5,8 @@
 
 A .json argument is a list of predictions in COCO-results form (image_id or frame_id,
 category_id, keypoints: 24 numbers, score, bbox); a .pt argument is a checkpoint, run first over the
-split by detector.predict. The metrics and their choices are documented in detector.oks_eval and
-detector.corner_errors; `--baseline` also scores the box-template baseline (detector.box_template:
+split by omnigen.detector.predict. The metrics and their choices are documented in omnigen.detector.oks_eval and
+omnigen.detector.corner_errors; `--baseline` also scores the box-template baseline (omnigen.detector.box_template:
 the same boxes, corners placed by the training split's mean layouts) and prints it beside the model.
 """
 
@@ -24,7 +24,7 @@ import orjson
 from omnigen.files import atomic_write_bytes
 
 if TYPE_CHECKING:
-    from detector.oks_eval import EvalReport
+    from omnigen.detector.oks_eval import EvalReport
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,7 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def load_predictions(path: Path) -> list[dict[str, Any]]:
     """A predictions file; unreadable or non-list content is an error naming the file."""
-    from detector.results_file import read_results
+    from omnigen.detector.results_file import read_results
 
     return read_results(path)
 
@@ -62,8 +62,8 @@ def _cell(v: float) -> float | str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from detector.box_template import evaluate_with_baseline, fit_box_template, training_frames
-    from detector.oks_eval import evaluate
+    from omnigen.detector.box_template import evaluate_with_baseline, fit_box_template, training_frames
+    from omnigen.detector.oks_eval import evaluate
     from omnigen.dataset import Dataset, DatasetError
     from omnigen.progress import print_table
     from omnigen.taxonomy import load_taxonomy
@@ -79,8 +79,8 @@ def run(args: argparse.Namespace) -> int:
         elif suffix == ".pt":
             if not args.predictions.exists():
                 raise ValueError(f"{args.predictions}: no such checkpoint")
-            from detector.checkpoint import checkpoint_taxonomy, load_checkpoint
-            from detector.predict import predict_dataset
+            from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint
+            from omnigen.detector.predict import predict_dataset
 
             if args.taxonomy is None:  # the classes the model was trained on
                 taxonomy = checkpoint_taxonomy(load_checkpoint(args.predictions))

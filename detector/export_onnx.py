@@ -36,7 +36,7 @@ def export(model, path: Path, imgsz: int, dynamic: bool = False) -> None:
 
     import torch
 
-    from detector.model import InferenceWrapper
+    from omnigen.detector.model import InferenceWrapper
     from omnigen.files import atomic_write_bytes
 
     buf = io.BytesIO()
@@ -63,8 +63,8 @@ def max_difference(model, path: Path, imgsz: int | tuple[int, int], seed: int = 
 
 
 def run(args: argparse.Namespace) -> int:
-    from detector.checkpoint import load_model
-    from detector.predict import trained_imgsz
+    from omnigen.detector.checkpoint import load_model
+    from omnigen.detector.predict import trained_imgsz
     from omnigen.progress import print_table
 
     model, state = load_model(args.weights)

@@ -14,8 +14,8 @@ import math
 import torch
 from torch import nn
 
-from detector.blocks import DSConv
-from detector.outputs import KPT_MODES, REG_MAX, HeadOutput, make_anchors
+from omnigen.detector.blocks import DSConv
+from omnigen.detector.outputs import KPT_MODES, REG_MAX, HeadOutput, make_anchors
 from omnigen.conventions import NUM_KEYPOINTS
 
 KPT_OUTPUTS = NUM_KEYPOINTS * 3

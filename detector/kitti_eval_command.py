@@ -1,6 +1,6 @@
 """KITTI AP (2D, BEV, 3D; R40 and R11) of KITTI label folders.
 
-The numbers follow the official devkit (see detector.kitti_eval for every rule); the JSON holds
+The numbers follow the official devkit (see omnigen.detector.kitti_eval for every rule); the JSON holds
 {"AP40": {class: {"bbox": [easy, moderate, hard], "bev": [...], "3d": [...]}}, "AP11": {...}} in percent.
 """
 
@@ -23,7 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from detector.kitti_eval import CLASSES, DIFFICULTIES, METRICS, evaluate, read_folders, read_ids
+    from omnigen.detector.kitti_eval import CLASSES, DIFFICULTIES, METRICS, evaluate, read_folders, read_ids
     from omnigen.files import atomic_write_json
     from omnigen.progress import print_table
 

@@ -20,7 +20,7 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
-from converters.kitti_export import FALLBACK_NAME, KITTI_NAMES
+from omnigen.converters.kitti_export import FALLBACK_NAME, KITTI_NAMES
 from omnigen.conventions import CORNER_SIGNS, FINE_CLASSES, NEAR_PLANE, NUM_KEYPOINTS
 from omnigen.dataset import Dataset
 from omnigen.geometry import Box3D, box_corners, box_to_kitti, kitti_alpha

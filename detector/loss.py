@@ -15,9 +15,9 @@ from dataclasses import asdict, dataclass
 import torch
 import torch.nn.functional as F
 
-from detector.assign import TaskAlignedAssigner
-from detector.boxes import bbox2dist, box_area, box_ciou
-from detector.outputs import REG_MAX, HeadOutput, decode_boxes, head_keypoints
+from omnigen.detector.assign import TaskAlignedAssigner
+from omnigen.detector.boxes import bbox2dist, box_area, box_ciou
+from omnigen.detector.outputs import REG_MAX, HeadOutput, decode_boxes, head_keypoints
 from omnigen.conventions import NUM_KEYPOINTS, TURN_IDX
 
 OKS_SIGMA = 0.125

@@ -16,11 +16,11 @@ import torch
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
-from detector.backbones import BACKBONES, build_backbone
-from detector.blocks import fuse_batchnorm
-from detector.head import KeypointHead
-from detector.neck import PAN
-from detector.outputs import KPT_MODES, REG_MAX, HeadOutput, decode
+from omnigen.detector.backbones import BACKBONES, build_backbone
+from omnigen.detector.blocks import fuse_batchnorm
+from omnigen.detector.head import KeypointHead
+from omnigen.detector.neck import PAN
+from omnigen.detector.outputs import KPT_MODES, REG_MAX, HeadOutput, decode
 from omnigen.conventions import FINE_CLASSES
 
 SCALE_NAMES = ("n", "s", "m", "l", "x")

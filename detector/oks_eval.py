@@ -59,7 +59,7 @@ import numpy as np
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
-from detector.corner_errors import BOX_MATCH_IOU, CornerErrors, corners_extent_boxes, matched_corners
+from omnigen.detector.corner_errors import BOX_MATCH_IOU, CornerErrors, corners_extent_boxes, matched_corners
 from omnigen.coco import to_coco
 from omnigen.conventions import NUM_KEYPOINTS
 from omnigen.dataset import Dataset
@@ -434,7 +434,7 @@ def adherence_per_detection(ds: Dataset, gt: COCO, anns: list[dict[str, Any]], m
 
     Returns also where the dimension priors came from and how many lifts failed.
     """
-    from detector.lift import fit_dimension_priors, ground_adherence_deg, lift_keypoints
+    from omnigen.detector.lift import fit_dimension_priors, ground_adherence_deg, lift_keypoints
 
     planes = ds.table.ground_plane
     has_plane = np.isfinite(planes).all(axis=1)
@@ -517,9 +517,9 @@ def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | No
             angles, priors_from, report.lift_failures = adherence_per_detection(ds, gt, anns, matches.matched_ids())
             report.priors_from = priors_from or None
         except ModuleNotFoundError as exc:
-            if exc.name != "detector.lift":
+            if exc.name != "omnigen.detector.lift":
                 raise
-            report.notes.append("ground-plane adherence not computed: detector.lift is not installed")
+            report.notes.append("ground-plane adherence not computed: omnigen.detector.lift is not installed")
     for name, ids in groups.items():
         sub_imgs, sub = evalimgs_subset(e, ids)
         report.rows.append(_row(name, len(ids), sub_imgs, sub, matches.subset(ids), angles))

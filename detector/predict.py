@@ -18,9 +18,9 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 import torch
 
-from detector.data import KeypointDataset, Letterbox, letterbox, read_image, split_frames
-from detector.model import KeypointDetector
-from detector.nms import Detections, postprocess
+from omnigen.detector.data import KeypointDataset, Letterbox, letterbox, read_image, split_frames
+from omnigen.detector.model import KeypointDetector
+from omnigen.detector.nms import Detections, postprocess
 from omnigen.conventions import NUM_KEYPOINTS
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
@@ -129,7 +129,7 @@ def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | 
     """Detections of a checkpoint on a dataset split, ready for `omnigen eval` (at the training
     input size unless `imgsz` says otherwise), on `device` (default: CUDA when there is one: a
     checkpoint loads onto the CPU, where a GPU machine's evaluation would otherwise run)."""
-    from detector.checkpoint import checkpoint_taxonomy, load_model
+    from omnigen.detector.checkpoint import checkpoint_taxonomy, load_model
 
     model, state = load_model(weights)
     model.to(device or ("cuda" if torch.cuda.is_available() else "cpu"))

@@ -19,9 +19,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from detector.checkpoint import load_model
-    from detector.overlay import draw_detections
-    from detector.predict import PredictOptions, coco_results, image_files, predict_images, trained_imgsz
+    from omnigen.detector.checkpoint import load_model
+    from omnigen.detector.overlay import draw_detections
+    from omnigen.detector.predict import PredictOptions, coco_results, image_files, predict_images, trained_imgsz
     from omnigen.files import atomic_write_bytes
     from omnigen.progress import print_table, progress
     import orjson

@@ -34,17 +34,17 @@ from typing import Any, Callable
 import torch
 import torch.distributed as dist
 
-from detector.checkpoint import checkpoint_taxonomy, load_checkpoint, load_pretrained, save_checkpoint
-from detector.data import Augment, KeypointDataset, split_frames
-from detector.ema import ModelEMA
-from detector.loss import OKS_SIGMA as KPT_SIGMA
-from detector.loss import DetectionLoss, LossGains
-from detector.model import DetectorConfig, KeypointDetector
-from detector.predict import EVAL_CONF, PredictOptions, predict_frames
-from detector import time_budget
-from detector.time_budget import TimeBudget
-from detector.train_loader import EpochBatches, collate_uint8, make_loader
-from detector.train_step import PartSums, TrainStep, to_device, use_channels_last
+from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint, load_pretrained, save_checkpoint
+from omnigen.detector.data import Augment, KeypointDataset, split_frames
+from omnigen.detector.ema import ModelEMA
+from omnigen.detector.loss import OKS_SIGMA as KPT_SIGMA
+from omnigen.detector.loss import DetectionLoss, LossGains
+from omnigen.detector.model import DetectorConfig, KeypointDetector
+from omnigen.detector.predict import EVAL_CONF, PredictOptions, predict_frames
+from omnigen.detector import time_budget
+from omnigen.detector.time_budget import TimeBudget
+from omnigen.detector.train_loader import EpochBatches, collate_uint8, make_loader
+from omnigen.detector.train_step import PartSums, TrainStep, to_device, use_channels_last
 from omnigen.files import atomic_write_text, dumps_json
 from omnigen.splits import TEST, split_names
 from omnigen.taxonomy import load_taxonomy
@@ -230,7 +230,7 @@ def pick_device(cfg: TrainConfig, local_rank: int) -> torch.device:
 
 def validate(model: KeypointDetector, data: KeypointDataset, split: str | None, batch: int) -> dict[str, float]:
     """OKS mAP of the model on a split (omnigen eval's numbers, overall row; adherence left to eval)."""
-    from detector.oks_eval import evaluate
+    from omnigen.detector.oks_eval import evaluate
 
     preds = predict_frames(model, data, PredictOptions(imgsz=data.size, conf=EVAL_CONF, batch=batch, max_det=1000))
     row = evaluate(data.ds, preds, split=split, taxonomy=data.taxonomy, adherence=False, sizes=False).row("overall")

@@ -70,8 +70,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from detector.data import Augment
-    from detector.train import TrainConfig, train
+    from omnigen.detector.data import Augment
+    from omnigen.detector.train import TrainConfig, train
     from omnigen.progress import print_table
 
     cfg = TrainConfig(

@@ -26,7 +26,7 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from detector.data import KeypointDataset, Sample, collate
+from omnigen.detector.data import KeypointDataset, Sample, collate
 
 
 class EpochBatches(torch.utils.data.Sampler):

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from detector.ema import ModelEMA
+from omnigen.detector.ema import ModelEMA
 
 
 def use_channels_last(setting: bool | None, device: torch.device) -> bool:

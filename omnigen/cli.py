@@ -21,19 +21,19 @@ from omnigen.files import LINK_MODES
 COMMANDS: dict[str, str] = {
     # verb: module exposing add_arguments(parser) and run(args) -> int; modules import their heavy
     # dependencies (torch, pycocotools) inside run, so building the parser stays fast.
-    "train": "detector.train_command",
-    "predict": "detector.predict_command",
-    "eval": "detector.eval_command",
-    "bev": "detector.bev_command",
-    "eval-kitti": "detector.kitti_eval_command",
-    "calib-sensitivity": "detector.calib_command",
+    "train": "omnigen.detector.train_command",
+    "predict": "omnigen.detector.predict_command",
+    "eval": "omnigen.detector.eval_command",
+    "bev": "omnigen.detector.bev_command",
+    "eval-kitti": "omnigen.detector.kitti_eval_command",
+    "calib-sensitivity": "omnigen.detector.calib_command",
 }
 
 
 EXPORTERS: dict[str, str] = {
     # format: module exposing add_arguments(parser) and run(args) -> int
-    "kitti": "converters.kitti_export",
-    "onnx": "detector.export_onnx",
+    "kitti": "omnigen.converters.kitti_export",
+    "onnx": "omnigen.detector.export_onnx",
 }
 
 
@@ -297,7 +297,7 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
                    help="Cycles: where depth, instance ids and silhouettes come from: gl (the raster id pass over "
                         "the same geometry, milliseconds), cycles (one-sample Cycles passes), auto (gl when a "
                         "headless OpenGL context can be made)")
-    from scenes.cycles_devices import DEVICE_KINDS  # plain Python, no bpy
+    from omnigen.scenes.cycles_devices import DEVICE_KINDS  # plain Python, no bpy
 
     p.add_argument("--device", choices=DEVICE_KINDS, default="auto",
                    help="Cycles' compute devices: auto (the best GPU there is, OptiX > CUDA > HIP > oneAPI > Metal, "
@@ -325,7 +325,7 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
 
 def _run_render(args: argparse.Namespace) -> int:
     from omnigen.progress import print_table
-    from rigs.render import (RenderJob, Renderer, claim_render_folder, finalize_run, missing_frames, parse_shard,
+    from omnigen.rigs.render import (RenderJob, Renderer, claim_render_folder, finalize_run, missing_frames, parse_shard,
                              render_args, start_over)
 
     if args.frames < 0 or args.seed < 0 or args.start < 0:
@@ -339,8 +339,8 @@ def _run_render(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"omnigen render: {exc}", file=sys.stderr)
         return 2
-    from scenes.generate import FrameOverrides
-    from scenes.weather import TIMES_OF_DAY, WEATHER_KINDS
+    from omnigen.scenes.generate import FrameOverrides
+    from omnigen.scenes.weather import TIMES_OF_DAY, WEATHER_KINDS
 
     if args.weather not in (None, *WEATHER_KINDS) or args.time_of_day not in (None, *TIMES_OF_DAY):
         print(f"omnigen render: --weather is one of {', '.join(WEATHER_KINDS)}; "
@@ -355,8 +355,8 @@ def _run_render(args: argparse.Namespace) -> int:
         return 2
     if args.backend == "cycles" and args.executor == "local" and args.device != "cpu" and not args.finalize_only:
         # Checked before anything is written (on Ray each worker checks its own machine).
-        from scenes.blender_backend import cycles_devices
-        from scenes.cycles_devices import DeviceUnavailable
+        from omnigen.scenes.blender_backend import cycles_devices
+        from omnigen.scenes.cycles_devices import DeviceUnavailable
 
         try:
             print(cycles_devices(args.device).note, file=sys.stderr)
@@ -388,7 +388,7 @@ def _run_render(args: argparse.Namespace) -> int:
         print(f"finalized {args.out}: {args.frames} frames")
         return 0
     if args.executor == "ray":
-        from rigs.ray_executor import run_ray
+        from omnigen.rigs.ray_executor import run_ray
 
         try:
             s = run_ray(job, address=args.ray_address, workers=args.ray_workers, cpus_per_worker=args.cpus_per_worker,
@@ -421,7 +421,7 @@ def _run_render(args: argparse.Namespace) -> int:
 
 
 def _add_convert(sub: argparse._SubParsersAction) -> None:
-    from converters import CONVERTERS
+    from omnigen.converters import CONVERTERS
 
     p = sub.add_parser("convert", help="convert a public dataset (kitti, dair) into UrbanOmniView")
     names = p.add_subparsers(dest="converter", required=True, metavar="DATASET")

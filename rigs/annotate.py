@@ -36,8 +36,8 @@ import numpy as np
 from omnigen.conventions import occlusion_level_from_fraction
 from omnigen.geometry import self_occluded_corners
 from omnigen.record import IgnoreRegion, ObjectRecord
-from rigs.sampling import Camera, agent_box
-from scenes.description import Scene
+from omnigen.rigs.sampling import Camera, agent_box
+from omnigen.scenes.description import Scene
 
 MIN_VISIBLE_PIXELS = 16
 DEPTH_TOL_ABS = 0.05

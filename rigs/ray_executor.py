@@ -1,6 +1,6 @@
 """`omnigen render --executor ray`: the frames of a run (or of one shard) fan out over a Ray cluster.
 
-One actor per worker holds a `rigs.render.Renderer` (the city and the backend built once) and
+One actor per worker holds a `omnigen.rigs.render.Renderer` (the city and the backend built once) and
 renders frames by index; every frame is written by the actor straight into `--out` (a shared file
 system on a multi-node cluster) with the same per-frame atomic writes as the local executor, so
 records and images do not depend on the executor. The driver:
@@ -24,7 +24,7 @@ import time
 from dataclasses import fields as dataclass_fields
 from typing import Any
 
-from rigs.render import RenderJob, RenderSummary, finalize_run, frame_id_for, load_rig
+from omnigen.rigs.render import RenderJob, RenderSummary, finalize_run, frame_id_for, load_rig
 
 # Test hook: "FRAME:MARKER" makes the actor that renders frame FRAME exit the process (os._exit)
 # after the frame's images are written and before its record is, once (the MARKER file records
@@ -36,7 +36,7 @@ class FrameWorker:
     """The body of the Ray actor: a Renderer built once, frames rendered by index."""
 
     def __init__(self, job_fields: dict[str, Any], crash: str | None = None) -> None:
-        from rigs.render import Renderer
+        from omnigen.rigs.render import Renderer
 
         self.renderer = Renderer(RenderJob(**job_fields))
         self.crash = None

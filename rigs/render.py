@@ -6,7 +6,7 @@ Per frame i of a dataset with seed s (frame id `synthetic-<rig>-s<seed>-<i:06d>`
    default_rng([s, i]); the city of (scene, s) is built once per process; a mix of presets,
    "downtown,suburban,...", gives the city the preset its seed draws, which the record's
    `synthetic.scene`, the manifest and `.render-args.json` name);
-2. the camera: `rigs.sampling.sample_camera` from the rig's own stream `rig_rng(s, i)`;
+2. the camera: `omnigen.rigs.sampling.sample_camera` from the rig's own stream `rig_rng(s, i)`;
 3. render (backend `raster` or `cycles`), annotate (rigs/annotate.py); if fewer than the rig's
    `min_objects` objects are annotated (buildings hid what the geometric estimate counted), the
    camera is redrawn from the same stream, up to the rig's max_tries in all;
@@ -43,11 +43,11 @@ import numpy as np
 from omnigen.dataset import INDEX_FILE, MANIFEST, RECORDS_DIR, RENDER_ARGS_FILE, DatasetWriter, read_manifest
 from omnigen.files import atomic_write_bytes, atomic_write_json, make_temp
 from omnigen.record import FrameRecord, SyntheticInfo
-from rigs.annotate import annotate
-from rigs.rig import Rig, load_rig
-from rigs.sampling import Camera, Obstacles, rig_rng, sample_camera
-from scenes.description import Scene, to_dict
-from scenes.generate import FrameOverrides
+from omnigen.rigs.annotate import annotate
+from omnigen.rigs.rig import Rig, load_rig
+from omnigen.rigs.sampling import Camera, Obstacles, rig_rng, sample_camera
+from omnigen.scenes.description import Scene, to_dict
+from omnigen.scenes.generate import FrameOverrides
 
 BACKENDS = ("cycles", "raster")
 QUALITIES = ("preview", "fast", "final")
@@ -126,7 +126,7 @@ class RasterBackend:
     name = "raster"
 
     def __init__(self, scene: Scene, quality: str = "fast") -> None:
-        from scenes.raster_backend import RasterScene
+        from omnigen.scenes.raster_backend import RasterScene
 
         self.rs = RasterScene(scene)
 
@@ -166,7 +166,7 @@ class CyclesBackend:
     name = "cycles"
 
     def __init__(self, scene: Scene, quality: str = "fast", labels: str = "auto", device: str = "auto") -> None:
-        from scenes.blender_backend import BlenderScene
+        from omnigen.scenes.blender_backend import BlenderScene
 
         if labels not in LABEL_SOURCES:
             raise ValueError(f"unknown label source {labels!r}; choose from {', '.join(LABEL_SOURCES)}")
@@ -175,7 +175,7 @@ class CyclesBackend:
         self.rs = None
         if labels != "cycles":
             try:
-                from scenes.raster_backend import RasterScene
+                from omnigen.scenes.raster_backend import RasterScene
 
                 self.rs = RasterScene(scene)
             except Exception as exc:  # no headless GL here (EGL, PyOpenGL): Cycles draws the labels
@@ -273,8 +273,8 @@ def parse_shard(text: str) -> tuple[int, int]:
 
 def scene_name_of(job: RenderJob) -> str:
     """The preset the job's city is drawn from: with a mix (`--scene a,b,c`) the one its seed
-    draws (scenes.preset.preset_for_seed); a TOML path by its file's stem."""
-    from scenes.preset import preset_for_seed
+    draws (omnigen.scenes.preset.preset_for_seed); a TOML path by its file's stem."""
+    from omnigen.scenes.preset import preset_for_seed
 
     chosen = preset_for_seed(job.scene, job.seed)
     return Path(chosen).stem if chosen.endswith(".toml") else chosen
@@ -283,7 +283,7 @@ def scene_name_of(job: RenderJob) -> str:
 def render_info(job: RenderJob, rig: Rig | None = None) -> dict:
     """The manifest's `render` entry: the same for every shard and executor of one run. `scene`
     is the preset the city was drawn from; `scene_mix` the mix it was drawn out of, if any."""
-    from scenes.preset import mix_names
+    from omnigen.scenes.preset import mix_names
 
     rig = rig or load_rig(job.rig)
     info = {"rig": rig.name, "scene": scene_name_of(job), "seed": job.seed, "backend": job.backend,
@@ -317,8 +317,8 @@ def render_args(job: RenderJob, rig: Rig | None = None, preset=None) -> dict:
     may resume on nodes of another kind). The rig's and the scene's definitions are hashed, so an edited TOML
     under the same name is a difference too. Quality and label source matter only to Cycles.
     """
-    from scenes.description import to_dict
-    from scenes.preset import load_preset, preset_for_seed
+    from omnigen.scenes.description import to_dict
+    from omnigen.scenes.preset import load_preset, preset_for_seed
 
     rig = rig or load_rig(job.rig)
     preset = preset if preset is not None else load_preset(preset_for_seed(job.scene, job.seed))
@@ -448,7 +448,7 @@ class Renderer:
     """Holds the city, the backend and the rig; renders frames by index. Build once per process."""
 
     def __init__(self, job: RenderJob) -> None:
-        from scenes.generate import SceneGenerator
+        from omnigen.scenes.generate import SceneGenerator
 
         if job.backend not in BACKENDS:
             raise ValueError(f"unknown backend {job.backend!r}; choose from {', '.join(BACKENDS)}")

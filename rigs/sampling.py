@@ -29,8 +29,8 @@ import shapely
 from shapely.geometry import Point, Polygon
 
 from omnigen.geometry import Box3D, Plane, boxes_corners, intrinsics_from_fov, project_boxes, rot_z
-from rigs.rig import Rig
-from scenes.description import Scene
+from omnigen.rigs.rig import Rig
+from omnigen.scenes.description import Scene
 
 _RIG_SPAWN_KEY = (0x0416,)
 MIN_BOX_PIXELS = 6.0

@@ -33,10 +33,10 @@ import bpy
 import mathutils
 import numpy as np
 
-from scenes.cycles_devices import CyclesDevice, DeviceChoice, choose_devices
-from scenes.description import Material, Scene
-from scenes.meshes import RenderObject, compile_scene, lamp_lights
-from scenes.seeding import frame_streams
+from omnigen.scenes.cycles_devices import CyclesDevice, DeviceChoice, choose_devices
+from omnigen.scenes.description import Material, Scene
+from omnigen.scenes.meshes import RenderObject, compile_scene, lamp_lights
+from omnigen.scenes.seeding import frame_streams
 
 
 @contextlib.contextmanager

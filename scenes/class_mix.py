@@ -2,7 +2,7 @@
 ("10 frames, 6 drone + 4 pole, 320 x 240, raster, default preset: at least 6 classes including
 traffic cones; median car length 3.6-4.9 m; pedestrians 1.5-1.95 m tall").
 
-    from scenes.class_mix import class_counts
+    from omnigen.scenes.class_mix import class_counts
     mix = class_counts("downtown", seeds=(0,))               # geometry only: no renderer, ~1 s
     mix = class_counts("downtown", seeds=(0,), render=True)   # the raster frames' annotations
     print(mix.table())
@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from rigs.annotate import MIN_VISIBLE_PIXELS
-from rigs.rig import load_rig
-from rigs.sampling import MAX_DISTANCE, Obstacles, projected_agents, rig_rng, sample_camera
-from scenes.generate import SceneGenerator
+from omnigen.rigs.annotate import MIN_VISIBLE_PIXELS
+from omnigen.rigs.rig import load_rig
+from omnigen.rigs.sampling import MAX_DISTANCE, Obstacles, projected_agents, rig_rng, sample_camera
+from omnigen.scenes.generate import SceneGenerator
 
 SEEN_BOX_PIXELS = 2 * MIN_VISIBLE_PIXELS
 DEFAULT_RIGS = (("drone", 6), ("pole", 4))
@@ -109,7 +109,7 @@ def class_counts(preset: str = "downtown", seeds=(0,), rigs=DEFAULT_RIGS, width:
 
 def _rendered_counts(preset: str, seeds, rigs, width: int, height: int) -> ClassMix:
     from omnigen.dataset import Dataset
-    from rigs.render import Renderer, RenderJob
+    from omnigen.rigs.render import Renderer, RenderJob
 
     mix = ClassMix(how="raster render")
     with tempfile.TemporaryDirectory(prefix="class-mix-") as tmp:

@@ -15,12 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from scenes.description import City, Scene, canonical
-from scenes.layout import build_city
-from scenes.placement import place_agents
-from scenes.preset import Preset, load_preset, preset_for_seed
-from scenes.seeding import frame_streams
-from scenes.weather import draw_lighting, draw_weather
+from omnigen.scenes.description import City, Scene, canonical
+from omnigen.scenes.layout import build_city
+from omnigen.scenes.placement import place_agents
+from omnigen.scenes.preset import Preset, load_preset, preset_for_seed
+from omnigen.scenes.seeding import frame_streams
+from omnigen.scenes.weather import draw_lighting, draw_weather
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,7 @@ class FrameOverrides:
 def _user_library(preset: Preset):
     if not preset.agents.user_assets:
         return []
-    from scenes.assets.user import load_library  # trimesh only when a preset asks for user assets
+    from omnigen.scenes.assets.user import load_library  # trimesh only when a preset asks for user assets
 
     folder = Path(preset.agents.user_assets)
     if not folder.is_absolute() and preset.source:

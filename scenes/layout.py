@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from shapely.geometry import Polygon, box
 
-from scenes.description import (
+from omnigen.scenes.description import (
     Building,
     BuildingPart,
     City,
@@ -35,10 +35,10 @@ from scenes.description import (
     Sidewalk,
     canonical,
 )
-from scenes.preset import Preset
-from scenes.seeding import city_rng
-from scenes.shapes import Occupancy, polygon_tuple, rect_polygon, to_world
-from scenes.weather import pick
+from omnigen.scenes.preset import Preset
+from omnigen.scenes.seeding import city_rng
+from omnigen.scenes.shapes import Occupancy, polygon_tuple, rect_polygon, to_world
+from omnigen.scenes.weather import pick
 
 # Facade colours (linear RGB) people see in cities: concrete, render, brick, sandstone, dark stone.
 WALL_COLORS = (

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from scenes.description import Agent, Building, City, Furniture, Lighting, Material, Weather
+from omnigen.scenes.description import Agent, Building, City, Furniture, Lighting, Material, Weather
 
 SNOW = (0.82, 0.84, 0.88)
 AGED_ASPHALT = 2.0  # aged asphalt reflects about twice what a fresh surface does (0.09 vs 0.045)

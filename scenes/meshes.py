@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from scenes.assets.build import agent_parts, furniture_parts
-from scenes.assets.static import building_parts, footprints, ground_parts, marking_parts
-from scenes.description import Agent, City, Material, Scene, to_json
-from scenes.materials import agent_material, building_material, furniture_material, ground_material
+from omnigen.scenes.assets.build import agent_parts, furniture_parts
+from omnigen.scenes.assets.static import building_parts, footprints, ground_parts, marking_parts
+from omnigen.scenes.description import Agent, City, Material, Scene, to_json
+from omnigen.scenes.materials import agent_material, building_material, furniture_material, ground_material
 
 
 @dataclass

@@ -32,12 +32,12 @@ from dataclasses import dataclass
 import numpy as np
 from shapely.geometry import Polygon
 
-from scenes.assets.catalog import draw_asset
-from scenes.description import Agent, AssetSpec, City, Lane
-from scenes.preset import AgentSpec
-from scenes.seeding import choice_index
-from scenes.shapes import Occupancy, rect_polygon, to_world
-from scenes.weather import pick
+from omnigen.scenes.assets.catalog import draw_asset
+from omnigen.scenes.description import Agent, AssetSpec, City, Lane
+from omnigen.scenes.preset import AgentSpec
+from omnigen.scenes.seeding import choice_index
+from omnigen.scenes.shapes import Occupancy, rect_polygon, to_world
+from omnigen.scenes.weather import pick
 
 AGENT_GAP = 0.1  # metres between annotated footprints
 OBSTACLE_GAP = 0.05

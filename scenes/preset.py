@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from scenes.description import from_dict
+from omnigen.scenes.description import from_dict
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
 DEFAULT_PRESET = "downtown"
@@ -215,7 +215,7 @@ def validate(preset: Preset) -> None:
     ):
         if not dist or min(dist.values()) < 0 or sum(dist.values()) <= 0:
             raise ValueError(f"{label} must be non-negative weights with a positive sum")
-    from scenes.weather import TIMES_OF_DAY, WEATHER_KINDS
+    from omnigen.scenes.weather import TIMES_OF_DAY, WEATHER_KINDS
 
     if set(preset.weather.kinds) - set(WEATHER_KINDS):
         raise ValueError(f"weather.kinds: unknown kinds {sorted(set(preset.weather.kinds) - set(WEATHER_KINDS))}")

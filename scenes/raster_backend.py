@@ -40,12 +40,12 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import numpy as np  # noqa: E402
 
-from scenes.description import Scene  # noqa: E402
-from scenes.gl_raster import MAX_LAMPS, SHADOW_SIZE, ZFAR, ZNEAR, GLRaster, Light, projection, view_matrix  # noqa: E402
-from scenes.materials import PATTERNS, agent_surface, building_surface, furniture_surface, ground_surface  # noqa: E402
-from scenes.meshes import (agent_object, compile_scene, lamp_lights, static_materials, static_objects,  # noqa: E402
+from omnigen.scenes.description import Scene  # noqa: E402
+from omnigen.scenes.gl_raster import MAX_LAMPS, SHADOW_SIZE, ZFAR, ZNEAR, GLRaster, Light, projection, view_matrix  # noqa: E402
+from omnigen.scenes.materials import PATTERNS, agent_surface, building_surface, furniture_surface, ground_surface  # noqa: E402
+from omnigen.scenes.meshes import (agent_object, compile_scene, lamp_lights, static_materials, static_objects,  # noqa: E402
                            world_box)
-from scenes.seeding import frame_streams  # noqa: E402
+from omnigen.scenes.seeding import frame_streams  # noqa: E402
 
 SKY_DISTANCE = 2000.0
 CULL_MARGIN = 0.25  # metres added to an agent's bounding sphere when testing it against the view

@@ -20,8 +20,8 @@ import math
 
 import numpy as np
 
-from scenes.description import Lighting, Weather
-from scenes.seeding import choice_index
+from omnigen.scenes.description import Lighting, Weather
+from omnigen.scenes.seeding import choice_index
 
 WEATHER_KINDS = ("clear", "overcast", "rain", "snow", "fog")
 TIMES_OF_DAY = ("dawn", "morning", "noon", "afternoon", "dusk", "night")

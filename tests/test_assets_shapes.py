@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from scenes.assets import props
-from scenes.assets.build import agent_parts, furniture_parts
-from scenes.assets.catalog import CAR_STYLES, CONE_STYLES, PROCEDURAL_FAMILIES, SIZES, draw_asset, draw_params
-from scenes.assets.parts import bounds_of, fit_to_dims, prism_y
-from scenes.description import Agent, AssetSpec, Furniture
+from omnigen.scenes.assets import props
+from omnigen.scenes.assets.build import agent_parts, furniture_parts
+from omnigen.scenes.assets.catalog import CAR_STYLES, CONE_STYLES, PROCEDURAL_FAMILIES, SIZES, draw_asset, draw_params
+from omnigen.scenes.assets.parts import bounds_of, fit_to_dims, prism_y
+from omnigen.scenes.description import Agent, AssetSpec, Furniture
 
 TIGHT = 1e-6
 VEHICLES = ("car", "van", "truck", "bus", "tram")
@@ -83,7 +83,7 @@ def test_same_seed_same_bytes():
 
 
 def _builder(family):
-    from scenes.assets.build import AGENT_BUILDERS
+    from omnigen.scenes.assets.build import AGENT_BUILDERS
 
     return AGENT_BUILDERS[family]
 
@@ -192,8 +192,8 @@ def test_unknown_furniture_kind_is_a_clear_error():
 
 def test_every_role_has_a_material():
     """A role the materials rules do not know would stop both backends (KeyError) mid-render."""
-    from scenes.generate import SceneGenerator
-    from scenes.materials import agent_material, furniture_material
+    from omnigen.scenes.generate import SceneGenerator
+    from omnigen.scenes.materials import agent_material, furniture_material
 
     scene = SceneGenerator("tiny", 6).frame(6, 0)
     for family in PROCEDURAL_FAMILIES:

@@ -116,9 +116,9 @@ def test_kitti_and_dair_labels_are_read_with_their_sizes_and_distances():
 
 
 def _egl_or_skip():
-    pytest.importorskip("scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
-    from scenes import raster_backend
-    from scenes.generate import SceneGenerator
+    pytest.importorskip("omnigen.scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
+    from omnigen.scenes import raster_backend
+    from omnigen.scenes.generate import SceneGenerator
 
     try:
         raster_backend.RasterScene(SceneGenerator("tiny", 0).frame(0, 0))

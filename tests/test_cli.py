@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from converters import CONVERTERS
+from omnigen.converters import CONVERTERS
 from omnigen import __version__
 from omnigen import cli
 from omnigen.cli import COMMANDS, EXPORTERS, build_parser, main
@@ -39,8 +39,8 @@ def test_every_verb_is_a_subcommand():
 
 def test_a_missing_command_module_is_an_error(monkeypatch):
     """No "not built yet" stub: a registry entry whose module does not import breaks the parser."""
-    monkeypatch.setitem(cli.COMMANDS, "ghost", "detector.no_such_command")
-    with pytest.raises(ModuleNotFoundError, match="detector.no_such_command"):
+    monkeypatch.setitem(cli.COMMANDS, "ghost", "omnigen.detector.no_such_command")
+    with pytest.raises(ModuleNotFoundError, match="omnigen.detector.no_such_command"):
         build_parser()
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from detector.corner_order import ORDERS, corner_order_counts
+from omnigen.detector.corner_order import ORDERS, corner_order_counts
 from omnigen.conventions import CORNER_SIGNS, TURN_IDX
 from omnigen.fakes import write_fake_dataset
 

@@ -12,7 +12,7 @@ import json
 import pytest
 
 from omnigen.cli import main
-from scenes.cycles_devices import DEVICE_KINDS, CyclesDevice, DeviceUnavailable, choose_devices
+from omnigen.scenes.cycles_devices import DEVICE_KINDS, CyclesDevice, DeviceUnavailable, choose_devices
 
 CPU = CyclesDevice("CPU", "AMD EPYC 7763", "CPU")
 A100 = [CyclesDevice("CUDA", "NVIDIA A100", "CUDA_0"), CyclesDevice("CUDA", "NVIDIA A100", "CUDA_1")]
@@ -83,7 +83,7 @@ def test_unknown_kind_is_refused():
 
 def test_device_is_not_a_recorded_render_argument(tmp_path):
     """A cluster resumes a folder on nodes of another kind: the device must not refuse it."""
-    from rigs.render import RenderJob, claim_render_folder, render_args
+    from omnigen.rigs.render import RenderJob, claim_render_folder, render_args
 
     jobs = [RenderJob(rig="pole", frames=2, out=tmp_path, scene="tiny", width=64, height=48, device=d)
             for d in ("optix", "cpu", "auto")]
@@ -114,7 +114,7 @@ def _render(out, device: str) -> list[str]:
 
 def test_cli_missing_cuda_fails_in_one_line_before_writing(tmp_path, capsys):
     pytest.importorskip("bpy", reason="bpy not installed")
-    from scenes.blender_backend import cycles_devices
+    from omnigen.scenes.blender_backend import cycles_devices
 
     try:
         cycles_devices("cuda")
@@ -133,7 +133,7 @@ def test_cli_auto_renders_and_resumes_on_another_device(tmp_path, capsys):
     pytest.importorskip("bpy", reason="bpy not installed")
     import bpy
 
-    from scenes.blender_backend import cycles_devices
+    from omnigen.scenes.blender_backend import cycles_devices
 
     expected = cycles_devices("auto")
     out = tmp_path / "r"

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from converters import dair
-from converters.dair_fixture import I_RUN, C_BATCH, tiny_jpeg, write_dair_tree
+from omnigen.converters import dair
+from omnigen.converters.dair_fixture import I_RUN, C_BATCH, tiny_jpeg, write_dair_tree
 from omnigen.cli import main
 from omnigen.dataset import Dataset
 from omnigen.geometry import is_rotation
@@ -565,8 +565,8 @@ def test_a_calibration_not_quite_orthonormal_maps_centres_as_calibrated_and_axes
 def test_an_image_whose_header_claims_too_many_pixels_is_a_skip_not_a_crash(tmp_path, monkeypatch):
     from PIL import Image as PILImage
 
-    from converters import kitti
-    from converters.common import SourceError
+    from omnigen.converters import kitti
+    from omnigen.converters.common import SourceError
 
     path = tmp_path / "big.png"
     PILImage.new("RGB", (64, 48)).save(path)

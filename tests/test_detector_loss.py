@@ -7,10 +7,10 @@ import math
 import pytest
 import torch
 
-from detector.assign import TaskAlignedAssigner
-from detector.boxes import bbox2dist, box_area, box_ciou, box_iou, box_iou_pairwise, dist2bbox
-from detector.loss import PARTS, DetectionLoss, LossGains, keypoint_l1_loss, oks_keypoint_loss
-from detector.outputs import REG_MAX, HeadOutput, decode_keypoints, make_anchors
+from omnigen.detector.assign import TaskAlignedAssigner
+from omnigen.detector.boxes import bbox2dist, box_area, box_ciou, box_iou, box_iou_pairwise, dist2bbox
+from omnigen.detector.loss import PARTS, DetectionLoss, LossGains, keypoint_l1_loss, oks_keypoint_loss
+from omnigen.detector.outputs import REG_MAX, HeadOutput, decode_keypoints, make_anchors
 
 SIGMA = 0.125
 
@@ -353,7 +353,7 @@ def test_box_mode_corners_do_not_pull_the_box():
 
 
 def test_turn_targets_pick_the_order_the_prediction_fits():
-    from detector.loss import turn_targets
+    from omnigen.detector.loss import turn_targets
     from omnigen.conventions import TURN_IDX
 
     t = _targets()
@@ -370,7 +370,7 @@ def test_turn_aware_loss_accepts_either_labelling_and_learns_the_turn():
     """A turn-aware head whose corners are the object turned 180 degrees pays the same corner loss
     as one that matches it as labelled; the turn logit is what tells them apart, and decode puts
     the corners back in the labelled order."""
-    from detector.outputs import apply_turn
+    from omnigen.detector.outputs import apply_turn
     from omnigen.conventions import TURN_IDX
 
     a = _anchors()[0].shape[0]
@@ -395,8 +395,8 @@ def test_turn_aware_model_decodes_in_the_labelled_order():
     24-value corner layout as before, turned where the logit says so."""
     from dataclasses import replace
 
-    from detector.model import DetectorConfig, KeypointDetector
-    from detector.outputs import decode
+    from omnigen.detector.model import DetectorConfig, KeypointDetector
+    from omnigen.detector.outputs import decode
     from omnigen.conventions import TURN_IDX
 
     cfg = DetectorConfig(width=0.0625, depth=0.33, max_channels=64, num_classes=3, kpt_turn=True)

@@ -8,8 +8,8 @@ torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx", reason="torch.onnx.export (dynamo=False) needs the 'onnx' package")
 ort = pytest.importorskip("onnxruntime", reason="the export's check runs ONNX Runtime")
 
-from detector.checkpoint import save_checkpoint  # noqa: E402
-from detector.model import DetectorConfig, KeypointDetector  # noqa: E402
+from omnigen.detector.checkpoint import save_checkpoint  # noqa: E402
+from omnigen.detector.model import DetectorConfig, KeypointDetector  # noqa: E402
 from omnigen.cli import main  # noqa: E402
 
 TRAINED = 256

@@ -32,7 +32,7 @@ TINY = ["--device", "cpu", "--frames", "4", "--cities", "2", "--city-frames", "1
 @pytest.fixture(scope="module")
 def egl(tmp_path_factory):
     """The raster backend's headless context, as the script's setup probes it; skip where there is none."""
-    pytest.importorskip("scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
+    pytest.importorskip("omnigen.scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
     env = gpu_validate.child_environment(tmp_path_factory.mktemp("site"))
     try:
         gpu_validate.egl_environment(env, tmp_path_factory.mktemp("gl"), None)
@@ -197,7 +197,7 @@ def _fake_result(path: Path, labels: np.ndarray, width: int, height: int) -> Sim
 
 
 def test_ultralytics_predictions_become_our_coco_results_exactly(tmp_path):
-    from detector.oks_eval import evaluate
+    from omnigen.detector.oks_eval import evaluate
     from omnigen.dataset import Dataset
     from omnigen.fakes import write_fake_dataset
     from omnigen.splits import write_split

@@ -1,7 +1,7 @@
 """`omnigen convert kitti` and `omnigen export kitti` (issue 3).
 
 Real frames come from ../shared/realdata/kitti (skipped with a reason when absent); everything else
-runs on generated KITTI-format trees (converters.kitti_fixture).
+runs on generated KITTI-format trees (omnigen.converters.kitti_fixture).
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from converters import kitti
-from converters.common import PARALLEL_MIN_FRAMES, run_conversion
-from converters.kitti_export import kitti_file_names
-from converters.kitti_fixture import write_kitti_tree, write_kitti_zips
+from omnigen.converters import kitti
+from omnigen.converters.common import PARALLEL_MIN_FRAMES, run_conversion
+from omnigen.converters.kitti_export import kitti_file_names
+from omnigen.converters.kitti_fixture import write_kitti_tree, write_kitti_zips
 from omnigen.cli import main
 from omnigen.dataset import Dataset
 from omnigen.geometry import camera_offset_from_projection, kitti_alpha, self_occluded_corners
@@ -558,7 +558,7 @@ def test_parse_errors_name_file_and_line():
 def test_export_of_other_sources_pitched_camera_and_classes(tmp_path):
     """Non-KITTI records: derived values, sequential numbers, Misc for classes KITTI lacks, and
     rotation_y / location for a pitched camera (the centre comes back exactly, the tilt is lost)."""
-    from converters.kitti_export import label_line
+    from omnigen.converters.kitti_export import label_line
     from omnigen.dataset import DatasetWriter
     from omnigen.geometry import Box3D, intrinsics_from_fov, kitti_alpha, kitti_rotation, rot_x
     from omnigen.record import FrameRecord, ObjectRecord

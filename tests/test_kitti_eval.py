@@ -18,8 +18,8 @@ import pytest
 import shapely
 from shapely.geometry import Polygon
 
-from detector import kitti_eval as ke
-from detector import kitti_eval_command
+from omnigen.detector import kitti_eval as ke
+from omnigen.detector import kitti_eval_command
 
 REAL_LABELS = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "kitti" / "training" / "label_2"
 

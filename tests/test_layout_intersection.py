@@ -10,12 +10,12 @@ import pytest
 from shapely.geometry import Polygon
 from shapely.ops import unary_union
 
-from rigs.rig import load_rig
-from rigs.sampling import POLE_MOUNT, Obstacles, corner_pole, draw_camera, rig_rng
-from scenes.generate import SceneGenerator
-from scenes.layout import build_city
-from scenes.preset import load_preset, with_overrides
-from scenes.shapes import rect_polygon
+from omnigen.rigs.rig import load_rig
+from omnigen.rigs.sampling import POLE_MOUNT, Obstacles, corner_pole, draw_camera, rig_rng
+from omnigen.scenes.generate import SceneGenerator
+from omnigen.scenes.layout import build_city
+from omnigen.scenes.preset import load_preset, with_overrides
+from omnigen.scenes.shapes import rect_polygon
 
 
 def road_polygon(r) -> Polygon:

@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from converters.kitti import parse_labels
-from detector.calib_command import (PERTURBATIONS, Perturbation, add_arguments, lift_frames, load_predictions,
+from omnigen.converters.kitti import parse_labels
+from omnigen.detector.calib_command import (PERTURBATIONS, Perturbation, add_arguments, lift_frames, load_predictions,
                                     representative_fine_classes, run, sensitivity)
-from detector.lift import (DimensionPriors, LiftedBoxes, fit_dimension_priors, ground_adherence_deg,
+from omnigen.detector.lift import (DimensionPriors, LiftedBoxes, fit_dimension_priors, ground_adherence_deg,
                            lift_keypoints, to_kitti_lines)
 from omnigen.coco import to_coco
 from omnigen.conventions import FINE_CLASSES
@@ -256,8 +256,8 @@ def test_command_end_to_end(fake_ds, tmp_path, capsys):
 def test_exact_lifts_score_in_3d_what_they_score_in_2d(tmp_path):
     """Lifted lines and exported ground truth agree on KITTI's conventions: with exact corners and
     true sizes, every 3D and BEV match the 2D box match does (a sign or offset slip would zero them)."""
-    from converters.kitti_export import label_text
-    from detector.kitti_eval import evaluate_folders
+    from omnigen.converters.kitti_export import label_text
+    from omnigen.detector.kitti_eval import evaluate_folders
     from omnigen.record import FrameRecord, ObjectRecord
 
     (tmp_path / "gt").mkdir()

@@ -12,12 +12,12 @@ import pytest
 from shapely.geometry import LineString, Polygon
 from shapely.ops import unary_union
 
-from scenes.class_mix import class_counts
-from scenes.description import to_json
-from scenes.generate import SceneGenerator
-from scenes.placement import place_agents
-from scenes.preset import load_preset, with_overrides
-from scenes.shapes import rect_polygon
+from omnigen.scenes.class_mix import class_counts
+from omnigen.scenes.description import to_json
+from omnigen.scenes.generate import SceneGenerator
+from omnigen.scenes.placement import place_agents
+from omnigen.scenes.preset import load_preset, with_overrides
+from omnigen.scenes.shapes import rect_polygon
 
 NEW = {"agents.trams": (2, 2), "agents.tricyclists": (3, 3), "agents.barrows": (3, 3), "agents.single_cones": (4, 4),
        "agents.work_zones": (2, 2), "agents.tram_min_lanes": 3}

@@ -11,14 +11,14 @@ import pytest
 from shapely.geometry import Point, Polygon
 
 from omnigen.geometry import intrinsics_from_fov
-from scenes.generate import FrameOverrides, SceneGenerator
-from scenes.materials import PATTERNS, ground_material, ground_surface
-from scenes.preset import available_presets, load_preset
-from scenes.weather import _WEATHER_RANGES, direct_sun, draw_weather
+from omnigen.scenes.generate import FrameOverrides, SceneGenerator
+from omnigen.scenes.materials import PATTERNS, ground_material, ground_surface
+from omnigen.scenes.preset import available_presets, load_preset
+from omnigen.scenes.weather import _WEATHER_RANGES, direct_sun, draw_weather
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
-raster = pytest.importorskip("scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
+raster = pytest.importorskip("omnigen.scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
 
 W = H = 160
 

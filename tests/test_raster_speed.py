@@ -14,9 +14,9 @@ import math
 import numpy as np
 import pytest
 
-from rigs.annotate import mask_box, mask_boxes
-from scenes.assets.parts import cylinder_between, wheel
-from scenes.seeding import choice_index
+from omnigen.rigs.annotate import mask_box, mask_boxes
+from omnigen.scenes.assets.parts import cylinder_between, wheel
+from omnigen.scenes.seeding import choice_index
 
 
 def test_choice_index_draws_like_generator_choice():
@@ -59,12 +59,12 @@ def test_wheel_is_the_cylinder_it_replaced():
 
 def test_culling_changes_no_pixel(monkeypatch):
     # Skipped only for the external dependencies (here, not at module level, where it would skip
-    # the pure-numpy tests above too); scenes.raster_backend itself must import.
+    # the pure-numpy tests above too); omnigen.scenes.raster_backend itself must import.
     pytest.importorskip("pyrender", reason="pyrender not installed")
     pytest.importorskip("OpenGL", reason="PyOpenGL not installed")
     from omnigen.geometry import intrinsics_from_fov
-    from scenes import raster_backend as raster
-    from scenes.generate import SceneGenerator
+    from omnigen.scenes import raster_backend as raster
+    from omnigen.scenes.generate import SceneGenerator
 
     scene = SceneGenerator("tiny", 8).frame(8, 1)
     W, H = 160, 120

@@ -21,9 +21,9 @@ from omnigen.checks import check_dataset
 from omnigen.cli import main
 from omnigen.geometry import silhouette
 from omnigen.record import FrameRecord
-from rigs.rig import load_rig, rig_from_dict
-from rigs.sampling import Obstacles, camera_rotation, rig_rng, sample_camera
-from scenes.generate import SceneGenerator
+from omnigen.rigs.rig import load_rig, rig_from_dict
+from omnigen.rigs.sampling import Obstacles, camera_rotation, rig_rng, sample_camera
+from omnigen.scenes.generate import SceneGenerator
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 pytest.importorskip("pyrender", reason="pyrender not installed")  # the external dependencies; our module must import
@@ -59,7 +59,7 @@ def _records(root: Path) -> list[FrameRecord]:
 
 
 def _instance(root: Path, rec: FrameRecord) -> np.ndarray:
-    from rigs.render import read_instance_png
+    from omnigen.rigs.render import read_instance_png
 
     return read_instance_png(root / rec.synthetic.instance)
 
@@ -112,7 +112,7 @@ def test_camera_rotation_pitch_and_ground_plane():
 
 
 def test_traffic_anchor_follows_a_moving_vehicle():
-    from rigs.sampling import TRAFFIC_GAP, leaders
+    from omnigen.rigs.sampling import TRAFFIC_GAP, leaders
 
     scene = SceneGenerator("tiny", 2).frame(2, 0)
     lead = leaders(scene)
@@ -213,7 +213,7 @@ def test_occlusion_fields_are_consistent(datasets):
 
 
 def test_depth_exr_round_trips_and_is_camera_z(datasets):
-    from rigs.render import read_depth_exr
+    from omnigen.rigs.render import read_depth_exr
 
     root = datasets["pole"]
     for rec in _records(root):
@@ -255,7 +255,7 @@ def test_resume_renders_only_missing_and_is_identical(datasets, tmp_path):
     kept = {p.name: p.stat().st_mtime_ns for p in (copy / "records").glob("*.json") if p not in gone}
     for p in gone:
         p.unlink()
-    from rigs.render import RenderJob, Renderer
+    from omnigen.rigs.render import RenderJob, Renderer
 
     summary = Renderer(RenderJob(rig="drone", frames=FRAMES, out=copy, seed=SEED, scene="tiny", width=W, height=H,
                                  backend="raster")).run(show_progress=False)

@@ -19,7 +19,7 @@ from omnigen.record import FrameRecord
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 pytest.importorskip("bpy", reason="bpy not installed")
-pytest.importorskip("scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
+pytest.importorskip("omnigen.scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
 
 W, H = 160, 120
 SEED = 5
@@ -27,7 +27,7 @@ SEED = 5
 
 @pytest.fixture(scope="module")
 def both(tmp_path_factory):
-    from rigs.render import RenderJob, Renderer
+    from omnigen.rigs.render import RenderJob, Renderer
 
     root = tmp_path_factory.mktemp("cycles")
     out = {}
@@ -44,7 +44,7 @@ def both(tmp_path_factory):
 
 
 def _load(root):
-    from rigs.render import read_depth_exr, read_instance_png
+    from omnigen.rigs.render import read_depth_exr, read_instance_png
 
     rec = FrameRecord.from_dict(json.loads(next((root / "records").glob("*.json")).read_text()))
     return rec, read_instance_png(root / rec.synthetic.instance), read_depth_exr(root / rec.synthetic.depth)

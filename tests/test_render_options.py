@@ -14,7 +14,7 @@ def _needs_egl() -> None:
     """The raster backend needs pyrender, PyOpenGL and a headless EGL context."""
     pytest.importorskip("pyrender", reason="pyrender not installed")
     pytest.importorskip("OpenGL", reason="PyOpenGL not installed")
-    from scenes.gl_raster import GLRaster
+    from omnigen.scenes.gl_raster import GLRaster
 
     try:
         GLRaster().close()
@@ -78,7 +78,7 @@ def test_a_resumed_render_with_other_arguments_is_refused(tmp_path, capsys):
     """Issue 27: killed part-way and rerun with another --width, a render added frames of the new
     size to the old ones, the manifest claimed the new size and validate said valid."""
     _needs_egl()
-    from rigs.render import RenderJob, Renderer
+    from omnigen.rigs.render import RenderJob, Renderer
 
     out = tmp_path / "ds"
     assert _raster(out, frames=3) == 0

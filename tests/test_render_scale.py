@@ -14,10 +14,10 @@ from pathlib import Path
 import pytest
 
 from omnigen.cli import main
-from rigs.render import RenderJob, Renderer, parse_shard
+from omnigen.rigs.render import RenderJob, Renderer, parse_shard
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
-pytest.importorskip("scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
+pytest.importorskip("omnigen.scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
 
 W, H = 96, 64
 FRAMES = 6
@@ -134,7 +134,7 @@ def test_ray_equals_local(reference, ray_local, tmp_path):
 
 @needs_ray
 def test_ray_worker_killed_mid_frame_loses_nothing(reference, ray_local, tmp_path, monkeypatch):
-    from rigs.ray_executor import CRASH_ENV, run_ray
+    from omnigen.rigs.ray_executor import CRASH_ENV, run_ray
 
     out = tmp_path / "crash"
     marker = tmp_path / "crashed"
@@ -153,7 +153,7 @@ def test_ray_worker_killed_mid_frame_loses_nothing(reference, ray_local, tmp_pat
 
 @needs_ray
 def test_ray_frame_failing_past_retries_is_reported(ray_local, tmp_path, monkeypatch):
-    from rigs.ray_executor import CRASH_ENV, run_ray
+    from omnigen.rigs.ray_executor import CRASH_ENV, run_ray
 
     out = tmp_path / "fail"
     monkeypatch.setenv(CRASH_ENV, f"1:{tmp_path / 'crashed'}")

@@ -8,13 +8,13 @@ import zlib
 import numpy as np
 import pytest
 
-from scenes.assets.build import agent_parts
-from scenes.assets.catalog import CONE_BASE_RATIO, CONE_HEIGHTS, SIZES, draw_asset, draw_dims
-from scenes.assets.parts import bounds_of
-from scenes.assets.user import file_to_object_rotation, load_library
-from scenes.generate import SceneGenerator
-from scenes.meshes import compile_scene
-from scenes.preset import load_preset, with_overrides
+from omnigen.scenes.assets.build import agent_parts
+from omnigen.scenes.assets.catalog import CONE_BASE_RATIO, CONE_HEIGHTS, SIZES, draw_asset, draw_dims
+from omnigen.scenes.assets.parts import bounds_of
+from omnigen.scenes.assets.user import file_to_object_rotation, load_library
+from omnigen.scenes.generate import SceneGenerator
+from omnigen.scenes.meshes import compile_scene
+from omnigen.scenes.preset import load_preset, with_overrides
 
 FAMILIES = ("car", "van", "truck", "bus", "tram", "pedestrian", "cyclist", "motorcyclist", "tricyclist", "barrow", "traffic_cone")
 TIGHT = 0.02  # metres: each axis of the cuboid within 2 cm of the mesh's extent

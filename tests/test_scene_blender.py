@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from scenes.generate import FrameOverrides, SceneGenerator
+from omnigen.scenes.generate import FrameOverrides, SceneGenerator
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
-blender = pytest.importorskip("scenes.blender_backend", reason="bpy not installed")
+blender = pytest.importorskip("omnigen.scenes.blender_backend", reason="bpy not installed")
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +37,7 @@ def test_agents_match_the_description(built):
 
 
 def test_both_backends_build_the_same_objects(built):
-    raster = pytest.importorskip("scenes.raster_backend")
+    raster = pytest.importorskip("omnigen.scenes.raster_backend")
     _, scene, bs = built
     try:
         rs = raster.RasterScene(scene)

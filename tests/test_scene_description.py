@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from shapely.geometry import Polygon
 
-from scenes.description import Scene, from_json, to_json
-from scenes.generate import FrameOverrides, SceneGenerator, build_scene, randomize_frame
-from scenes.layout import build_city
-from scenes.preset import available_presets, load_preset, with_overrides
-from scenes.seeding import city_rng, frame_rng
-from scenes.shapes import rect_polygon
-from scenes.weather import draw_lighting, draw_weather, solar_position
+from omnigen.scenes.description import Scene, from_json, to_json
+from omnigen.scenes.generate import FrameOverrides, SceneGenerator, build_scene, randomize_frame
+from omnigen.scenes.layout import build_city
+from omnigen.scenes.preset import available_presets, load_preset, with_overrides
+from omnigen.scenes.seeding import city_rng, frame_rng
+from omnigen.scenes.shapes import rect_polygon
+from omnigen.scenes.weather import draw_lighting, draw_weather, solar_position
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,7 +42,7 @@ def test_same_seed_same_bytes_and_json_round_trip():
 def test_same_bytes_in_a_fresh_interpreter():
     """Same (seed, preset) in another process (fresh hash seeds, fresh imports): same bytes."""
     code = (
-        "import hashlib; from scenes.generate import build_scene; from scenes.description import to_json;"
+        "import hashlib; from omnigen.scenes.generate import build_scene; from omnigen.scenes.description import to_json;"
         "print(hashlib.sha256(to_json(build_scene('tiny', 5)).encode()).hexdigest())"
     )
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True,

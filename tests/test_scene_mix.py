@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from scenes.generate import SceneGenerator
-from scenes.preset import mix_names, preset_for_seed
+from omnigen.scenes.generate import SceneGenerator
+from omnigen.scenes.preset import mix_names, preset_for_seed
 
 MIX = "downtown,suburban,arterial,intersection"
 
@@ -31,7 +31,7 @@ def test_a_mix_with_an_unknown_or_empty_name_is_refused():
 
 
 def test_the_render_folder_records_the_preset_the_seed_drew(tmp_path):
-    from rigs.render import RenderJob, render_args, render_info
+    from omnigen.rigs.render import RenderJob, render_args, render_info
 
     job = RenderJob(rig="pole", frames=1, out=tmp_path, seed=3, scene=MIX, backend="raster")
     args = render_args(job)

@@ -11,11 +11,11 @@ import shapely
 from shapely.geometry import MultiPoint
 
 from omnigen.geometry import Box3D, intrinsics_from_fov, rot_z, silhouette
-from scenes.generate import FrameOverrides, SceneGenerator
+from omnigen.scenes.generate import FrameOverrides, SceneGenerator
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
-raster = pytest.importorskip("scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
+raster = pytest.importorskip("omnigen.scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
 
 W, H = 160, 120
 

@@ -23,10 +23,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from converters import dair, kitti
-from converters.common import TEXT_FILE_MAX_BYTES, SourceError
-from converters.dair_fixture import tiny_jpeg, write_dair_tree
-from converters.kitti_fixture import write_kitti_tree, write_kitti_zips
+from omnigen.converters import dair, kitti
+from omnigen.converters.common import TEXT_FILE_MAX_BYTES, SourceError
+from omnigen.converters.dair_fixture import tiny_jpeg, write_dair_tree
+from omnigen.converters.kitti_fixture import write_kitti_tree, write_kitti_zips
 from omnigen.cli import main
 from omnigen.images import MAX_IMAGE_PIXELS, ImageError, check_image, image_size, load_rgb
 from omnigen.untrusted import UntrustedFileError, read_regular, resolve_inside

@@ -12,10 +12,10 @@ from collections import OrderedDict
 import numpy as np
 import trimesh
 
-from scenes.assets import people, props, vehicles
-from scenes.assets.parts import fit_to_dims
-from scenes.assets.user import user_parts
-from scenes.description import AssetSpec, to_dict
+from omnigen.scenes.assets import people, props, vehicles
+from omnigen.scenes.assets.parts import fit_to_dims
+from omnigen.scenes.assets.user import user_parts
+from omnigen.scenes.description import AssetSpec, to_dict
 
 AGENT_BUILDERS = {
     "car": vehicles.car,

@@ -40,8 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenes.description import AssetSpec
-from scenes.seeding import choice_index
+from omnigen.scenes.description import AssetSpec
+from omnigen.scenes.seeding import choice_index
 
 
 @dataclass(frozen=True)

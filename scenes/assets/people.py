@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from scenes.assets.parts import Parts, box, cylinder_between, ellipsoid, ring_y, trapezoid_x, wheel
+from omnigen.scenes.assets.parts import Parts, box, cylinder_between, ellipsoid, ring_y, trapezoid_x, wheel
 
 
 def _head(parts: Parts, top: np.ndarray, s: float, p: dict, helmet: bool = False) -> None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 
 
-from scenes.assets.parts import Parts, box, cylinder_between, ellipsoid, frustum, hexahedron, trapezoid_x
+from omnigen.scenes.assets.parts import Parts, box, cylinder_between, ellipsoid, frustum, hexahedron, trapezoid_x
 
 
 def traffic_cone(dims, p: dict) -> Parts:

@@ -1,6 +1,6 @@
 """Print each procedural family's and furniture kind's mesh size and build time.
 
-    python -m scenes.assets.report [--draws N]
+    python -m omnigen.scenes.assets.report [--draws N]
 
 Why: the raster preview builds every agent in view every frame, so a family's triangle count and
 build time are what it costs a frame; docs/scenes.md quotes this script's table. Triangle counts
@@ -15,10 +15,10 @@ import zlib
 
 import numpy as np
 
-from scenes.assets import props
-from scenes.assets.build import AGENT_BUILDERS
-from scenes.assets.catalog import PROCEDURAL_FAMILIES, draw_asset
-from scenes.assets.parts import fit_to_dims
+from omnigen.scenes.assets import props
+from omnigen.scenes.assets.build import AGENT_BUILDERS
+from omnigen.scenes.assets.catalog import PROCEDURAL_FAMILIES, draw_asset
+from omnigen.scenes.assets.parts import fit_to_dims
 
 # Furniture at typical dims (the contract's ranges, docs/scenes.md).
 FURNITURE_EXAMPLES = (

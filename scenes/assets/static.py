@@ -18,9 +18,9 @@ import numpy as np
 import trimesh
 from shapely.geometry import LineString, Polygon
 
-from scenes.assets.parts import Parts, _mesh, box, quad
-from scenes.description import Building, City
-from scenes.shapes import Occupancy, rect_corners
+from omnigen.scenes.assets.parts import Parts, _mesh, box, quad
+from omnigen.scenes.description import Building, City
+from omnigen.scenes.shapes import Occupancy, rect_corners
 
 MARKING_Z = 0.01
 GROUND_HALF = 2000.0
@@ -74,7 +74,7 @@ def prism(poly: np.ndarray, z0: float, z1: float, cap: bool = True) -> tuple[tri
 
 
 def oriented_box(center, length: float, width: float, yaw: float, z0: float, z1: float) -> trimesh.Trimesh:
-    from scenes.assets.parts import hexahedron
+    from omnigen.scenes.assets.parts import hexahedron
 
     c = rect_corners(center, length, width, yaw)
     return hexahedron(c, z0, c, z1)

@@ -26,7 +26,7 @@ import numpy as np
 import trimesh
 
 from omnigen.conventions import FINE_CLASSES
-from scenes.description import AssetSpec
+from omnigen.scenes.description import AssetSpec
 
 AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")

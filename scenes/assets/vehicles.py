@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from scenes.assets.parts import Parts, Piece, box, cylinder_between, hexahedron, prism_y, trapezoid_x, wheel
+from omnigen.scenes.assets.parts import Parts, Piece, box, cylinder_between, hexahedron, prism_y, trapezoid_x, wheel
 
 TYRE_WIDTH = 0.22
 WHEEL_SECTIONS = 12
