@@ -37,10 +37,26 @@ def test_every_verb_is_a_subcommand():
         assert p.get_default("func") is importlib.import_module(module_name).run, verb
 
 
+def test_every_verb_is_a_command_module():
+    """The registry is the one list: every verb, built in or not, is a module with add_arguments and run."""
+    assert list(COMMANDS) == VERBS
+    for module_name in COMMANDS.values():
+        assert module_name.endswith("_command"), module_name
+
+
 def test_a_missing_command_module_is_an_error(monkeypatch):
     """No "not built yet" stub: a registry entry whose module does not import breaks the parser."""
     monkeypatch.setitem(cli.COMMANDS, "ghost", "omnigen.detector.no_such_command")
-    with pytest.raises(ModuleNotFoundError, match="omnigen.detector.no_such_command"):
+    with pytest.raises(ImportError, match="omnigen ghost: command module omnigen.detector.no_such_command"):
+        build_parser()
+
+
+def test_a_command_module_that_fails_inside_is_named(monkeypatch, tmp_path):
+    """A module that exists but whose own import fails is reported by its name, not only the inner one's."""
+    (tmp_path / "broken_command.py").write_text('"""Broken."""\nimport no_such_dependency_of_omnigen\n')
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setitem(cli.EXPORTERS, "broken", "broken_command")
+    with pytest.raises(ImportError, match="command module broken_command does not import: .*no_such_dependency"):
         build_parser()
 
 
