@@ -49,15 +49,16 @@ from omnigen.converters.common import (
     source_path,
 )
 from omnigen.converters.plausible import check_box, check_box2d, check_intrinsics, check_offset
-from omnigen.conventions import DAIR_CLASSES, OCCLUSION_UNKNOWN
+from omnigen.conventions import BOTTOM_CORNERS, DAIR_CLASSES, OCCLUSION_UNKNOWN
 from omnigen.geometry import (
     Box3D,
     Plane,
     box_from_dair,
-    boxes_corners,
     boxes_from_dair,
-    fit_plane,
+    cuboid_corners,
+    fit_ground,
     project_boxes,
+    rots_z,
     self_occluded_corners_batch,
 )
 from omnigen.record import FRAME_ID_PATTERN, FrameRecord, IgnoreRegion, ObjectRecord
@@ -117,6 +118,9 @@ tilt poorly determined, and a level plane (the virtual LiDAR's z is up) is the b
 PLANE_MAX_TILT_DEG = 6.0
 """A fitted plane tilted more than this from the LiDAR's level is rejected (a 10% grade is 5.7
 degrees): such a fit comes from boxes on kerbs and ramps, not from the road."""
+
+LIDAR_UP = np.array([0.0, 0.0, 1.0])
+"""The virtual LiDAR's z is up: the level ground's normal, and the side a fitted normal points to."""
 
 ROTATION_TOLERANCE = 0.05
 """Largest |R^T R - I| entry accepted in an extrinsic rotation. Calibrated matrices are orthonormal
@@ -451,34 +455,19 @@ def estimate_ground(objects: Sequence[LabelObject]) -> GroundEstimate | None:
     """
     if not objects:
         return None
-    up = np.array([0.0, 0.0, 1.0])
     if len(objects) >= PLANE_MIN_OBJECTS:
-        corners = bottom_corners(objects).reshape(-1, 3)
-        try:
-            plane = fit_plane(corners, up_hint=up)
-        except ValueError:
-            plane = None
-        if plane is not None and math.degrees(math.acos(min(1.0, plane.normal[2]))) <= PLANE_MAX_TILT_DEG:
+        plane = fit_ground(bottom_corners(objects), LIDAR_UP, PLANE_MIN_OBJECTS, math.radians(PLANE_MAX_TILT_DEG))
+        if plane is not None:
             return GroundEstimate(plane, "fit")
     bottom = float(np.median([o.center[2] - o.lwh[2] / 2.0 for o in objects]))
-    return GroundEstimate(Plane(up, -bottom), "level")
-
-
-FOOTPRINT_SIGNS = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, -1.0], [-1.0, 1.0]])
-"""x (forward) and y (left) signs of the bottom corners 4-7, in the contract's order."""
+    return GroundEstimate(Plane(LIDAR_UP, -bottom), "level")
 
 
 def bottom_corners(objects: Sequence[LabelObject]) -> np.ndarray:
-    """(N, 4, 3) ground-contact corners of every object in the virtual-LiDAR frame (vectorised)."""
-    center = np.array([o.center for o in objects])
-    lwh = np.array([o.lwh for o in objects])
-    yaw = np.array([o.yaw for o in objects])
-    local = FOOTPRINT_SIGNS[None] * lwh[:, None, :2] / 2.0  # (N, 4, 2)
-    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    x = c * local[..., 0] - s * local[..., 1] + center[:, None, 0]
-    y = s * local[..., 0] + c * local[..., 1] + center[:, None, 1]
-    z = np.broadcast_to((center[:, 2] - lwh[:, 2] / 2.0)[:, None], x.shape)
-    return np.stack([x, y, z], axis=-1)
+    """(N, 4, 3) ground-contact corners (4-7) of every object in the virtual-LiDAR frame."""
+    centers = np.array([o.center for o in objects], dtype=np.float64).reshape(-1, 3)
+    lwh = np.array([o.lwh for o in objects], dtype=np.float64).reshape(-1, 3)
+    return cuboid_corners(centers, lwh, rots_z([o.yaw for o in objects]))[:, list(BOTTOM_CORNERS)]
 
 
 def plane_to_camera(plane: Plane, ext: Extrinsics) -> Plane:
@@ -840,7 +829,7 @@ def make_objects(objects: Sequence[LabelObject], K: np.ndarray, ext: Extrinsics,
     lwh = np.array([o.lwh for o in objects])
     centers, rotations = boxes_from_dair(np.array([o.center for o in objects]), np.array([o.yaw for o in objects]),
                                          ext.rotation, ext.translation, ext.calibrated)
-    proj = project_boxes(boxes_corners(centers, lwh, rotations), K, width, height)
+    proj = project_boxes(cuboid_corners(centers, lwh, rotations), K, width, height)
     occluded = self_occluded_corners_batch(centers, lwh, rotations)
     has_bbox = proj.has_bbox().tolist()
     truncation = proj.truncation.tolist()

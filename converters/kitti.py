@@ -42,7 +42,7 @@ from omnigen.geometry import (
     Plane,
     box_from_kitti,
     camera_offset_from_projection,
-    fit_plane,
+    fit_ground,
     plane_from_height_pitch,
 )
 from omnigen.images import MAX_IMAGE_BYTES
@@ -419,25 +419,21 @@ def _plausible_bottom(box: Box3D) -> bool:
     return BOTTOM_DEPTH_RANGE[0] <= z <= BOTTOM_DEPTH_RANGE[1] and BOTTOM_HEIGHT_RANGE[0] <= y <= BOTTOM_HEIGHT_RANGE[1]
 
 
-def _plane_is_sane(plane: Plane) -> bool:
-    tilt = math.acos(float(np.clip(-plane.normal[1], -1.0, 1.0)))
-    return tilt <= PLANE_MAX_TILT and PLANE_HEIGHT_RANGE[0] <= plane.camera_height <= PLANE_HEIGHT_RANGE[1]
+CAMERA_UP = np.array([0.0, -1.0, 0.0])
+"""A level camera's up (its -y): where the road's normal points, and what its tilt is measured from."""
 
 
 def ground_plane(boxes: list[Box3D]) -> tuple[Plane, bool]:
     """(plane in the image's camera frame, whether it was fitted rather than the prior).
 
-    Fitted robustly (fit_plane's reweighted least squares) through the bottom corners of objects
-    standing where a road can be; the prior is a level road 1.65 m below the image's camera.
+    Fitted robustly (geometry.fit_ground) through the bottom corners of objects standing where a
+    road can be, kept only at a plausible camera height; the prior is a level road 1.65 m below
+    the image's camera.
     """
-    bottoms = [b.corners()[list(BOTTOM_CORNERS)] for b in boxes if _plausible_bottom(b)]
-    if len(bottoms) >= PLANE_MIN_OBJECTS:
-        try:
-            plane = fit_plane(np.concatenate(bottoms))
-        except ValueError:  # degenerate points: no unique plane
-            plane = None
-        if plane is not None and _plane_is_sane(plane):
-            return plane, True
+    bottoms = np.array([b.corners()[list(BOTTOM_CORNERS)] for b in boxes if _plausible_bottom(b)]).reshape(-1, 4, 3)
+    plane = fit_ground(bottoms, CAMERA_UP, PLANE_MIN_OBJECTS, PLANE_MAX_TILT)
+    if plane is not None and PLANE_HEIGHT_RANGE[0] <= plane.camera_height <= PLANE_HEIGHT_RANGE[1]:
+        return plane, True
     return plane_from_height_pitch(PRIOR_CAMERA_HEIGHT, 0.0), False
 
 

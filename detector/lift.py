@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 
 from omnigen.converters.kitti_export import FALLBACK_NAME, KITTI_NAMES
-from omnigen.conventions import CORNER_SIGNS, FINE_CLASSES, NEAR_PLANE, NUM_KEYPOINTS
+from omnigen.conventions import FINE_CLASSES, NEAR_PLANE, NUM_KEYPOINTS
 from omnigen.dataset import Dataset
-from omnigen.geometry import Box3D, box_corners, box_to_kitti, kitti_alpha
+from omnigen.geometry import Box3D, box_to_kitti, cuboid_corners, kitti_alpha, local_corners
 from omnigen.priors import PRIORS
 
 MIN_POINTS = 4
@@ -137,15 +137,15 @@ class LiftedBoxes:
 
     def corners(self) -> np.ndarray:
         """(N, 8, 3) camera-frame corners in the contract's order (NaN where not ok)."""
-        return box_corners(self.t, self.dims, self.R)
+        return cuboid_corners(self.t, self.dims, self.R)
 
     def box(self, i: int) -> Box3D:
         return Box3D(self.t[i], self.dims[i], self.R[i])
 
 
 def object_corners(dims: np.ndarray) -> np.ndarray:
-    """(N, 8, 3) corners in the object frame: CORNER_SIGNS * dims / 2."""
-    return CORNER_SIGNS[None] * (np.asarray(dims, dtype=np.float64)[:, None, :] / 2.0)
+    """(N, 8, 3) corners in the object frame: CORNER_SIGNS * dims / 2 (geometry.local_corners)."""
+    return local_corners(np.asarray(dims, dtype=np.float64).reshape(-1, 3))
 
 
 REFINE_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 1e-10)

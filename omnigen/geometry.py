@@ -91,8 +91,7 @@ class Box3D:
 
     def corners(self) -> np.ndarray:
         """(8, 3) corners in the camera frame, in the contract's order (0-3 top, 4-7 bottom)."""
-        local = CORNER_SIGNS * (self.dims / 2.0)
-        return local @ self.rotation.T + self.center
+        return cuboid_corners(self.center, self.dims, self.rotation)
 
     def transformed(self, rotation: np.ndarray, translation: np.ndarray) -> "Box3D":
         """The same cuboid expressed in another frame: X' = rotation @ X + translation."""
@@ -104,10 +103,37 @@ class Box3D:
         return self.center - self.up * self.dims[2] / 2.0
 
 
-def box_corners(center: np.ndarray, dims: np.ndarray, rotation: np.ndarray) -> np.ndarray:
-    """Vectorised corners: center (N, 3), dims (N, 3), rotation (N, 3, 3) -> (N, 8, 3)."""
-    local = CORNER_SIGNS[None] * (np.asarray(dims)[:, None, :] / 2.0)
-    return np.einsum("nij,nkj->nki", rotation, local) + np.asarray(center)[:, None, :]
+def local_corners(dims: np.ndarray) -> np.ndarray:
+    """Corners in the object frame, in the contract's order: dims (..., 3) [l, w, h] -> (..., 8, 3)."""
+    return CORNER_SIGNS * (np.asarray(dims, dtype=np.float64)[..., None, :] / 2.0)
+
+
+def cuboid_corners(center: np.ndarray, dims: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """The corners of one cuboid or of many, in the contract's order (0-3 top, 4-7 bottom).
+
+    center (..., 3), dims (..., 3) [l, w, h], rotation (..., 3, 3) object -> frame; returns
+    (..., 8, 3): (8, 3) for one box, (N, 8, 3) for N. The one place corners are computed (Box3D,
+    the converters, the raster backend's culling, the lifting all call it). Every box goes through
+    the same 8x3 @ 3x3 product whether it comes alone or in a batch, so a box's corners are bit
+    for bit the same either way, and records written one object at a time or a frame at once agree.
+    """
+    rotation = np.asarray(rotation, dtype=np.float64)
+    center = np.asarray(center, dtype=np.float64)
+    return local_corners(dims) @ np.swapaxes(rotation, -1, -2) + center[..., None, :]
+
+
+def rots_z(yaws: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rot_z of N angles, entry for entry: cosine and sine from math, as rot_z's."""
+    yaws = np.asarray(yaws, dtype=np.float64).reshape(-1).tolist()
+    c = [math.cos(a) for a in yaws]
+    s = [math.sin(a) for a in yaws]
+    r = np.zeros((len(yaws), 3, 3))
+    r[:, 0, 0] = c
+    r[:, 0, 1] = [-v for v in s]
+    r[:, 1, 0] = s
+    r[:, 1, 1] = c
+    r[:, 2, 2] = 1.0
+    return r
 
 
 # ---------------------------------------------------------------------------------------------
@@ -247,20 +273,9 @@ class BoxProjections:
         return BoxProjection(self.keypoints[i], self.in_image[i], self.behind_camera[i], bbox, float(self.truncation[i]))
 
 
-def boxes_corners(centers: np.ndarray, dims: np.ndarray, rotations: np.ndarray) -> np.ndarray:
-    """(N, 8, 3) corners, each bit for bit Box3D.corners() of the same box.
-
-    Unlike box_corners (einsum), every box goes through the same 8x3 @ 3x3 product as
-    Box3D.corners, so batch and per-box results agree exactly (records stay byte-identical).
-    """
-    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
-    local = CORNER_SIGNS[None] * (np.asarray(dims, dtype=np.float64).reshape(-1, 1, 3) / 2.0)
-    return local @ np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3).transpose(0, 2, 1) + centers[:, None, :]
-
-
 def project_boxes(corners: np.ndarray, K: np.ndarray, width: int, height: int,
                   near: float = NEAR_PLANE) -> BoxProjections:
-    """project_box for N cuboids given as (N, 8, 3) corners (boxes_corners), with identical results.
+    """project_box for N cuboids given as (N, 8, 3) corners (cuboid_corners), with identical results.
 
     Why: converters project every object of a frame; one object at a time, numpy's per-call cost and
     one shapely call per step dominate. Here the projection and the common case (every corner in
@@ -360,6 +375,10 @@ class Plane:
         """Angle of the optical axis below the horizon (radians, positive looking down)."""
         return float(math.asin(np.clip(-self.normal[2], -1.0, 1.0)))
 
+    def tilt(self, up: np.ndarray) -> float:
+        """Angle (radians) between the normal and the direction `up` (a unit vector)."""
+        return math.acos(float(np.clip(np.dot(self.normal, up), -1.0, 1.0)))
+
 
 def fit_plane(points: np.ndarray, up_hint: np.ndarray = np.array([0.0, -1.0, 0.0]), iterations: int = 3) -> Plane:
     """Least-squares plane through points, re-fitted with inverse-residual weights (IRLS).
@@ -383,6 +402,26 @@ def fit_plane(points: np.ndarray, up_hint: np.ndarray = np.array([0.0, -1.0, 0.0
     if np.dot(normal, up_hint) < 0:
         normal = -normal
     return Plane(normal, -float(np.dot(normal, mean)))
+
+
+def fit_ground(bottoms: np.ndarray, up: np.ndarray, min_objects: int, max_tilt: float) -> Plane | None:
+    """The ground through objects' bottom corners, or None where they do not settle it.
+
+    bottoms: (N, 4, 3), the ground-contact corners (4-7) of N objects in one frame. Fitted with
+    fit_plane's reweighted least squares (a few boxes on a kerb or floating barely move it) through
+    all 4N points, the normal along `up`. None with fewer than `min_objects` objects, for points
+    that fix no unique plane, and for a fit tilted more than `max_tilt` (radians) from `up`. The
+    sources' own policy (which objects count, the thresholds, what to use instead) is the
+    converters'; this is the fit they share.
+    """
+    bottoms = np.asarray(bottoms, dtype=np.float64).reshape(-1, 4, 3)
+    if len(bottoms) < min_objects:
+        return None
+    try:
+        plane = fit_plane(bottoms.reshape(-1, 3), up_hint=up)
+    except ValueError:  # degenerate points: no unique plane
+        return None
+    return plane if plane.tilt(up) <= max_tilt else None
 
 
 def plane_from_height_pitch(height: float, pitch: float, roll: float = 0.0) -> Plane:

@@ -28,7 +28,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Point, Polygon
 
-from omnigen.geometry import Box3D, Plane, boxes_corners, intrinsics_from_fov, project_boxes, rot_z
+from omnigen.geometry import Box3D, Plane, cuboid_corners, intrinsics_from_fov, project_boxes, rot_z
 from omnigen.rigs.rig import Rig
 from omnigen.scenes.description import Scene
 
@@ -231,7 +231,7 @@ def projected_agents(scene: Scene, cam: Camera) -> tuple[np.ndarray, np.ndarray]
     dims = np.array([a.dims for a in scene.agents], dtype=np.float64)
     rot = np.stack([cam.R @ rot_z(a.yaw) for a in scene.agents])
     cam_centers = centers @ cam.R.T + cam.t
-    proj = project_boxes(boxes_corners(cam_centers, dims, rot), cam.K, cam.width, cam.height)
+    proj = project_boxes(cuboid_corners(cam_centers, dims, rot), cam.K, cam.width, cam.height)
     return cam_centers[:, 2], proj.bbox
 
 

@@ -41,6 +41,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 
 from omnigen.scenes.description import Scene  # noqa: E402
+from omnigen.geometry import cuboid_corners, rots_z  # noqa: E402
 from omnigen.scenes.gl_raster import MAX_LAMPS, SHADOW_SIZE, ZFAR, ZNEAR, GLRaster, Light, projection, view_matrix  # noqa: E402
 from omnigen.scenes.materials import PATTERNS, agent_surface, building_surface, furniture_surface, ground_surface  # noqa: E402
 from omnigen.scenes.meshes import (agent_object, compile_scene, lamp_lights, static_materials, static_objects,  # noqa: E402
@@ -123,16 +124,9 @@ def unoccluded_agents(agents, chosen: list[int], K: np.ndarray, R: np.ndarray, t
     if not chosen:
         return []
     H, W = static_z.shape
-    l_, w_, h_ = (np.array([agents[k].dims[i] for k in chosen]) / 2.0 for i in range(3))
-    sx = np.array([-1, 1, 1, -1, -1, 1, 1, -1], dtype=np.float64)
-    sy = np.array([-1, -1, 1, 1, -1, -1, 1, 1], dtype=np.float64)
-    sz = np.array([-1, -1, -1, -1, 1, 1, 1, 1], dtype=np.float64)
-    yaw = np.array([agents[k].yaw for k in chosen])
-    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    local_x, local_y = l_[:, None] * sx, w_[:, None] * sy
     centre = np.array([agents[k].center for k in chosen], dtype=np.float64)
-    world = np.stack([centre[:, 0:1] + c * local_x - s * local_y, centre[:, 1:2] + s * local_x + c * local_y,
-                      centre[:, 2:3] + h_[:, None] * sz], axis=-1)  # (N, 8, 3)
+    dims = np.array([agents[k].dims for k in chosen], dtype=np.float64)
+    world = cuboid_corners(centre, dims, rots_z([agents[k].yaw for k in chosen]))  # (N, 8, 3)
     cam = world @ R.T + t.reshape(3)
     z = cam[..., 2]
     keep = []

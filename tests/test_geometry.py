@@ -16,10 +16,11 @@ from omnigen.geometry import (
     box_from_dair,
     box_from_kitti,
     box_to_kitti,
-    boxes_corners,
     boxes_from_dair,
     blender_from_intrinsics,
     camera_offset_from_projection,
+    cuboid_corners,
+    fit_ground,
     fit_plane,
     intrinsics_from_blender,
     kitti_rotation,
@@ -30,6 +31,7 @@ from omnigen.geometry import (
     rot_x,
     rot_y,
     rot_z,
+    rots_z,
     self_occluded_corners,
     self_occluded_corners_batch,
     world_to_opencv_camera,
@@ -71,6 +73,75 @@ def test_corner_order_follows_object_axes():
         assert (along_left[[0, 3, 4, 7]] > 0).all() and (along_left[[1, 2, 5, 6]] < 0).all()
         # 4-7 sit exactly under 0-3 along the object's up.
         np.testing.assert_allclose(c[:4] - c[4:], np.tile(box.up * box.dims[2], (4, 1)), atol=1e-12)
+
+
+def test_cuboid_corners_against_a_hand_computed_cuboid():
+    """The one corner function, one box and a batch, against corners written out by hand in the
+    contract's order (../shared/conventions.md: 0 top front-left, 1 top front-right, 2 top
+    rear-right, 3 top rear-left, 4-7 the bottom corners under them)."""
+    l, w, h = 4.0, 2.0, 1.5
+    center = np.array([1.0, -2.0, 10.0])
+    # object x forward -> camera +z, y left -> camera -x, z up -> camera -y (a level camera
+    # looking along the object's heading)
+    rotation = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    fwd, left, up = rotation[:, 0] * l / 2, rotation[:, 1] * w / 2, rotation[:, 2] * h / 2
+    hand = np.array([fwd + left + up, fwd - left + up, -fwd - left + up, -fwd + left + up,
+                     fwd + left - up, fwd - left - up, -fwd - left - up, -fwd + left - up]) + center
+    np.testing.assert_array_equal(hand[0], [0.0, -2.75, 12.0])  # top front-left: ahead, left (-x), up (-y)
+    np.testing.assert_allclose(cuboid_corners(center, [l, w, h], rotation), hand, atol=1e-12)
+    np.testing.assert_allclose(Box3D(center, [l, w, h], rotation).corners(), hand, atol=1e-12)
+    rng = np.random.default_rng(11)
+    boxes = [random_box(rng) for _ in range(9)] + [Box3D(center, [l, w, h], rotation)]
+    batch = cuboid_corners(np.array([b.center for b in boxes]), np.array([b.dims for b in boxes]),
+                           np.array([b.rotation for b in boxes]))
+    assert batch.shape == (10, 8, 3)
+    for b, corners in zip(boxes, batch):
+        assert _same(b.corners(), corners)  # alone or in a batch: the same bits
+    np.testing.assert_allclose(batch[-1], hand, atol=1e-12)
+    assert cuboid_corners(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3))).shape == (0, 8, 3)
+
+
+def test_rots_z_is_rot_z_entry_for_entry():
+    yaws = np.random.default_rng(12).uniform(-7.0, 7.0, 50)
+    stacked = rots_z(yaws)
+    assert stacked.shape == (50, 3, 3) and rots_z([]).shape == (0, 3, 3)
+    for yaw, r in zip(yaws, stacked):
+        assert _same(rot_z(float(yaw)), r)
+
+
+def test_fit_ground_on_a_known_plane_with_an_outlier():
+    """The ground fit both converters use: bottoms of boxes on a known tilted plane plus one box
+    floating a metre up; the fit finds the plane, and each refusal gives None."""
+    truth = plane_from_height_pitch(1.7, math.radians(4.0), math.radians(2.0))
+    rng = np.random.default_rng(13)
+    centers = np.stack([rng.uniform(-8, 8, 8), np.zeros(8), rng.uniform(6, 40, 8)], axis=1)
+    centers -= np.outer(truth.distance(centers), truth.normal)  # onto the plane
+    up_axis = truth.normal
+    boxes = []
+    for i, c in enumerate(centers):
+        forward = np.cross(up_axis, [1.0, 0.0, 0.0]) if i % 2 else np.cross([0.0, 0.0, 1.0], up_axis)
+        forward /= np.linalg.norm(forward)
+        rotation = np.stack([forward, np.cross(up_axis, forward), up_axis], axis=1)
+        dims = np.array([4.0, 1.8, 1.5])
+        lift = 1.0 if i == 0 else 0.0  # box 0 floats a metre above the road
+        boxes.append(Box3D(c + up_axis * (dims[2] / 2 + lift), dims, rotation))
+    bottoms = np.array([b.corners()[list(BOTTOM_CORNERS)] for b in boxes])
+    camera_up = np.array([0.0, -1.0, 0.0])
+    plane = fit_ground(bottoms, camera_up, min_objects=3, max_tilt=math.radians(15))
+    assert plane is not None
+    np.testing.assert_allclose(plane.normal, truth.normal, atol=2e-3)
+    assert plane.offset == pytest.approx(truth.offset, abs=0.02)  # the floating box barely moves it
+    assert plane.tilt(camera_up) == pytest.approx(truth.tilt(camera_up), abs=2e-3)
+    # the plain least-squares plane through the same points is pulled up by the outlier
+    mean = bottoms.reshape(-1, 3).mean(axis=0)
+    assert abs(truth.distance(mean)) > 0.1
+    assert fit_ground(bottoms, camera_up, min_objects=9, max_tilt=math.radians(15)) is None  # too few objects
+    assert fit_ground(bottoms, camera_up, min_objects=3, max_tilt=math.radians(3)) is None  # tilted ~4.5 degrees
+    flipped = fit_ground(bottoms, -camera_up, min_objects=3, max_tilt=math.pi)
+    np.testing.assert_allclose(flipped.normal, -truth.normal, atol=2e-3)  # the normal follows `up`
+    line = np.zeros((3, 4, 3))
+    line[..., 0] = np.arange(12).reshape(3, 4)  # collinear: no unique plane
+    assert fit_ground(line, camera_up, min_objects=3, max_tilt=math.pi) is None
 
 
 def test_horizontal_flip_permutes_corners_by_flip_idx():
@@ -270,7 +341,7 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def test_batch_projection_is_bit_identical_to_project_box():
-    """project_boxes, boxes_from_dair, boxes_corners and self_occluded_corners_batch against the
+    """project_boxes, boxes_from_dair, cuboid_corners and self_occluded_corners_batch against the
     per-box functions on random DAIR boxes under random pole cameras, with every kind of box:
     wholly inside, truncated, wholly outside, and straddling or behind the camera."""
     rng = np.random.default_rng(7)
@@ -285,7 +356,7 @@ def test_batch_projection_is_bit_identical_to_project_box():
         lwh = rng.uniform(0.2, 12.0, size=(n, 3))
         yaw = rng.uniform(-7.0, 7.0, size=n)
         centers, rotations = boxes_from_dair(centers_lidar, yaw, r, t)
-        corners = boxes_corners(centers, lwh, rotations)
+        corners = cuboid_corners(centers, lwh, rotations)
         batch = project_boxes(corners, K, width, height)
         occluded = self_occluded_corners_batch(centers, lwh, rotations)
         assert len(batch) == n
