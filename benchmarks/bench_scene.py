@@ -75,7 +75,7 @@ def main() -> int:
     if not args.no_raster:
         import numpy as np
 
-        from omnigen.geometry import intrinsics_from_fov
+        from omnigen.camera import Camera, intrinsics_from_fov
         from omnigen.scenes.raster_backend import RasterScene
 
         a = time.perf_counter()
@@ -87,11 +87,11 @@ def main() -> int:
         x = np.cross(z, [0.0, 0.0, 1.0])
         x /= np.linalg.norm(x)
         R = np.stack([x, np.cross(z, x), z])
-        rs.render(K, R, -R @ eye, 640, 640)  # first render uploads the meshes to GL
+        rs.render(Camera(K, R, -R @ eye, 640, 640))  # first render uploads the meshes to GL
         c = time.perf_counter()
         n = 3
         for _ in range(n):
-            rs.render(K, R, -R @ eye, 640, 640)
+            rs.render(Camera(K, R, -R @ eye, 640, 640))
         d = time.perf_counter()
         print(f"raster preview: build {b - a:5.2f} s, first 640x640 frame {c - b:5.2f} s, then {(d - c) / n:5.2f} s a frame "
               f"(RGB + depth + instance mask + atmosphere)")

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from omnigen.geometry import Box3D, intrinsics_from_fov, project_points, rot_x, rot_z
+from omnigen.camera import intrinsics_from_fov
+from omnigen.geometry import Box3D, project_points, rot_x, rot_z
 
 W, H = 1280, 720
 

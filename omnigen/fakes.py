@@ -15,7 +15,8 @@ from PIL import Image
 
 from omnigen.conventions import FINE_CLASSES, SOURCES, VIEWS
 from omnigen.dataset import Dataset, DatasetWriter
-from omnigen.geometry import Box3D, intrinsics_from_fov, plane_from_height_pitch, rot_x, rot_z
+from omnigen.camera import intrinsics_from_fov
+from omnigen.geometry import Box3D, plane_from_height_pitch, rot_x, rot_z
 from omnigen.progress import progress
 from omnigen.record import FrameRecord, IgnoreRegion, ObjectRecord, SyntheticInfo
 

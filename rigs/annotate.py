@@ -33,10 +33,11 @@ from typing import Callable
 
 import numpy as np
 
+from omnigen.camera import Camera
 from omnigen.conventions import occlusion_level_from_fraction
 from omnigen.geometry import self_occluded_corners
 from omnigen.record import IgnoreRegion, ObjectRecord
-from omnigen.rigs.sampling import Camera, agent_box
+from omnigen.rigs.sampling import agent_box
 from omnigen.scenes.description import Scene
 
 MIN_VISIBLE_PIXELS = 16
@@ -131,7 +132,7 @@ def annotate(scene: Scene, cam: Camera, depth: np.ndarray, instance: np.ndarray,
         n = visible_count.get(a.instance_id, 0)
         if n == 0:
             continue
-        rec = ObjectRecord.from_box(a.category, a.instance_id, agent_box(a, cam.R, cam.t), cam.K, W, H)
+        rec = ObjectRecord.from_box(a.category, a.instance_id, agent_box(a, cam), cam.K, W, H)
         vis_box = boxes[a.instance_id]
         if rec is None or n < MIN_VISIBLE_PIXELS:
             ignore.append(IgnoreRegion(vis_box, f"small-{a.category}"))

@@ -40,12 +40,13 @@ from pathlib import Path
 
 import numpy as np
 
+from omnigen.camera import Camera
 from omnigen.dataset import INDEX_FILE, MANIFEST, RECORDS_DIR, RENDER_ARGS_FILE, DatasetWriter, read_manifest
 from omnigen.files import atomic_write_bytes, atomic_write_json, make_temp
 from omnigen.record import FrameRecord, SyntheticInfo
 from omnigen.rigs.annotate import annotate
 from omnigen.rigs.rig import Rig, load_rig
-from omnigen.rigs.sampling import Camera, Obstacles, rig_rng, sample_camera
+from omnigen.rigs.sampling import Obstacles, rig_rng, sample_camera
 from omnigen.scenes.description import Scene, to_dict
 from omnigen.scenes.generate import FrameOverrides
 
@@ -136,11 +137,11 @@ class RasterBackend:
 
     def render(self, cam: Camera) -> Rendered:
         t0 = time.perf_counter()
-        f = self.rs.render(cam.K, cam.R, cam.t, cam.width, cam.height)
+        f = self.rs.render(cam)
         return Rendered(f.rgb, f.depth, f.instance, time.perf_counter() - t0)
 
     def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
-        return self.rs.render_instances(cam.K, cam.R, cam.t, cam.width, cam.height, ids)
+        return self.rs.render_instances(cam, ids)
 
     def save_blend(self, path: Path) -> Path:
         raise ValueError("--save-blend needs --backend cycles (the raster preview has no Blender scene)")
@@ -193,15 +194,15 @@ class CyclesBackend:
             self.rs.update(scene)
 
     def render(self, cam: Camera) -> Rendered:
-        out = self.bs.render(cam.K, cam.R, cam.t, cam.width, cam.height, labels=self.rs is None)
+        out = self.bs.render(cam, labels=self.rs is None)
         if self.rs is not None:
-            out["depth"], out["instance"] = self.rs.labels(cam.K, cam.R, cam.t, cam.width, cam.height)
+            out["depth"], out["instance"] = self.rs.labels(cam)
         return Rendered(out["rgb"], out["depth"], out["instance"], out["seconds"])
 
     def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
         if self.rs is not None:
-            return self.rs.render_instances(cam.K, cam.R, cam.t, cam.width, cam.height, ids)
-        return self.bs.render_instances(cam.K, cam.R, cam.t, cam.width, cam.height, ids)
+            return self.rs.render_instances(cam, ids)
+        return self.bs.render_instances(cam, ids)
 
     def save_blend(self, path: Path) -> Path:
         """The current frame's Blender scene, camera included, as a .blend a user opens in Blender."""

@@ -22,13 +22,14 @@ Randomness: only the generator passed in (the frame's rig stream, `rig_rng(seed,
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import shapely
 from shapely.geometry import Point, Polygon
 
-from omnigen.geometry import Box3D, Plane, cuboid_corners, intrinsics_from_fov, project_boxes, rot_z
+from omnigen.camera import Camera, intrinsics_from_fov
+from omnigen.geometry import Box3D, Plane, cuboid_corners, project_boxes, rot_z
 from omnigen.rigs.rig import Rig
 from omnigen.scenes.description import Scene
 
@@ -64,15 +65,13 @@ def camera_rotation(yaw: float, pitch: float) -> np.ndarray:
     return np.stack([r, d, f])
 
 
-@dataclass(frozen=True)
-class Camera:
-    """One drawn camera: intrinsics, extrinsics (X_cam = R X_world + t) and how it was drawn."""
+@dataclass(frozen=True, eq=False)
+class DrawnCamera(Camera):
+    """One drawn camera: the core Camera (K; X_cam = R X_world + t; the image's size), which the
+    renderers and the annotator take as it is, and how it was drawn: where it stands, its heading,
+    pitch and field of view, its anchor and the draws it took. `position` is kept as drawn (t was
+    made from it), so the record's ground plane and camera height are its exact numbers."""
 
-    K: np.ndarray
-    R: np.ndarray
-    t: np.ndarray
-    width: int
-    height: int
     position: np.ndarray  # world
     yaw: float  # radians
     pitch: float  # radians, below the horizon
@@ -94,9 +93,9 @@ class Camera:
                 "pitch": round(self.pitch, 6), "hfov": round(self.hfov, 6), "anchor": self.anchor, "tries": self.tries}
 
 
-def agent_box(agent, R: np.ndarray, t: np.ndarray) -> Box3D:
-    """An agent's cuboid in the camera frame."""
-    return Box3D(agent.center, agent.dims, rot_z(agent.yaw)).transformed(R, t)
+def agent_box(agent, camera: Camera) -> Box3D:
+    """An agent's cuboid in the camera's frame."""
+    return Box3D(agent.center, agent.dims, rot_z(agent.yaw)).transformed(camera.R, camera.t)
 
 
 def _weighted(rng: np.random.Generator, items: list, weights: list[float]):
@@ -230,7 +229,7 @@ def projected_agents(scene: Scene, cam: Camera) -> tuple[np.ndarray, np.ndarray]
     centers = np.array([a.center for a in scene.agents], dtype=np.float64)
     dims = np.array([a.dims for a in scene.agents], dtype=np.float64)
     rot = np.stack([cam.R @ rot_z(a.yaw) for a in scene.agents])
-    cam_centers = centers @ cam.R.T + cam.t
+    cam_centers = cam.to_camera(centers)
     proj = project_boxes(cuboid_corners(cam_centers, dims, rot), cam.K, cam.width, cam.height)
     return cam_centers[:, 2], proj.bbox
 
@@ -243,7 +242,7 @@ def expected_objects(scene: Scene, cam: Camera) -> int:
     return int((near & (np.nan_to_num(side, nan=0.0) >= MIN_BOX_PIXELS)).sum())
 
 
-def draw_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, height: int) -> Camera:
+def draw_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, height: int) -> DrawnCamera:
     """One candidate camera from the rig's distribution (no rejection)."""
     kinds = list(rig.anchor)
     anchor = _weighted(rng, kinds, [rig.anchor[k] for k in kinds])
@@ -255,11 +254,11 @@ def draw_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, he
     R = camera_rotation(yaw, pitch)
     pos = np.array([xy[0], xy[1], z])
     K = intrinsics_from_fov(hfov, width, height)
-    return Camera(K, R, -R @ pos, width, height, pos, math.atan2(math.sin(yaw), math.cos(yaw)), pitch, hfov, anchor)
+    return DrawnCamera(K, R, -R @ pos, width, height, pos, math.atan2(math.sin(yaw), math.cos(yaw)), pitch, hfov, anchor)
 
 
 def sample_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, height: int,
-                  obstacles: Obstacles | None = None, start_try: int = 0) -> Camera:
+                  obstacles: Obstacles | None = None, start_try: int = 0) -> DrawnCamera:
     """Draw until a pose is clear of geometry and expects at least rig.min_objects objects.
 
     After rig.max_tries the last clear pose (or the last one) is returned; `tries` says how many
@@ -274,10 +273,10 @@ def sample_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, 
         if obstacles.blocked(cam.position) or obstacles.wall_ahead(cam.position, cam.yaw):
             fallback = fallback or cam
             continue
-        cam = Camera(**{**cam.__dict__, "tries": tries})
+        cam = replace(cam, tries=tries)
         fallback = cam
         if expected_objects(scene, cam) >= rig.min_objects:
             return cam
     if fallback is None:
         fallback = draw_camera(rig, scene, rng, width, height)
-    return Camera(**{**fallback.__dict__, "tries": tries})
+    return replace(fallback, tries=tries)

@@ -19,6 +19,8 @@ What it builds, and why this way:
   frame's generator in a 60 x 60 x 30 m box around the focus. No simulation cache, deterministic.
   Weather objects have pass_index 0 and the property omnigen_weather (hide them for mask passes).
 - Street lamps as spot lights when the description turns them on.
+- The camera: an omnigen.camera.Camera, set through its Blender conversions (lens, sensor width
+  and shifts with sensor_fit AUTO; matrix_world in Blender camera axes), which are plain numpy.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import bpy
 import mathutils
 import numpy as np
 
+from omnigen.camera import Camera
 from omnigen.scenes.cycles_devices import CyclesDevice, DeviceChoice, choose_devices
 from omnigen.scenes.description import Material, Scene
 from omnigen.scenes.meshes import RenderObject, compile_scene, lamp_lights
@@ -521,20 +524,14 @@ class BlenderScene:
         fo.directory, fo.file_name = self._tmp, "labels_"
         self._label_tree = ng
 
-    def _set_camera(self, K, R, t, width: int, height: int) -> None:
-        from omnigen.geometry import BLENDER_TO_OPENCV, blender_from_intrinsics
-
+    def _set_camera(self, camera: Camera) -> None:
         self._ensure_render_setup()
-        K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
-        p = blender_from_intrinsics(K, width, height)
+        p = camera.blender_settings()
         data = self._camera_obj.data
         data.lens, data.sensor_width, data.shift_x, data.shift_y = p["lens"], p["sensor_width"], p["shift_x"], p["shift_y"]
-        m = np.eye(4)
-        m[:3, :3] = R.T @ BLENDER_TO_OPENCV  # camera-to-world, Blender camera axes
-        m[:3, 3] = -R.T @ t.reshape(3)
-        self._camera_obj.matrix_world = _matrix(m)
+        self._camera_obj.matrix_world = _matrix(camera.blender_matrix_world())
         sc = self.bscene
-        sc.render.resolution_x, sc.render.resolution_y = int(width), int(height)
+        sc.render.resolution_x, sc.render.resolution_y = camera.width, camera.height
 
     def _run(self, tree) -> None:
         for f in os.listdir(self._tmp):
@@ -543,7 +540,7 @@ class BlenderScene:
         with _quiet_native_output():
             bpy.ops.render.render(write_still=False)
 
-    def render(self, K, R, t, width: int, height: int, labels: bool = True) -> dict:
+    def render(self, camera: Camera, labels: bool = True) -> dict:
         """Cycles RGB (uint8 sRGB through the view transform) plus the label pass's depth (camera z,
         inf where nothing was hit) and instance ids (None with labels=False: the caller draws them
         another way); `seconds` is the beauty render's time."""
@@ -551,8 +548,8 @@ class BlenderScene:
 
         from PIL import Image
 
-        self._set_camera(K, R, t, width, height)
-        self.place_weather(tuple(float(v) for v in (-np.asarray(R).T @ np.asarray(t).reshape(3))))
+        self._set_camera(camera)
+        self.place_weather(tuple(float(v) for v in camera.center))
         self._apply_quality()
         fog = bpy.data.objects.get("omnigen_fog")
         skip_fog = fog is not None and self.scene.weather.fog_density < self.quality["min_volume_density"]
@@ -586,9 +583,9 @@ class BlenderScene:
         c.denoising_prefilter, c.denoising_quality = q["denoising_prefilter"], q["denoising_quality"]
         c.filter_width = 1.5
 
-    def render_instances(self, K, R, t, width: int, height: int, instance_ids) -> np.ndarray:
+    def render_instances(self, camera: Camera, instance_ids) -> np.ndarray:
         """Instance ids of only the given agents, nothing else drawn (the label pass)."""
-        self._set_camera(K, R, t, width, height)
+        self._set_camera(camera)
         return self._labels({int(i) for i in instance_ids})[1]
 
     def _single(self, prefix: str, name: str = "") -> str:

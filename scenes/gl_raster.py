@@ -19,8 +19,9 @@ texture upload and each pass is one or two draw calls:
   glMultiDrawElements, nothing else.
 
 The context comes from pyrender's EGL platform (headless; llvmpipe needs no GPU). Camera: the
-projection is pyrender's IntrinsicsCamera matrix given cx + 0.5, cy + 0.5 (pixel centres at
-integers, conventions.md), so pixels land exactly where they did with pyrender.
+passes take a world -> clip matrix, omnigen.camera.Camera's gl_projection(ZNEAR, ZFAR) @ gl_view():
+pyrender's IntrinsicsCamera matrix given cx + 0.5, cy + 0.5 (pixel centres at integers,
+conventions.md), so pixels land exactly where they did with pyrender.
 """
 
 from __future__ import annotations
@@ -393,28 +394,6 @@ flat in uint frag_id;
 out uint out_id;
 void main() { out_id = frag_id; }
 """
-
-
-def projection(K: np.ndarray, width: int, height: int, znear: float = ZNEAR, zfar: float = ZFAR) -> np.ndarray:
-    """OpenGL projection of an OpenCV K (pyrender's IntrinsicsCamera with cx + 0.5, cy + 0.5)."""
-    cx, cy = K[0, 2] + 0.5, K[1, 2] + 0.5
-    P = np.zeros((4, 4))
-    P[0, 0] = 2.0 * K[0, 0] / width
-    P[1, 1] = 2.0 * K[1, 1] / height
-    P[0, 2] = (width - 2.0 * cx) / width
-    P[1, 2] = (2.0 * cy - height) / height
-    P[2, 2] = (zfar + znear) / (znear - zfar)
-    P[2, 3] = 2.0 * zfar * znear / (znear - zfar)
-    P[3, 2] = -1.0
-    return P
-
-
-def view_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """World -> OpenGL camera (x right, y up, looking down -z) of X_cam = R X_world + t."""
-    V = np.eye(4)
-    V[:3, :3] = np.diag([1.0, -1.0, -1.0]) @ R
-    V[:3, 3] = np.diag([1.0, -1.0, -1.0]) @ np.asarray(t, dtype=np.float64).reshape(3)
-    return V
 
 
 def _read_pixels(width: int, height: int, fmt: int, gl_type: int, dtype, channels: int) -> np.ndarray:

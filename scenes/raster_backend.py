@@ -42,7 +42,8 @@ import numpy as np  # noqa: E402
 
 from omnigen.scenes.description import Scene  # noqa: E402
 from omnigen.geometry import cuboid_corners, rots_z  # noqa: E402
-from omnigen.scenes.gl_raster import MAX_LAMPS, SHADOW_SIZE, ZFAR, ZNEAR, GLRaster, Light, projection, view_matrix  # noqa: E402
+from omnigen.camera import Camera  # noqa: E402
+from omnigen.scenes.gl_raster import MAX_LAMPS, SHADOW_SIZE, ZFAR, ZNEAR, GLRaster, Light  # noqa: E402
 from omnigen.scenes.materials import PATTERNS, agent_surface, building_surface, furniture_surface, ground_surface  # noqa: E402
 from omnigen.scenes.meshes import (agent_object, compile_scene, lamp_lights, static_materials, static_objects,  # noqa: E402
                            world_box)
@@ -97,14 +98,15 @@ def surface_rows(surfaces, vertices_per_part) -> np.ndarray:
     return np.repeat(rows, np.asarray(vertices_per_part, dtype=np.int64), axis=0)
 
 
-def visible_agents(agents, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> list[int]:
+def visible_agents(agents, camera: Camera) -> list[int]:
     """Indices of the agents whose bounding sphere (plus CULL_MARGIN) reaches the view frustum.
 
     Conservative: every agent that can colour a pixel is kept (its mesh lies inside its cuboid).
     """
     if not agents:
         return []
-    c = np.array([a.center for a in agents], dtype=np.float64) @ R.T + t.reshape(3)
+    K, width, height = camera.K, camera.width, camera.height
+    c = camera.to_camera(np.array([a.center for a in agents], dtype=np.float64))
     r = np.linalg.norm(np.array([a.dims for a in agents], dtype=np.float64), axis=1) / 2.0 + CULL_MARGIN
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     planes = np.array([[fx, 0.0, cx + 0.5], [-fx, 0.0, width - 0.5 - cx], [0.0, fy, cy + 0.5], [0.0, -fy, height - 0.5 - cy]])
@@ -113,7 +115,7 @@ def visible_agents(agents, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: i
     return np.nonzero(inside)[0].tolist()
 
 
-def unoccluded_agents(agents, chosen: list[int], K: np.ndarray, R: np.ndarray, t: np.ndarray, static_z: np.ndarray) -> list[int]:
+def unoccluded_agents(agents, chosen: list[int], camera: Camera, static_z: np.ndarray) -> list[int]:
     """Those of `chosen` not wholly hidden by the static city (camera z `static_z`, inf for sky).
 
     An agent's mesh lies inside its cuboid, so it can only cover pixels whose centres lie in the
@@ -127,8 +129,9 @@ def unoccluded_agents(agents, chosen: list[int], K: np.ndarray, R: np.ndarray, t
     centre = np.array([agents[k].center for k in chosen], dtype=np.float64)
     dims = np.array([agents[k].dims for k in chosen], dtype=np.float64)
     world = cuboid_corners(centre, dims, rots_z([agents[k].yaw for k in chosen]))  # (N, 8, 3)
-    cam = world @ R.T + t.reshape(3)
+    cam = camera.to_camera(world)
     z = cam[..., 2]
+    K = camera.K
     keep = []
     for i, k in enumerate(chosen):
         zmin = float(z[i].min())
@@ -220,18 +223,18 @@ class RasterScene:
 
     # -- agents -------------------------------------------------------------------------------
 
-    def _prepare_agents(self, K, R, t, width: int, height: int, static_z: np.ndarray | None = None) -> None:
+    def _prepare_agents(self, camera: Camera, static_z: np.ndarray | None = None) -> None:
         """The agent buffer for this camera: the agents in view, in scene order, and the material table.
 
         With `static_z` (the static city's camera z), agents wholly behind it are left out too.
         """
-        key = (id(self.scene), K.tobytes(), R.tobytes(), t.tobytes(), width, height)
+        key = (id(self.scene), camera.K.tobytes(), camera.R.tobytes(), camera.t.tobytes(), camera.width, camera.height)
         if key == self._agents_key:
             return
         agents = self.scene.agents
-        chosen = visible_agents(agents, K, R, t, width, height)
+        chosen = visible_agents(agents, camera)
         if static_z is not None:
-            chosen = unoccluded_agents(agents, chosen, K, R, t, static_z)
+            chosen = unoccluded_agents(agents, chosen, camera, static_z)
         verts, faces, vert_slots, vert_ids, materials, surfaces, part_verts = [], [], [], [], [], [], []
         self._ranges = {}
         n_verts = n_faces = 0
@@ -292,62 +295,60 @@ class RasterScene:
 
     # -- rendering --------------------------------------------------------------------------
 
-    def _camera(self, K, R, t, width: int, height: int, prepare: bool = True):
-        K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
-        t = t.reshape(3)
+    def _camera(self, camera: Camera, prepare: bool = True) -> np.ndarray:
+        """The camera's world -> clip matrix (VP), with the GL context current."""
         self.gl.make_current()
         if prepare:
-            self._prepare_agents(K, R, t, width, height)
-        VP = projection(K, width, height) @ view_matrix(R, t)
+            self._prepare_agents(camera)
+        VP = camera.gl_projection(ZNEAR, ZFAR) @ camera.gl_view()
         if not prepare:  # render and labels draw the static city (silhouettes, prepare=True, do not)
             self.gl.static_view, self.gl.static_view_kinds = self._static_ranges(VP, self._all_parts, near=True, kinds=True)
-        return K, R, t, VP
+        return VP
 
-    def render(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int, effects: bool = True) -> RasterFrame:
+    def render(self, camera: Camera, effects: bool = True) -> RasterFrame:
         """Render with an OpenCV camera: X_cam = R X_world + t, pixels as in the contract."""
-        K, R, t, VP = self._camera(K, R, t, width, height, prepare=False)
-        depth, instance = self._id_pass(K, R, t, VP, width, height)
-        rgb = self.gl.color_pass(VP, -R.T @ t, self._light(K, R, t, width, height), width, height,
-                                 self._atmosphere(K, R, width, height) if effects else None)
+        VP = self._camera(camera, prepare=False)
+        depth, instance = self._id_pass(camera, VP)
+        width, height = camera.width, camera.height
+        rgb = self.gl.color_pass(VP, camera.center, self._light(camera), width, height,
+                                 self._atmosphere(camera) if effects else None)
         rgb = np.ascontiguousarray(rgb)
         weather = self.scene.weather
         if effects and weather.precipitation > 0 and weather.kind in ("rain", "snow"):
             rgb = _precipitation(rgb, self.scene)
         return RasterFrame(rgb, depth, instance)
 
-    def labels(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    def labels(self, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         """(depth, instance) of the id pass alone, no colour: labels for another renderer's image
         of the same geometry (the Cycles backend's)."""
-        K, R, t, VP = self._camera(K, R, t, width, height, prepare=False)
-        return self._id_pass(K, R, t, VP, width, height)
+        return self._id_pass(camera, self._camera(camera, prepare=False))
 
-    def _id_pass(self, K, R, t, VP, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    def _id_pass(self, camera: Camera, VP: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Masks and depth from the id pass, drawn without multisampling: ids are exact (never
         averaged at edges) and each pixel's depth belongs to the object its id names (the colour
         pass keeps its antialiasing). The static city is drawn first, so agents wholly behind it
         are not even built."""
-        static_z = self.gl.id_static(VP, width, height)
-        self._prepare_agents(K, R, t, width, height, static_z)
-        instance, depth = self.gl.id_agents(VP, width, height)
+        static_z = self.gl.id_static(VP, camera.width, camera.height)
+        self._prepare_agents(camera, static_z)
+        instance, depth = self.gl.id_agents(VP, camera.width, camera.height)
         return depth, instance
 
-    def render_instances(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int,
-                         instance_ids: list[int]) -> np.ndarray:
+    def render_instances(self, camera: Camera, instance_ids: list[int]) -> np.ndarray:
         """The instance image of only the agents in `instance_ids`, nothing else drawn (uint16).
 
         Used for silhouettes "drawn alone": when the given agents' projections do not overlap, each
         one's pixels here are exactly its full silhouette (rigs/annotate.py).
         """
-        K, R, t, VP = self._camera(K, R, t, width, height)
+        VP = self._camera(camera)
         ranges = [self._ranges[int(i)] for i in sorted({int(i) for i in instance_ids}) if int(i) in self._ranges]
         first = np.array([r[0] for r in ranges], dtype=np.int32)
         count = np.array([r[1] for r in ranges], dtype=np.int32)
-        return self.gl.ids_of_ranges(VP, width, height, first, count)
+        return self.gl.ids_of_ranges(VP, camera.width, camera.height, first, count)
 
-    def _light(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> Light:
+    def _light(self, camera: Camera) -> Light:
         """The frame's light for this camera: illumination(scene), the sun's shadow map over the
         view and the street lamps nearest to it."""
-        ground = view_ground(K, R, t, width, height)
+        ground = view_ground(camera)
         light = illumination(self.scene, metered_sky_view(self._canyon, self._svf, self._svf_xform, ground))
         light.canyon, light.svf_xform = self._canyon, self._svf_xform
         if light.sun_share >= MIN_SUN_SHARE:
@@ -360,12 +361,13 @@ class RasterScene:
             light.lamps = np.column_stack([self._lamps[near], np.full(len(near), LAMP_INTENSITY)])
         return light
 
-    def _atmosphere(self, K: np.ndarray, R: np.ndarray, width: int, height: int) -> dict:
+    def _atmosphere(self, camera: Camera) -> dict:
         """What the colour pass needs for fog, haze and sky (gl_raster.GLRaster.color_pass).
 
         The model (module doc): c = c_surface T + c_fog (1 - T), T = exp(-density d), d the ray
         length, in linear colour; the sky, at SKY_DISTANCE, a gradient by the ray's elevation.
         """
+        K, R, width, height = camera.K, camera.R, camera.width, camera.height
         zenith, horizon = _sky_colors(self.scene)
         # NDC (x, y) -> pixel (u, v) = ((x + 1) W / 2 - 0.5, (1 - y) H / 2 - 0.5) -> camera ray
         # ((u - cx) / fx, (v - cy) / fy, 1) -> world ray R^T ray.
@@ -520,10 +522,11 @@ def metered_sky_view(canyon: tuple[float, float, float], svf: np.ndarray, xform,
     return float(np.mean(g + (1.0 - g) * ramp))
 
 
-def view_ground(K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int) -> np.ndarray:
+def view_ground(camera: Camera) -> np.ndarray:
     """The camera centre and where rays through the image's corners, edge midpoints and centre
     meet the ground (z = 0), or SHADOW_REACH along them when sooner: (10, 3), what the view spans."""
-    cam = -R.T @ t.reshape(3)
+    K, R, width, height = camera.K, camera.R, camera.width, camera.height
+    cam = camera.center
     u = np.array([-0.5, width / 2, width - 0.5])
     v = np.array([-0.5, height / 2, height - 0.5])
     uu, vv = np.meshgrid(u, v)

@@ -1,4 +1,4 @@
-"""Geometry: corner order, flips, projection, KITTI and DAIR-V2X frames, Blender cameras."""
+"""Geometry: corner order, flips, projection, KITTI and DAIR-V2X frames (Blender cameras: test_camera.py)."""
 
 from __future__ import annotations
 
@@ -17,12 +17,10 @@ from omnigen.geometry import (
     box_from_kitti,
     box_to_kitti,
     boxes_from_dair,
-    blender_from_intrinsics,
     camera_offset_from_projection,
     cuboid_corners,
     fit_ground,
     fit_plane,
-    intrinsics_from_blender,
     kitti_rotation,
     plane_from_height_pitch,
     project_box,
@@ -34,7 +32,6 @@ from omnigen.geometry import (
     rots_z,
     self_occluded_corners,
     self_occluded_corners_batch,
-    world_to_opencv_camera,
 )
 
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
@@ -305,26 +302,6 @@ def test_plane_helpers():
     fitted = fit_plane(pts)
     assert fitted.camera_height == pytest.approx(6.0, abs=0.05)
     assert fitted.camera_pitch == pytest.approx(math.radians(25), abs=0.01)
-
-
-def test_blender_camera_conversions():
-    K_b = intrinsics_from_blender(35.0, 36.0, 640, 480, shift_x=0.01, shift_y=-0.02)
-    assert K_b[0, 0] == pytest.approx(35 / 36 * 640)
-    assert K_b[0, 2] == pytest.approx(320 - 0.5 - 0.01 * 640)
-    assert K_b[1, 2] == pytest.approx(240 - 0.5 - 0.02 * 640)
-    back = blender_from_intrinsics(K_b, 640, 480)
-    np.testing.assert_allclose(intrinsics_from_blender(back["lens"], back["sensor_width"], 640, 480,
-                                                       back["shift_x"], back["shift_y"]), K_b, atol=1e-12)
-    # A Blender camera at (0, -10, 2) looking along +Y (rotated 90 degrees about X) sees the world
-    # origin straight ahead, 10 m away, and world +Z up as image up (OpenCV -y).
-    m = np.eye(4)
-    m[:3, :3] = rot_x(math.pi / 2)
-    m[:3, 3] = [0.0, -10.0, 2.0]
-    r, t = world_to_opencv_camera(m)
-    p = r @ np.array([0.0, 0.0, 2.0]) + t
-    np.testing.assert_allclose(p, [0, 0, 10], atol=1e-12)
-    np.testing.assert_allclose(r @ np.array([0, 0, 1.0]), [0, -1, 0], atol=1e-12)
-    np.testing.assert_allclose(r @ np.array([1.0, 0, 0]), [1, 0, 0], atol=1e-12)
 
 
 def test_rotations_are_proper():

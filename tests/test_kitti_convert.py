@@ -560,7 +560,8 @@ def test_export_of_other_sources_pitched_camera_and_classes(tmp_path):
     rotation_y / location for a pitched camera (the centre comes back exactly, the tilt is lost)."""
     from omnigen.converters.kitti_export import label_line
     from omnigen.dataset import DatasetWriter
-    from omnigen.geometry import Box3D, intrinsics_from_fov, kitti_alpha, kitti_rotation, rot_x
+    from omnigen.camera import intrinsics_from_fov
+    from omnigen.geometry import Box3D, kitti_alpha, kitti_rotation, rot_x
     from omnigen.record import FrameRecord, ObjectRecord
 
     K = intrinsics_from_fov(math.radians(60), 320, 240)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from shapely.geometry import Point, Polygon
 
-from omnigen.geometry import intrinsics_from_fov
+from omnigen.camera import Camera, intrinsics_from_fov
 from omnigen.scenes.generate import FrameOverrides, SceneGenerator
 from omnigen.scenes.materials import PATTERNS, ground_material, ground_surface
 from omnigen.scenes.preset import available_presets, load_preset
@@ -42,7 +42,7 @@ def noon():
     try:
         rs = raster.RasterScene(scene)
         K = intrinsics_from_fov(math.radians(60), W, H)
-        rs.render(K, *look_at((0.0, -40.0, 30.0), (0.0, 0.0, 0.0)), W, H)
+        rs.render(Camera(K, *look_at((0.0, -40.0, 30.0), (0.0, 0.0, 0.0)), W, H))
     except Exception as exc:  # no headless GL here: say so rather than fail obscurely
         pytest.skip(f"headless EGL rendering unavailable: {exc}")
     yield gen, scene, rs, K
@@ -64,7 +64,7 @@ def _luma(rgb):
 def test_frames_are_deterministic(noon):
     _, _, rs, K = noon
     R, t = look_at((25.0, -30.0, 20.0), (0.0, 0.0, 0.0))
-    a, b = rs.render(K, R, t, W, H), rs.render(K, R, t, W, H)
+    a, b = rs.render(Camera(K, R, t, W, H)), rs.render(Camera(K, R, t, W, H))
     assert np.array_equal(a.rgb, b.rgb)
 
 
@@ -75,7 +75,7 @@ def test_surfaces_belong_to_the_world_not_the_camera(noon):
     road = scene.city.roads[0]
     target = np.array([(road.start[0] + road.end[0]) / 2.0, (road.start[1] + road.end[1]) / 2.0, 0.0])
     views = [look_at(target + [dx, dy, 18.0], target) for dx, dy in ((-14.0, -14.0), (14.0, 14.0))]
-    frames = [rs.render(K, R, t, W, H, effects=False) for R, t in views]
+    frames = [rs.render(Camera(K, R, t, W, H), effects=False) for R, t in views]
     (R0, t0), (R1, t1) = views
     ground = (frames[0].instance == 0) & np.isfinite(frames[0].depth)
     X, v, u = _world_points(frames[0].depth, K, R0, t0, ground)
@@ -97,9 +97,9 @@ def test_sun_shadows_fall_where_the_city_blocks_the_sun(noon, monkeypatch):
     """Pixels the shadow pass darkens are ground points whose way to the sun a building blocks."""
     _, scene, rs, K = noon
     R, t = look_at((-5.0, -45.0, 60.0), (0.0, 0.0, 0.0))
-    shaded = rs.render(K, R, t, W, H, effects=False)
+    shaded = rs.render(Camera(K, R, t, W, H), effects=False)
     monkeypatch.setattr(raster, "MIN_SUN_SHARE", 2.0)  # no shadow pass
-    plain = rs.render(K, R, t, W, H, effects=False)
+    plain = rs.render(Camera(K, R, t, W, H), effects=False)
     monkeypatch.undo()
     darker = _luma(shaded.rgb) < 0.6 * _luma(plain.rgb)
     assert (_luma(shaded.rgb) <= _luma(plain.rgb) + 1.0).all()  # shadows only take light away
@@ -144,8 +144,8 @@ def test_night_lamps_light_the_street(noon):
     try:
         lamp = next(f for f in night.city.furniture if f.kind == "street_light")
         R, t = look_at((lamp.center[0] + 12.0, lamp.center[1] - 12.0, 10.0), (lamp.center[0], lamp.center[1], 0.0))
-        lit = rs.render(K, R, t, W, H, effects=False)
-        assert len(rs._light(K, R, t, W, H).lamps) > 0
+        lit = rs.render(Camera(K, R, t, W, H), effects=False)
+        assert len(rs._light(Camera(K, R, t, W, H)).lamps) > 0
         ground = (lit.instance == 0) & np.isfinite(lit.depth)
         X, v, u = _world_points(lit.depth, K, R, t, ground)
         on = X[:, 2] < 0.3
@@ -198,9 +198,9 @@ def test_contact_shadows_darken_the_ground_under_agents_only(noon, monkeypatch):
     try:
         car = next(a for a in overcast.agents if a.category == "car")
         R, t = look_at((car.center[0] + 6.0, car.center[1] - 6.0, 5.0), (car.center[0], car.center[1], 0.0))
-        with_ = rs.render(K, R, t, W, H)
+        with_ = rs.render(Camera(K, R, t, W, H))
         monkeypatch.setattr(raster, "CONTACT_SHADOW", 0.0)
-        without = rs.render(K, R, t, W, H)
+        without = rs.render(Camera(K, R, t, W, H))
         assert np.array_equal(with_.instance, without.instance) and np.array_equal(with_.depth, without.depth)
         darker = _luma(with_.rgb) < _luma(without.rgb) - 3.0
         assert darker.sum() > 20 and (_luma(with_.rgb) <= _luma(without.rgb) + 0.5).all()
@@ -259,13 +259,13 @@ def test_canyon_floor_gets_less_sky_than_the_roofs(noon, monkeypatch):
     try:
         R, t = look_at((-5.0, -45.0, 60.0), (0.0, 0.0, 0.0))
         assert rs._canyon[0] > 0 and rs._svf.min() < 0.8
-        canyon = rs.render(K, R, t, W, H, effects=False)
+        canyon = rs.render(Camera(K, R, t, W, H), effects=False)
         svf = rs._svf
         monkeypatch.setattr(rs, "_canyon", (0.0, 1.0, 1.0))
         monkeypatch.setattr(rs, "_svf", np.ones((1, 1), dtype=np.float32))
         rs.gl.set_sky_view(rs._svf)
         try:
-            open_ = rs.render(K, R, t, W, H, effects=False)
+            open_ = rs.render(Camera(K, R, t, W, H), effects=False)
         finally:
             rs.gl.set_sky_view(svf)
         assert np.array_equal(canyon.instance, open_.instance) and np.array_equal(canyon.depth, open_.depth)

@@ -62,7 +62,7 @@ def test_culling_changes_no_pixel(monkeypatch):
     # the pure-numpy tests above too); omnigen.scenes.raster_backend itself must import.
     pytest.importorskip("pyrender", reason="pyrender not installed")
     pytest.importorskip("OpenGL", reason="PyOpenGL not installed")
-    from omnigen.geometry import intrinsics_from_fov
+    from omnigen.camera import Camera, intrinsics_from_fov
     from omnigen.scenes import raster_backend as raster
     from omnigen.scenes.generate import SceneGenerator
 
@@ -80,14 +80,14 @@ def test_culling_changes_no_pixel(monkeypatch):
     except Exception as exc:
         pytest.skip(f"headless EGL rendering unavailable: {exc}")
     try:
-        culled = rs.render(K, R, t, W, H)
-        kept = raster.visible_agents(scene.agents, K, R, t, W, H)
+        culled = rs.render(Camera(K, R, t, W, H))
+        kept = raster.visible_agents(scene.agents, Camera(K, R, t, W, H))
         assert len(kept) < len(scene.agents)  # the view misses some agents: culling did something
         monkeypatch.setattr(raster, "visible_agents", lambda agents, *a: list(range(len(agents))))
         monkeypatch.setattr(raster, "unoccluded_agents", lambda agents, chosen, *a: chosen)
         rs.update(scene)
         rs._agents_key = None
-        full = rs.render(K, R, t, W, H)
+        full = rs.render(Camera(K, R, t, W, H))
     finally:
         rs.close()
     assert np.array_equal(culled.instance, full.instance)

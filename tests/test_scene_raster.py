@@ -10,7 +10,8 @@ import pytest
 import shapely
 from shapely.geometry import MultiPoint
 
-from omnigen.geometry import Box3D, intrinsics_from_fov, rot_z, silhouette
+from omnigen.camera import Camera, intrinsics_from_fov
+from omnigen.geometry import Box3D, rot_z, silhouette
 from omnigen.scenes.generate import FrameOverrides, SceneGenerator
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -40,7 +41,7 @@ def setup():
         rs = raster.RasterScene(scene)
         K = intrinsics_from_fov(math.radians(75), W, H)
         R, t = look_at((-30.0, -35.0, 45.0), (0.0, 0.0, 0.0))
-        frame = rs.render(K, R, t, W, H)
+        frame = rs.render(Camera(K, R, t, W, H))
     except Exception as exc:  # no headless GL here: say so rather than fail obscurely
         pytest.skip(f"headless EGL rendering unavailable: {exc}")
     return gen, scene, rs, K, R, t, frame
@@ -102,9 +103,9 @@ def test_update_and_fog(setup):
     foggy = gen.frame(8, 1, FrameOverrides(weather="fog", time_of_day="noon", fog_density=0.05))
     rs.update(foggy)
     assert {o["name"] for o in rs.objects_summary() if o["instance_id"]} == {a.name for a in foggy.agents}
-    f = rs.render(K, R, t, W, H)
+    f = rs.render(Camera(K, R, t, W, H))
     # At 50+ m through 0.05/m of fog almost everything is the fog colour: contrast collapses.
     assert f.rgb.astype(float).std() < 0.5 * clear.rgb.astype(float).std()
     rs.update(scene)
-    again = rs.render(K, R, t, W, H)
+    again = rs.render(Camera(K, R, t, W, H))
     assert np.array_equal(again.instance, clear.instance)

@@ -21,7 +21,8 @@ from omnigen.cli import main
 from omnigen.conventions import FINE_CLASSES
 from omnigen.dataset import Dataset, DatasetWriter
 from omnigen.fakes import random_frame, write_fake_dataset
-from omnigen.geometry import Box3D, intrinsics_from_fov, plane_from_height_pitch, rot_x, rot_z
+from omnigen.camera import intrinsics_from_fov
+from omnigen.geometry import Box3D, plane_from_height_pitch, rot_x, rot_z
 from omnigen.priors import FAR_SIGMA, PRIORS, far_outside_prior
 from omnigen.record import ObjectRecord
 from omnigen.stats.compute import compute_stats, derive, ground_coordinates
