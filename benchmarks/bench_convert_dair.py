@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from omnigen.converters import dair  # noqa: E402
 from omnigen.converters.dair_fixture import write_dair_tree  # noqa: E402
-from omnigen.dataset import DatasetWriter  # noqa: E402
+from omnigen.writer import DatasetWriter  # noqa: E402
 
 DAIR_V2X_C_INFRASTRUCTURE_FRAMES = 12_424
 TARGET_S = 20.0

@@ -29,7 +29,8 @@ import numpy as np  # noqa: E402
 from benchmarks.fixtures import fake_dataset  # noqa: E402
 from omnigen.detector.oks_eval import evaluate  # noqa: E402
 from omnigen.coco import to_coco  # noqa: E402
-from omnigen.dataset import Dataset, FrameTable, ObjectTable  # noqa: E402
+from omnigen.dataset import Dataset  # noqa: E402
+from omnigen.tables import FrameTable, ObjectTable  # noqa: E402
 
 
 def joined_dataset(frames: int) -> Dataset:

@@ -57,7 +57,7 @@ def write_textured_dataset(root: Path, frames: int, width: int, height: int, see
     """A finalized fake dataset (omnigen.fakes geometry) whose images are smooth random textures."""
     import cv2
 
-    from omnigen.dataset import DatasetWriter
+    from omnigen.writer import DatasetWriter
     from omnigen.fakes import random_frame
 
     rng = np.random.default_rng(seed)

@@ -17,7 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from PIL import Image  # noqa: E402
 
-from omnigen.dataset import DatasetWriter  # noqa: E402
+from omnigen.writer import DatasetWriter  # noqa: E402
 from omnigen.fakes import random_frame  # noqa: E402
 
 CACHE = Path(tempfile.gettempdir()) / "omnigen-bench"

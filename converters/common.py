@@ -22,13 +22,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Hashable, Iterator, Sequence
 
-from omnigen.dataset import DatasetWriter, IndexRows
 from omnigen.files import LINK_MODES, atomic_write_bytes, link_file
 from omnigen.images import ImageError, check_image
+from omnigen.index import IndexRows
 from omnigen.ownership import claim_output, manifest_of
 from omnigen.progress import print_table, progress
 from omnigen.record import FrameRecord, RecordError
 from omnigen.untrusted import UntrustedFileError, read_regular, resolve_inside
+from omnigen.writer import DatasetWriter
 
 
 class SourceError(ValueError):

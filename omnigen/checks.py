@@ -12,10 +12,11 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from omnigen.dataset import MANIFEST, RECORDS_DIR, RENDER_ARGS_FILE, record_files, update_records_digest
+from omnigen.dataset import MANIFEST, RECORDS_DIR, RENDER_ARGS_FILE, record_files
 from omnigen.images import ImageError, check_image
 from omnigen.progress import progress
 from omnigen.record import FrameRecord, RecordError
+from omnigen.writer import update_records_digest
 
 
 @dataclass(frozen=True)

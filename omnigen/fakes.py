@@ -14,11 +14,12 @@ import numpy as np
 from PIL import Image
 
 from omnigen.conventions import FINE_CLASSES, SOURCES, VIEWS
-from omnigen.dataset import Dataset, DatasetWriter
+from omnigen.dataset import Dataset
 from omnigen.camera import intrinsics_from_fov
 from omnigen.geometry import Box3D, plane_from_height_pitch, rot_x, rot_z
 from omnigen.progress import progress
 from omnigen.record import FrameRecord, IgnoreRegion, ObjectRecord, SyntheticInfo
+from omnigen.writer import DatasetWriter
 
 TYPICAL_DIMS = {  # l, w, h in metres: rough means, enough for plausible fakes
     "car": (4.2, 1.8, 1.5), "van": (5.0, 2.0, 2.1), "truck": (8.0, 2.5, 3.2), "bus": (11.0, 2.6, 3.2),

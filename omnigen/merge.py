@@ -30,25 +30,14 @@ from typing import Any
 import numpy as np
 
 from omnigen.conventions import FINE_CLASSES
-from omnigen.dataset import (
-    MANIFEST,
-    RECORDS_DIR,
-    Dataset,
-    DatasetError,
-    FrameTable,
-    ObjectTable,
-    make_manifest,
-    record_path,
-    records_fingerprint,
-    record_files,
-    update_records_digest,
-    write_index,
-)
-from omnigen.files import atomic_write_bytes, atomic_write_json, dumps_json, link_file
+from omnigen.dataset import MANIFEST, Dataset, DatasetError, record_path
+from omnigen.files import dumps_json, link_file
 from omnigen.ownership import claim_output, manifest_of, output_lock
 from omnigen.progress import progress
 from omnigen.splits import SPLITS_DIR, assign_test_split, read_assignments, read_id_list, write_split
+from omnigen.tables import FrameTable, ObjectTable
 from omnigen.taxonomy import Taxonomy, load_taxonomy, recorded_taxonomy
+from omnigen.writer import DatasetWriter, update_records_digest
 
 
 @dataclass
@@ -216,12 +205,9 @@ def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fract
 
     # 4. Records (paths rewritten), images, depth and instance files.
     claim_output(out, "merge", _made_by_merge)
-    (out / RECORDS_DIR).mkdir(parents=True, exist_ok=True)
-    (out / MANIFEST).unlink(missing_ok=True)  # unsealed until the end
-    keep_names = {f"{fid}.json" for fid in order}
-    for e in record_files(out):
-        if e.name not in keep_names:
-            Path(e.path).unlink()
+    writer = DatasetWriter(out, durable=False)
+    writer.unseal()  # unsealed until the end
+    writer.drop_records_except(order)
     for rel, src in progress(placement.sources.items(), desc="linking pixels", unit="file"):
         mode = link_file(src, os.path.join(out, rel), link)
         if rel.startswith("images/"):
@@ -230,25 +216,20 @@ def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fract
     for frame_id in progress(order, desc="merging records", unit="frame"):
         f = frames[frame_id]
         ds = datasets[f.source_index]
-        src = os.path.join(ds.root, RECORDS_DIR, f"{frame_id}.json")
-        dst = os.path.join(out, RECORDS_DIR, f"{frame_id}.json")
-        with open(src, "rb") as fh:
-            data = fh.read()
+        src = record_path(ds.root, frame_id)
+        data = src.read_bytes()
         if frame_id in rewrites:
             data = _rewrite_paths(data, rewrites[frame_id])
-            atomic_write_bytes(dst, data, durable=False)
+            writer.write_record_bytes(frame_id, data)
         else:
-            link_file(src, dst, link)  # records are immutable: a rewrite replaces the file, never edits it
+            writer.link_record(frame_id, src, link)
         update_records_digest(records_digest, f"{frame_id}.json", data)
         report.by_source[ds.table.source[f.row]] += 1
 
     _remove_unreferenced(out, set(placement.sources))
 
     # 5. Index from the sources' columns, reordered.
-    table, objects, attributes = _merged_columns(datasets, frames, order, rewrites)
-    offsets = np.concatenate([[0], np.cumsum(np.bincount(objects.frame, minlength=len(order)))]).astype(np.int64)
-    key = records_fingerprint(record_files(out))
-    ds_out = write_index(out, table, offsets, objects, attributes, key, manifest={})
+    ds_out = writer.index_columns(*_merged_columns(datasets, frames, order, rewrites))
 
     # 6. Split files, then the manifest, which seals the dataset.
     by_split: dict[str, list[str]] = defaultdict(list)
@@ -274,8 +255,7 @@ def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fract
         },
         "splits": _split_counts(ds_out, assignment),
     }
-    ds_out.manifest = make_manifest(ds_out, records_digest.hexdigest(), extra)
-    atomic_write_json(out / MANIFEST, ds_out.manifest, indent=2)
+    writer.seal(ds_out, records_digest.hexdigest(), extra)
     report.frames, report.objects = len(ds_out), len(ds_out.objects)
     report.seconds = time.perf_counter() - start
     return report
@@ -358,9 +338,9 @@ def _merged_columns(datasets: list[Dataset], frames: dict[str, _Frame], order: l
     objects = all_objects.take(keep)
     objects.frame = obj_new_frame[keep].astype(np.int32)
     attributes = None
-    if any(ds._attributes_blob for ds in datasets):
+    if any(ds.has_source_attributes for ds in datasets):
         flat = [a for ds, n in zip(datasets, object_base[1:] - object_base[:-1])
-                for a in (ds.source_attributes if ds._attributes_blob else [{}] * int(n))]
+                for a in (ds.source_attributes if ds.has_source_attributes else [{}] * int(n))]
         attributes = [flat[j] for j in keep]
     return table, objects, attributes
 

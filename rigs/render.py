@@ -41,14 +41,16 @@ from pathlib import Path
 import numpy as np
 
 from omnigen.camera import Camera
-from omnigen.dataset import INDEX_FILE, MANIFEST, RECORDS_DIR, RENDER_ARGS_FILE, DatasetWriter, read_manifest
+from omnigen.dataset import MANIFEST, RECORDS_DIR, RENDER_ARGS_FILE, read_manifest
 from omnigen.files import atomic_write_bytes, atomic_write_json, make_temp
+from omnigen.index import INDEX_FILE
 from omnigen.record import FrameRecord, SyntheticInfo
 from omnigen.rigs.annotate import annotate
 from omnigen.rigs.rig import Rig, load_rig
 from omnigen.rigs.sampling import Obstacles, rig_rng, sample_camera
 from omnigen.scenes.description import Scene, to_dict
 from omnigen.scenes.generate import FrameOverrides
+from omnigen.writer import DatasetWriter
 
 BACKENDS = ("cycles", "raster")
 QUALITIES = ("preview", "fast", "final")

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -12,14 +14,16 @@ from pycocotools.coco import COCO
 
 from omnigen.checks import check_dataset
 from omnigen.cli import main as cli
-from omnigen.coco import export_coco, to_coco
+from omnigen.formats.coco import export_coco, to_coco
 from omnigen.conventions import FLIP_IDX, SKELETON
-from omnigen.dataset import INDEX_FILE, MANIFEST, Dataset, DatasetWriter, record_path
+from omnigen.dataset import MANIFEST, Dataset, DatasetError, record_files, record_path
 from omnigen.splits import write_split
 from omnigen.fakes import random_frame, write_fake_dataset
 from omnigen.files import TMP_PREFIX, atomic_write_bytes, link_file
+from omnigen.index import INDEX_FILE, DatasetIndex, records_fingerprint, write_index
 from omnigen.record import RecordError
 from omnigen.taxonomy import load_taxonomy
+from omnigen.writer import DatasetWriter, update_records_digest
 
 
 @pytest.fixture()
@@ -101,6 +105,61 @@ def test_writing_twice_is_byte_identical(tmp_path: Path):
     for f in sorted((a.root / "records").iterdir()):
         assert f.read_bytes() == (b.root / "records" / f.name).read_bytes()
     assert (a.root / MANIFEST).read_bytes() == (b.root / MANIFEST).read_bytes()
+
+
+def _index_members(root: Path) -> dict[str, bytes]:
+    """The index's arrays as stored, less the header (it holds the records' fingerprint: their mtimes)."""
+    with zipfile.ZipFile(root / INDEX_FILE) as z:
+        return {n: z.read(n) for n in z.namelist() if n != "header.npy"}
+
+
+@pytest.mark.parametrize("source", ["synthetic", "kitti"])  # kitti: objects with source attributes
+def test_a_dataset_assembled_from_finished_records_is_what_the_writer_writes_frame_by_frame(tmp_path: Path, source):
+    """The writer's API for a merge: finished records linked or written as bytes, the index from
+    columns in hand, the manifest last. The result must be the dataset finalize() gives for the
+    same records, index and manifest byte for byte, and the index must be the one a reader rebuilds."""
+    src = write_fake_dataset(tmp_path / "src", n_frames=6, objects_per_frame=3, seed=4, source=source)
+    out = tmp_path / "out"
+    writer = DatasetWriter(out, durable=False)
+    (out / "records" / "stale-000000.json").write_text("{}")  # an earlier job's record
+    (out / MANIFEST).write_text("{}")
+    writer.unseal()
+    assert not (out / MANIFEST).exists()
+    assert writer.drop_records_except(src.frame_ids) == ["stale-000000"]
+    digest = hashlib.sha256()
+    for i, e in enumerate(record_files(src.root)):
+        data = Path(e.path).read_bytes()
+        if i % 2:
+            writer.write_record_bytes(e.name[:-5], data)
+        else:
+            assert writer.link_record(e.name[:-5], e.path) == "hardlink"
+        update_records_digest(digest, e.name, data)
+    assert not list((out / "records").glob(f"{TMP_PREFIX}*"))  # every record placed atomically
+    assert src.has_source_attributes == (source == "kitti")
+    ds = writer.index_columns(src.table, src.objects, src.source_attributes if src.has_source_attributes else None)
+    assert not (out / MANIFEST).exists()  # indexed, not sealed
+    extra = {"name": src.manifest["name"]}
+    writer.seal(ds, digest.hexdigest(), extra)
+    for rel in {rel for r in src if r.synthetic for rel in (r.synthetic.depth, r.synthetic.instance)} | set(src.table.image):
+        link_file(src.path(rel), out / rel)
+    assert check_dataset(out, show_progress=False)[1] == []
+    assert (out / MANIFEST).read_bytes() == (src.root / MANIFEST).read_bytes()
+    assert _index_members(out) == _index_members(src.root)
+    written = _index_members(out)
+    reopened = Dataset.open(out, rebuild=True, show_progress=False)  # rebuilt from records/
+    assert _index_members(out) == written and [r.to_dict() for r in reopened] == [r.to_dict() for r in src]
+
+
+def test_the_writer_refuses_an_index_of_other_frames_than_its_records(dataset: Dataset, tmp_path: Path):
+    writer = DatasetWriter(tmp_path / "out")
+    for e in record_files(dataset.root)[1:]:
+        writer.link_record(e.name[:-5], e.path)
+    with pytest.raises(DatasetError, match="not those of records/"):
+        writer.index_columns(dataset.table, dataset.objects, None)
+    assert not (tmp_path / "out" / INDEX_FILE).exists()
+    shuffled = dataset.objects.take(np.arange(len(dataset.objects))[::-1])
+    with pytest.raises(ValueError, match="grouped by frame"):
+        DatasetIndex.from_columns(dataset.table, shuffled, None)
 
 
 def test_validate_lists_every_problem(dataset: Dataset, capsys):
@@ -223,11 +282,11 @@ def test_a_read_only_dataset_is_read_with_an_index_in_memory(tmp_path: Path, mon
     assert len(notes) == 6 and notes[0].startswith(f"{root}: cannot write {INDEX_FILE} (Read-only file system)")
     assert sorted(p.name for p in root.rglob("*")) == before  # nothing written into it
     # a writer of the dataset still fails loudly (a merge's index is its output, not a cache)
-    from omnigen.dataset import write_index
-
     ds = Dataset.open(root, show_progress=False)
     with pytest.raises(OSError):
-        write_index(root, ds.table, ds.offsets, ds.objects, None)
+        write_index(root, DatasetIndex(ds.table, ds.offsets, ds.objects, None), "key")
+    with pytest.raises(OSError):
+        DatasetWriter(root).index_columns(ds.table, ds.objects, None)
 
 
 def _refile(root: Path, frame_id: str, as_id: str) -> Path:
@@ -243,7 +302,7 @@ def test_a_record_filed_under_another_id_is_refused_by_every_consumer(tmp_path: 
     """Issue 27: `export yolo` reported 13 frames and wrote 12, `export coco` wrote a duplicate id,
     `train` died with a KeyError; only validate saw it."""
     from omnigen.detector.data import KeypointDataset
-    from omnigen.dataset import build_index, read_record, record_files
+    from omnigen.dataset import read_record
 
     root = write_fake_dataset(tmp_path / "ds", n_frames=13, objects_per_frame=2, seed=5, source="kitti").root
     bad = _refile(root, "kitti-000005", "kitti-000004")
@@ -258,7 +317,8 @@ def test_a_record_filed_under_another_id_is_refused_by_every_consumer(tmp_path: 
         KeypointDataset(root, load_taxonomy("fine"), 64)
     assert not (tmp_path / "c.json").exists() and not (tmp_path / "y" / "data.yaml").exists()
     # an index written before the check (holding the mismatched record) is not trusted either
-    build_index(root, [read_record(e.path) for e in record_files(root)])
+    entries = record_files(root)
+    write_index(root, DatasetIndex.from_records(read_record(e.path) for e in entries), records_fingerprint(entries))
     with pytest.raises(Exception, match="does not match the file name"):
         Dataset.open(root)
     # validate names it

@@ -559,7 +559,7 @@ def test_export_of_other_sources_pitched_camera_and_classes(tmp_path):
     """Non-KITTI records: derived values, sequential numbers, Misc for classes KITTI lacks, and
     rotation_y / location for a pitched camera (the centre comes back exactly, the tilt is lost)."""
     from omnigen.converters.kitti_export import label_line
-    from omnigen.dataset import DatasetWriter
+    from omnigen.writer import DatasetWriter
     from omnigen.camera import intrinsics_from_fov
     from omnigen.geometry import Box3D, kitti_alpha, kitti_rotation, rot_x
     from omnigen.record import FrameRecord, ObjectRecord

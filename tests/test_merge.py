@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import json
-from collections import defaultdict
+import shutil
+from collections import Counter, defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -11,15 +12,17 @@ import pytest
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
-import omnigen.merge as merge_module
+import omnigen.writer as writer_module
 from omnigen.checks import check_dataset
 from omnigen.cli import main as cli
-from omnigen.coco import to_coco
-from omnigen.dataset import INDEX_FILE, Dataset, DatasetError
+from omnigen.formats.coco import to_coco
+from omnigen.dataset import Dataset, DatasetError
 from omnigen.fakes import write_fake_dataset
+from omnigen.index import INDEX_FILE
 from omnigen.merge import merge
 from omnigen.splits import read_assignments, read_split
 from omnigen.taxonomy import load_taxonomy
+from omnigen.writer import DatasetWriter
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +80,42 @@ def test_duplicate_images_share_a_file_and_a_side(tmp_path):
         assert split[ds.table.frame_id[13]] == split[ds.table.frame_id[2]]
     merged = Dataset.open(out)
     assert merged.table.image[13] == merged.table.image[2]
+
+
+def test_merge_writes_records_index_and_manifest_through_the_writer(tmp_path, monkeypatch):
+    """Issue 28: merge wrote records, index and manifest by hand and read a Dataset's private
+    attribute blob. Now the dataset's files go through DatasetWriter (atomic writes, the index
+    checked against records/, the manifest last): each record passes through it once, linked or,
+    with its paths rewritten, written as bytes; the index once; the seal once; and with the seal
+    withheld no manifest appears."""
+    a = write_fake_dataset(tmp_path / "a", n_frames=4, objects_per_frame=2, seed=1, source="kitti").root
+    b = tmp_path / "b"  # a's pixels under other frame ids: shared images, clashing paths rewritten
+    shutil.copytree(a, b)
+    for p in list((b / "records").glob("*.json")):
+        d = json.loads(p.read_text())
+        d["frame_id"] = d["frame_id"].replace("kitti-", "kitti-b")
+        (b / "records" / f"{d['frame_id']}.json").write_text(json.dumps(d))
+        p.unlink()
+    images = Dataset.open(a).table.image
+    (b / images[0]).write_bytes((a / images[1]).read_bytes())  # b's first frame: the pixels of a's second
+    calls: Counter = Counter()
+    for name in ("unseal", "drop_records_except", "link_record", "write_record_bytes", "index_columns", "seal"):
+        def spy(self, *args, _real=getattr(DatasetWriter, name), _name=name, **kwargs):
+            calls[_name] += 1
+            return _real(self, *args, **kwargs)
+        monkeypatch.setattr(DatasetWriter, name, spy)
+    report = merge([a, b], tmp_path / "m")
+    assert report.frames == 8 and report.unique_images == 4  # b's pixels are all a's
+    assert calls["link_record"] == 7 and calls["write_record_bytes"] == 1  # one record points at another file
+    assert Dataset.open(tmp_path / "m").frame("kitti-b000000").image == images[1]
+    assert {k: calls[k] for k in ("unseal", "drop_records_except", "index_columns", "seal")} == dict.fromkeys(
+        ("unseal", "drop_records_except", "index_columns", "seal"), 1)
+    merged = Dataset.open(tmp_path / "m")
+    assert merged.has_source_attributes and len(merged.source_attributes) == len(merged.objects)
+    assert check_dataset(tmp_path / "m", show_progress=False)[1] == []
+    monkeypatch.setattr(DatasetWriter, "seal", lambda self, ds, digest, extra: ds)
+    merge([a, b], tmp_path / "unsealed")
+    assert (tmp_path / "unsealed" / INDEX_FILE).exists() and not (tmp_path / "unsealed" / "manifest.json").exists()
 
 
 def test_update_keeps_existing_assignments(sources, tmp_path):
@@ -147,7 +186,7 @@ def test_conflicting_frame_ids_are_refused(tmp_path):
 def test_interrupted_merge_never_validates(sources, tmp_path, monkeypatch):
     out = tmp_path / "uov"
     merge([sources[0]], out)  # a finished merge; then a re-merge with one more source dies in its records
-    real = merge_module.link_file
+    real = writer_module.link_file  # records are placed by the writer; pixels by merge itself
     calls = {"n": 0}
 
     def dying(src, dst, mode="hardlink"):
@@ -156,7 +195,7 @@ def test_interrupted_merge_never_validates(sources, tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(src, dst, mode)
 
-    monkeypatch.setattr(merge_module, "link_file", dying)
+    monkeypatch.setattr(writer_module, "link_file", dying)
     with pytest.raises(KeyboardInterrupt):
         merge(list(sources), out)
     monkeypatch.undo()

@@ -11,12 +11,13 @@ from PIL import Image
 
 from omnigen.cli import main
 from omnigen.conventions import NEAR_PLANE, SKELETON
-from omnigen.dataset import Dataset, DatasetWriter
+from omnigen.dataset import Dataset
 from omnigen.draw import (BACKGROUND, CLASS_COLORS, EDGE_COLORS, TITLE_HEIGHT, clip_segment, display_scale,
                           edge_segment, footprints, render_frame)
 from omnigen.camera import intrinsics_from_fov
 from omnigen.geometry import Box3D, plane_from_height_pitch, rot_x, rot_z
 from omnigen.record import FrameRecord, IgnoreRegion, ObjectRecord
+from omnigen.writer import DatasetWriter
 
 W, H = 320, 192
 FRAME = "kitti-000042"

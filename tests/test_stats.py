@@ -19,7 +19,7 @@ from PIL import Image
 
 from omnigen.cli import main
 from omnigen.conventions import FINE_CLASSES
-from omnigen.dataset import Dataset, DatasetWriter
+from omnigen.dataset import Dataset
 from omnigen.fakes import random_frame, write_fake_dataset
 from omnigen.camera import intrinsics_from_fov
 from omnigen.geometry import Box3D, plane_from_height_pitch, rot_x, rot_z
@@ -27,6 +27,7 @@ from omnigen.priors import FAR_SIGMA, PRIORS, far_outside_prior
 from omnigen.record import ObjectRecord
 from omnigen.stats.compute import compute_stats, derive, ground_coordinates
 from omnigen.stats.report import render_page, write_report
+from omnigen.writer import DatasetWriter
 
 W, H = 160, 96
 KINDS = [("synthetic", "ego"), ("synthetic", "infrastructure"), ("synthetic", "aerial"),
