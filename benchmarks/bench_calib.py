@@ -23,7 +23,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from omnigen.detector.lift import lift_keypoints  # noqa: E402
-from omnigen.geometry import box_from_kitti, project_points  # noqa: E402
+from omnigen.formats.kitti import box_from_kitti  # noqa: E402
+from omnigen.geometry import project_points  # noqa: E402
 
 K = np.array([[721.5, 0.0, 609.6], [0.0, 721.5, 172.9], [0.0, 0.0, 1.0]])
 TARGET_US = 30.0 / (3769 * 8 * 6) * 1e6

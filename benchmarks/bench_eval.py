@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 
 from benchmarks.fixtures import fake_dataset  # noqa: E402
 from omnigen.detector.oks_eval import evaluate  # noqa: E402
-from omnigen.coco import to_coco  # noqa: E402
+from omnigen.formats.coco import to_coco  # noqa: E402
 from omnigen.dataset import Dataset  # noqa: E402
 from omnigen.tables import FrameTable, ObjectTable  # noqa: E402
 

@@ -22,10 +22,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.fixtures import CACHE, fake_dataset  # noqa: E402
-from omnigen.coco import export_coco  # noqa: E402
+from omnigen.formats.coco import export_coco  # noqa: E402
 from omnigen.dataset import Dataset  # noqa: E402
 from omnigen.merge import merge  # noqa: E402
-from omnigen.yolo import export_yolo  # noqa: E402
+from omnigen.formats.yolo import export_yolo  # noqa: E402
 
 
 def timed(fn) -> float:

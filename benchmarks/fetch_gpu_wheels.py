@@ -52,7 +52,7 @@ class Need:
 
 
 NEEDS: tuple[Need, ...] = (
-    Need("orjson", "orjson", "omnigen/files.py, omnigen/coco.py, detector/eval_command.py"),
+    Need("orjson", "orjson", "omnigen/files.py, omnigen/formats/coco.py, detector/eval_command.py"),
     Need("shapely", "shapely", "omnigen/geometry.py, scenes/layout.py, rigs/sampling.py"),
     Need("pycocotools", "pycocotools", "detector/oks_eval.py"),
     Need("trimesh", "trimesh", "scenes/meshes.py, scenes/assets"),

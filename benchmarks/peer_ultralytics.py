@@ -52,7 +52,7 @@ def ultralytics_detections(result: Any) -> dict[str, Any]:
     0-based classes, keypoints (N, 8, 3) x y and the corner's confidence, in our pixel convention.
 
     Ultralytics measures pixels from the image's top-left corner, our pixel centres are integers
-    (omnigen/yolo.py shifts the labels by +0.5 on export), so every coordinate moves by -0.5.
+    (omnigen/formats/yolo.py shifts the labels by +0.5 on export), so every coordinate moves by -0.5.
     """
     import numpy as np
 
@@ -71,7 +71,7 @@ def ultralytics_detections(result: Any) -> dict[str, Any]:
 
 def coco_predictions(results: list[Any], frame_index: dict[str, int]) -> list[dict[str, Any]]:
     """Ultralytics results over exported test images (named `<frame_id>.<ext>`) as COCO results
-    for `omnigen eval`: image ids as omnigen.coco gives them (1-based frame order), plus frame_id."""
+    for `omnigen eval`: image ids as omnigen.formats.coco gives them (1-based frame order), plus frame_id."""
     from omnigen.detector.predict import coco_results
 
     out = []

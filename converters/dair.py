@@ -7,7 +7,7 @@ version of the ones that change numbers:
 
 - Boxes are built in the virtual-LiDAR frame (x forward, y left, z up; `3d_location` is the box
   centre, `rotation` the yaw about +z, 0 along +x, `l` along the heading) and carried into the
-  camera with `virtuallidar_to_camera` (omnigen.geometry.box_from_dair). The camera's pitch is
+  camera with `virtuallidar_to_camera` (omnigen.formats.dair.box_from_dair). The camera's pitch is
   therefore part of every box's rotation, and top and bottom come from the LiDAR's z. The official
   DAIR-to-KITTI converter is not used: it writes headings 90 degrees off and drops the pitch.
 - Keypoints come from `label/camera` (boxes fitted to the image); `label/virtuallidar` (fitted to
@@ -50,11 +50,10 @@ from omnigen.converters.common import (
 )
 from omnigen.converters.plausible import check_box, check_box2d, check_intrinsics, check_offset
 from omnigen.conventions import BOTTOM_CORNERS, DAIR_CLASSES, OCCLUSION_UNKNOWN
+from omnigen.formats.dair import box_from_dair, boxes_from_dair
 from omnigen.geometry import (
     Box3D,
     Plane,
-    box_from_dair,
-    boxes_from_dair,
     cuboid_corners,
     fit_ground,
     project_boxes,

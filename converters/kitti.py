@@ -37,14 +37,8 @@ from omnigen.converters.common import (
 )
 from omnigen.converters.plausible import check_angle, check_box, check_box2d, check_intrinsics, check_offset
 from omnigen.conventions import BOTTOM_CORNERS, DIFFICULTIES, KITTI_CLASSES, KITTI_IGNORE
-from omnigen.geometry import (
-    Box3D,
-    Plane,
-    box_from_kitti,
-    camera_offset_from_projection,
-    fit_ground,
-    plane_from_height_pitch,
-)
+from omnigen.formats.kitti import box_from_kitti, camera_offset_from_projection
+from omnigen.geometry import Box3D, Plane, fit_ground, plane_from_height_pitch
 from omnigen.images import MAX_IMAGE_BYTES
 from omnigen.record import FrameRecord, IgnoreRegion, ObjectRecord
 

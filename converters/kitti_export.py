@@ -2,9 +2,11 @@
 
 Records are already in their image's camera, so every calib has P2 = [K | 0] and every location is
 in that camera. KITTI can only say upright boxes in a level camera; for pitched cameras the rule is
-geometry.box_to_kitti's: location = centre + (0, h/2, 0) along the camera's y (so KITTI tools
-get the true centre back), rotation_y = the heading of the box's forward axis projected onto the
-camera's x-z plane; the tilt is lost. Details and every choice: docs/converters-kitti.md.
+omnigen.formats.kitti.box_to_kitti's: location = centre + (0, h/2, 0) along the camera's y (so
+KITTI tools get the true centre back), rotation_y = the heading of the box's forward axis projected
+onto the camera's x-z plane; the tilt is lost. The label and calib text, the class names and the file
+numbers are the format's (omnigen.formats.kitti); this module writes the tree. Details and every
+choice: docs/converters-kitti.md.
 """
 
 from __future__ import annotations
@@ -18,104 +20,15 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
-from omnigen.conventions import KITTI_CLASSES
 from omnigen.dataset import Dataset
 from omnigen.files import LINK_MODES, atomic_write_bytes, atomic_write_text, link_file
-from omnigen.geometry import box_to_kitti, kitti_alpha
+from omnigen.formats.kitti import calib_text, kitti_file_names, label_text
 from omnigen.ownership import claim_output
 from omnigen.progress import print_table, progress
-from omnigen.record import FrameRecord, ObjectRecord
 from omnigen.splits import read_split
-
-KITTI_NAMES: dict[str, str] = {fine: name for name, fine in KITTI_CLASSES.items() if name != "Person_sitting"}
-"""Fine class -> KITTI name (car -> Car, ..., pedestrian -> Pedestrian)."""
-FALLBACK_NAME = "Misc"
-"""For fine classes KITTI has no name for (bus, motorcyclist, tricyclist, barrow, traffic_cone):
-KITTI's own catch-all, which its evaluation ignores, rather than a name KITTI tools reject."""
 
 MAPPING_FILE = "mapping.txt"
 """One line per exported frame: `<kitti file number> <frame_id>`."""
-
-TR_VELO_TO_CAM = np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [1.0, 0.0, 0.0, 0.0]])
-"""There is no LiDAR: a virtual one at the camera centre with KITTI's axes (x forward, y left, z
-up), so tools that insist on the matrix get a valid one."""
-TR_IMU_TO_VELO = np.hstack([np.eye(3), np.zeros((3, 1))])
-
-_KITTI_FRAME = re.compile(r"^kitti-(?:testing-)?(\d{6})$")
-_OWN_KEYS = ("truncated", "occluded", "alpha")
-
-
-def _num(v: float) -> str:
-    """Shortest text that reads back as the same double: exports round-trip exactly."""
-    return repr(float(v))
-
-
-def kitti_file_names(frame_ids: list[str]) -> dict[str, str]:
-    """Frame id -> KITTI file number.
-
-    Converted KITTI frames keep their own number (kitti-000123 -> 000123) when that is unambiguous,
-    so an exported KITTI split lines up with the original; any other dataset is numbered
-    000000, 000001, ... in frame-id order.
-    """
-    matches = [_KITTI_FRAME.match(f) for f in frame_ids]
-    if all(matches):
-        numbers = [m.group(1) for m in matches if m]
-        if len(set(numbers)) == len(numbers):
-            return dict(zip(frame_ids, numbers))
-    return {f: f"{i:06d}" for i, f in enumerate(sorted(frame_ids))}
-
-
-def kitti_name(obj: ObjectRecord) -> str:
-    """The object's KITTI class: its original name where it had one (keeps Person_sitting)."""
-    original = obj.source_attributes.get("class")
-    if isinstance(original, str) and KITTI_CLASSES.get(original) == obj.category:
-        return original
-    return KITTI_NAMES.get(obj.category, FALLBACK_NAME)
-
-
-def _own_values(record: FrameRecord, obj: ObjectRecord) -> dict | None:
-    """KITTI's own truncated / occluded / alpha where the record kept them (converted KITTI)."""
-    attrs = obj.source_attributes
-    if record.source == "kitti" and all(k in attrs for k in _OWN_KEYS):
-        return attrs
-    return None
-
-
-def label_line(record: FrameRecord, obj: ObjectRecord, derived: bool = False) -> str:
-    """One label_2 line. Values KITTI wrote itself are written back unless `derived`; else
-    truncated = truncation, occluded = occlusion_level (3 = unknown), alpha from the location and
-    rotation_y, 2D box = bbox."""
-    h, w, l, x, y, z, ry = box_to_kitti(obj.box)
-    own = None if derived else _own_values(record, obj)
-    if own is not None:
-        truncated, occluded, alpha = float(own["truncated"]), int(own["occluded"]), float(own["alpha"])
-        box2d = obj.bbox_source if obj.bbox_source is not None else obj.bbox
-    else:
-        truncated, occluded, alpha = obj.truncation, int(obj.occlusion_level), kitti_alpha(ry, x, z)
-        box2d = obj.bbox
-    numbers = [alpha, *box2d, h, w, l, x, y, z, ry]
-    return f"{kitti_name(obj)} {_num(truncated)} {occluded} " + " ".join(_num(v) for v in numbers)
-
-
-def dont_care_line(bbox: np.ndarray) -> str:
-    return "DontCare -1 -1 -10 " + " ".join(_num(v) for v in bbox) + " -1 -1 -1 -1000 -1000 -1000 -10"
-
-
-def label_text(record: FrameRecord, derived: bool = False) -> str:
-    """Objects in record order (instance ids ascending for converted KITTI), then ignore regions."""
-    lines = [label_line(record, o, derived) for o in record.objects]
-    lines += [dont_care_line(r.bbox) for r in record.ignore_regions]
-    return "".join(f"{line}\n" for line in lines)
-
-
-def calib_text(K: np.ndarray) -> str:
-    """KITTI's seven calib lines. Every P is [K | 0]: the record's camera is the only camera."""
-    P = np.hstack([np.asarray(K, dtype=np.float64), np.zeros((3, 1))])
-    rows = [(f"P{i}", P) for i in range(4)]
-    rows += [("R0_rect", np.eye(3)), ("Tr_velo_to_cam", TR_VELO_TO_CAM), ("Tr_imu_to_velo", TR_IMU_TO_VELO)]
-    return "".join(f"{name}: " + " ".join(_num(v) for v in m.ravel()) + "\n" for name, m in rows)
 
 
 @dataclass

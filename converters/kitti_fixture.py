@@ -21,7 +21,8 @@ import numpy as np
 from PIL import Image
 
 from omnigen.converters.kitti import ARCHIVES, folders_for
-from omnigen.geometry import box_from_kitti, kitti_alpha, project_points
+from omnigen.formats.kitti import box_from_kitti, kitti_alpha
+from omnigen.geometry import project_points
 
 KITTI_SIZE = (1242, 375)
 KITTI_FOCAL = 721.5377

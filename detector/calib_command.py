@@ -20,12 +20,12 @@ from typing import Any, Callable
 
 import numpy as np
 
-from omnigen.converters.kitti_export import kitti_file_names, label_text
 from omnigen.detector.results_file import read_results
 from omnigen.detector.lift import DimensionPriors, fit_dimension_priors, ground_adherence_deg, lift_keypoints, to_kitti_lines
 from omnigen.conventions import FINE_CLASSES, NUM_KEYPOINTS
 from omnigen.dataset import Dataset
 from omnigen.files import atomic_write_bytes, atomic_write_json
+from omnigen.formats.kitti import kitti_file_names, label_text
 from omnigen.progress import print_table
 from omnigen.splits import TRAIN, read_split, split_names
 from omnigen.taxonomy import Taxonomy, load_taxonomy
@@ -106,7 +106,7 @@ def keypoint_box(kp: np.ndarray, width: int, height: int) -> np.ndarray:
 def load_predictions(path: Path, ds: Dataset, fine_of_class: list[str]) -> dict[int, FramePredictions]:
     """COCO-results detections grouped by frame index.
 
-    Each entry: image_id (1-based frame order, as omnigen.coco.to_coco numbers images) or
+    Each entry: image_id (1-based frame order, as omnigen.formats.coco.to_coco numbers images) or
     frame_id; category_id (1-based taxonomy class); keypoints (24 numbers: x, y, score per
     corner); bbox [x, y, w, h] (optional: else the used corners' box, clipped to the image); score.
     A corner written 0 0 0 (COCO's "not labelled") is not used.

@@ -20,10 +20,10 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
-from omnigen.converters.kitti_export import FALLBACK_NAME, KITTI_NAMES
 from omnigen.conventions import FINE_CLASSES, NEAR_PLANE, NUM_KEYPOINTS
 from omnigen.dataset import Dataset
-from omnigen.geometry import Box3D, box_to_kitti, cuboid_corners, kitti_alpha, local_corners
+from omnigen.formats.kitti import box_to_kitti, kitti_alpha, kitti_number, kitti_type
+from omnigen.geometry import Box3D, cuboid_corners, local_corners
 from omnigen.priors import PRIORS
 
 MIN_POINTS = 4
@@ -241,16 +241,6 @@ def ground_adherence_deg(lifted: LiftedBoxes, plane: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 
-def _num(v: float) -> str:
-    """Shortest text that reads back as the same double (as converters/kitti_export.py writes)."""
-    return repr(float(v))
-
-
-def kitti_type(fine: str) -> str:
-    """The KITTI name converters/kitti_export.py writes for a fine class (Misc where KITTI has none)."""
-    return KITTI_NAMES.get(fine, FALLBACK_NAME)
-
-
 def to_kitti_lines(lifted: LiftedBoxes, category_names: Sequence[str], boxes2d: np.ndarray,
                    scores: np.ndarray | None = None, truncated: np.ndarray | None = None,
                    occluded: np.ndarray | None = None) -> list[str]:
@@ -259,8 +249,9 @@ def to_kitti_lines(lifted: LiftedBoxes, category_names: Sequence[str], boxes2d: 
     Fields: type, truncated (-1 unless given), occluded (-1 unless given), alpha, the 2D box
     `boxes2d` (N, 4) [x1, y1, x2, y2], h w l, the bottom-centre location x y z in the camera
     frame, rotation_y, and `score` when scores are given (a results file; without scores the
-    line is a 15-field label). Location and rotation_y follow geometry.box_to_kitti, the rule of
-    converters/kitti_export.py: location = centre + (0, h/2, 0) along the camera's y and
+    line is a 15-field label), written as omnigen.formats.kitti writes every KITTI label (names,
+    numbers). Location and rotation_y follow formats.kitti.box_to_kitti, the rule of `omnigen
+    export kitti`: location = centre + (0, h/2, 0) along the camera's y and
     rotation_y = the heading of the forward axis projected onto the camera's x-z plane, so for a
     pitched camera KITTI tools get the true centre back while the tilt is lost. Every K passed
     here is the image's own camera (P2 = [K | 0] in the exported calib), so no camera offset.
@@ -276,9 +267,10 @@ def to_kitti_lines(lifted: LiftedBoxes, category_names: Sequence[str], boxes2d: 
         numbers = [kitti_alpha(ry, x, z), *boxes2d[i], h, w, l, x, y, z, ry]
         if scores is not None:
             numbers.append(float(scores[i]))
-        lines.append(f"{kitti_type(category_names[i])} {_num(trunc)} {occ} " + " ".join(_num(v) for v in numbers))
+        lines.append(f"{kitti_type(category_names[i])} {kitti_number(trunc)} {occ} "
+                     + " ".join(kitti_number(v) for v in numbers))
     return lines
 
 
 __all__ = ["DimensionPriors", "LiftedBoxes", "fit_dimension_priors", "lift_keypoints", "ground_adherence_deg",
-           "to_kitti_lines", "object_corners", "kitti_type", "BOTTOM_EDGES", "MIN_POINTS"]
+           "to_kitti_lines", "object_corners", "BOTTOM_EDGES", "MIN_POINTS"]

@@ -5,7 +5,7 @@ box corners, corners outside the image (v = 0) ignored, objects without any corn
 ignored (COCO's num_keypoints == 0 rule; a detection of such an object is forgiven only when its
 corners fall inside twice the object's clipped 2D box, else it counts as a false positive).
 Predictions are the COCO-results list; frame_id, when present, names the image (else image_id,
-omnigen.coco's 1-based frame order); predictions on frames outside the split are left out and
+omnigen.formats.coco's 1-based frame order); predictions on frames outside the split are left out and
 counted. Choices, and why:
 
 - maxDets = [MAX_DETS] (1000) and one area range ('all'). A drone view of a crowded junction holds
@@ -60,7 +60,7 @@ from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
 from omnigen.detector.corner_errors import BOX_MATCH_IOU, CornerErrors, corners_extent_boxes, matched_corners
-from omnigen.coco import to_coco
+from omnigen.formats.coco import to_coco
 from omnigen.conventions import NUM_KEYPOINTS
 from omnigen.dataset import Dataset
 from omnigen.splits import TRAIN, read_split, split_names

@@ -96,7 +96,7 @@ def batches(items: list[Any], size: int) -> Iterator[list[Any]]:
 
 def predict_frames(model: KeypointDetector, data: KeypointDataset, opts: PredictOptions,
                    show_progress: bool = False) -> list[dict[str, Any]]:
-    """COCO results for the frames of a dataset split; image ids as omnigen.coco.to_coco gives them
+    """COCO results for the frames of a dataset split; image ids as omnigen.formats.coco.to_coco gives them
     (1-based frame order of the whole dataset), plus frame_id."""
     from omnigen.progress import progress
 

@@ -59,7 +59,7 @@ SKELETON: tuple[tuple[int, int], ...] = (
     (4, 5), (5, 6), (6, 7), (7, 4),  # bottom face
     (0, 4), (1, 5), (2, 6), (3, 7),  # verticals
 )
-"""The 12 cuboid edges as 0-based corner pairs (COCO's skeleton is 1-based; see coco.py)."""
+"""The 12 cuboid edges as 0-based corner pairs (COCO's skeleton is 1-based; see formats/coco.py)."""
 
 # COCO visibility written by every exporter.
 V_OUTSIDE = 0  # outside the image or behind the camera; written as 0 0 0

@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_coco(args: argparse.Namespace) -> int:
-    from omnigen.coco import export_coco
+    from omnigen.formats.coco import export_coco
     from omnigen.dataset import Dataset
     from omnigen.progress import print_table
 
@@ -52,7 +52,7 @@ def _run_coco(args: argparse.Namespace) -> int:
 def _run_yolo(args: argparse.Namespace) -> int:
     from omnigen.dataset import Dataset
     from omnigen.progress import print_table
-    from omnigen.yolo import export_yolo
+    from omnigen.formats.yolo import export_yolo
 
     start = time.perf_counter()
     ds = Dataset.open(args.dataset)

@@ -5,8 +5,9 @@ Frames: the camera is OpenCV's (x right, y down, z forward); an object's frame h
 follow OpenCV/KITTI: the centre of the top-left pixel is (0, 0), so an image W wide spans
 x in [-0.5, W - 0.5].
 
-Why one module: every source (Blender, KITTI, DAIR-V2X) meets every consumer here, so the
-conversions between their frames sit side by side and are tested together.
+Only generic maths lives here (rotations, the cuboid, projection and clipping, silhouettes, planes):
+each outside format's conventions are in omnigen.formats (KITTI's boxes in formats.kitti,
+DAIR-V2X's in formats.dair), built on these.
 """
 
 from __future__ import annotations
@@ -52,6 +53,11 @@ def is_rotation(r: np.ndarray, tol: float = 1e-6) -> bool:
         return False
     (a, b, c), (d, e, f), (g, h, i) = r.tolist()  # orthonormal: only the determinant's sign is left
     return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0
+
+
+def wrap_angle(a: float) -> float:
+    """The angle a wrapped to [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 # ---------------------------------------------------------------------------------------------
@@ -429,109 +435,4 @@ def plane_from_height_pitch(height: float, pitch: float, roll: float = 0.0) -> P
     up_world_in_cam = rot_z(roll) @ rot_x(pitch) @ np.array([0.0, -1.0, 0.0])
     # Pitch down tilts "up" towards the camera's -z: rot_x(pitch) maps (0,-1,0) -> (0,-cos,-sin).
     return Plane(up_world_in_cam, height)
-
-
-# ---------------------------------------------------------------------------------------------
-# KITTI
-# ---------------------------------------------------------------------------------------------
-
-
-def kitti_rotation(ry: float) -> np.ndarray:
-    """Object-to-camera rotation of a KITTI box with rotation_y = ry (about the camera's y)."""
-    c, s = math.cos(ry), math.sin(ry)
-    forward = [c, 0.0, -s]
-    left = [s, 0.0, c]
-    up = [0.0, -1.0, 0.0]
-    return np.array([forward, left, up], dtype=np.float64).T
-
-
-def camera_offset_from_projection(P: np.ndarray) -> np.ndarray:
-    """Translation t from the rectified camera-0 frame to the camera of P = K [I | t].
-
-    KITTI's P2 carries camera 2's offset in its last column (K t), about 45.76 px / fx in x.
-    """
-    P = np.asarray(P, dtype=np.float64).reshape(3, 4)
-    return np.linalg.solve(P[:, :3], P[:, 3])
-
-
-def box_from_kitti(h: float, w: float, l: float, x: float, y: float, z: float, ry: float,
-                   camera_offset: np.ndarray | None = None) -> Box3D:
-    """A KITTI label (dims h w l, bottom-centre location in camera 0, rotation_y) as a Box3D.
-
-    `camera_offset` moves it into the image's camera (camera_offset_from_projection(P2)).
-    """
-    center = np.array([x, y - h / 2.0, z], dtype=np.float64)
-    if camera_offset is not None:
-        center = center + np.asarray(camera_offset, dtype=np.float64)
-    return Box3D(center, [l, w, h], kitti_rotation(ry))
-
-
-def box_to_kitti(box: Box3D, camera_offset: np.ndarray | None = None) -> tuple[float, float, float, float, float, float, float]:
-    """A Box3D as KITTI (h, w, l, x, y, z, ry) in camera 0.
-
-    KITTI assumes upright objects in a level camera. For a pitched camera we keep what KITTI
-    tools reconstruct exact: location = centre + (0, h/2, 0), so `location - (0, h/2, 0)` gives
-    back the true centre, and ry is the heading of the forward axis projected onto the camera's
-    x-z plane. The tilt itself is lost, as it must be in KITTI's format.
-    """
-    l, w, h = (float(v) for v in box.dims)
-    center = box.center - (np.asarray(camera_offset, dtype=np.float64) if camera_offset is not None else 0.0)
-    f = box.forward
-    ry = math.atan2(-f[2], f[0])
-    return h, w, l, float(center[0]), float(center[1] + h / 2.0), float(center[2]), ry
-
-
-def kitti_alpha(ry: float, x: float, z: float) -> float:
-    """KITTI's observation angle alpha = ry - atan2(x, z), wrapped to [-pi, pi)."""
-    return wrap_angle(ry - math.atan2(x, z))
-
-
-def wrap_angle(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-# ---------------------------------------------------------------------------------------------
-# DAIR-V2X
-# ---------------------------------------------------------------------------------------------
-
-
-def box_from_dair(center_lidar: np.ndarray, lwh: np.ndarray, yaw: float,
-                  lidar_to_camera_rotation: np.ndarray, lidar_to_camera_translation: np.ndarray,
-                  center_transform: np.ndarray | None = None) -> Box3D:
-    """A DAIR-V2X box (virtual-LiDAR centre, [l, w, h], yaw about +z, 0 along +x) in the camera.
-
-    The object frame's axes coincide with the virtual LiDAR's (x forward, y left, z up) rotated by
-    the yaw, so the object-to-LiDAR rotation is rot_z(yaw); X_cam = R X_lidar + t then carries
-    the camera's pitch into the box's rotation. `center_transform` (default R) maps the centre:
-    the calibrated matrix, where R is its nearest proper rotation.
-    """
-    m = lidar_to_camera_rotation if center_transform is None else center_transform
-    center = np.asarray(m, dtype=np.float64) @ np.asarray(center_lidar, dtype=np.float64) \
-        + np.asarray(lidar_to_camera_translation, dtype=np.float64).reshape(3)
-    return Box3D(center, lwh, np.asarray(lidar_to_camera_rotation, dtype=np.float64) @ rot_z(yaw))
-
-
-def boxes_from_dair(centers_lidar: np.ndarray, yaws: np.ndarray, lidar_to_camera_rotation: np.ndarray,
-                    lidar_to_camera_translation: np.ndarray,
-                    center_transform: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(centers (N, 3), rotations (N, 3, 3)) in the camera of N DAIR-V2X boxes; dims are unchanged.
-
-    Bit for bit box_from_dair's center and rotation: the yaw's cosine and sine come from math (as
-    rot_z's do) and every box goes through the same 3x3 products.
-    """
-    centers_lidar = np.asarray(centers_lidar, dtype=np.float64).reshape(-1, 3)
-    r = np.asarray(lidar_to_camera_rotation, dtype=np.float64)
-    m = r if center_transform is None else np.asarray(center_transform, dtype=np.float64)
-    t = np.asarray(lidar_to_camera_translation, dtype=np.float64).reshape(3)
-    yaws = np.asarray(yaws, dtype=np.float64).reshape(-1).tolist()
-    c = [math.cos(a) for a in yaws]
-    s = [math.sin(a) for a in yaws]
-    rz = np.zeros((len(yaws), 3, 3))  # rot_z of every yaw, entry for entry
-    rz[:, 0, 0] = c
-    rz[:, 0, 1] = [-v for v in s]
-    rz[:, 1, 0] = s
-    rz[:, 1, 1] = c
-    rz[:, 2, 2] = 1.0
-    centers = (m @ centers_lidar[:, :, None])[:, :, 0] + t
-    return centers, r @ rz
 

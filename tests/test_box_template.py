@@ -10,7 +10,7 @@ import pytest
 from omnigen.detector.box_template import (BoxTemplate, apply, evaluate_with_baseline, fit_box_template,
                                    training_frames)
 from omnigen.detector.oks_eval import PredictionError
-from omnigen.coco import to_coco
+from omnigen.formats.coco import to_coco
 from omnigen.dataset import Dataset
 from omnigen.fakes import write_fake_dataset
 from omnigen.splits import TRAIN, read_split, write_split

@@ -11,17 +11,13 @@ import pytest
 from PIL import Image
 
 from omnigen.conventions import BOTTOM_CORNERS, FLIP_IDX, NEAR_PLANE, TOP_CORNERS
+from omnigen.formats.dair import box_from_dair, boxes_from_dair
+from omnigen.formats.kitti import box_from_kitti, box_to_kitti, camera_offset_from_projection, kitti_rotation
 from omnigen.geometry import (
     Box3D,
-    box_from_dair,
-    box_from_kitti,
-    box_to_kitti,
-    boxes_from_dair,
-    camera_offset_from_projection,
     cuboid_corners,
     fit_ground,
     fit_plane,
-    kitti_rotation,
     plane_from_height_pitch,
     project_box,
     project_boxes,

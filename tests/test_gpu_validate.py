@@ -201,7 +201,7 @@ def test_ultralytics_predictions_become_our_coco_results_exactly(tmp_path):
     from omnigen.dataset import Dataset
     from omnigen.fakes import write_fake_dataset
     from omnigen.splits import write_split
-    from omnigen.yolo import export_yolo
+    from omnigen.formats.yolo import export_yolo
 
     ds = write_fake_dataset(tmp_path / "uov", n_frames=4, seed=2)
     write_split(ds.root, "test", ds.frame_ids[:2])

@@ -19,11 +19,11 @@ from PIL import Image
 
 from omnigen.converters import kitti
 from omnigen.converters.common import PARALLEL_MIN_FRAMES, run_conversion
-from omnigen.converters.kitti_export import kitti_file_names
 from omnigen.converters.kitti_fixture import write_kitti_tree, write_kitti_zips
 from omnigen.cli import main
 from omnigen.dataset import Dataset
-from omnigen.geometry import camera_offset_from_projection, kitti_alpha, self_occluded_corners
+from omnigen.formats.kitti import camera_offset_from_projection, kitti_alpha, kitti_file_names
+from omnigen.geometry import self_occluded_corners
 
 REALDATA = Path(__file__).parents[1].parent / "shared" / "realdata"
 REAL_KITTI = REALDATA / "kitti"
@@ -510,7 +510,8 @@ def test_difficulty(height, occluded, truncated, expected):
 
 
 def test_ground_plane_fit_and_fallbacks():
-    from omnigen.geometry import Box3D, box_from_kitti, kitti_rotation, plane_from_height_pitch, rot_x
+    from omnigen.formats.kitti import box_from_kitti, kitti_rotation
+    from omnigen.geometry import Box3D, plane_from_height_pitch, rot_x
     truth = plane_from_height_pitch(1.7, math.radians(2.0))
 
     def standing(x, z, plane):
@@ -558,10 +559,10 @@ def test_parse_errors_name_file_and_line():
 def test_export_of_other_sources_pitched_camera_and_classes(tmp_path):
     """Non-KITTI records: derived values, sequential numbers, Misc for classes KITTI lacks, and
     rotation_y / location for a pitched camera (the centre comes back exactly, the tilt is lost)."""
-    from omnigen.converters.kitti_export import label_line
+    from omnigen.formats.kitti import kitti_alpha, kitti_rotation, label_line
     from omnigen.writer import DatasetWriter
     from omnigen.camera import intrinsics_from_fov
-    from omnigen.geometry import Box3D, kitti_alpha, kitti_rotation, rot_x
+    from omnigen.geometry import Box3D, rot_x
     from omnigen.record import FrameRecord, ObjectRecord
 
     K = intrinsics_from_fov(math.radians(60), 320, 240)

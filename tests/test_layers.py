@@ -16,8 +16,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE_DIRS = {"omnigen": "omnigen", "scenes": "omnigen.scenes", "rigs": "omnigen.rigs",
                 "converters": "omnigen.converters", "detector": "omnigen.detector"}
@@ -152,8 +150,6 @@ def test_the_core_imports_no_part():
     assert part_names_in_strings(source), "the registry names the parts' command modules"
 
 
-@pytest.mark.xfail(strict=True, reason="detector/lift.py and detector/calib_command.py still import "
-                   "omnigen.converters.kitti_export; issue 28 moves the KITTI names out of the converter")
 def test_the_detector_imports_no_converter():
     found = {str(path.relative_to(ROOT)): sorted(n for n in imports(source, module, path.name == "__init__.py")
                                                  if _within(n, ("omnigen.converters",)))

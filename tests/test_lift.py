@@ -14,10 +14,11 @@ from omnigen.detector.calib_command import (PERTURBATIONS, Perturbation, add_arg
                                     representative_fine_classes, run, sensitivity)
 from omnigen.detector.lift import (DimensionPriors, LiftedBoxes, fit_dimension_priors, ground_adherence_deg,
                            lift_keypoints, to_kitti_lines)
-from omnigen.coco import to_coco
+from omnigen.formats.coco import to_coco
 from omnigen.conventions import FINE_CLASSES
 from omnigen.fakes import write_fake_dataset
-from omnigen.geometry import Box3D, box_from_kitti, plane_from_height_pitch, project_points, rot_x, rot_z
+from omnigen.formats.kitti import box_from_kitti
+from omnigen.geometry import Box3D, plane_from_height_pitch, project_points, rot_x, rot_z
 from omnigen.priors import PRIORS
 from omnigen.splits import write_split
 from omnigen.taxonomy import load_taxonomy
@@ -256,7 +257,7 @@ def test_command_end_to_end(fake_ds, tmp_path, capsys):
 def test_exact_lifts_score_in_3d_what_they_score_in_2d(tmp_path):
     """Lifted lines and exported ground truth agree on KITTI's conventions: with exact corners and
     true sizes, every 3D and BEV match the 2D box match does (a sign or offset slip would zero them)."""
-    from omnigen.converters.kitti_export import label_text
+    from omnigen.formats.kitti import label_text
     from omnigen.detector.kitti_eval import evaluate_folders
     from omnigen.record import FrameRecord, ObjectRecord
 

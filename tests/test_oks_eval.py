@@ -16,7 +16,7 @@ import omnigen.detector.oks_eval as oks_eval
 from omnigen.detector import eval_command
 from omnigen.detector.oks_eval import (PredictionError, _coco_from_dict, _results_coco, ap_numbers, best_f1,
                                evalimgs_subset, evaluate, make_cocoeval, normalize_predictions, run_quietly)
-from omnigen.coco import to_coco
+from omnigen.formats.coco import to_coco
 from omnigen.dataset import Dataset
 from omnigen.fakes import write_fake_dataset
 from omnigen.merge import merge

@@ -10,7 +10,8 @@ import pytest
 
 from omnigen.conventions import NUM_KEYPOINTS, V_OCCLUDED, V_OUTSIDE, V_VISIBLE
 from omnigen.fakes import random_frame
-from omnigen.geometry import Box3D, kitti_rotation
+from omnigen.formats.kitti import kitti_rotation
+from omnigen.geometry import Box3D
 from omnigen.record import FrameRecord, ObjectRecord, RecordError
 
 
