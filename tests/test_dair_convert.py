@@ -123,6 +123,42 @@ def test_real_label_parses_with_its_quirks():
     assert -2.0 < -ground.plane.offset < -1.5
 
 
+def _lidar_object(i: int, center, lwh, yaw: float) -> dair.LabelObject:
+    return dair.LabelObject(i, "car", np.asarray(center, dtype=np.float64), np.asarray(lwh, dtype=np.float64), yaw,
+                            np.zeros(4), 0, {})
+
+
+def test_bottom_corners_and_ground_estimate_policy():
+    """bottom_corners (geometry.cuboid_corners in the LiDAR frame) against the hand-built corners 4-7,
+    then the converter's own policy around the shared fit: a fit from five objects, none tilted
+    beyond PLANE_MAX_TILT_DEG, else the level plane at the median bottom."""
+    rng = np.random.default_rng(3)
+    objects = [_lidar_object(i, rng.uniform([-20, -20, -6], [40, 20, -4]), rng.uniform(0.5, 10, 3), rng.uniform(-7, 7))
+               for i in range(12)]
+    for o, bottoms in zip(objects, dair.bottom_corners(objects)):
+        d = {"3d_dimensions": dict(zip("lwh", o.lwh)), "3d_location": dict(zip("xyz", o.center)), "rotation": o.yaw}
+        np.testing.assert_allclose(bottoms, label_corners_lidar(d)[4:], atol=1e-12)
+
+    def on_slope(n: int, tilt_deg: float) -> list:
+        # boxes standing on the plane z = -5 + tan(tilt) x (a slope rising along the LiDAR's x)
+        grade = math.tan(math.radians(tilt_deg))
+        xs = np.linspace(5.0, 45.0, n)
+        ys = np.resize([-6.0, 3.0, 8.0], n)
+        return [_lidar_object(i, [x, y, -5.0 + grade * x + 0.8], [4.0, 1.8, 1.6], 0.3 * i) for i, (x, y) in enumerate(zip(xs, ys))]
+
+    fit = dair.estimate_ground(on_slope(5, 3.0))
+    assert fit.method == "fit"
+    # upright boxes: each flat bottom touches the slope at its centre only, so the fit is near 3 degrees
+    assert math.degrees(math.acos(fit.plane.normal[2])) == pytest.approx(3.0, abs=0.1)
+    steep = on_slope(6, 8.0)  # beyond the 6 degree limit: level at the median bottom
+    level = dair.estimate_ground(steep)
+    assert level.method == "level"
+    np.testing.assert_array_equal(level.plane.normal, [0.0, 0.0, 1.0])
+    assert -level.plane.offset == pytest.approx(float(np.median([o.center[2] - 0.8 for o in steep])))
+    assert dair.estimate_ground(on_slope(4, 3.0)).method == "level"  # fewer than PLANE_MIN_OBJECTS
+    assert dair.estimate_ground([]) is None
+
+
 def test_real_label_converts_under_a_pole_camera(tmp_path, capsys):
     """The real file, as label/virtuallidar of a frame with a 7 m pole camera pitched 15 degrees."""
     path = real_label()
