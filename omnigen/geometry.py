@@ -7,7 +7,8 @@ x in [-0.5, W - 0.5].
 
 Only generic maths lives here (rotations, the cuboid, projection and clipping, silhouettes, planes):
 each outside format's conventions are in omnigen.formats (KITTI's boxes in formats.kitti,
-DAIR-V2X's in formats.dair), built on these.
+DAIR-V2X's in formats.dair), built on these; the camera (K, R, t and the image size as one
+type) and its conversions to the renderers' frames (OpenGL, Blender) are in omnigen.camera.
 """
 
 from __future__ import annotations
