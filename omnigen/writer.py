@@ -40,7 +40,9 @@ class DatasetWriter:
 
     Each record is written atomically to records/<frame_id>.json. `has()` lets a resumed job skip
     finished frames. `finalize()` (run once, after all writers are done) builds the index and
-    the manifest from whatever records/ holds.
+    the manifest from whatever records/ holds. A job that assembles a dataset from finished
+    records and columns it already holds (a merge) places records with `link_record` /
+    `write_record_bytes`, then calls `index_columns` and `seal` instead.
     """
 
     def __init__(self, root: str | os.PathLike, durable: bool = True):
