@@ -9,10 +9,10 @@ materials live in a small float texture, so restyling the city for the frame's w
 texture upload and each pass is one or two draw calls:
 - sun shadow map (when the sun casts shadows): depth only, from the sun, orthographic;
 - colour: 4x multisampled, pyrender's metallic-roughness shading (one directional sun, emission,
-  the same `pow(c, 1/2.2)` output) with procedural surfaces, the shadow lookup, a sky/ground
+  encoded with the sRGB transfer function) with procedural surfaces, the shadow lookup, a sky/ground
   hemisphere light (the sky's part scaled by the city's sky-view map, set_sky_view), lamps at night (a second build of the shader) and the exposure (see Light);
   fog over the ray length and the sky gradient (raster_backend's atmosphere) are applied here
-  too, per fragment;
+  too, per fragment; then the camera's automatic exposure on the read-back frame (auto_exposure);
 - ids and depth: not multisampled, an unsigned-integer target, so ids are exact (never averaged at
   edges) and each pixel's depth belongs to the object its id names; the look never touches it;
 - ids of chosen agents alone (silhouettes): the agents' index ranges drawn with one
@@ -43,6 +43,60 @@ MAX_LAMPS = 16  # street lamps lighting a frame (the nearest to the view)
 SHADOW_SIZE = 1024  # the sun's shadow map, texels a side
 NOISE_SIZE = 256  # the value-noise table, cells a side (it repeats)
 NOISE_SEED = 26  # fixed: the same surfaces on every machine and every run
+AE_TARGET = 0.18  # auto exposure: the frame's mean linear luminance it aims at (18% grey)
+AE_STRIDE = 4  # it meters every 4th pixel of every 4th row (a camera meters a coarse grid)
+
+# The output encoding: the sRGB transfer function (IEC 61966-2-1; its linear toe keeps shadows
+# darker than a plain 2.2 power), as the PNGs are read; _SRGB_GLSL is the same in the shaders.
+_SRGB_GLSL = """
+vec3 srgb(vec3 c) {
+    c = clamp(c, 0.0, 1.0);
+    return mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(0.0031308, c));
+}
+"""
+
+
+def srgb_encode(c: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] -> sRGB-encoded [0, 1] (the shaders' srgb())."""
+    c = np.clip(c, 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
+
+
+def srgb_decode(v: np.ndarray) -> np.ndarray:
+    """sRGB-encoded [0, 1] -> linear."""
+    v = np.asarray(v, dtype=np.float64)
+    return np.where(v <= 0.04045, v / 12.92, np.power((v + 0.055) / 1.055, 2.4))
+
+
+_LINEAR = srgb_decode(np.arange(256) / 255.0)  # 8-bit code -> linear
+
+
+def auto_exposure(rgb: np.ndarray, max_gain: float, target: float = AE_TARGET) -> np.ndarray:
+    """A camera's automatic exposure on a finished frame: the gain g in [1, max_gain] that brings
+    the mean linear luminance of the metered pixels (saturated ones count as 1, as a sensor's
+    do) up to `target`, applied in linear light (one 256-entry table).
+
+    Why only up: the daylight exposure (raster_backend.illumination) already puts a white sunlit
+    face at the clip, so a frame whose mean is under 18% grey is one that is mostly in shade or
+    dark stuff (a street in a tower's shadow, an overcast canyon): a camera opens up for it. A
+    frame at or above the target (bright sky, snow) keeps its exposure, so nothing the frame
+    shows bright is lost; what was saturated stays saturated. Deterministic: numpy on the frame.
+    """
+    if max_gain <= 1.0:
+        return rgb
+    y = (_LINEAR[rgb[::AE_STRIDE, ::AE_STRIDE]] @ np.array([0.2126, 0.7152, 0.0722])).ravel()
+    if y.size == 0 or y.mean() >= target:
+        return rgb
+    lo, hi = 1.0, float(max_gain)
+    if np.minimum(y * hi, 1.0).mean() > target:
+        for _ in range(24):  # the mean of min(g y, 1) grows with g: bisect
+            g = 0.5 * (lo + hi)
+            if np.minimum(y * g, 1.0).mean() > target:
+                hi = g
+            else:
+                lo = g
+    lut = np.round(255.0 * srgb_encode(hi * _LINEAR)).astype(np.uint8)
+    return lut[rgb]
 
 _COLOR_VS = """#version 330 core
 layout(location = 0) in vec3 position;
@@ -158,10 +212,12 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     float m = (1.0 + 2.0 * a.x * lo) * (1.0 + 2.0 * a.y * hi) * (1.0 + 2.0 * a.z * fine);
     // asphalt and roofs: darker resurfaced or repaired stretches and lighter worn ones (tens of
     // metres: a city's roads and roofs are a patchwork of ages); grass: dry patches (below)
-    m *= mix(1.0, mix(1.0, 0.6, smoothstep(0.62, 0.66, big)) * mix(1.0, 1.3, smoothstep(0.42, 0.22, big)), a.w * float(kind == 1 || kind == 7));
-    // flat roofs by building: a dark bitumen or rubber membrane (4 in 10), light gravel (1 in 10)
+    m *= mix(1.0, mix(1.0, 0.55, smoothstep(0.56, 0.6, big)) * mix(1.0, 1.3, smoothstep(0.42, 0.22, big)), a.w * float(kind == 1 || kind == 7));
+    // roofs by building: a dark bitumen or rubber membrane (3 in 10); flat roofs also light gravel
+    // ballast (1 in 10) or a white reflective membrane (2 in 10: cool roofs), set below
     float rv = fract(prm.z * 7.31);
-    m *= mix(1.0, rv < 0.4 ? 0.45 : (rv > 0.9 ? 1.8 : 1.0), float(kind == 7 && up));
+    float flat_roof = float(kind == 7 && n.z > 0.98) * (1.0 - snow_cover);
+    m *= mix(1.0, rv < 0.3 ? 0.45 : 1.0, float(kind == 7 && up));
     // tiles (paving, slabs: prm.y square), kerb stones (1 m), windows (prm.w wide, a storey high)
     vec2 tile = up ? prm.yy : vec2(kind == 3 ? 1.0 : prm.w, prm.y);
     vec2 t = uv / tile;
@@ -178,6 +234,7 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
                   * (0.8 + 0.2 * smoothstep(0.0, 2.5, P.z)), facade);
     m = mix(m, 1.0, snow_cover * float(up));  // snow hides the ground's texture
     vec3 albedo = base * m;
+    albedo = mix(albedo, (rv > 0.8 ? vec3(0.62, 0.62, 0.6) : vec3(0.34, 0.33, 0.31)) * m, flat_roof * step(0.7, rv));
     // kerb stones are granite, lighter than the paving
     albedo = mix(albedo, vec3(0.36, 0.355, 0.34) * m, 0.7 * float(kind == 3 && !up));
     // road paint worn where wheels pass: asphalt shows through
@@ -248,6 +305,7 @@ out vec4 frag_color;
 #define SURFACE_CELL cell_w
 #endif
 %SURFACES%
+%SRGB%
 float sun_visibility(vec3 q) {
     if (q.x <= 0.0 || q.y <= 0.0 || q.x >= 1.0 || q.y >= 1.0 || q.z >= 1.0) return 1.0;
     vec2 r = vec2(0.7, 0.35) * shadow_radius;  // two bilinear (2x2) PCF taps: an 8-texel penumbra
@@ -311,9 +369,10 @@ void main() {
         float T = exp(-fog_density * length(P - cam_pos));
         color = color * T + fog_color * exposure * (1.0 - T);
     }
-    frag_color = clamp(vec4(pow(clamp(color, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0), 0.0, 1.0);
+    frag_color = vec4(srgb(color), 1.0);
 }
-""".replace("%SURFACES%", _SURFACES_GLSL).replace("%LAMPS%", str(MAX_LAMPS)).replace("%NOISE%", str(NOISE_SIZE))
+""".replace("%SURFACES%", _SURFACES_GLSL).replace("%LAMPS%", str(MAX_LAMPS)).replace("%NOISE%", str(NOISE_SIZE)).replace(
+    "%SRGB%", _SRGB_GLSL)
 
 # Contact shadows: a soft dark quad on the ground under each agent, drawn over the finished
 # surfaces (no depth write; multiplies what is there). Under a car hardly any sky reaches the road:
@@ -367,15 +426,16 @@ uniform vec3 fog_color;
 uniform float sky_transmittance;
 uniform float exposure;
 out vec4 frag_color;
+%SRGB%
 void main() {
     vec2 ndc = 2.0 * gl_FragCoord.xy / viewport - 1.0;
     vec3 d = normalize(ndc_to_world * vec3(ndc, 1.0));
     float e = clamp(d.z, 0.0, 1.0);
     vec3 sky = horizon * (1.0 - e) * (1.0 - e) + zenith * (1.0 - (1.0 - e) * (1.0 - e));
     vec3 c = (sky * sky_transmittance + fog_color * (1.0 - sky_transmittance)) * exposure;
-    frag_color = vec4(pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
+    frag_color = vec4(srgb(c), 1.0);
 }
-"""
+""".replace("%SRGB%", _SRGB_GLSL)
 
 _ID_VS = """#version 330 core
 layout(location = 0) in vec3 position;
@@ -501,6 +561,7 @@ class Light:
     canyon: tuple = (0.0, 1.0, 1.0)
     # where the sky-view map (GLRaster.set_sky_view) lies: origin x, y (m), 1 / side (m), cell (m)
     svf_xform: tuple = (0.0, 0.0, 1.0, 1.0)
+    max_gain: float = 1.0  # how far the camera's automatic exposure may open up (auto_exposure; 1: not at all)
 
 
 _COLOR_UNIFORMS = ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "sky_ambient", "ground_ambient",
@@ -791,7 +852,8 @@ class GLRaster:
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, color_fb)
         rgba = _read_pixels(width, height, gl.GL_RGBA, gl.GL_UNSIGNED_BYTE, np.uint8, 4)
         gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)
-        return rgba[::-1, :, :3]
+        rgb = rgba[::-1, :, :3]
+        return auto_exposure(rgb, light.max_gain) if atmosphere is not None else rgb
 
     @staticmethod
     def _color_uniforms(loc: dict, VP, cam_pos, light: Light, atmosphere: dict | None, lamps: np.ndarray, shadows: bool) -> None:

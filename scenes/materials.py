@@ -26,7 +26,7 @@ import numpy as np
 from omnigen.scenes.description import Agent, Building, City, Furniture, Lighting, Material, Weather
 
 SNOW = (0.82, 0.84, 0.88)
-AGED_ASPHALT = 2.0  # aged asphalt reflects about twice what a fresh surface does (0.09 vs 0.045)
+AGED_ASPHALT = 1.7  # aged asphalt reflects more than a fresh surface does (about 0.077 vs 0.045)
 GROUND_ROLES = ("ground", "road", "sidewalk", "lawn", "marking_white", "marking_yellow")
 
 _FIXED: dict[str, Material] = {

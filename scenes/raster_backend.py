@@ -16,7 +16,8 @@ previews look like the world (issue 26; all documented approximations, docs/scen
 - light (illumination): sun, sky and ground light, the camera's exposure, and at night the
   street lamps nearest the view; the sky's light on a surface scales with the sky it sees
   (sky_view_map: a street between towers sees a third of it, a roof all of it), and the camera
-  meters the light where it looks (metered_sky_view);
+  meters the light where it looks (metered_sky_view) and then, as an automatic exposure, opens up
+  (at most AE_MAX_GAIN) for a frame whose mean is under 18% grey (gl_raster.auto_exposure);
 - contact shadows: a soft dark quad under each agent (contact_quads), colour only;
 - fog and haze: c = c_surface T + c_fog (1 - T), T = exp(-density d) with d the ray length,
   in linear colour, per fragment in the colour pass; the sky is at 2 km;
@@ -50,11 +51,14 @@ from omnigen.scenes.meshes import (agent_object, compile_scene, lamp_lights, sta
 from omnigen.scenes.seeding import frame_streams  # noqa: E402
 
 SKY_DISTANCE = 2000.0
+SKY_ZENITH, SKY_HORIZON = (0.8, 9.0 / 7.0), (2.4, 3.0 / 7.0)  # (clear, overcast) sky radiance / E_sky / pi (_sky_colors)
 CULL_MARGIN = 0.25  # metres added to an agent's bounding sphere when testing it against the view
 SHADOW_REACH = 160.0  # metres along a view ray that the sun's shadow map covers (beyond: unshadowed)
 SUN_SCALE = 0.9  # Lighting.sun_strength (Blender W/m^2) -> the shader's sun radiance
 EXPOSURE_KEY = 1.3  # the camera exposes a white horizontal surface in the frame's daylight to this
 MAX_EXPOSURE = 5.0
+CLEAR_SKY_LIGHT = 0.10  # a cloudless sky's light on a white horizontal face, in the sun's units (illumination)
+AE_MAX_GAIN = 4.0  # the camera's automatic exposure opens up at most 2 stops past the daylight exposure (gl_raster.auto_exposure)
 HORIZON_KEY = 2.2  # the exposure's cap: the horizon's sky reads at most this (white, as photographs show it; dusk's colours kept)  # at night the camera's gain stops here
 LAMP_INTENSITY = 16.0
 CONTACT_SHADOW = 0.7  # the darkening at the middle of the ground under an agent (gl_raster._DECAL_FS)
@@ -375,7 +379,7 @@ class RasterScene:
                       [0.0, -height / (2 * K[1, 1]), (height / 2 - 0.5 - K[1, 2]) / K[1, 1]],
                       [0.0, 0.0, 1.0]])
         h = np.asarray(horizon)
-        fog = 0.9 * (0.5 * h + 0.5 * _luminance(h))  # haze scatters nearly white: half the horizon's tint
+        fog = 0.5 * h + 0.5 * _luminance(h)  # haze scatters nearly white: half the horizon's tint
         return {"fog_density": float(self.scene.weather.fog_density), "fog_color": fog,
                 "zenith": zenith, "horizon": horizon, "sky_distance": SKY_DISTANCE, "ndc_to_world": R.T @ A}
 
@@ -407,7 +411,9 @@ def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
 
     Units: a white horizontal face receives E = E_sun + E_sky. The sun's radiance follows
     Lighting.sun_strength (already dimmed by cloud and by a low sun); the sky gives a clear day
-    about a fifth of its daylight and an overcast day most of it (diffuse: soft, no hard
+    about a tenth of its daylight (CLEAR_SKY_LIGHT: a cloudless sky's diffuse share of the
+    daylight is 10-15% with the sun above 30 degrees), more under scattered cloud and an overcast
+    day most of it (diffuse: soft, no hard
     shadows), tinted like the sky; the ground returns 15% of what falls on it to faces looking
     down. The exposure is a camera's: a white horizontal face in the frame's daylight reads
     EXPOSURE_KEY, but the horizon is not blown out (dusk), and at night the gain stops at
@@ -424,7 +430,7 @@ def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
     sun = max(light.sun_strength, 0.0) * (1.0 if light.sun_elevation > 0 else 0.0)
     radiance = np.asarray(_sun_color(light.sun_elevation)) * SUN_SCALE * sun
     e_sun = _luminance(radiance) * max(math.sin(math.radians(light.sun_elevation)), 0.0) / math.pi
-    e_sky = light.sky_strength * (0.15 + 0.45 * w.cloud_cover)
+    e_sky = light.sky_strength * (CLEAR_SKY_LIGHT + (0.6 - CLEAR_SKY_LIGHT) * w.cloud_cover)
     tint = 0.5 * (zenith + horizon)
     tint = 0.3 * tint / max(_luminance(tint), 1e-6) + 0.7
     sky_ambient = tint * e_sky
@@ -434,7 +440,7 @@ def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
                  ground_ambient=tuple(ground_ambient), zenith=tuple(zenith), horizon=tuple(horizon),
                  exposure=float(max(exposure, 0.2)), shadow_radius=1.0 + 8.0 * float(w.cloud_cover),
                  sun_share=e_sun / max(e_sun + e_sky, 1e-9), snow_cover=float(w.snow_cover),
-                 contact_shadow=CONTACT_SHADOW)
+                 contact_shadow=CONTACT_SHADOW, max_gain=float(min(AE_MAX_GAIN, MAX_EXPOSURE / max(exposure, 0.2))))
 
 
 def street_canyon(city) -> tuple[float, float, float]:
@@ -606,6 +612,13 @@ def _sky_colors(scene: Scene) -> tuple[tuple[float, float, float], tuple[float, 
     if -6 < light.sun_elevation < 10:  # dawn and dusk: a warm horizon
         warm = 1 - abs(light.sun_elevation - 2) / 8
         h = h * (1 - 0.5 * warm) + np.array([0.9, 0.45, 0.2]) * 0.5 * warm
+    # radiances calibrated to the sky's own light on a white horizontal face (E_sky / pi, the
+    # same units as illumination's e_sky): a clear sky's horizon about 2.4 times it, its zenith
+    # 0.8; an overcast sky follows the CIE overcast sky (L = Lz (1 + 2 sin e) / 3: Lz = 9/7, the
+    # horizon 3/7 of E / pi)
+    e_sky = CLEAR_SKY_LIGHT + (0.6 - CLEAR_SKY_LIGHT) * k
+    zr, hr = SKY_ZENITH[0] * (1 - k) + SKY_ZENITH[1] * k, SKY_HORIZON[0] * (1 - k) + SKY_HORIZON[1] * k
+    z, h = z * (zr * e_sky / _luminance(z)), h * (hr * e_sky / _luminance(h))
     z, h = z * s, h * s
     if w.kind == "fog":
         h = np.maximum(h, grey * s)
