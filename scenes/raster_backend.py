@@ -51,7 +51,7 @@ from omnigen.scenes.meshes import (agent_object, compile_scene, lamp_lights, sta
 from omnigen.scenes.seeding import frame_streams  # noqa: E402
 
 SKY_DISTANCE = 2000.0
-SKY_ZENITH, SKY_HORIZON = (0.8, 9.0 / 7.0), (2.4, 3.0 / 7.0)  # (clear, overcast) sky radiance / E_sky / pi (_sky_colors)
+SKY_ZENITH, SKY_HORIZON = (0.15, 9.0 / 7.0), (0.6, 3.0 / 7.0)  # (clear: of the daylight, overcast: of the sky's light) (_sky_colors)
 CULL_MARGIN = 0.25  # metres added to an agent's bounding sphere when testing it against the view
 SHADOW_REACH = 160.0  # metres along a view ray that the sun's shadow map covers (beyond: unshadowed)
 SUN_SCALE = 0.9  # Lighting.sun_strength (Blender W/m^2) -> the shader's sun radiance
@@ -427,10 +427,8 @@ def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
     d = np.asarray(light.sun_direction, dtype=np.float64)
     n = np.linalg.norm(d)
     direction = -d / n if n > 0 else np.array([0.0, 0.0, -1.0])
-    sun = max(light.sun_strength, 0.0) * (1.0 if light.sun_elevation > 0 else 0.0)
-    radiance = np.asarray(_sun_color(light.sun_elevation)) * SUN_SCALE * sun
-    e_sun = _luminance(radiance) * max(math.sin(math.radians(light.sun_elevation)), 0.0) / math.pi
-    e_sky = light.sky_strength * (CLEAR_SKY_LIGHT + (0.6 - CLEAR_SKY_LIGHT) * w.cloud_cover)
+    radiance = _sun_radiance(light)
+    e_sun, e_sky = daylight(scene)
     tint = 0.5 * (zenith + horizon)
     tint = 0.3 * tint / max(_luminance(tint), 1e-6) + 0.7
     sky_ambient = tint * e_sky
@@ -441,6 +439,21 @@ def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
                  exposure=float(max(exposure, 0.2)), shadow_radius=1.0 + 8.0 * float(w.cloud_cover),
                  sun_share=e_sun / max(e_sun + e_sky, 1e-9), snow_cover=float(w.snow_cover),
                  contact_shadow=CONTACT_SHADOW, max_gain=float(min(AE_MAX_GAIN, MAX_EXPOSURE / max(exposure, 0.2))))
+
+
+def _sun_radiance(light) -> np.ndarray:
+    """The sun's radiance (linear rgb): Lighting.sun_strength, warm when low, none below the horizon."""
+    sun = max(light.sun_strength, 0.0) * (1.0 if light.sun_elevation > 0 else 0.0)
+    return np.asarray(_sun_color(light.sun_elevation)) * SUN_SCALE * sun
+
+
+def daylight(scene: Scene) -> tuple[float, float]:
+    """(E_sun, E_sky): the sun's and the open sky's light on a white horizontal face (luminance,
+    illumination's units). A cloudless sky gives CLEAR_SKY_LIGHT of the sky's strength, an overcast
+    one 0.6 (most of the daylight then)."""
+    light, w = scene.lighting, scene.weather
+    e_sun = _luminance(_sun_radiance(light)) * max(math.sin(math.radians(light.sun_elevation)), 0.0) / math.pi
+    return e_sun, light.sky_strength * (CLEAR_SKY_LIGHT + (0.6 - CLEAR_SKY_LIGHT) * w.cloud_cover)
 
 
 def street_canyon(city) -> tuple[float, float, float]:
@@ -612,14 +625,17 @@ def _sky_colors(scene: Scene) -> tuple[tuple[float, float, float], tuple[float, 
     if -6 < light.sun_elevation < 10:  # dawn and dusk: a warm horizon
         warm = 1 - abs(light.sun_elevation - 2) / 8
         h = h * (1 - 0.5 * warm) + np.array([0.9, 0.45, 0.2]) * 0.5 * warm
-    # radiances calibrated to the sky's own light on a white horizontal face (E_sky / pi, the
-    # same units as illumination's e_sky): a clear sky's horizon about 2.4 times it, its zenith
-    # 0.8; an overcast sky follows the CIE overcast sky (L = Lz (1 + 2 sin e) / 3: Lz = 9/7, the
-    # horizon 3/7 of E / pi)
-    e_sky = CLEAR_SKY_LIGHT + (0.6 - CLEAR_SKY_LIGHT) * k
-    zr, hr = SKY_ZENITH[0] * (1 - k) + SKY_ZENITH[1] * k, SKY_HORIZON[0] * (1 - k) + SKY_HORIZON[1] * k
-    z, h = z * (zr * e_sky / _luminance(z)), h * (hr * e_sky / _luminance(h))
-    z, h = z * s, h * s
+    # luminances calibrated to the light on a white horizontal face, in illumination's units: a
+    # clear sky's horizon reads SKY_HORIZON[0] of the daylight E = E_sun + E_sky (photographs show
+    # it near white where sunlit asphalt, under a tenth of E, reads mid-grey: KITTI's clear skies
+    # saturate), its zenith SKY_ZENITH[0]; with no sun
+    # (twilight) at least 2.4 and 0.8 times the sky's own light. An overcast sky is the CIE
+    # overcast sky, L = Lz (1 + 2 sin e) / 3 with E_sky / pi = 7/9 Lz: its zenith 9/7 of E_sky,
+    # its horizon 3/7. Haze takes the horizon's radiance (_atmosphere).
+    e_sun, e_sky = daylight(scene)
+    zl = (1 - k) * max(SKY_ZENITH[0] * (e_sun + e_sky), 0.8 * e_sky) + k * SKY_ZENITH[1] * e_sky
+    hl = (1 - k) * max(SKY_HORIZON[0] * (e_sun + e_sky), 2.4 * e_sky) + k * SKY_HORIZON[1] * e_sky
+    z, h = z * (zl / _luminance(z)), h * (hl / _luminance(h))
     if w.kind == "fog":
         h = np.maximum(h, grey * s)
     return tuple(np.clip(z, 0.003, 1).tolist()), tuple(np.clip(h, 0.005, 1).tolist())
