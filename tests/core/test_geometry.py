@@ -30,7 +30,7 @@ from omnigen.geometry import (
     self_occluded_corners_batch,
 )
 
-REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+REALDATA = Path(__file__).resolve().parents[2].parent / "shared" / "realdata"
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:

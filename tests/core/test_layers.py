@@ -16,7 +16,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PACKAGE_DIRS = {"omnigen": "omnigen", "scenes": "omnigen.scenes", "rigs": "omnigen.rigs",
                 "converters": "omnigen.converters", "detector": "omnigen.detector"}
 PARTS = ("omnigen.scenes", "omnigen.rigs", "omnigen.converters", "omnigen.detector")

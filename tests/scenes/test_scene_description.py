@@ -20,7 +20,7 @@ from omnigen.scenes.seeding import city_rng, frame_rng
 from omnigen.scenes.shapes import rect_polygon
 from omnigen.scenes.weather import draw_lighting, draw_weather, solar_position
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def footprint(a) -> Polygon:

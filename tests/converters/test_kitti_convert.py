@@ -25,7 +25,7 @@ from omnigen.dataset import Dataset
 from omnigen.formats.kitti import camera_offset_from_projection, kitti_alpha, kitti_file_names
 from omnigen.geometry import self_occluded_corners
 
-REALDATA = Path(__file__).parents[1].parent / "shared" / "realdata"
+REALDATA = Path(__file__).parents[2].parent / "shared" / "realdata"
 REAL_KITTI = REALDATA / "kitti"
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from benchmarks.bench_adherence_floor import floor_rows, truth_as_predictions  # noqa: E402
 from omnigen.fakes import write_fake_dataset  # noqa: E402

@@ -24,7 +24,7 @@ from omnigen.cli import main
 from omnigen.dataset import Dataset
 from omnigen.geometry import is_rotation
 
-REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+REALDATA = Path(__file__).resolve().parents[2].parent / "shared" / "realdata"
 REAL_LABEL = REALDATA / "dair-v2x-c" / "infrastructure-side" / "label" / "virtuallidar" / "001366.json"
 
 CORNER_SIGNS = [(1, 1, 1), (1, -1, 1), (-1, -1, 1), (-1, 1, 1), (1, 1, -1), (1, -1, -1), (-1, -1, -1), (-1, 1, -1)]

@@ -21,7 +21,7 @@ from shapely.geometry import Polygon
 from omnigen.detector import kitti_eval as ke
 from omnigen.detector import kitti_eval_command
 
-REAL_LABELS = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "kitti" / "training" / "label_2"
+REAL_LABELS = Path(__file__).resolve().parents[2].parent / "shared" / "realdata" / "kitti" / "training" / "label_2"
 
 
 # ---------------------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ import pytest
 
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_throughput_benchmark_prints_each_stage_and_ends_with_end_to_end():
