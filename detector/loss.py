@@ -17,6 +17,7 @@ import torch.nn.functional as F
 
 from omnigen.detector.assign import TaskAlignedAssigner
 from omnigen.detector.boxes import bbox2dist, box_area, box_ciou
+from omnigen.detector.heading import heading_loss, image_heading
 from omnigen.detector.outputs import REG_MAX, HeadOutput, decode_boxes, head_keypoints
 from omnigen.conventions import NUM_KEYPOINTS, TURN_IDX
 
@@ -49,9 +50,10 @@ class LossGains:
     # that makes the branch's own choice of order the labelled one wherever the image tells the
     # front (turn_targets); 0: the branch picks an order freely, and the turn class learns all of it
     kpt_labelled: float = 0.0
+    heading: float = 1.0  # 1 - cosine of a heading-aware head's image heading (heading.py); no term without one
 
 
-PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn", "kpt_labelled")
+PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn", "kpt_labelled", "heading")
 
 _TURN = list(TURN_IDX)
 
@@ -213,7 +215,8 @@ class DetectionLoss:
         # Float32 whatever the autocast dtype: IoU^6 and exp(-e) underflow in half precision.
         out = HeadOutput(box=out.box.float(), cls=out.cls.float(), kpt=out.kpt.float(),
                          anchors=out.anchors.float(), strides=out.strides.float(), kpt_mode=out.kpt_mode,
-                         turn=None if out.turn is None else out.turn.float())
+                         turn=None if out.turn is None else out.turn.float(),
+                         heading=None if out.heading is None else out.heading.float())
         gt = pad_targets(targets, b)
 
         cls_logits = out.cls.transpose(1, 2)  # (B, A, nc)
@@ -239,18 +242,23 @@ class DetectionLoss:
         area = box_area(targets["bboxes"].to(kpts.dtype)[obj])
         kpt_gt = targets["keypoints"].to(kpts.dtype)[obj]
         vis_gt = targets["kpt_visible"].to(kpts.dtype)[obj]
-        turn_loss = kpt_labelled = kpts.new_zeros(())
-        if out.turn is not None:
+        turn_loss = kpt_labelled = heading_loss_ = kpts.new_zeros(())
+        if out.turn is not None or out.heading is not None:
             if self.gains.kpt_labelled:
                 kpt_labelled = oks_keypoint_loss(kpts[..., :2], kpt_gt, kmask, area, sigma=self.kpt_sigma)
+            if out.heading is not None:
+                # the target is the labelled corners' own image heading: fixed, whatever order the
+                # branch predicts (a turn logit's target is not: it is the branch's own choice)
+                heading_loss_ = heading_loss(out.heading[bi, :, ai], image_heading(kpt_gt, area, kmask))
             turned = turn_targets(kpts[..., :2].detach(), kpt_gt, kmask, area) if self.turn_free \
                 else torch.zeros(len(obj), dtype=torch.bool, device=device)  # (N,)
             kpt_gt = torch.where(turned[:, None, None], kpt_gt[:, _TURN], kpt_gt)
             kmask = torch.where(turned[:, None], kmask[:, _TURN], kmask)
             vis_gt = torch.where(turned[:, None], vis_gt[:, _TURN], vis_gt)
-            # mean over the positive anchor-object pairs (their count is a shape, known on the host)
-            turn_loss = F.binary_cross_entropy_with_logits(out.turn[bi, ai], turned.to(kpts.dtype),
-                                                           reduction="sum") / max(len(obj), 1)
+            if out.turn is not None:
+                # mean over the positive anchor-object pairs (their count is a shape, known on the host)
+                turn_loss = F.binary_cross_entropy_with_logits(out.turn[bi, ai], turned.to(kpts.dtype),
+                                                               reduction="sum") / max(len(obj), 1)
         kpt_loss = oks_keypoint_loss(kpts[..., :2], kpt_gt, kmask, area, sigma=self.kpt_sigma)
         kpt_l1 = keypoint_l1_loss(kpts[..., :2], kpt_gt, kmask, area)
         vis_target = torch.where(kmask, vis_gt, torch.zeros_like(kpts[..., 2]))
@@ -258,7 +266,7 @@ class DetectionLoss:
                      ).sum() / kmask.sum().clamp(min=1)
 
         parts_t = {"box": box_loss, "dfl": dfl_loss, "cls": cls_loss, "kpt": kpt_loss, "kvis": kvis_loss, "kpt_l1": kpt_l1,
-                   "turn": turn_loss, "kpt_labelled": kpt_labelled}
+                   "turn": turn_loss, "kpt_labelled": kpt_labelled, "heading": heading_loss_}
         gains = asdict(self.gains)
         total = sum(gains[k] * parts_t[k] for k in PARTS)
         # detached 0-dim tensors, not floats: a float() per part would wait for the device six

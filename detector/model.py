@@ -55,6 +55,7 @@ class DetectorConfig:
     kpt_mode: str = "anchor"  # how corners decode: offsets from the anchor, or in units of the box (outputs.py)
     kpt_turn: bool = False  # corners learned up to the 180-degree turn, the turn a class of its own (loss.py)
     kpt_hidden: int | None = None  # keypoint-branch width; None: max(stride-8 width / 4, 24) as Ultralytics' pose head
+    kpt_heading: bool = False  # corners up to the turn, the front read from a regressed image heading (heading.py)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -65,6 +66,8 @@ class DetectorConfig:
                              f"known backbones: {', '.join(sorted(BACKBONES))}")
         if self.scale not in SCALE_NAMES:
             raise ValueError(f"DetectorConfig.scale: {self.scale!r} is not one of {', '.join(SCALE_NAMES)}")
+        if self.kpt_turn and self.kpt_heading:
+            raise ValueError("DetectorConfig: kpt_turn and kpt_heading both say which face is the front; choose one")
         if not isinstance(self.num_classes, int) or self.num_classes < 1:
             raise ValueError(f"DetectorConfig.num_classes: must be a positive integer, got {self.num_classes!r}")
         if self.width is not None and not self.width > 0:
@@ -118,7 +121,7 @@ class KeypointDetector(nn.Module):
         self.neck = PAN(self.backbone.channels, self.strides, cfg.backbone, width, depth, max_channels, heavy)
         chans = [self.neck.out_channels[s] for s in self.strides]
         self.head = KeypointHead(chans, self.strides, cfg.num_classes, self.neck.out_channels[8], cfg.reg_max,
-                                 cfg.kpt_mode, cfg.kpt_turn, cfg.kpt_hidden)
+                                 cfg.kpt_mode, cfg.kpt_turn, cfg.kpt_hidden, cfg.kpt_heading)
 
     def forward(self, images: torch.Tensor) -> HeadOutput:
         top = self.strides[-1]

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from omnigen.conventions import NUM_KEYPOINTS, TURN_IDX
+from omnigen.detector.heading import image_heading
 
 REG_MAX = 16
 """Bins of the distribution focal loss: each box side is a distribution over 0..REG_MAX-1 strides."""
@@ -34,6 +35,7 @@ class HeadOutput:
     strides: torch.Tensor  # (A,) stride of each anchor's level
     kpt_mode: str = "anchor"  # KPT_MODES: how `kpt` decodes (decode_keypoints)
     turn: torch.Tensor | None = None  # (B, A) logit that the corners are turned 180 degrees (turn-aware heads)
+    heading: torch.Tensor | None = None  # (B, 3, A) direction of the image heading (heading-aware heads, heading.py)
 
     @property
     def num_classes(self) -> int:
@@ -109,14 +111,26 @@ def apply_turn(k: torch.Tensor, turn: torch.Tensor) -> torch.Tensor:
     return torch.where((turn > 0)[:, None, None, :], turned, k)
 
 
+def apply_heading(k: torch.Tensor, heading: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+    """Corners (B, K, C, A) put in the labelled order by a heading-aware head: the layout as the
+    branch ordered it has an image heading (heading.image_heading, on the decoded boxes' areas);
+    where it points away from the predicted heading (B, 3, A), the front is the other face."""
+    xy = k[:, :, :2].permute(0, 3, 1, 2)  # (B, A, K, 2)
+    area = ((boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])).clamp(min=1.0)  # (B, A)
+    agree = (image_heading(xy, area) * heading.transpose(1, 2)).sum(-1)  # (B, A)
+    return torch.where((agree < 0)[:, None, None, :], k[:, list(TURN_IDX)], k)
+
+
 def decode(out: HeadOutput) -> torch.Tensor:
     """The inference tensor (B, 4 + nc + NUM_KEYPOINTS * 3, A): xyxy box, class scores (sigmoid),
     and per corner x, y, visibility score (sigmoid), corners in the labelled order (a turn-aware
-    head's turn applied). NMS is applied outside (detector/nms.py)."""
+    head's turn, a heading-aware head's heading applied). NMS is applied outside (detector/nms.py)."""
     boxes = decode_boxes(out.box, out.anchors, out.strides)
     scores = out.cls.sigmoid()
     k = head_keypoints(out, boxes)
     if out.turn is not None:
         k = apply_turn(k, out.turn)
+    if out.heading is not None:
+        k = apply_heading(k, out.heading, boxes)
     k = torch.cat([k[:, :, :2], k[:, :, 2:].sigmoid()], 2)
     return torch.cat([boxes, scores, k.flatten(1, 2)], 1)

@@ -442,3 +442,108 @@ def test_turn_aware_loss_compares_as_labelled_until_freed():
     loss_fn.turn_free = True
     _, freed = loss_fn(out, _targets())
     assert freed["turn"] < parts["turn"] - 0.5  # some positives' corners fit the turned order
+
+
+def _side_view_corners() -> torch.Tensor:
+    """A car seen square from its side, front to the image right, both faces the same size: front
+    corners at x 80-84, rear at x 20-24, top y 30, bottom y 60."""
+    kp = torch.zeros(8, 2)
+    kp[[0, 1, 4, 5], 0] = torch.tensor([80.0, 84, 80, 84])
+    kp[[3, 2, 7, 6], 0] = torch.tensor([20.0, 24, 20, 24])
+    kp[:4, 1], kp[4:, 1] = 30.0, 60.0
+    return kp
+
+
+def test_image_heading_is_fixed_by_the_labelled_corners_and_flips_with_the_turn():
+    from omnigen.conventions import TURN_IDX
+    from omnigen.detector.heading import image_heading
+
+    kp = _side_view_corners()
+    area = torch.tensor(64.0 * 30.0)
+    h = image_heading(kp, area)
+    assert h.tolist() == pytest.approx([60.0 / math.sqrt(1920.0), 0.0, 0.0], abs=1e-6)  # front to the right, same size
+    assert torch.allclose(image_heading(kp[list(TURN_IDX)], area), -h)  # the same points, turned: -h
+    # facing the camera: the front face larger than the rear one -> a positive third component
+    near = kp.clone()
+    near[[0, 1, 4, 5], 1] = torch.tensor([20.0, 20, 70, 70])
+    assert image_heading(near, area)[2] > 0 and image_heading(near[list(TURN_IDX)], area)[2] < 0
+    # a face with no labelled corner gives no target; NaN in unlabelled corners does not leak
+    mask = torch.ones(8, dtype=torch.bool)
+    mask[[0, 1, 4, 5]] = False
+    hidden = kp.clone()
+    hidden[[0, 1, 4, 5]] = float("nan")
+    assert image_heading(hidden, area, mask).tolist() == [0.0, 0.0, 0.0]
+
+
+def test_heading_loss_is_one_minus_cosine_over_objects_with_a_target():
+    from omnigen.detector.heading import heading_loss
+
+    target = torch.tensor([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 0.0]])  # the last has no target
+    assert float(heading_loss(target * 3, target)) == pytest.approx(0.0, abs=1e-6)
+    assert float(heading_loss(-target, target)) == pytest.approx(2.0, abs=1e-6)
+    pred = torch.tensor([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [5.0, 5.0, 5.0]])
+    assert float(heading_loss(pred, target)) == pytest.approx(0.5, abs=1e-6)  # (1 + 0) / 2
+
+
+def test_heading_aware_loss_targets_do_not_depend_on_the_predicted_order():
+    """The turn logit's target is whichever order the corners fit; the heading's is the labelled
+    corners' own: turning the predicted corners leaves the heading loss as it was."""
+    from omnigen.conventions import TURN_IDX
+
+    a = _anchors()[0].shape[0]
+    loss_fn = DetectionLoss(3, gains=LossGains(box=0, dfl=0, cls=0, kvis=0, kpt=6.0))
+    out = _head(2, 3, a)
+    out.heading = torch.randn(2, 3, a, generator=torch.Generator().manual_seed(3), requires_grad=True)
+    total, parts = loss_fn(out, _targets())
+    total.backward()
+    assert 0 < parts["heading"] < 2 and out.heading.grad.abs().sum() > 0 and parts["turn"] == 0
+    turned = _reordered(out, TURN_IDX)
+    _, parts_t = loss_fn(turned, _targets())
+    assert parts_t["heading"] == pytest.approx(float(parts["heading"]), abs=1e-6)
+
+
+def _reordered(out, order):
+    from dataclasses import replace
+
+    k = out.kpt.detach().view(out.kpt.shape[0], 8, 3, -1)[:, list(order)].reshape(out.kpt.shape)
+    return replace(out, kpt=k, heading=out.heading.detach())
+
+
+def test_heading_aware_model_decodes_in_the_labelled_order():
+    """The heading rides in the keypoint branch's channels 24-26; decode turns the layout wherever
+    the layout's own image heading points against the predicted one."""
+    from dataclasses import replace
+
+    from omnigen.conventions import TURN_IDX
+    from omnigen.detector.heading import image_heading
+    from omnigen.detector.model import DetectorConfig, KeypointDetector
+    from omnigen.detector.outputs import apply_heading, decode, decode_boxes, head_keypoints
+
+    with pytest.raises(ValueError, match="kpt_turn and kpt_heading"):
+        DetectorConfig(kpt_turn=True, kpt_heading=True)
+    cfg = DetectorConfig(width=0.0625, depth=0.33, max_channels=64, num_classes=3, kpt_heading=True)
+    model = KeypointDetector(cfg).eval()
+    with torch.no_grad():
+        out = model(torch.rand(1, 3, 64, 64))
+        assert out.heading is not None and out.heading.shape == (1, 3, out.cls.shape[2]) and out.kpt.shape[1] == 24
+        boxes = decode_boxes(out.box, out.anchors, out.strides)
+        k = head_keypoints(out, boxes)
+        area = ((boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])).clamp(min=1.0)
+        own = image_heading(k[:, :, :2].permute(0, 3, 1, 2), area).transpose(1, 2)  # (1, 3, A)
+        agree, disagree = decode(replace(out, heading=own)), decode(replace(out, heading=-own))
+        plain = decode(replace(out, heading=None))
+    k_a, k_d, k_p = (t[:, 7:].view(1, 8, 3, -1) for t in (agree, disagree, plain))
+    assert torch.equal(k_a, k_p) and torch.equal(k_d, k_p[:, list(TURN_IDX)])
+    assert torch.equal(apply_heading(k, own, boxes), k)
+
+
+def test_free_heading_aware_head_learns_corners_and_heading():
+    """Adam on raw head tensors with a heading: corners converge up to the turn and the heading to
+    its fixed target."""
+    torch.manual_seed(0)
+    a = _anchors()[0].shape[0]
+    out = _head(2, 3, a, kpt_mode="box")
+    out.heading = torch.zeros(2, 3, a).normal_(0, 0.1).requires_grad_(True)
+    _, first_parts, _, parts = _fit(out, DetectionLoss(3, gains=LossGains(kpt_l1=2.0)),
+                                    [out.box, out.cls, out.kpt, out.heading])
+    assert parts["kpt"] < 0.2 * first_parts["kpt"] and parts["heading"] < 0.05
