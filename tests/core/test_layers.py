@@ -158,6 +158,29 @@ def test_the_detector_imports_no_converter():
     assert not found, f"detector modules that import a converter: {found}"
 
 
+# the parts each part may import besides itself and the core (docs/architecture.md draws them)
+PART_BENEATH = {
+    "omnigen.scenes": set(),
+    "omnigen.rigs": {"omnigen.scenes"},  # a rig draws its camera in a generated city and renders it
+    "omnigen.converters": set(),
+    "omnigen.detector": set(),
+}
+
+
+def test_parts_import_only_the_parts_beneath_them():
+    found = {}
+    for module, (path, source) in MODULES.items():
+        part = next((p for p in PARTS if _within(module, (p,))), None)
+        if part is None:
+            continue
+        allowed = (part,) + tuple(PART_BENEATH[part])
+        bad = sorted(n for n in part_imports(source, module, path.name == "__init__.py") if not _within(n, allowed))
+        if bad:
+            found[str(path.relative_to(ROOT))] = bad
+    assert not found, f"part modules that import a part above or beside them: {found}"
+    assert set(PART_BENEATH) == set(PARTS)
+
+
 def test_bpy_is_imported_by_the_blender_backend_only():
     users = sorted(module for module, (path, source) in MODULES.items()
                    if any(_within(n, ("bpy",)) for n in imports(source, module, path.name == "__init__.py")))

@@ -1,6 +1,6 @@
 """scenes/placement.py: every class a city has (trams, tricyclists, barrows, cones singly, in
 lines and around work zones), counted from the preset's [agents]; the placement rules hold for
-them; the issue's class figure (scenes/class_mix.py) at the scene level."""
+them; the issue's class figure (rigs/class_mix.py) at the scene level."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 from shapely.geometry import LineString, Polygon
 from shapely.ops import unary_union
 
-from omnigen.scenes.class_mix import class_counts
+from omnigen.rigs.class_mix import class_counts
 from omnigen.scenes.description import to_json
 from omnigen.scenes.generate import SceneGenerator
 from omnigen.scenes.placement import place_agents

@@ -2,7 +2,7 @@
 ("10 frames, 6 drone + 4 pole, 320 x 240, raster, default preset: at least 6 classes including
 traffic cones; median car length 3.6-4.9 m; pedestrians 1.5-1.95 m tall").
 
-    from omnigen.scenes.class_mix import class_counts
+    from omnigen.rigs.class_mix import class_counts
     mix = class_counts("downtown", seeds=(0,))               # geometry only: no renderer, ~1 s
     mix = class_counts("downtown", seeds=(0,), render=True)   # the raster frames' annotations
     print(mix.table())
