@@ -12,7 +12,7 @@ import pytest
 
 from benchmarks import bench_realism as br
 
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+REALDATA = Path(__file__).resolve().parents[3] / "shared" / "realdata"
 
 
 def grey(values: np.ndarray) -> np.ndarray:
