@@ -1,7 +1,7 @@
 """Accuracy and speed of the calibration-free BEV head on random synthetic frames (seeded).
 
 Each frame: a camera 5-10 m up pitched 15-35 degrees down (hfov 60-90, 1280x720) and six boxes
-(cars, trucks, buses) fully in view with random headings, 8-45 m ahead (tests/test_bev.py's
+(cars, trucks, buses) fully in view with random headings, 8-45 m ahead (tests/detector/test_bev.py's
 `synthetic_frame`). Per frame the head sees the exact or noisy (Gaussian, sigma 2 px) corners 4-7.
 
 - right-angle error: median over the frame's footprints of each one's largest |angle - 90 deg|,

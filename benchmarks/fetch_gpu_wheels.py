@@ -11,7 +11,7 @@ installs from this folder, with `--no-index --no-deps`, only the distributions i
 
 What is fetched, and why exactly this:
 - NEEDS: the distributions that the commands gpu_validate runs (render --backend raster, convert
-  kitti, merge, train, eval) import, read off the code (ENTRY_MODULES; tests/test_gpu_validate.py
+  kitti, merge, train, eval) import, read off the code (ENTRY_MODULES; tests/benchmarks/test_gpu_validate.py
   imports them and checks that NEEDS and the image's packages cover every distribution they load,
   and that NEEDS holds nothing they do not), less what the machine's image already has (IMAGE_HAS,
   or --have). Versions are constraints.txt's (those the tests ran with), except PyOpenGL: the

@@ -107,7 +107,7 @@ def mentions(command: str, folder: Path) -> bool:
     return re.search(re.escape(str(folder)) + r"(?=[/ ,)]|$)", command) is not None
 
 
-# train flags that change how fast a run learns, not what it learns (tests/test_detector_train.py
+# train flags that change how fast a run learns, not what it learns (tests/detector/test_detector_train.py
 # checks that the image cache trains the same weights): a run done without them is not redone with them
 SAME_WEIGHTS = ("--cache",)
 

@@ -1,6 +1,6 @@
 """Synthetic BEV frames with known ground truth, and the similarity-aligned accuracy measures.
 
-Shared by tests/test_bev.py and benchmarks/bench_bev.py: a pitched pinhole camera above a flat
+Shared by tests/detector/test_bev.py and benchmarks/bench_bev.py: a pitched pinhole camera above a flat
 ground, boxes with known footprints projected exactly by omnigen.geometry, and the Umeyama
 alignment that compares a BEV (known only up to a similarity) with the true ground coordinates.
 """

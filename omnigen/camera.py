@@ -93,6 +93,22 @@ def world_to_opencv_camera(camera_to_world_blender: np.ndarray) -> tuple[np.ndar
     return r, -r @ c
 
 
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of an OpenCV camera at `eye` looking at `target`, image up along the world's `up`
+    (the contract's world is z up): for placing a camera by hand, in tests and figures."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up, float))
+    norm = np.linalg.norm(x)
+    if norm < 1e-9:
+        raise ValueError("look_at: the view direction is parallel to `up`; give another up vector")
+    x /= norm
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return R, -R @ eye
+
+
 def _frozen(a, shape: tuple[int, ...], name: str) -> np.ndarray:
     """A read-only float64 copy of `a` in `shape`: a frozen camera's arrays cannot be changed
     behind its back (the raster backend keys its per-camera cache on their bytes)."""

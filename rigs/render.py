@@ -161,7 +161,7 @@ class CyclesBackend:
     Labels come from the raster backend's id pass over the very same geometry (compile_scene's
     objects, the same camera; `labels="gl"`) or from Cycles' own one-sample label passes
     (`labels="cycles"`). Both sample each pixel at its centre, so they agree but for ties on
-    exact edges (tests/test_render_cycles.py checks the two against each other). The GL passes
+    exact edges (tests/rigs/test_render_cycles.py checks the two against each other). The GL passes
     cost milliseconds where each Cycles pass costs a render session; "auto" uses GL when a
     headless context can be made, else Cycles.
     """

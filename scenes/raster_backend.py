@@ -42,8 +42,8 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 
 from omnigen.scenes.description import Scene  # noqa: E402
-from omnigen.geometry import cuboid_corners, rots_z  # noqa: E402
 from omnigen.camera import Camera  # noqa: E402
+from omnigen.geometry import cuboid_corners, rots_z  # noqa: E402
 from omnigen.scenes.gl_raster import MAX_LAMPS, SHADOW_SIZE, ZFAR, ZNEAR, GLRaster, Light  # noqa: E402
 from omnigen.scenes.materials import PATTERNS, agent_surface, building_surface, furniture_surface, ground_surface  # noqa: E402
 from omnigen.scenes.meshes import (agent_object, compile_scene, lamp_lights, static_materials, static_objects,  # noqa: E402

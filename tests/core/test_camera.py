@@ -164,3 +164,16 @@ def test_camera_is_frozen_and_checked():
     c2 = Camera.from_fov(math.radians(60), R, t, 160, 120)
     np.testing.assert_array_equal(c2.K, intrinsics_from_fov(math.radians(60), 160, 120))
     assert c2.K[0, 0] == pytest.approx(80 / math.tan(math.radians(30)))
+
+
+def test_look_at_puts_the_target_on_the_optical_axis_with_the_world_up_on_screen_up():
+    from omnigen.camera import look_at
+
+    R, t = look_at((10.0, -20.0, 15.0), (1.0, 2.0, 0.0))
+    assert np.allclose(R @ R.T, np.eye(3)) and np.linalg.det(R) == pytest.approx(1.0)
+    target_cam = R @ np.array([1.0, 2.0, 0.0]) + t
+    assert np.allclose(target_cam[:2], 0.0, atol=1e-9) and target_cam[2] > 0
+    above = R @ np.array([1.0, 2.0, 5.0]) + t  # a point above the target is higher in the image: -y
+    assert above[1] < 0
+    with pytest.raises(ValueError, match="parallel"):
+        look_at((0.0, 0.0, 10.0), (0.0, 0.0, 0.0))

@@ -10,7 +10,7 @@ import pytest
 import shapely
 from shapely.geometry import MultiPoint
 
-from omnigen.camera import Camera, intrinsics_from_fov
+from omnigen.camera import Camera, intrinsics_from_fov, look_at
 from omnigen.geometry import Box3D, rot_z, silhouette
 from omnigen.scenes.generate import FrameOverrides, SceneGenerator
 
@@ -19,18 +19,6 @@ pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 raster = pytest.importorskip("omnigen.scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
 
 W, H = 160, 120
-
-
-def look_at(eye, target):
-    """(R, t) of an OpenCV camera at `eye` looking at `target`, world z up."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return R, -R @ eye
 
 
 @pytest.fixture(scope="module")

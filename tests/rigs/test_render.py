@@ -184,7 +184,7 @@ def test_visible_untruncated_boxes_match_masks(datasets):
                     continue  # a few pixels: the 1-px rasterisation dominates
                 if o.category not in VEHICLES:
                     continue  # a rider seen end-on and off-axis fills half its cuboid's projected width
-                # A gross misalignment check, not a tightness one (tests/test_assets_shapes.py checks the
+                # A gross misalignment check, not a tightness one (tests/scenes/test_assets_shapes.py checks the
                 # cuboid is the mesh's tight box): a car's bonnet and narrower roof leave its cuboid's
                 # corners empty. Measured once (a throwaway script, 30 tiny-city frames per rig, seed 9,
                 # 128x96): vehicles of >= 100 px had a smallest IoU of 0.574 with the boxy assets of
