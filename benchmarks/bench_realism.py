@@ -243,20 +243,22 @@ def kitti_objects(root: Path) -> Objects:
     return objs
 
 
-def dair_objects(root: Path) -> Objects:
-    """DAIR-V2X label objects by fine class (case-insensitive names; numbers may be strings);
-    distance of the box centre from the virtual-LiDAR origin."""
-    from omnigen.conventions import DAIR_CLASSES
+def dair_labels(root: Path) -> list:
+    """Every known-class object of the DAIR-V2X label files under `root` (each *.json, sorted), read
+    by the converter (omnigen.converters.dair.parse_label: case-insensitive classes, numbers that
+    may be strings, the same checks), so that the DAIR-V2X format is read in one place. Each is a
+    LabelObject in the virtual-LiDAR frame: box centre, [l, w, h], yaw about +z
+    (omnigen.formats.dair's convention)."""
+    from omnigen.converters.dair import parse_label, read_json
 
+    return [o for p in sorted(root.rglob("*.json")) for o in parse_label(read_json(p), p).objects]
+
+
+def dair_objects(root: Path) -> Objects:
+    """DAIR-V2X label objects by fine class; distance of the box centre from the virtual-LiDAR origin."""
     objs = Objects("dair-v2x", note="distance from the virtual-LiDAR origin (no calibration in the sample)")
-    for p in sorted(root.rglob("*.json")):
-        for o in json.loads(p.read_text()):
-            cat = DAIR_CLASSES.get(str(o.get("type", "")).strip().lower())
-            if cat is None:
-                continue
-            d, loc = o["3d_dimensions"], o["3d_location"]
-            objs.add(cat, (float(d["l"]), float(d["w"]), float(d["h"])),
-                     math.sqrt(sum(float(loc[k]) ** 2 for k in "xyz")))
+    for o in dair_labels(root):
+        objs.add(o.category, o.lwh, math.sqrt(sum(float(v) ** 2 for v in o.center)))
     return objs
 
 

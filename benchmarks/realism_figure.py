@@ -136,18 +136,10 @@ def ground_view(record: dict) -> list[tuple[str, float, float, float, float, flo
 
 
 def dair_view(root: Path) -> list[tuple[str, float, float, float, float, float]]:
-    """The DAIR-V2X label's objects from above in the virtual-LiDAR frame (x forward, y left)."""
-    from omnigen.conventions import DAIR_CLASSES
-
-    out = []
-    for p in sorted(root.rglob("*.json")):
-        for o in json.loads(p.read_text()):
-            cat = DAIR_CLASSES.get(str(o.get("type", "")).strip().lower())
-            if cat is None:
-                continue
-            d, loc = o["3d_dimensions"], o["3d_location"]
-            out.append((cat, float(loc["x"]), float(loc["y"]), float(o["rotation"]), float(d["l"]), float(d["w"])))
-    return out
+    """The DAIR-V2X label's objects from above in the virtual-LiDAR frame (x forward, y left; the yaw
+    about +z, 0 along +x, as omnigen.formats.dair reads it), by bench_realism's (the converter's) reading."""
+    return [(o.category, float(o.center[0]), float(o.center[1]), o.yaw, float(o.lwh[0]), float(o.lwh[1]))
+            for o in br.dair_labels(root)]
 
 
 def draw_top(ax, objs, fill: bool, label: str) -> None:
