@@ -354,14 +354,15 @@ def real_sources(realdata: Path) -> tuple[Path | None, Path | None, list[str]]:
 # ---------------------------------------------------------------------------------------------
 
 
-def class_summary(objs: Objects, scenes: list[str]) -> dict:
-    """Issue 26's class figure from the objects of its 10 frames: the classes and their counts,
-    whether cones are among them, the median car length, the pedestrian height range, and whether
-    all of it meets the targets (>= 6 classes with cones, 3.6-4.9 m, 1.5-1.95 m)."""
-    counts = {c: objs.category.count(c) for c in sorted(set(objs.category))}
-    cars, peds = objs.values("car length"), objs.values("ped. height")
-    car_med = float(np.median(cars)) if len(cars) else None
-    ped = (float(peds.min()), float(peds.max())) if len(peds) else None
+def class_summary(mix, scenes: list[str]) -> dict:
+    """Issue 26's class figure from the class mix of its 10 frames (omnigen.rigs.class_mix.ClassMix):
+    the classes and their counts, whether cones are among them, the median car length, the
+    pedestrian height range, and whether all of it meets the targets (>= 6 classes with cones,
+    3.6-4.9 m, 1.5-1.95 m)."""
+    counts = {c: mix.objects[c] for c in mix.classes}
+    car_med = None if mix.median_car_length is None else float(mix.median_car_length)
+    peds = mix.pedestrian_heights
+    ped = (float(min(peds)), float(max(peds))) if peds else None
     ok = (len(counts) >= MIN_CLASSES and "traffic_cone" in counts and car_med is not None
           and CAR_LENGTH_RANGE[0] <= car_med <= CAR_LENGTH_RANGE[1] and ped is not None
           and PED_HEIGHT_RANGE[0] <= ped[0] and ped[1] <= PED_HEIGHT_RANGE[1])
@@ -371,17 +372,23 @@ def class_summary(objs: Objects, scenes: list[str]) -> dict:
 
 
 def class_figure(work: Path, seed: int, stamp: str, scene: str | None) -> dict:
-    """Issue 26's class figure on 6 drone + 4 pole frames at 320x240 (raster, default preset)."""
-    objs = Objects("classes")
+    """Issue 26's class figure on 6 drone + 4 pole frames at 320x240 (raster, default preset).
+
+    The frames are this benchmark's own `omnigen render` runs (kept in the work folder and reused,
+    like the rig renders); their records are counted by class_mix's ClassMix, the same counting
+    as `class_counts(render=True)` applies to the renders it makes (and throws away) itself."""
+    from omnigen.rigs.class_mix import ClassMix
+
+    mix = ClassMix(how="raster render")
     scenes = set()
     for rig, n in CLASS_FRAMES.items():
         ds = render(rig, work / f"classes-{rig}-{n}-{CLASS_SIZE[0]}x{CLASS_SIZE[1]}-s{seed}", n, *CLASS_SIZE, seed,
                     stamp, scene)
         scenes.add(dataset_scene(ds))
-        o = synthetic_objects(rig, ds)
-        for c, d, r in zip(o.category, o.dims, o.distance):
-            objs.add(c, d, r)
-    return class_summary(objs, sorted(scenes))
+        for p in sorted((ds / "records").glob("*.json")):
+            objs = json.loads(p.read_text())["objects"]
+            mix.add_frame([o["category"] for o in objs], [tuple(o["box3d"]["dims"]) for o in objs])
+    return class_summary(mix, sorted(scenes))
 
 
 def class_line(cf: dict) -> str:

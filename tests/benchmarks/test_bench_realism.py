@@ -80,14 +80,14 @@ def test_colourfulness_is_zero_for_grey_and_grows_with_colour():
 
 
 def _objects(cars, peds, extra=()):
-    o = br.Objects("t")
-    for l in cars:
-        o.add("car", (l, 1.8, 1.5), 10.0)
-    for h in peds:
-        o.add("pedestrian", (0.6, 0.6, h), 10.0)
-    for c in extra:
-        o.add(c, (1.0, 1.0, 1.0), 10.0)
-    return o
+    """One frame's class mix: cars of the given lengths, pedestrians of the given heights, and one
+    object of each extra class."""
+    from omnigen.rigs.class_mix import ClassMix
+
+    mix = ClassMix()
+    mix.add_frame(["car"] * len(cars) + ["pedestrian"] * len(peds) + list(extra),
+                  [(l, 1.8, 1.5) for l in cars] + [(0.6, 0.6, h) for h in peds] + [(1.0, 1.0, 1.0)] * len(extra))
+    return mix
 
 
 def test_class_summary_meets_the_targets_only_when_all_hold():
