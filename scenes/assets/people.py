@@ -48,14 +48,26 @@ def _knee(hip: np.ndarray, foot: np.ndarray, thigh: float, shank: float) -> np.n
     return hip + thigh * (math.cos(g) * u + math.sin(g) * n)
 
 
+def _stride_angle(span: float, leg_len: float, foot_len: float, max_deg: float) -> float:
+    """Angle of each leg from the vertical so that the feet span `span`: 2 L sin(theta) + foot
+    length = span, within 0 and max_deg."""
+    return math.asin(float(np.clip((span - foot_len) / (2 * leg_len), 0.0, math.sin(math.radians(max_deg)))))
+
+
+def _standing_leg(parts: Parts, s: float, hip: np.ndarray, knee: np.ndarray, ankle: np.ndarray) -> None:
+    """Thigh, shank and a shoe flat on the ground under the ankle, toes forward (+x)."""
+    _limb(parts, "bottom", hip, knee, 0.036 * s)
+    _limb(parts, "bottom", knee, ankle, 0.028 * s)
+    parts.add("shoes", box((ankle[0] - 0.04 * s, ankle[1] - 0.03 * s, 0.0), (ankle[0] + 0.112 * s, ankle[1] + 0.03 * s, ankle[2] + 0.02 * s)))
+
+
 def pedestrian(dims, p: dict) -> Parts:
     l, w, h = dims
     s = h  # stature
     parts = Parts()
     r_arm, leg_len = 0.022 * s, 0.491 * s  # hip joint to ankle
     ankle_z, foot_len = 0.039 * s, 0.152 * s
-    # Stride: feet span 2 L sin(theta) + foot length = l.
-    theta = math.asin(float(np.clip((l - foot_len) / (2 * leg_len), 0.0, math.sin(math.radians(28)))))
+    theta = _stride_angle(l, leg_len, foot_len, 28)  # the feet span the drawn length
     hip_z = ankle_z + leg_len * math.cos(theta)
     lead = 1.0 if float(p.get("phase", 0.5)) >= 0 else -1.0  # which leg is forward
     hip_half = 0.055 * s
@@ -64,10 +76,7 @@ def pedestrian(dims, p: dict) -> Parts:
         hip = np.array([0.0, side * hip_half, hip_z])
         # The foot is centred under the hip (ankle 0.036 S behind the foot's middle).
         ankle = np.array([sgn * leg_len * math.sin(theta) - 0.036 * s, side * hip_half, ankle_z])
-        knee = hip + (ankle - hip) * (0.245 / 0.491)
-        _limb(parts, "bottom", hip, knee, 0.036 * s)
-        _limb(parts, "bottom", knee, ankle, 0.028 * s)
-        parts.add("shoes", box((ankle[0] - 0.04 * s, side * hip_half - 0.03 * s, 0.0), (ankle[0] + 0.112 * s, side * hip_half + 0.03 * s, ankle_z + 0.02 * s)))
+        _standing_leg(parts, s, hip, hip + (ankle - hip) * (0.245 / 0.491), ankle)
     # Torso from the hips to the shoulders; the upper body keeps its length above the hips.
     shoulder_z = hip_z + 0.288 * s
     b = min(0.20 * s, w - 2 * r_arm - 0.06)  # shoulder joint distance, within the drawn width
@@ -95,8 +104,11 @@ def pedestrian(dims, p: dict) -> Parts:
     return parts
 
 
-def _rider(parts: Parts, s: float, hip: np.ndarray, shoulder: np.ndarray, grips: list, feet: list, p: dict, helmet: bool) -> None:
-    """A rider seated at `hip`, hands on `grips`, feet on `feet` (one per side, -y then +y)."""
+def _rider(parts: Parts, s: float, hip: np.ndarray, shoulder: np.ndarray, bar: np.ndarray, grip_y: float, feet: list,
+           p: dict, helmet: bool) -> None:
+    """A rider seated at `hip`, hands on the handlebar `bar` at -grip_y and +grip_y, feet on `feet`
+    (one per side, -y then +y)."""
+    grips = [bar + [0, -grip_y, 0], bar + [0, grip_y, 0]]
     for side, foot in zip((-1.0, 1.0), feet):
         hj = hip + [0.0, side * 0.085 * s, 0.0]
         knee = _knee(hj, np.asarray(foot, dtype=np.float64), 0.245 * s, 0.25 * s)
@@ -123,6 +135,28 @@ def _rider(parts: Parts, s: float, hip: np.ndarray, shoulder: np.ndarray, grips:
         parts.add("bag", ellipsoid(hip + 0.55 * up + back * 0.13 * s, (0.06 * s, 0.1 * s, 0.12 * s)))
 
 
+def _pedals(parts: Parts, bb: np.ndarray, crank: float, arm: float) -> list[np.ndarray]:
+    """Crank arms of length `arm` about the bottom bracket `bb` at angle `crank` (the -y one half a
+    turn round) with their pedals; returns where the rider's feet rest, -y then +y."""
+    feet = []
+    for side, phase in ((-1.0, crank + math.pi), (1.0, crank)):
+        pedal = bb + [arm * math.cos(phase), side * 0.12, arm * math.sin(phase)]
+        _limb(parts, "trim", bb + [0, side * 0.06, 0], pedal, 0.012)
+        feet.append(pedal + [0.0, 0.0, 0.03])
+    return feet
+
+
+def _leaning_shoulder(hip: np.ndarray, h: float, s: float, max_lean: float, min_lean: float = 0.0) -> np.ndarray:
+    """The shoulder of a rider seated at `hip` whose torso leans forward by b so that the head top
+    lands at h: hip + (torso + neck) cos(b) + head (0.14 s) = h, b kept within min_lean and
+    max_lean degrees."""
+    torso = 0.29 * s
+    cos_b = float(np.clip((h - hip[2] - 0.14 * s) / (torso + 0.05 * s), math.cos(math.radians(max_lean)),
+                          math.cos(math.radians(min_lean))))
+    beta = math.acos(cos_b)
+    return hip + torso * np.array([math.sin(beta), 0.0, cos_b])
+
+
 def cyclist(dims, p: dict) -> Parts:
     l, w, h = dims
     parts = Parts()
@@ -146,20 +180,10 @@ def cyclist(dims, p: dict) -> Parts:
     bar = np.array([head_top[0] - 0.06, 0.0, head_top[2] + 0.12])
     _limb(parts, "frame", head_top, bar, 0.015)
     _limb(parts, "trim", bar - [0, w / 2, 0], bar + [0, w / 2, 0], 0.016)
-    crank = float(p.get("crank", 0.0))
-    feet = []
-    for side, phase in ((-1.0, crank + math.pi), (1.0, crank)):
-        pedal = bb + [0.17 * math.cos(phase), side * 0.12, 0.17 * math.sin(phase)]
-        _limb(parts, "trim", bb + [0, side * 0.06, 0], pedal, 0.012)
-        feet.append(pedal + [0.0, 0.0, 0.03])
+    feet = _pedals(parts, bb, float(p.get("crank", 0.0)), 0.17)
     hip = seat + [0.0, 0.0, 0.09]
-    torso = 0.29 * s
-    # Lean so the head top lands at h: hip + (torso + neck) cos(b) + head (0.14 s) = h.
-    cos_b = float(np.clip((h - hip[2] - 0.14 * s) / (torso + 0.05 * s), math.cos(math.radians(60)), 1.0))
-    beta = math.acos(cos_b)
-    shoulder = hip + torso * np.array([math.sin(beta), 0.0, cos_b])
-    grips = [bar + [0, -(w / 2 - 0.06), 0], bar + [0, w / 2 - 0.06, 0]]
-    _rider(parts, s, hip, shoulder, grips, feet, p, bool(p.get("helmet", False)))
+    shoulder = _leaning_shoulder(hip, h, s, 60)
+    _rider(parts, s, hip, shoulder, bar, w / 2 - 0.06, feet, p, bool(p.get("helmet", False)))
     return parts
 
 
@@ -194,13 +218,9 @@ def motorcyclist(dims, p: dict) -> Parts:
         parts.add("trim", box((tip[0] - 0.02, y0, tip[2] - 0.04), (tip[0] + 0.02, y1, tip[2] + 0.04)))
     s = 1.75 * (h / 1.55)
     hip = np.array([xr + 0.42 * span, 0.0, 0.9])
-    torso = 0.29 * s
-    cos_b = float(np.clip((h - hip[2] - 0.14 * s) / (torso + 0.05 * s), math.cos(math.radians(65)), math.cos(math.radians(8))))
-    beta = math.acos(cos_b)
-    shoulder = hip + torso * np.array([math.sin(beta), 0.0, cos_b])
-    grips = [bar + [0, -(half - 0.05), 0], bar + [0, half - 0.05, 0]]
+    shoulder = _leaning_shoulder(hip, h, s, 65, 8)
     feet = [np.array([hip[0] + 0.12, side * 0.22, 0.38]) for side in (-1.0, 1.0)]
-    _rider(parts, s, hip, shoulder, grips, feet, p, helmet=True)
+    _rider(parts, s, hip, shoulder, bar, half - 0.05, feet, p, helmet=True)
     if p.get("top_box"):  # a luggage box over the tail
         parts.add("trim", box((xr - 0.12, -0.17, 0.78), (xr + 0.25, 0.17, 1.1)))
     return parts
@@ -259,19 +279,10 @@ def tricyclist(dims, p: dict) -> Parts:
     _limb(parts, "frame", head_top, bar, 0.016)
     _limb(parts, "trim", bar - [0, half, 0], bar + [0, half, 0], 0.017)
     parts.add("headlight", box((xf - 0.12, -0.05, head_top[2] - 0.1), (xf - 0.06, 0.05, head_top[2] - 0.02)))
-    crank = float(p.get("crank", 0.0))
-    feet = []
-    for side, phase in ((-1.0, crank + math.pi), (1.0, crank)):
-        pedal = bb + [0.16 * math.cos(phase), side * 0.12, 0.16 * math.sin(phase)]
-        _limb(parts, "trim", bb + [0, side * 0.06, 0], pedal, 0.012)
-        feet.append(pedal + [0.0, 0.0, 0.03])
+    feet = _pedals(parts, bb, float(p.get("crank", 0.0)), 0.16)
     hip = seat + [0.0, 0.0, 0.09]
-    torso = 0.29 * s
-    cos_b = float(np.clip((h - hip[2] - 0.14 * s) / (torso + 0.05 * s), math.cos(math.radians(60)), 1.0))
-    beta = math.acos(cos_b)
-    shoulder = hip + torso * np.array([math.sin(beta), 0.0, cos_b])
-    grips = [bar + [0, -(half - 0.05), 0], bar + [0, half - 0.05, 0]]
-    _rider(parts, s, hip, shoulder, grips, feet, {**p, "bag": False}, bool(p.get("helmet", False)))
+    shoulder = _leaning_shoulder(hip, h, s, 60)
+    _rider(parts, s, hip, shoulder, bar, half - 0.05, feet, {**p, "bag": False}, bool(p.get("helmet", False)))
     return parts
 
 
@@ -287,7 +298,7 @@ def barrow(dims, p: dict) -> Parts:
     x_w = -l / 2 + 0.3  # the walker's hips
     leg_len, ankle_z, foot_len = 0.491 * s, 0.039 * s, 0.152 * s
     stride = 0.6
-    theta = math.asin(float(np.clip((stride - foot_len) / (2 * leg_len), 0.0, math.sin(math.radians(25)))))
+    theta = _stride_angle(stride, leg_len, foot_len, 25)
     hip_z = ankle_z + leg_len * math.cos(theta)
     lead = 1.0 if float(p.get("phase", 0.5)) >= 0 else -1.0
     hip_half = 0.055 * s
@@ -295,10 +306,7 @@ def barrow(dims, p: dict) -> Parts:
         sgn = lead * side
         hip = np.array([x_w, side * hip_half, hip_z])
         ankle = np.array([x_w + sgn * leg_len * math.sin(theta) - 0.036 * s + 0.03, side * hip_half, ankle_z])
-        knee = hip + (ankle - hip) * 0.5 + [0.02 * s, 0, 0]
-        _limb(parts, "bottom", hip, knee, 0.036 * s)
-        _limb(parts, "bottom", knee, ankle, 0.028 * s)
-        parts.add("shoes", box((ankle[0] - 0.04 * s, side * hip_half - 0.03 * s, 0.0), (ankle[0] + 0.112 * s, side * hip_half + 0.03 * s, ankle_z + 0.02 * s)))
+        _standing_leg(parts, s, hip, hip + (ankle - hip) * 0.5 + [0.02 * s, 0, 0], ankle)
     # Torso leaning into the push, head topping the cuboid.
     lean = math.radians(12)
     hip_c = np.array([x_w, 0.0, hip_z])
