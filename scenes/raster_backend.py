@@ -61,6 +61,7 @@ CLEAR_SKY_LIGHT = 0.10  # a cloudless sky's light on a white horizontal face, in
 AE_MAX_GAIN = 4.0  # the camera's automatic exposure opens up at most 2 stops past the daylight exposure (gl_raster.auto_exposure)
 HORIZON_KEY = 2.2  # the exposure's cap: the horizon's sky reads at most this (white, as photographs show it; dusk's colours kept)  # at night the camera's gain stops here
 LAMP_INTENSITY = 16.0
+GROUND_ALBEDO = 0.15  # what a street's ground (asphalt, paving, kerbs) returns of the light reaching it (illumination)
 CONTACT_SHADOW = 0.7  # the darkening at the middle of the ground under an agent (gl_raster._DECAL_FS)
 MIN_SKY_VIEW = 0.3  # the least share of the sky a street canyon's floor sees (street_canyon)
 SVF_CELL, SVF_REACH, SVF_DIRECTIONS = 2.0, 120.0, 16  # the sky-view map: cell (m), how far it looks (m), azimuths
@@ -414,9 +415,11 @@ def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
     about a tenth of its daylight (CLEAR_SKY_LIGHT: a cloudless sky's diffuse share of the
     daylight is 10-15% with the sun above 30 degrees), more under scattered cloud and an overcast
     day most of it (diffuse: soft, no hard
-    shadows), tinted like the sky; the ground returns 15% of what falls on it to faces looking
-    down. The exposure is a camera's: a white horizontal face in the frame's daylight reads
-    EXPOSURE_KEY, but the horizon is not blown out (dusk), and at night the gain stops at
+    shadows), tinted like the sky; the ground returns GROUND_ALBEDO of what falls on it to faces
+    looking down or sideways, scaled by `sky_view`: the floor of a street canyon receives the sky's
+    light by its sky view and the sun on a similar share of it (shade is the rest), so it returns
+    less than open ground (a tower's foot is not lit from below as a car park is). The exposure
+    is a camera's: a white horizontal face in the frame's daylight reads EXPOSURE_KEY, but the horizon is not blown out (dusk), and at night the gain stops at
     MAX_EXPOSURE, so the night stays dark except under lamps and lit windows. `sky_view` is the
     share of the sky that the camera's surroundings see (street_canyon; 1: open ground): a camera
     down in a street canyon meters the light down there, as an automatic exposure does, so the
@@ -432,7 +435,9 @@ def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
     tint = 0.5 * (zenith + horizon)
     tint = 0.3 * tint / max(_luminance(tint), 1e-6) + 0.7
     sky_ambient = tint * e_sky
-    ground_ambient = np.array([1.0, 0.95, 0.88]) * 0.15 * (e_sun + e_sky)
+    # the ground's light on faces looking down or sideways: its albedo times what reaches it; a
+    # canyon's floor sees the sky, and on about as large a share of it the sun, by its sky view
+    ground_ambient = np.array([1.0, 0.95, 0.88]) * GROUND_ALBEDO * (e_sun + e_sky) * sky_view
     exposure = min(EXPOSURE_KEY / max(e_sun + e_sky * sky_view, 1e-6), HORIZON_KEY / max(_luminance(horizon), 1e-6), MAX_EXPOSURE)
     return Light(direction=tuple(direction), radiance=tuple(radiance), sky_ambient=tuple(sky_ambient),
                  ground_ambient=tuple(ground_ambient), zenith=tuple(zenith), horizon=tuple(horizon),
