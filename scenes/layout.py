@@ -588,25 +588,28 @@ def _strip_furniture(rng: np.random.Generator, strip: Sidewalk, block: _Rect, pr
                 p, dims, size = at(t, foot + 0.35), (0.35, 0.35, 0.75), 0.35
             add(Furniture(f"{strip.sidewalk_id}_{kind}{n + len(out)}", kind, (p[0], p[1], z + dims[2] / 2), dims, road_yaw, {},
                           _footprint_square(p, size)))
+
+    def behind_footway(kind: str, name: str, per_100m: float, sizes, setback: float, yaw: float, params) -> None:
+        """Poisson(per_100m) items of `kind` at uniform points along the strip, each a box along it
+        whose l, w, h are drawn from the ranges `sizes`, standing `setback` m behind the footway's
+        start; `params()` draws its params (after its size, as the draws have always run)."""
+        for _ in range(int(rng.poisson(per_100m * length / 100.0))):
+            t = float(rng.uniform(lo, hi))
+            bl, bw, bh = (float(rng.uniform(*size)) for size in sizes)
+            p = at(t, foot + setback + bw / 2)
+            fp = polygon_tuple(rect_polygon(p, bl, bw, along_yaw))
+            add(Furniture(f"{strip.sidewalk_id}_{name}{n + len(out)}", kind, (p[0], p[1], z + bh / 2), (bl, bw, bh), yaw,
+                          params(), fp))
+
     if f.bus_shelters_per_100m > 0 and strip.width - foot >= 3.4:  # a shelter and a footway behind it
-        for _ in range(int(rng.poisson(f.bus_shelters_per_100m * length / 100.0))):
-            t = float(rng.uniform(lo, hi))
-            sl, sw_, sh = float(rng.uniform(3.5, 5.5)), float(rng.uniform(1.3, 1.6)), float(rng.uniform(2.4, 2.7))
-            p = at(t, foot + 0.5 + sw_ / 2)
-            fp = polygon_tuple(rect_polygon(p, sl, sw_, along_yaw))
-            # open side (+y) towards the road, like a bench
-            add(Furniture(f"{strip.sidewalk_id}_shelter{n + len(out)}", "bus_shelter", (p[0], p[1], z + sh / 2), (sl, sw_, sh),
-                          road_yaw - math.pi / 2, {"ad_panel": bool(rng.random() < 0.7)}, fp))
+        # open side (+y) towards the road, like a bench
+        behind_footway("bus_shelter", "shelter", f.bus_shelters_per_100m, ((3.5, 5.5), (1.3, 1.6), (2.4, 2.7)), 0.5,
+                       road_yaw - math.pi / 2, lambda: {"ad_panel": bool(rng.random() < 0.7)})
     if f.planters_per_100m > 0 and strip.width - foot >= 2.6:  # leave a footway beside the planter
-        for _ in range(int(rng.poisson(f.planters_per_100m * length / 100.0))):
-            t = float(rng.uniform(lo, hi))
-            pl, pw, ph = float(rng.uniform(1.2, 2.2)), float(rng.uniform(0.6, 0.9)), float(rng.uniform(0.9, 1.5))
-            p = at(t, foot + 0.3 + pw / 2)
-            fp = polygon_tuple(rect_polygon(p, pl, pw, along_yaw))
-            add(Furniture(f"{strip.sidewalk_id}_planter{n + len(out)}", "planter", (p[0], p[1], z + ph / 2), (pl, pw, ph),
-                          along_yaw, {"box_height": float(rng.uniform(0.4, 0.6)),
-                                      "leaf_color": jitter(rng, (0.06, 0.16, 0.04), 0.25),
-                                      "material": ("concrete", "wood", "metal")[int(rng.integers(3))]}, fp))
+        behind_footway("planter", "planter", f.planters_per_100m, ((1.2, 2.2), (0.6, 0.9), (0.9, 1.5)), 0.3, along_yaw,
+                       lambda: {"box_height": float(rng.uniform(0.4, 0.6)),
+                                "leaf_color": jitter(rng, (0.06, 0.16, 0.04), 0.25),
+                                "material": ("concrete", "wood", "metal")[int(rng.integers(3))]})
     return out
 
 
@@ -632,19 +635,20 @@ def _median_hedges(rng: np.random.Generator, medians: list[Sidewalk], preset: Pr
     return out
 
 
+TREE_RANGES = {"conical": ((0.8, 1.5), (1.8, 3.2), (6.0, 11.0)), "columnar": ((1.0, 2.0), (1.2, 2.2), (8.0, 14.0)),
+               "spreading": ((2.6, 3.5), (5.0, 8.0), (8.0, 11.0))}
+"""Per species but round: the ranges of its trunk height, crown diameter (the cuboid's l and w) and
+overall height, in m, drawn in that order."""
+
+
 def _tree_shape(rng: np.random.Generator, species: str, strip_width: float) -> tuple[float, tuple[float, float, float]]:
     """(trunk height, cuboid dims) of a street tree of `species`, in the ranges of the tree
     builder's contract (scenes/assets/props.py): round limes and maples, conical conifers,
     columnar poplars, spreading plane trees."""
-    if species == "conical":
-        trunk, d = float(rng.uniform(0.8, 1.5)), float(rng.uniform(1.8, 3.2))
-        return trunk, (d, d, float(rng.uniform(6.0, 11.0)))
-    if species == "columnar":
-        trunk, d = float(rng.uniform(1.0, 2.0)), float(rng.uniform(1.2, 2.2))
-        return trunk, (d, d, float(rng.uniform(8.0, 14.0)))
-    if species == "spreading":
-        trunk, d = float(rng.uniform(2.6, 3.5)), float(rng.uniform(5.0, 8.0))
-        return trunk, (d, d, float(rng.uniform(8.0, 11.0)))
+    if species in TREE_RANGES:
+        trunk_range, diameter_range, height_range = TREE_RANGES[species]
+        trunk, d = float(rng.uniform(*trunk_range)), float(rng.uniform(*diameter_range))
+        return trunk, (d, d, float(rng.uniform(*height_range)))
     trunk, crown = float(rng.uniform(2.3, 3.5)), float(rng.uniform(1.2, min(2.2, strip_width)))
     return trunk, (2 * crown, 2 * crown, trunk + 1.8 * crown)
 
