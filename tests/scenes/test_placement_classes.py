@@ -21,6 +21,13 @@ from omnigen.scenes.shapes import rect_polygon
 
 NEW = {"agents.trams": (2, 2), "agents.tricyclists": (3, 3), "agents.barrows": (3, 3), "agents.single_cones": (4, 4),
        "agents.work_zones": (2, 2), "agents.tram_min_lanes": 3}
+NO_CONES = {"agents.junction_works": 0.0, "agents.work_zones": (0, 0), "agents.cone_groups": (0, 0), "agents.single_cones": (0, 0)}
+"""Every way a preset places cones, switched off: a test turns back on the one it looks at."""
+
+
+def frame_with(preset: str, overrides: dict, seed: int, frame: int):
+    """Frame `frame` of seed `seed` of a preset with dotted-key overrides."""
+    return SceneGenerator(with_overrides(load_preset(preset), overrides), seed).frame(seed, frame)
 
 
 def footprint(a) -> Polygon:
@@ -32,10 +39,22 @@ def lane_polygon(lane) -> Polygon:
     return rect_polygon(mid, lane.length, lane.width + 0.02, lane.heading)
 
 
+def assert_placement_rules(scene) -> None:
+    """Annotated footprints are disjoint, 0.1 m apart at least, and none stands in a building's or
+    a furniture item's footprint."""
+    polys = [footprint(a) for a in scene.agents]
+    for i in range(len(polys)):
+        for j in range(i + 1, len(polys)):
+            assert polys[i].distance(polys[j]) >= 0.1 - 1e-6, (scene.agents[i].name, scene.agents[j].name)
+    ground = [Polygon(p.footprint) for b in scene.city.buildings for p in b.parts]
+    ground += [Polygon(f.footprint) for f in scene.city.furniture if f.footprint]
+    for a, poly in zip(scene.agents, polys):
+        assert not any(poly.intersects(g) for g in ground), a.name
+
+
 @pytest.fixture(scope="module")
 def scene():
-    preset = with_overrides(load_preset("arterial"), NEW)
-    return SceneGenerator(preset, 5).frame(5, 1)
+    return frame_with("arterial", NEW, 5, 1)
 
 
 def test_counts_follow_the_preset(scene):
@@ -45,14 +64,7 @@ def test_counts_follow_the_preset(scene):
 
 
 def test_no_two_cuboids_intersect_nor_stand_in_obstacles(scene):
-    polys = [footprint(a) for a in scene.agents]
-    for i in range(len(polys)):
-        for j in range(i + 1, len(polys)):
-            assert polys[i].distance(polys[j]) >= 0.1 - 1e-6, (scene.agents[i].name, scene.agents[j].name)
-    ground = [Polygon(p.footprint) for b in scene.city.buildings for p in b.parts]
-    ground += [Polygon(f.footprint) for f in scene.city.furniture if f.footprint]
-    for a, poly in zip(scene.agents, polys):
-        assert not any(poly.intersects(g) for g in ground), a.name
+    assert_placement_rules(scene)
 
 
 def test_new_classes_stand_where_they_belong(scene):
@@ -80,8 +92,7 @@ def test_new_classes_stand_where_they_belong(scene):
 
 
 def test_work_zones_ring_a_closed_stretch_no_one_enters():
-    preset = with_overrides(load_preset("downtown"), {"agents.work_zones": (1, 1), "agents.cone_groups": (0, 0), "agents.junction_works": 0.0,
-                                                       "agents.single_cones": (0, 0)})
+    preset = with_overrides(load_preset("downtown"), {**NO_CONES, "agents.work_zones": (1, 1)})
     gen = SceneGenerator(preset, 7)
     for frame in range(3):
         scene = gen.frame(7, frame)
@@ -138,9 +149,7 @@ def test_issue_figure_six_classes_with_cones_car_and_people_sizes():
 
 
 def test_junction_works_ring_a_spot_near_each_junction_they_draw():
-    preset = with_overrides(load_preset("downtown"), {"agents.junction_works": 1.0, "agents.work_zones": (0, 0),
-                                                       "agents.cone_groups": (0, 0), "agents.single_cones": (0, 0)})
-    scene = SceneGenerator(preset, 2).frame(2, 0)
+    scene = frame_with("downtown", {**NO_CONES, "agents.junction_works": 1.0}, 2, 0)
     cones = np.array([a.center[:2] for a in scene.agents if a.category == "traffic_cone"])
     near = 0
     for inter in scene.city.intersections:
@@ -158,23 +167,13 @@ def test_every_preset_keeps_the_rules_and_is_deterministic(preset):
     gen = SceneGenerator(preset, 8)
     scene = gen.frame(8, 2)
     assert to_json(scene) == to_json(SceneGenerator(preset, 8).frame(8, 2))
-    polys = [footprint(a) for a in scene.agents]
-    for i in range(len(polys)):
-        for j in range(i + 1, len(polys)):
-            assert polys[i].distance(polys[j]) >= 0.1 - 1e-6, (scene.agents[i].name, scene.agents[j].name)
-    ground = [Polygon(p.footprint) for b in scene.city.buildings for p in b.parts]
-    ground += [Polygon(f.footprint) for f in scene.city.furniture if f.footprint]
-    for a, poly in zip(scene.agents, polys):
-        assert not any(poly.intersects(g) for g in ground), a.name
+    assert_placement_rules(scene)
     assert len({a.category for a in scene.agents}) >= 7
 
 
 def test_queues_wait_nose_to_tail_behind_the_stop_lines():
-    preset = with_overrides(load_preset("intersection"), {"agents.queue_probability": 1.0, "agents.queue_length": (3, 3),
-                                                           "agents.moving_vehicles": (0, 0), "agents.junction_works": 0.0,
-                                                           "agents.work_zones": (0, 0), "agents.cone_groups": (0, 0),
-                                                           "agents.single_cones": (0, 0), "agents.trams": (0, 0)})
-    scene = SceneGenerator(preset, 1).frame(1, 0)
+    scene = frame_with("intersection", {"agents.queue_probability": 1.0, "agents.queue_length": (3, 3),
+                                        "agents.moving_vehicles": (0, 0), **NO_CONES, "agents.trams": (0, 0)}, 1, 0)
     vehicles = [a for a in scene.agents if a.category in ("car", "van", "truck", "bus")]
     lanes = [lane for r in scene.city.roads for lane in r.lanes if lane.kind == "driving"]
     # every lane approaching each of the 4 junctions holds its queue of 3 (unless the city ends first)
