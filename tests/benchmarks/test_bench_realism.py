@@ -79,7 +79,7 @@ def test_colourfulness_is_zero_for_grey_and_grows_with_colour():
     assert br.colourfulness(im) > 100
 
 
-def _objects(cars, peds, extra=()):
+def _mix(cars, peds, extra=()):
     """One frame's class mix: cars of the given lengths, pedestrians of the given heights, and one
     object of each extra class."""
     from omnigen.rigs.class_mix import ClassMix
@@ -92,12 +92,12 @@ def _objects(cars, peds, extra=()):
 
 def test_class_summary_meets_the_targets_only_when_all_hold():
     extra = ("van", "truck", "bus", "traffic_cone")
-    ok = br.class_summary(_objects([4.0, 4.2, 4.6], [1.6, 1.9], extra), ["downtown"])
+    ok = br.class_summary(_mix([4.0, 4.2, 4.6], [1.6, 1.9], extra), ["downtown"])
     assert ok["n_classes"] == 6 and ok["traffic_cone"] and ok["car_length_median"] == pytest.approx(4.2)
     assert ok["pedestrian_height_range"] == (1.6, 1.9) and ok["meets_targets"]
-    assert not br.class_summary(_objects([4.0], [1.47, 1.9], extra), [])["meets_targets"]  # a short pedestrian
-    assert not br.class_summary(_objects([5.0], [1.7], extra), [])["meets_targets"]  # long cars
-    no_cones = br.class_summary(_objects([4.0], [1.7], ("van", "truck", "bus", "cyclist")), [])
+    assert not br.class_summary(_mix([4.0], [1.47, 1.9], extra), [])["meets_targets"]  # a short pedestrian
+    assert not br.class_summary(_mix([5.0], [1.7], extra), [])["meets_targets"]  # long cars
+    no_cones = br.class_summary(_mix([4.0], [1.7], ("van", "truck", "bus", "cyclist")), [])
     assert no_cones["n_classes"] == 6 and not no_cones["traffic_cone"] and not no_cones["meets_targets"]
     assert "traffic cones no" in br.class_line(no_cones)
 
