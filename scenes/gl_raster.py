@@ -197,7 +197,8 @@ float sky_view(vec3 P, vec3 n) {  // the share of the open sky's light reaching 
     // faces looking up, in front of the face for walls, rising to the whole sky at roof height
     vec2 q = (P.xy + (n.z > 0.5 ? vec2(0.0) : n.xy * svf_xform.w) - svf_xform.xy) * svf_xform.z;
     float g = texture(svf_map, q).r;
-    return n.z > 0.5 ? g : mix(g, 1.0, smoothstep(0.0, max(canyon.x, 1e-3), P.z));
+    float across = mix(1.0 - roofline(P.z), 1.0, smoothstep(canyon.y, 1.0, g));
+    return n.z > 0.5 ? g : min(mix(g, 1.0, smoothstep(0.0, max(canyon.x, 1e-3), P.z)), across);
 }
 vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3 v, float fp, out vec3 reflected) {
     bool up = n.z > 0.5;
@@ -278,6 +279,7 @@ uniform vec3 ground_ambient;
 uniform vec3 zenith;
 uniform vec3 horizon;
 uniform vec3 canyon;
+uniform float overcast;
 uniform sampler2D svf_map;
 uniform vec4 svf_xform;  // map origin x, y (m), 1 / its side (m), the cell (m)
 uniform float exposure;
@@ -353,7 +355,12 @@ void main() {
     float sun = 1.0;  // no shadow pass this frame (a uniform test would still pay for the lookup)
 #endif
     vec3 color = sun * nl * light_radiance * (diffuse_contrib + spec_contrib);
-    color += base * mix(ground_ambient, sky_ambient * sky_view(P, n), 0.5 + 0.5 * n.z);
+    float sv = sky_view(P, n);
+    // the sky's share of a face's ambient: (1 + n.z) / 2 under an evenly bright sky; the CIE
+    // overcast sky (zenith three times the horizon) gives a wall 0.397 of a roof's, not 0.5
+    float w_sky = 0.5 + 0.5 * n.z - 0.103 * overcast * (1.0 - n.z * n.z);
+    color += base * (ground_ambient * (0.5 - 0.5 * n.z)
+                     + w_sky * (sky_ambient * sv + ground_ambient * ((1.0 - sv) * float(n.z <= 0.5))));
     color += reflected * (sky_ambient.g > 0.0 ? 1.0 : 0.0);
 #ifdef LAMPS
     for (int i = 0; i < %LAMPS%; ++i) {  // street lamps: downward lights, inverse-square falloff
@@ -561,11 +568,12 @@ class Light:
     canyon: tuple = (0.0, 1.0, 1.0)
     # where the sky-view map (GLRaster.set_sky_view) lies: origin x, y (m), 1 / side (m), cell (m)
     svf_xform: tuple = (0.0, 0.0, 1.0, 1.0)
+    overcast: float = 0.0  # the sky's cloud cover: 1 is the CIE overcast sky's gradient (its light on walls, the shader's w_sky)
     max_gain: float = 1.0  # how far the camera's automatic exposure may open up (auto_exposure; 1: not at all)
 
 
 _COLOR_UNIFORMS = ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "sky_ambient", "ground_ambient",
-                   "zenith", "horizon", "canyon", "svf_map", "svf_xform", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
+                   "zenith", "horizon", "canyon", "overcast", "svf_map", "svf_xform", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
                    "shadow_matrix", "shadow_map", "noise", "shadow_radius", "normal_bias", "n_lamps", "lamps", "lamp_color")
 
 
@@ -870,6 +878,7 @@ class GLRaster:
         vec3("lamp_color", light.lamp_color)
         gl.glUniform1f(loc["exposure"], float(light.exposure))
         gl.glUniform1f(loc["snow_cover"], float(light.snow_cover))
+        gl.glUniform1f(loc["overcast"], float(light.overcast))
         gl.glUniform1i(loc["effects"], int(atmosphere is not None))
         if atmosphere is not None:
             gl.glUniform1f(loc["fog_density"], float(atmosphere["fog_density"]))

@@ -443,7 +443,7 @@ def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
                  ground_ambient=tuple(ground_ambient), zenith=tuple(zenith), horizon=tuple(horizon),
                  exposure=float(max(exposure, 0.2)), shadow_radius=1.0 + 8.0 * float(w.cloud_cover),
                  sun_share=e_sun / max(e_sun + e_sky, 1e-9), snow_cover=float(w.snow_cover),
-                 contact_shadow=CONTACT_SHADOW, max_gain=float(min(AE_MAX_GAIN, MAX_EXPOSURE / max(exposure, 0.2))))
+                 contact_shadow=CONTACT_SHADOW, overcast=float(w.cloud_cover), max_gain=float(min(AE_MAX_GAIN, MAX_EXPOSURE / max(exposure, 0.2))))
 
 
 def _sun_radiance(light) -> np.ndarray:
