@@ -279,7 +279,7 @@ uniform vec3 ground_ambient;
 uniform vec3 zenith;
 uniform vec3 horizon;
 uniform vec3 canyon;
-uniform float overcast;
+uniform vec3 sky_wall;  // a wall's share of the sky's light: a + b cos(phi) + c cos^2(phi), phi its azimuth from the sun's
 uniform sampler2D svf_map;
 uniform vec4 svf_xform;  // map origin x, y (m), 1 / its side (m), the cell (m)
 uniform float exposure;
@@ -356,9 +356,13 @@ void main() {
 #endif
     vec3 color = sun * nl * light_radiance * (diffuse_contrib + spec_contrib);
     float sv = sky_view(P, n);
-    // the sky's share of a face's ambient: (1 + n.z) / 2 under an evenly bright sky; the CIE
-    // overcast sky (zenith three times the horizon) gives a wall 0.397 of a roof's, not 0.5
-    float w_sky = 0.5 + 0.5 * n.z - 0.103 * overcast * (1.0 - n.z * n.z);
+    // the sky's light on a face, as a share of a roof's: w_wall (1 - n_z^2) + n_z (1 + n_z) / 2,
+    // exact for an evenly bright sky (w_wall 0.5) and for the CIE overcast sky (0.397); a clear
+    // sky's wall share follows the CIE clear sky by the wall's azimuth from the sun (sky_wall)
+    vec2 sun_h = -light_direction.xy;
+    float cphi = dot(normalize(n.xy + vec2(1e-6, 0.0)), sun_h * inversesqrt(max(dot(sun_h, sun_h), 1e-12)));
+    float w_wall = sky_wall.x + (sky_wall.y + sky_wall.z * cphi) * cphi;
+    float w_sky = w_wall * (1.0 - n.z * n.z) + 0.5 * n.z * (1.0 + n.z);
     color += base * (ground_ambient * (0.5 - 0.5 * n.z)
                      + w_sky * (sky_ambient * sv + ground_ambient * ((1.0 - sv) * float(n.z <= 0.5))));
     color += reflected * (sky_ambient.g > 0.0 ? 1.0 : 0.0);
@@ -568,12 +572,14 @@ class Light:
     canyon: tuple = (0.0, 1.0, 1.0)
     # where the sky-view map (GLRaster.set_sky_view) lies: origin x, y (m), 1 / side (m), cell (m)
     svf_xform: tuple = (0.0, 0.0, 1.0, 1.0)
-    overcast: float = 0.0  # the sky's cloud cover: 1 is the CIE overcast sky's gradient (its light on walls, the shader's w_sky)
+    # a wall's share of the sky's light on a roof, a + b cos(phi) + c cos^2(phi) with phi the wall's
+    # azimuth from the sun's (raster_backend.sky_on_walls); (0.5, 0, 0): an evenly bright sky
+    sky_wall: tuple = (0.5, 0.0, 0.0)
     max_gain: float = 1.0  # how far the camera's automatic exposure may open up (auto_exposure; 1: not at all)
 
 
 _COLOR_UNIFORMS = ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "sky_ambient", "ground_ambient",
-                   "zenith", "horizon", "canyon", "overcast", "svf_map", "svf_xform", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
+                   "zenith", "horizon", "canyon", "sky_wall", "svf_map", "svf_xform", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
                    "shadow_matrix", "shadow_map", "noise", "shadow_radius", "normal_bias", "n_lamps", "lamps", "lamp_color")
 
 
@@ -878,7 +884,7 @@ class GLRaster:
         vec3("lamp_color", light.lamp_color)
         gl.glUniform1f(loc["exposure"], float(light.exposure))
         gl.glUniform1f(loc["snow_cover"], float(light.snow_cover))
-        gl.glUniform1f(loc["overcast"], float(light.overcast))
+        vec3("sky_wall", light.sky_wall)
         gl.glUniform1i(loc["effects"], int(atmosphere is not None))
         if atmosphere is not None:
             gl.glUniform1f(loc["fog_density"], float(atmosphere["fog_density"]))

@@ -33,6 +33,7 @@ corner, so it is given cx + 0.5, cy + 0.5 (conventions.md, "Measured facts about
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass, replace
@@ -443,7 +444,50 @@ def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
                  ground_ambient=tuple(ground_ambient), zenith=tuple(zenith), horizon=tuple(horizon),
                  exposure=float(max(exposure, 0.2)), shadow_radius=1.0 + 8.0 * float(w.cloud_cover),
                  sun_share=e_sun / max(e_sun + e_sky, 1e-9), snow_cover=float(w.snow_cover),
-                 contact_shadow=CONTACT_SHADOW, overcast=float(w.cloud_cover), max_gain=float(min(AE_MAX_GAIN, MAX_EXPOSURE / max(exposure, 0.2))))
+                 contact_shadow=CONTACT_SHADOW, sky_wall=sky_on_walls(light.sun_elevation, float(w.cloud_cover)), max_gain=float(min(AE_MAX_GAIN, MAX_EXPOSURE / max(exposure, 0.2))))
+
+
+CIE_OVERCAST_WALL = 0.397  # the CIE overcast sky's light on a wall, of its light on a roof (sky_on_walls)
+
+
+@functools.lru_cache(maxsize=128)
+def _cie_clear_walls(elevation: int) -> tuple[float, float, float]:
+    """The CIE standard clear sky's (ISO 15469 type 12) light on a wall facing the sun's azimuth,
+    at right angles to it and away from it, of its light on a roof, the sun `elevation` degrees
+    up: a numerical integral over the sky (the sun's disc itself is the direct light, not here)."""
+    zen = np.linspace(0.0, math.pi / 2, 91)[:-1] + math.pi / 360
+    az = np.linspace(0.0, 2.0 * math.pi, 181)[:-1]
+    Z, A = np.meshgrid(zen, az, indexing="ij")
+    d = np.stack([np.sin(Z) * np.cos(A), np.sin(Z) * np.sin(A), np.cos(Z)], axis=-1)
+    zs = math.radians(90.0 - max(float(elevation), 0.0))
+    chi = np.arccos(np.clip(d @ np.array([math.sin(zs), 0.0, math.cos(zs)]), -1.0, 1.0))
+    L = ((1.0 + 10.0 * (np.exp(-3.0 * chi) - math.exp(-1.5 * math.pi)) + 0.45 * np.cos(chi) ** 2)
+         * (1.0 - np.exp(-0.32 / np.cos(Z))))
+    w = L * np.sin(Z)  # solid angle (the grid's steps cancel in the ratios)
+    roof = float((w * d[..., 2]).sum())
+    walls = [float((w * np.clip(d @ np.array([math.cos(a), math.sin(a), 0.0]), 0.0, None)).sum()) / roof
+             for a in (0.0, math.pi / 2, math.pi)]
+    return walls[0], walls[1], walls[2]
+
+
+def sky_on_walls(sun_elevation: float, cloud_cover: float) -> tuple[float, float, float]:
+    """A wall's share of the sky's light on a roof, as (a, b, c): a + b cos(phi) + c cos^2(phi)
+    with phi the wall's azimuth from the sun's (the shader's sky_wall; tilted faces blend it with a
+    roof's, gl_raster w_sky).
+
+    An evenly bright sky gives every wall 0.5. A real sky does not: the CIE overcast sky (zenith
+    three times the horizon) gives a wall CIE_OVERCAST_WALL, and a clear sky's light comes mostly
+    from around the sun (the CIE clear sky: a wall facing away from a sun 35 degrees up gets 0.38,
+    one facing it 1.15), so a wall in its own shade is darker than an even sky would make it.
+    Cloud cover mixes the two, as _sky_colors mixes the skies. No sun above the horizon: the
+    overcast figure (twilight's sky has no bright region to face).
+    """
+    k = float(np.clip(cloud_cover, 0.0, 1.0))
+    if sun_elevation <= 0.0:
+        return (CIE_OVERCAST_WALL, 0.0, 0.0)
+    toward, side, away = _cie_clear_walls(int(round(min(sun_elevation, 89.0))))
+    a, b, c = side, 0.5 * (toward - away), 0.5 * (toward + away) - side
+    return ((1 - k) * a + k * CIE_OVERCAST_WALL, (1 - k) * b, (1 - k) * c)
 
 
 def _sun_radiance(light) -> np.ndarray:
