@@ -84,6 +84,7 @@ class TrainConfig:
     kpt_labelled: float = 0.0  # gain of the labelled-order OKS term beside the turn-aware one (LossGains)
     kpt_turn_start: float = 0.0  # fraction of the run before a turn-aware loss may choose the order (loss.turn_free)
     kpt_heading: bool = False  # corners up to the turn, the front from a regressed image heading (detector/heading.py)
+    heading_gain: float = 1.0  # gain of a heading-aware head's heading term (LossGains.heading)
     taxonomy: str = "fine"
     train_split: str = "train"
     val_split: str | None = None  # None: 'val' if the dataset has it, else 'test', else all frames
@@ -300,7 +301,8 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
         ema.updates = int(state["ema_updates"])
         optimizer.load_state_dict(state["optimizer"])
         start_epoch, best, history = int(state["epoch"]) + 1, float(state["best_fitness"]), list(state["history"])
-    criterion = DetectionLoss(model.cfg.num_classes, gains=LossGains(kpt_l1=cfg.kpt_l1, kpt_labelled=cfg.kpt_labelled))
+    criterion = DetectionLoss(model.cfg.num_classes, gains=LossGains(kpt_l1=cfg.kpt_l1, kpt_labelled=cfg.kpt_labelled,
+                                                                        heading=cfg.heading_gain))
     amp_dtype = autocast_dtype(cfg.amp, device)
     # fp16 gradients underflow without scaling; bf16 has float32's range and needs none
     scaler = torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16)

@@ -550,3 +550,18 @@ def test_loader_workers_augment_each_sample_by_its_epoch(fake):
         assert sample.frame_index == want.frame_index
         assert np.array_equal(sample.image, want.image) and np.array_equal(sample.keypoints, want.keypoints), (epoch, i)
     assert any(not np.array_equal(got[0, i].image, got[1, i].image) for i in range(len(data)))
+
+
+def test_the_train_command_carries_the_corner_order_flags_into_the_run(fake, tmp_path, monkeypatch):
+    """--kpt-heading, --heading-gain, --kpt-labelled and --kpt-turn-start reach the TrainConfig and
+    the model it builds (the loss reads its gains from the TrainConfig)."""
+    from omnigen.cli import main
+    from omnigen.detector import train as train_module
+
+    seen = {}
+    monkeypatch.setattr(train_module, "train", lambda cfg, resume=False, on_epoch=None: seen.setdefault("cfg", cfg) and {})
+    assert main(["train", str(fake), "--out", str(tmp_path / "run"), "--kpt-heading", "--heading-gain", "3",
+                 "--kpt-labelled", "1", "--kpt-turn-start", "0.3"]) == 0
+    cfg = seen["cfg"]
+    assert (cfg.kpt_heading, cfg.heading_gain, cfg.kpt_labelled, cfg.kpt_turn_start, cfg.kpt_turn) == (True, 3.0, 1.0, 0.3, False)
+    assert cfg.model_config(3).kpt_heading and not cfg.model_config(3).kpt_turn
