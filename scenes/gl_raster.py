@@ -279,6 +279,7 @@ uniform vec3 ground_ambient;
 uniform vec3 zenith;
 uniform vec3 horizon;
 uniform vec3 canyon;
+uniform float aureole;  // the share of the sky's light from round the sun, hidden with it (raster_backend.aureole_share)
 uniform vec3 sky_wall;  // a wall's share of the sky's light: a + b cos(phi) + c cos^2(phi), phi its azimuth from the sun's
 uniform sampler2D svf_map;
 uniform vec4 svf_xform;  // map origin x, y (m), 1 / its side (m), the cell (m)
@@ -364,7 +365,7 @@ void main() {
     float w_wall = sky_wall.x + (sky_wall.y + sky_wall.z * cphi) * cphi;
     float w_sky = w_wall * (1.0 - n.z * n.z) + 0.5 * n.z * (1.0 + n.z);
     color += base * (ground_ambient * (0.5 - 0.5 * n.z)
-                     + w_sky * (sky_ambient * sv + ground_ambient * ((1.0 - sv) * float(n.z <= 0.5))));
+                     + w_sky * (sky_ambient * mix(sv, dot(n, l) > 0.0 ? sun : sv, aureole) + ground_ambient * ((1.0 - sv) * float(n.z <= 0.5))));
     color += reflected * (sky_ambient.g > 0.0 ? 1.0 : 0.0);
 #ifdef LAMPS
     for (int i = 0; i < %LAMPS%; ++i) {  // street lamps: downward lights, inverse-square falloff
@@ -575,11 +576,12 @@ class Light:
     # a wall's share of the sky's light on a roof, a + b cos(phi) + c cos^2(phi) with phi the wall's
     # azimuth from the sun's (raster_backend.sky_on_walls); (0.5, 0, 0): an evenly bright sky
     sky_wall: tuple = (0.5, 0.0, 0.0)
+    aureole: float = 0.0  # the share of the sky's light from round the sun: a face sees it where it sees the sun
     max_gain: float = 1.0  # how far the camera's automatic exposure may open up (auto_exposure; 1: not at all)
 
 
 _COLOR_UNIFORMS = ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "sky_ambient", "ground_ambient",
-                   "zenith", "horizon", "canyon", "sky_wall", "svf_map", "svf_xform", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
+                   "zenith", "horizon", "canyon", "sky_wall", "aureole", "svf_map", "svf_xform", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
                    "shadow_matrix", "shadow_map", "noise", "shadow_radius", "normal_bias", "n_lamps", "lamps", "lamp_color")
 
 
@@ -885,6 +887,7 @@ class GLRaster:
         gl.glUniform1f(loc["exposure"], float(light.exposure))
         gl.glUniform1f(loc["snow_cover"], float(light.snow_cover))
         vec3("sky_wall", light.sky_wall)
+        gl.glUniform1f(loc["aureole"], float(light.aureole))
         gl.glUniform1i(loc["effects"], int(atmosphere is not None))
         if atmosphere is not None:
             gl.glUniform1f(loc["fog_density"], float(atmosphere["fog_density"]))

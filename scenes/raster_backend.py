@@ -444,17 +444,36 @@ def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
                  ground_ambient=tuple(ground_ambient), zenith=tuple(zenith), horizon=tuple(horizon),
                  exposure=float(max(exposure, 0.2)), shadow_radius=1.0 + 8.0 * float(w.cloud_cover),
                  sun_share=e_sun / max(e_sun + e_sky, 1e-9), snow_cover=float(w.snow_cover),
-                 contact_shadow=CONTACT_SHADOW, sky_wall=sky_on_walls(light.sun_elevation, float(w.cloud_cover)), max_gain=float(min(AE_MAX_GAIN, MAX_EXPOSURE / max(exposure, 0.2))))
+                 contact_shadow=CONTACT_SHADOW, sky_wall=sky_on_walls(light.sun_elevation, float(w.cloud_cover)),
+                 aureole=aureole_share(light.sun_elevation, float(w.cloud_cover)), max_gain=float(min(AE_MAX_GAIN, MAX_EXPOSURE / max(exposure, 0.2))))
 
 
 CIE_OVERCAST_WALL = 0.397  # the CIE overcast sky's light on a wall, of its light on a roof (sky_on_walls)
+AUREOLE_DEGREES = 15.0  # the clear sky's bright ring round the sun that a caster of the sun's shadow hides too (aureole_share)
+
+
+def aureole_share(sun_elevation: float, cloud_cover: float) -> float:
+    """The share of the sky's light on a roof that comes from within AUREOLE_DEGREES of the sun:
+    0.14-0.15 for the CIE clear sky with the sun above 25 degrees, none under an overcast one
+    (cloud cover mixes, as for sky_on_walls) or with the sun down.
+
+    Why: a clear sky is brightest round the sun, and what hides the sun from a point hides that
+    ring with it (solar engineering's circumsolar light, shaded with the beam). The shader gives a
+    face that sees the sun the ring's light where its shadow lookup says the sun is visible, and
+    the rest of the sky by its sky view (gl_raster: sky light in the colour shader), so shade is
+    that much deeper than an evenly bright sky makes it.
+    """
+    if sun_elevation <= 0.0:
+        return 0.0
+    return (1.0 - float(np.clip(cloud_cover, 0.0, 1.0))) * _cie_clear_sky(int(round(min(sun_elevation, 89.0))))[3]
 
 
 @functools.lru_cache(maxsize=128)
-def _cie_clear_walls(elevation: int) -> tuple[float, float, float]:
+def _cie_clear_sky(elevation: int) -> tuple[float, float, float, float]:
     """The CIE standard clear sky's (ISO 15469 type 12) light on a wall facing the sun's azimuth,
-    at right angles to it and away from it, of its light on a roof, the sun `elevation` degrees
-    up: a numerical integral over the sky (the sun's disc itself is the direct light, not here)."""
+    at right angles to it and away from it, of its light on a roof, and the share of a roof's that
+    comes from within AUREOLE_DEGREES of the sun, the sun `elevation` degrees up: numerical
+    integrals over the sky (the sun's disc itself is the direct light, not here)."""
     zen = np.linspace(0.0, math.pi / 2, 91)[:-1] + math.pi / 360
     az = np.linspace(0.0, 2.0 * math.pi, 181)[:-1]
     Z, A = np.meshgrid(zen, az, indexing="ij")
@@ -467,7 +486,8 @@ def _cie_clear_walls(elevation: int) -> tuple[float, float, float]:
     roof = float((w * d[..., 2]).sum())
     walls = [float((w * np.clip(d @ np.array([math.cos(a), math.sin(a), 0.0]), 0.0, None)).sum()) / roof
              for a in (0.0, math.pi / 2, math.pi)]
-    return walls[0], walls[1], walls[2]
+    aureole = float((w * d[..., 2])[chi < math.radians(AUREOLE_DEGREES)].sum()) / roof
+    return walls[0], walls[1], walls[2], aureole
 
 
 def sky_on_walls(sun_elevation: float, cloud_cover: float) -> tuple[float, float, float]:
@@ -485,7 +505,7 @@ def sky_on_walls(sun_elevation: float, cloud_cover: float) -> tuple[float, float
     k = float(np.clip(cloud_cover, 0.0, 1.0))
     if sun_elevation <= 0.0:
         return (CIE_OVERCAST_WALL, 0.0, 0.0)
-    toward, side, away = _cie_clear_walls(int(round(min(sun_elevation, 89.0))))
+    toward, side, away, _ = _cie_clear_sky(int(round(min(sun_elevation, 89.0))))
     a, b, c = side, 0.5 * (toward - away), 0.5 * (toward + away) - side
     return ((1 - k) * a + k * CIE_OVERCAST_WALL, (1 - k) * b, (1 - k) * c)
 

@@ -44,3 +44,13 @@ def test_walls_facing_away_from_a_clear_suns_sky_get_less_of_it():
     assert raster.sky_on_walls(-5.0, 0.0) == pytest.approx((raster.CIE_OVERCAST_WALL, 0.0, 0.0))
     half = raster.sky_on_walls(35.0, 0.5)
     assert np.allclose(half, 0.5 * np.asarray(clear) + 0.5 * np.array([raster.CIE_OVERCAST_WALL, 0.0, 0.0]))
+
+
+def test_the_aureole_round_a_clear_sun_is_a_seventh_of_the_skys_light_and_none_when_overcast():
+    # the CIE clear sky within 15 degrees of the sun: 0.14-0.15 of its light on a roof, sun above 25 degrees
+    assert all(0.14 <= raster.aureole_share(e, 0.0) <= 0.15 for e in (25.0, 45.0, 70.0))
+    assert raster.aureole_share(45.0, 1.0) == 0.0 and raster.aureole_share(-3.0, 0.0) == 0.0
+    assert raster.aureole_share(45.0, 0.4) == pytest.approx(0.6 * raster.aureole_share(45.0, 0.0))
+    scene = SceneGenerator("tiny", 8).frame(8, 0, FrameOverrides(weather="clear", time_of_day="noon"))
+    light = raster.illumination(scene)
+    assert light.aureole == pytest.approx(raster.aureole_share(scene.lighting.sun_elevation, scene.weather.cloud_cover))
