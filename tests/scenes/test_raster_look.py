@@ -24,17 +24,9 @@ W = H = 160
 
 
 @pytest.fixture(scope="module")
-def noon():
-    gen = SceneGenerator("tiny", 8)
-    scene = gen.frame(8, 0, FrameOverrides(weather="clear", time_of_day="noon"))
-    try:
-        rs = raster.RasterScene(scene)
-        K = intrinsics_from_fov(math.radians(60), W, H)
-        rs.render(Camera(K, *look_at((0.0, -40.0, 30.0), (0.0, 0.0, 0.0)), W, H))
-    except Exception as exc:  # no headless GL here: say so rather than fail obscurely
-        pytest.skip(f"headless EGL rendering unavailable: {exc}")
-    yield gen, scene, rs, K
-    rs.close()
+def noon(noon_raster):
+    gen, scene, rs = noon_raster  # tests/scenes/conftest.py
+    return gen, scene, rs, intrinsics_from_fov(math.radians(60), W, H)
 
 
 def _world_points(depth, K, R, t, mask):

@@ -16,23 +16,17 @@ from omnigen.scenes.generate import FrameOverrides, SceneGenerator
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
-raster = pytest.importorskip("omnigen.scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
+pytest.importorskip("omnigen.scenes.raster_backend", reason="pyrender/PyOpenGL not installed")
 
 W, H = 160, 120
 
 
 @pytest.fixture(scope="module")
-def setup():
-    gen = SceneGenerator("tiny", 8)
-    scene = gen.frame(8, 0, FrameOverrides(weather="clear", time_of_day="noon"))
-    try:
-        rs = raster.RasterScene(scene)
-        K = intrinsics_from_fov(math.radians(75), W, H)
-        R, t = look_at((-30.0, -35.0, 45.0), (0.0, 0.0, 0.0))
-        frame = rs.render(Camera(K, R, t, W, H))
-    except Exception as exc:  # no headless GL here: say so rather than fail obscurely
-        pytest.skip(f"headless EGL rendering unavailable: {exc}")
-    return gen, scene, rs, K, R, t, frame
+def setup(noon_raster):
+    gen, scene, rs = noon_raster  # tests/scenes/conftest.py
+    K = intrinsics_from_fov(math.radians(75), W, H)
+    R, t = look_at((-30.0, -35.0, 45.0), (0.0, 0.0, 0.0))
+    return gen, scene, rs, K, R, t, rs.render(Camera(K, R, t, W, H))
 
 
 def test_render_shapes_and_ids(setup):
