@@ -121,6 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     from benchmarks.validate import fmt
     from omnigen.detector.box_template import evaluate_with_baseline
     from omnigen.detector.corner_order import corner_order_counts
+    from omnigen.detector.loss import PARTS
     from omnigen.detector.predict import predict_dataset
     from omnigen.detector.train import TrainConfig, train
     from omnigen.dataset import Dataset
@@ -155,8 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     main_key = next(iter(model_rows))
     result = {"dataset": str(args.dataset), "name": name, "steps": epochs * per_epoch, "epochs": epochs,
               "train_seconds": round(train_s, 1), "config": asdict(cfg),
-              "final_losses": {k: last.get(k) for k in ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn",
-                                                                     "kpt_labelled")},
+              "final_losses": {k: last.get(k) for k in PARTS},
               "model": model_rows, "baseline": base_rows,
               "corner_order": {"matched": orders.matched,
                                **{k: orders.fraction(k) if orders.matched else None for k in orders.best}}}
