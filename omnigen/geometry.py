@@ -210,12 +210,7 @@ def self_occluded_corners(box: Box3D) -> np.ndarray:
     A vertex of a convex solid is visible exactly when at least one face touching it faces the
     camera; a face faces the camera when its outward normal points back towards the origin.
     """
-    along = box.rotation.T @ box.center  # centre's coordinate along each object axis
-    half = box.dims / 2.0
-    facing_plus = along + half < 0  # face at +half along the axis, outward normal +axis
-    facing_minus = -along + half < 0
-    facing = np.where(CORNER_SIGNS > 0, facing_plus, facing_minus)  # (8, 3): the faces at each corner
-    return ~facing.any(axis=1)
+    return self_occluded_corners_batch(box.center, box.dims, box.rotation)[0]
 
 
 @dataclass(frozen=True)
@@ -334,13 +329,14 @@ def _cached_image_rect(width: int, height: int) -> Polygon:
 
 
 def self_occluded_corners_batch(centers: np.ndarray, dims: np.ndarray, rotations: np.ndarray) -> np.ndarray:
-    """(N, 8) self_occluded_corners of N boxes, each computed exactly as for one Box3D."""
+    """(N, 8) self_occluded_corners of N boxes (one Box3D is a batch of one)."""
     centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
     rotations = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
-    along = (rotations.transpose(0, 2, 1) @ centers[:, :, None])[:, :, 0]
+    along = (rotations.transpose(0, 2, 1) @ centers[:, :, None])[:, :, 0]  # centre along each object axis
     half = np.asarray(dims, dtype=np.float64).reshape(-1, 3) / 2.0
-    facing_plus = along + half < 0
+    facing_plus = along + half < 0  # face at +half along the axis, outward normal +axis
     facing_minus = -along + half < 0
+    # (N, 8, 3): the faces at each corner
     facing = np.where(CORNER_SIGNS[None] > 0, facing_plus[:, None, :], facing_minus[:, None, :])
     return ~facing.any(axis=2)
 
