@@ -1,4 +1,4 @@
-"""Cuboids, cameras and projections in the contract's frames (numpy only, plus shapely for 2D).
+"""Cuboids, their projection and ground planes in the contract's frames (numpy only, plus shapely for 2D).
 
 Frames: the camera is OpenCV's (x right, y down, z forward); an object's frame has x forward
 (length l), y left (width w), z up (height h) with its origin at the cuboid's centre. Pixels
@@ -230,31 +230,16 @@ class BoxProjection:
 
 
 def project_box(box: Box3D, K: np.ndarray, width: int, height: int, near: float = NEAR_PLANE) -> BoxProjection:
-    """Project a cuboid and compute its keypoints, flags, bbox and truncation."""
-    corners = box.corners()
-    uv, behind = project_points(K, corners, near)
-    inside = in_image(uv, width, height)
-    if inside.all():
-        # Every corner in front and in the image: the convex silhouette is inside the (convex)
-        # image, so nothing is cut; skip the polygon work, which dominates conversion time.
-        return BoxProjection(uv, inside, behind, np.concatenate([uv.min(axis=0), uv.max(axis=0)]), 0.0)
-    shape = silhouette(corners, K, near)
-    bbox = None
-    truncation = 1.0
-    if not shape.is_empty and shape.area > 0:
-        visible = shapely.intersection(shape, image_rect(width, height))
-        if not visible.is_empty and visible.area > 0:
-            bbox = np.asarray(visible.bounds, dtype=np.float64)
-            truncation = float(np.clip(1.0 - visible.area / shape.area, 0.0, 1.0))
-    return BoxProjection(uv, inside, behind, bbox, truncation)
+    """Project a cuboid and compute its keypoints, flags, bbox and truncation (project_boxes on a batch of one)."""
+    return project_boxes(box.corners(), K, width, height, near)[0]
 
 
 @dataclass(frozen=True)
 class BoxProjections:
-    """project_box for N cuboids at once, as arrays: row i equals project_box of box i.
+    """BoxProjection for N cuboids at once, as arrays: row i (self[i]) is box i's BoxProjection.
 
     keypoints (N, 8, 2), in_image and behind_camera (N, 8), bbox (N, 4) with a row of NaN where
-    project_box gives None, truncation (N,).
+    BoxProjection's bbox is None, truncation (N,).
     """
 
     keypoints: np.ndarray
@@ -277,13 +262,15 @@ class BoxProjections:
 
 def project_boxes(corners: np.ndarray, K: np.ndarray, width: int, height: int,
                   near: float = NEAR_PLANE) -> BoxProjections:
-    """project_box for N cuboids given as (N, 8, 3) corners (cuboid_corners), with identical results.
+    """Project N cuboids given as (N, 8, 3) corners (cuboid_corners): keypoints, flags, bbox, truncation.
 
-    Why: converters project every object of a frame; one object at a time, numpy's per-call cost and
-    one shapely call per step dominate. Here the projection and the common case (every corner in
-    the image, so nothing is cut) are whole-array operations, and the silhouettes of the rest go
-    through shapely's vectorised functions in one call each. Cuboids with a corner behind the
-    camera (rare) are clipped at the near plane one by one, exactly as project_box does.
+    project_box is this on a batch of one, so a box's projection is the same alone or in a batch.
+    Why arrays: converters project every object of a frame; one object at a time, numpy's per-call
+    cost and one shapely call per step dominate. Here the projection (project_points' arithmetic)
+    and the common case (every corner in the image, so the convex silhouette is inside the convex
+    image and nothing is cut) are whole-array operations, and the silhouettes of the rest go through
+    shapely's vectorised functions in one call each. Cuboids with a corner behind the camera (rare)
+    are clipped at the near plane one by one (silhouette).
     """
     corners = np.asarray(corners, dtype=np.float64).reshape(-1, 8, 3)
     n = len(corners)
