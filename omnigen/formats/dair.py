@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnigen.geometry import Box3D, rot_z, rots_z
+from omnigen.geometry import Box3D, rots_z
 
 
 def box_from_dair(center_lidar: np.ndarray, lwh: np.ndarray, yaw: float,
@@ -24,12 +24,11 @@ def box_from_dair(center_lidar: np.ndarray, lwh: np.ndarray, yaw: float,
     The object frame's axes coincide with the virtual LiDAR's (x forward, y left, z up) rotated by
     the yaw, so the object-to-LiDAR rotation is rot_z(yaw); X_cam = R X_lidar + t then carries
     the camera's pitch into the box's rotation. `center_transform` (default R) maps the centre:
-    the calibrated matrix, where R is its nearest proper rotation.
+    the calibrated matrix, where R is its nearest proper rotation. boxes_from_dair on a batch of one.
     """
-    m = lidar_to_camera_rotation if center_transform is None else center_transform
-    center = np.asarray(m, dtype=np.float64) @ np.asarray(center_lidar, dtype=np.float64) \
-        + np.asarray(lidar_to_camera_translation, dtype=np.float64).reshape(3)
-    return Box3D(center, lwh, np.asarray(lidar_to_camera_rotation, dtype=np.float64) @ rot_z(yaw))
+    centers, rotations = boxes_from_dair(center_lidar, [yaw], lidar_to_camera_rotation,
+                                         lidar_to_camera_translation, center_transform)
+    return Box3D(centers[0], lwh, rotations[0])
 
 
 def boxes_from_dair(centers_lidar: np.ndarray, yaws: np.ndarray, lidar_to_camera_rotation: np.ndarray,
@@ -37,8 +36,8 @@ def boxes_from_dair(centers_lidar: np.ndarray, yaws: np.ndarray, lidar_to_camera
                     center_transform: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(centers (N, 3), rotations (N, 3, 3)) in the camera of N DAIR-V2X boxes; dims are unchanged.
 
-    Bit for bit box_from_dair's center and rotation: rots_z is rot_z entry for entry (cosine and
-    sine from math) and every box goes through the same 3x3 products.
+    box_from_dair is this on a batch of one, so a box is the same alone or in a batch: rots_z is
+    rot_z entry for entry (cosine and sine from math) and every box goes through the same 3x3 products.
     """
     centers_lidar = np.asarray(centers_lidar, dtype=np.float64).reshape(-1, 3)
     r = np.asarray(lidar_to_camera_rotation, dtype=np.float64)
