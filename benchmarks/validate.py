@@ -297,6 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kpt-labelled", type=float, default=0.0, help="omnigen train --kpt-labelled")
     ap.add_argument("--kpt-turn-start", type=float, default=0.0, help="omnigen train --kpt-turn-start")
     ap.add_argument("--kpt-heading", action="store_true", help="the front from a regressed image heading (omnigen train --kpt-heading)")
+    ap.add_argument("--heading-gain", type=float, default=None, help="omnigen train --heading-gain")
     ap.add_argument("--kpt-hidden", type=int, default=None, help="keypoint-branch width (omnigen train --kpt-hidden)")
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
@@ -346,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
               "--optimizer", args.optimizer, "--lr0", str(args.lr0), "--val-every", str(args.val_every),
               "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp,
               "--kpt-mode", args.kpt_mode, "--kpt-l1", str(args.kpt_l1), "--kpt-labelled", str(args.kpt_labelled),
-              "--kpt-turn-start", str(args.kpt_turn_start)] + (["--kpt-turn"] if args.kpt_turn else []) + (["--kpt-heading"] if args.kpt_heading else []) + (["--kpt-hidden", str(args.kpt_hidden)] if args.kpt_hidden else [])
+              "--kpt-turn-start", str(args.kpt_turn_start)] + (["--kpt-turn"] if args.kpt_turn else []) + (["--kpt-heading"] if args.kpt_heading else []) + (["--heading-gain", str(args.heading_gain)] if args.heading_gain is not None else []) + (["--kpt-hidden", str(args.kpt_hidden)] if args.kpt_hidden else [])
     common += (["--device", args.device] if args.device else []) + (["--cache"] if args.cache else [])
     runs: list[dict[str, Any]] = []
 

@@ -43,12 +43,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kpt-sigma-anneal", type=float, default=0.3, help="fraction of the run the anneal takes")
     p.add_argument("--kpt-mode", default="anchor", choices=["anchor", "box"],
                    help="corners as offsets from the anchor, or in units of the anchor's predicted box")
-    p.add_argument("--kpt-turn", action="store_true",
+    front = p.add_mutually_exclusive_group()  # two answers to which face is the front: one at a time
+    front.add_argument("--kpt-turn", action="store_true",
                    help="learn corners up to the 180-degree turn, the turn as a class of its own (loss.turn_targets)")
-    p.add_argument("--kpt-heading", action="store_true",
+    front.add_argument("--kpt-heading", action="store_true",
                    help="learn corners up to the 180-degree turn and the front from a regressed image heading "
                         "(detector/heading.py); --kpt-labelled and --kpt-turn-start apply as with --kpt-turn")
-    p.add_argument("--heading-gain", type=float, default=1.0, help="with --kpt-heading: gain of the heading term")
+    p.add_argument("--heading-gain", type=float, default=None,
+                   help="with --kpt-heading: gain of the heading term (default 1)")
     p.add_argument("--kpt-hidden", type=int, default=None,
                    help="keypoint-branch width (default: max(stride-8 width / 4, 24), as Ultralytics' pose head)")
     p.add_argument("--kpt-labelled", type=float, default=0.0,
@@ -78,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
     from omnigen.detector.train import TrainConfig, train
     from omnigen.progress import print_table
 
+    if args.heading_gain is not None and not args.kpt_heading:
+        raise ValueError("--heading-gain weighs the heading of --kpt-heading, which is not given")
     cfg = TrainConfig(
         dataset=str(args.dataset), out=str(args.out), model=args.model, backbone=args.backbone, p2=args.p2,
         p6=args.p6, imgsz=args.imgsz, crop=args.crop, cache=args.cache, epochs=args.epochs, batch=args.batch,
@@ -87,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every,
         kpt_sigma_start=args.kpt_sigma_start, kpt_sigma_end=args.kpt_sigma_end, kpt_sigma_anneal=args.kpt_sigma_anneal,
         kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1, kpt_turn=args.kpt_turn, kpt_hidden=args.kpt_hidden,
-        kpt_labelled=args.kpt_labelled, kpt_turn_start=args.kpt_turn_start, kpt_heading=args.kpt_heading, heading_gain=args.heading_gain, amp=args.amp,
+        kpt_labelled=args.kpt_labelled, kpt_turn_start=args.kpt_turn_start, kpt_heading=args.kpt_heading, heading_gain=1.0 if args.heading_gain is None else args.heading_gain, amp=args.amp,
         time_minutes=args.time, weights=args.weights, channels_last=args.channels_last)
     start = time.perf_counter()
 

@@ -21,12 +21,12 @@ here:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
 from omnigen.conventions import NEAR_PLANE
-from omnigen.geometry import project_points
+from omnigen.geometry import is_rotation, project_points
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0])
 """OpenCV's camera looks along +Z with +Y down; OpenGL's and Blender's along -Z with +Y up. The
@@ -98,6 +98,8 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
     (the contract's world is z up): for placing a camera by hand, in tests and figures."""
     eye, target = np.asarray(eye, float), np.asarray(target, float)
     z = target - eye
+    if np.linalg.norm(z) < 1e-12:
+        raise ValueError("look_at: the eye is at the target; there is no view direction")
     z /= np.linalg.norm(z)
     x = np.cross(z, np.asarray(up, float))
     norm = np.linalg.norm(x)
@@ -109,15 +111,24 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
     return R, -R @ eye
 
 
-def _frozen(a, shape: tuple[int, ...], name: str) -> np.ndarray:
+def frozen_array(a, shape: tuple[int, ...], name: str) -> np.ndarray:
     """A read-only float64 copy of `a` in `shape`: a frozen camera's arrays cannot be changed
     behind its back (the raster backend keys its per-camera cache on their bytes)."""
     arr = np.array(a, dtype=np.float64)
     if arr.size != math.prod(shape):
         raise ValueError(f"camera {name}: expected {shape}, got shape {arr.shape}")
     arr = arr.reshape(shape)
+    if not np.isfinite(arr).all():
+        raise ValueError(f"camera {name}: not finite: {arr.tolist()}")
     arr.setflags(write=False)
     return arr
+
+
+def _pixels(v, name: str) -> int:
+    """An image side: a positive whole number (a float such as 160.0 is taken, 160.9 is not)."""
+    if isinstance(v, bool) or not float(v).is_integer() or int(v) <= 0:
+        raise ValueError(f"camera {name}: must be a positive whole number of pixels, got {v!r}")
+    return int(v)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -141,13 +152,18 @@ class Camera:
     height: int
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "K", _frozen(self.K, (3, 3), "K"))
-        object.__setattr__(self, "R", _frozen(self.R, (3, 3), "R"))
-        object.__setattr__(self, "t", _frozen(self.t, (3,), "t"))
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise ValueError(f"camera image size must be positive, got {self.width} x {self.height}")
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "height", int(self.height))
+        object.__setattr__(self, "K", frozen_array(self.K, (3, 3), "K"))
+        object.__setattr__(self, "R", frozen_array(self.R, (3, 3), "R"))
+        object.__setattr__(self, "t", frozen_array(self.t, (3,), "t"))
+        if not is_rotation(self.R, tol=1e-5):  # Blender's matrices are float32: ~1e-7 off orthonormal
+            raise ValueError(f"camera R: not a rotation (orthonormal, determinant +1): {self.R.tolist()}")
+        object.__setattr__(self, "width", _pixels(self.width, "width"))
+        object.__setattr__(self, "height", _pixels(self.height, "height"))
+
+    def __reduce__(self):
+        """Pickled and copied through the constructor, so a copy's arrays are frozen too (a
+        dataclass's default pickling would bypass __post_init__)."""
+        return type(self), tuple(getattr(self, f.name) for f in fields(self))
 
     # -- constructors -----------------------------------------------------------------------
 

@@ -105,7 +105,7 @@ class DatasetIndex:
         if attributes is not None and len(attributes) != len(objects):
             raise ValueError(f"{len(attributes)} source attributes for {len(objects)} objects")
         offsets = np.concatenate([[0], np.cumsum(np.bincount(frame, minlength=len(table)))]).astype(np.int64)
-        return cls(table, offsets, objects, json.dumps(attributes).encode() if attributes else None)
+        return cls(table, offsets, objects, json.dumps(attributes).encode() if attributes and any(attributes) else None)
 
 
 def read_index(root: str | os.PathLike, key: str) -> DatasetIndex | None:

@@ -206,8 +206,7 @@ def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fract
     # 4. Records (paths rewritten), images, depth and instance files.
     claim_output(out, "merge", _made_by_merge)
     writer = DatasetWriter(out, durable=False)
-    writer.unseal()  # unsealed until the end
-    writer.drop_records_except(order)
+    writer.drop_records_except(order)  # unseals first: unsealed until the end
     for rel, src in progress(placement.sources.items(), desc="linking pixels", unit="file"):
         mode = link_file(src, os.path.join(out, rel), link)
         if rel.startswith("images/"):

@@ -130,8 +130,10 @@ class DatasetWriter:
         """Delete every record whose frame id is not in `frame_ids`; their ids, in frame-id order.
 
         Only records: a job that places pixels shared between frames (a merge) knows which files
-        are still used and removes the rest itself, after placing the new ones.
+        are still used and removes the rest itself, after placing the new ones. Unseals first: a
+        folder whose records are changing must not look finished.
         """
+        self.unseal()
         keep = set(frame_ids)
         dropped = []
         for e in record_files(self.root):
@@ -144,9 +146,16 @@ class DatasetWriter:
         """Write a record given as the bytes of its file, atomically (durable as the writer is).
 
         For records already validated elsewhere (a source dataset's record with its paths
-        rewritten); `write` validates and serialises a FrameRecord instead.
+        rewritten); `write` validates and serialises a FrameRecord instead. The one check kept here
+        is the cheap one a reader relies on: the record's frame_id is its file's name.
         """
-        atomic_write_bytes(record_path(self.root, frame_id), data, durable=self.durable)
+        path = record_path(self.root, frame_id)
+        try:
+            named = json.loads(data).get("frame_id")
+        except (json.JSONDecodeError, AttributeError):
+            raise RecordError(frame_id, "<json>", "not a JSON object", path) from None
+        check_record_name(named, path.name, path)
+        atomic_write_bytes(path, data, durable=self.durable)
 
     def link_record(self, frame_id: str, src: str | os.PathLike, mode: LinkMode = "hardlink") -> str:
         """Place another dataset's finished record file as this one's record of `frame_id`; the

@@ -28,7 +28,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Point, Polygon
 
-from omnigen.camera import Camera, intrinsics_from_fov
+from omnigen.camera import Camera, frozen_array, intrinsics_from_fov
 from omnigen.geometry import Box3D, Plane, cuboid_corners, project_boxes, rot_z
 from omnigen.rigs.rig import Rig
 from omnigen.scenes.description import Scene
@@ -78,6 +78,10 @@ class DrawnCamera(Camera):
     hfov: float  # radians
     anchor: str
     tries: int = 1
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "position", frozen_array(self.position, (3,), "position"))
 
     @property
     def camera_height(self) -> float:

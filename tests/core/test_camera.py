@@ -177,3 +177,40 @@ def test_look_at_puts_the_target_on_the_optical_axis_with_the_world_up_on_screen
     assert above[1] < 0
     with pytest.raises(ValueError, match="parallel"):
         look_at((0.0, 0.0, 10.0), (0.0, 0.0, 0.0))
+
+
+def test_a_camera_refuses_what_no_camera_is_and_stays_frozen_when_copied():
+    import copy
+    import pickle
+
+    from omnigen.camera import Camera, intrinsics_from_fov, look_at
+
+    K = intrinsics_from_fov(math.radians(60), 160, 120)
+    R, t = look_at((0.0, -10.0, 5.0), (0.0, 0.0, 0.0))
+    cam = Camera(K, R, t, 160.0, 120)  # a whole float is a size
+    assert (cam.width, cam.height) == (160, 120)
+    for bad, match in (((K, R, t, 160.9, 120), "width"), ((K, R, t, 160, 0), "height"),
+                       ((K, R * 1.1, t, 160, 120), "not a rotation"), ((K, -R, t, 160, 120), "not a rotation"),
+                       ((K, R, t + np.nan, 160, 120), "t: not finite")):
+        with pytest.raises(ValueError, match=match):
+            Camera(*bad)
+    for copied in (pickle.loads(pickle.dumps(cam)), copy.deepcopy(cam), copy.copy(cam)):
+        assert np.array_equal(copied.K, cam.K) and np.array_equal(copied.t, cam.t) and copied.width == 160
+        assert not (copied.K.flags.writeable or copied.R.flags.writeable or copied.t.flags.writeable)
+    with pytest.raises(ValueError, match="eye is at the target"):
+        look_at((1.0, 2.0, 3.0), (1.0, 2.0, 3.0))
+
+
+def test_a_drawn_cameras_position_is_frozen_with_the_rest():
+    import pickle
+
+    from omnigen.rigs.sampling import DrawnCamera
+
+    K = np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]])
+    cam = DrawnCamera(K, np.eye(3), np.zeros(3), 160, 120, position=[1.0, 2.0, 3.0], yaw=0.1, pitch=0.2, hfov=1.0,
+                      anchor="road")
+    assert cam.camera_height == 3.0 and not cam.position.flags.writeable
+    with pytest.raises(ValueError):
+        cam.position[2] = 99.0
+    again = pickle.loads(pickle.dumps(cam))
+    assert isinstance(again, DrawnCamera) and again.anchor == "road" and not again.position.flags.writeable

@@ -324,3 +324,23 @@ def test_a_record_filed_under_another_id_is_refused_by_every_consumer(tmp_path: 
     # validate names it
     assert cli(["validate", str(root)]) == 1
     assert f"{bad}: frame_id: 'kitti-000004' does not match the file name" in capsys.readouterr().out
+
+
+def test_the_assembling_writer_refuses_a_misnamed_record_and_unseals_before_dropping(dataset: Dataset):
+    """write_record_bytes files a record only under its own frame_id; drop_records_except removes
+    the manifest before the first record goes, so an interrupted job never looks finished."""
+    from omnigen.dataset import MANIFEST, DatasetError, record_path
+    from omnigen.writer import DatasetWriter
+
+    root = dataset.root
+    first, second = (dataset.frames[i]["frame_id"] for i in (0, 1))
+    data = record_path(root, first).read_bytes()
+    writer = DatasetWriter(root, durable=False)
+    with pytest.raises(DatasetError, match="does not match the file name"):
+        writer.write_record_bytes(second, data)
+    assert record_path(root, second).read_bytes() != data  # nothing written
+    with pytest.raises(Exception, match="not a JSON object"):
+        writer.write_record_bytes(first, b"[1, 2]")
+    assert (root / MANIFEST).exists()
+    assert writer.drop_records_except({first}) and not (root / MANIFEST).exists()
+    assert [p.stem for p in (root / "records").glob("*.json")] == [first]

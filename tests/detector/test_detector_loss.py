@@ -462,7 +462,12 @@ def test_image_heading_is_fixed_by_the_labelled_corners_and_flips_with_the_turn(
     area = torch.tensor(64.0 * 30.0)
     h = image_heading(kp, area)
     assert h.tolist() == pytest.approx([60.0 / math.sqrt(1920.0), 0.0, 0.0], abs=1e-6)  # front to the right, same size
-    assert torch.allclose(image_heading(kp[list(TURN_IDX)], area), -h)  # the same points, turned: -h
+    assert torch.equal(image_heading(kp[list(TURN_IDX)], area), -h)  # the same points, turned: -h
+    g = torch.Generator().manual_seed(5)  # exactly, on any layout, masked or not
+    xy, areas = torch.rand(500, 8, 2, generator=g) * 300, torch.rand(500, generator=g) * 900 + 1
+    m = torch.rand(500, 8, generator=g) > 0.2
+    turn = list(TURN_IDX)
+    assert torch.equal(image_heading(xy[:, turn], areas, m[:, turn]), -image_heading(xy, areas, m))
     # facing the camera: the front face larger than the rear one -> a positive third component
     near = kp.clone()
     near[[0, 1, 4, 5], 1] = torch.tensor([20.0, 20, 70, 70])

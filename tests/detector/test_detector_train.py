@@ -565,3 +565,17 @@ def test_the_train_command_carries_the_corner_order_flags_into_the_run(fake, tmp
     cfg = seen["cfg"]
     assert (cfg.kpt_heading, cfg.heading_gain, cfg.kpt_labelled, cfg.kpt_turn_start, cfg.kpt_turn) == (True, 3.0, 1.0, 0.3, False)
     assert cfg.model_config(3).kpt_heading and not cfg.model_config(3).kpt_turn
+
+
+def test_one_answer_to_which_face_is_the_front_and_no_gain_without_a_heading(fake, tmp_path, monkeypatch, capsys):
+    """--kpt-turn and --kpt-heading exclude each other at parse time (exit 2, before any data is
+    read); --heading-gain without --kpt-heading is refused before training starts."""
+    from omnigen.cli import main
+    from omnigen.detector import train as train_module
+
+    monkeypatch.setattr(train_module, "train", lambda *a, **k: pytest.fail("training must not start"))
+    with pytest.raises(SystemExit) as exc:
+        main(["train", str(fake), "--out", str(tmp_path / "a"), "--kpt-turn", "--kpt-heading"])
+    assert exc.value.code == 2 and "not allowed with argument" in capsys.readouterr().err
+    assert main(["train", str(fake), "--out", str(tmp_path / "b"), "--heading-gain", "3"]) == 1
+    assert "--heading-gain" in capsys.readouterr().err
