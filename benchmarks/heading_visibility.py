@@ -37,10 +37,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from omnigen.conventions import VIEWS  # noqa: E402
+from omnigen.conventions import FRONT_CORNERS as FRONT, REAR_CORNERS as REAR, VIEWS  # noqa: E402
 
-FRONT = (0, 1, 4, 5)
-REAR = (2, 3, 6, 7)
 # classes with a front and a rear that differ in shape (people and cones do not)
 VEHICLES = ("car", "van", "truck", "bus", "tram", "cyclist", "motorcyclist", "tricyclist")
 SIZE_BUCKETS = ((0, 48, "24-48 px"), (48, 96, "48-96 px"), (96, 10**9, ">= 96 px"))

@@ -25,11 +25,12 @@ from __future__ import annotations
 
 import torch
 
+from omnigen.conventions import FRONT_CORNERS, REAR_CORNERS
+
 HEADING_CHANNELS = 3
 # Each rear tuple is its front tuple under the turn (TURN_IDX), element by element, so the turned
 # layout's sums run in the same order and h(turned) is -h(layout) to the last bit.
-FRONT = (0, 1, 4, 5)  # top_front_left, top_front_right, bottom_front_left, bottom_front_right
-REAR = (2, 3, 6, 7)
+FRONT, REAR = FRONT_CORNERS, REAR_CORNERS
 FRONT_FACE = (0, 1, 5, 4)  # the front face's quad, in order around it
 REAR_FACE = (2, 3, 7, 6)
 
