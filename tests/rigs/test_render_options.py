@@ -10,18 +10,6 @@ import pytest
 from omnigen.cli import main
 
 
-def _needs_egl() -> None:
-    """The raster backend needs pyrender, PyOpenGL and a headless EGL context."""
-    pytest.importorskip("pyrender", reason="pyrender not installed")
-    pytest.importorskip("OpenGL", reason="PyOpenGL not installed")
-    from omnigen.scenes.gl_raster import GLRaster
-
-    try:
-        GLRaster().close()
-    except Exception as exc:
-        pytest.skip(f"headless EGL rendering unavailable: {exc}")
-
-
 def _needs_bpy() -> None:
     """Cycles needs Blender's Python module (labels fall back to Cycles' own passes without EGL)."""
     pytest.importorskip("bpy", reason="Blender's bpy not installed")
@@ -31,8 +19,8 @@ def _records(out: Path) -> list[dict]:
     return [json.loads(p.read_text()) for p in sorted((out / "records").glob("*.json"))]
 
 
+@pytest.mark.usefixtures("headless_gl")
 def test_fixed_weather_and_time_of_day_reach_every_frame(tmp_path):
-    _needs_egl()
     out = tmp_path / "ds"
     assert main(["render", "--rig", "pole", "--frames", "2", "--scene", "tiny", "--backend", "raster",
                  "--width", "64", "--height", "48", "--weather", "snow", "--time-of-day", "dusk",
@@ -74,10 +62,10 @@ def _widths(out: Path) -> list[int]:
     return [r["width"] for r in _records(out)]
 
 
+@pytest.mark.usefixtures("headless_gl")
 def test_a_resumed_render_with_other_arguments_is_refused(tmp_path, capsys):
     """Issue 27: killed part-way and rerun with another --width, a render added frames of the new
     size to the old ones, the manifest claimed the new size and validate said valid."""
-    _needs_egl()
     from omnigen.rigs.render import RenderJob, Renderer
 
     out = tmp_path / "ds"
@@ -117,9 +105,9 @@ def test_fresh_touches_no_folder_that_is_not_a_render(tmp_path, capsys):
     assert sorted(p.name for p in theirs.rglob("*")) == ["kitti-000001.json", "notes.txt", "records"]
 
 
+@pytest.mark.usefixtures("headless_gl")
 def test_validate_catches_frames_that_disagree_with_the_folders_arguments(tmp_path, capsys):
     """A folder mixed before the arguments were recorded: its manifest claims one size, frames hold another."""
-    _needs_egl()
     out = tmp_path / "ds"
     assert _raster(out) == 0
     (out / ".render-args.json").unlink()
