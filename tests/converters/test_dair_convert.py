@@ -86,11 +86,6 @@ def converted_i(tree_i, tmp_path_factory) -> Path:
     return out
 
 
-def copy_tree(src: Path, dst: Path) -> Path:
-    shutil.copytree(src, dst)
-    return dst
-
-
 # ---------------------------------------------------------------------------------------------
 # The real label file
 # ---------------------------------------------------------------------------------------------

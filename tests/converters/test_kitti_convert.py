@@ -83,11 +83,6 @@ def assert_same_datasets(a: Path, b: Path) -> None:
         assert_same(json.loads(ra[name]), json.loads(rb[name]), name)
 
 
-def copy_tree(tree: Path, dst: Path) -> Path:
-    shutil.copytree(tree, dst)
-    return dst
-
-
 # ---------------------------------------------------------------------------------------------
 # Real frames
 # ---------------------------------------------------------------------------------------------
@@ -180,8 +175,8 @@ def test_fixture_frames_convert_and_validate(converted, tree):
     assert stats["ground_plane_fitted"] + stats["ground_plane_prior"] == 12 and stats["ground_plane_fitted"] > 0
 
 
-def test_export_then_convert_gives_the_same_records(tree, converted, tmp_path):
-    src = copy_tree(tree, tmp_path / "src")
+def test_export_then_convert_gives_the_same_records(converted, tree_copy, tmp_path):
+    src = tree_copy
     label = next(p for p in sorted((src / "training/label_2").iterdir()) if "Pedestrian " in p.read_text())
     label.write_text(label.read_text().replace("Pedestrian ", "Person_sitting ", 1))  # must survive the trip
     assert convert(src, tmp_path / "a") == 0
@@ -262,7 +257,7 @@ def test_interrupted_run_then_rerun_gives_the_same_dataset(tree, converted, tmp_
     assert (out / "manifest.json").read_bytes() == (converted / "manifest.json").read_bytes()
 
 
-def test_a_rerun_keeps_no_frame_an_earlier_run_left(tree, converted, tmp_path, capsys):
+def test_a_rerun_keeps_no_frame_an_earlier_run_left(tree, tree_copy, converted, tmp_path, capsys):
     # a smaller --limit, then a frame whose label turned bad: the dataset holds this run's frames only
     out = tmp_path / "ds"
     shutil.copytree(converted, out)
@@ -271,8 +266,7 @@ def test_a_rerun_keeps_no_frame_an_earlier_run_left(tree, converted, tmp_path, c
     ds = Dataset.open(out)
     assert len(ds) == 3 and ds.manifest["counts"]["frames"] == 3
     assert sorted(p.name for p in (out / "images").iterdir()) == sorted(Path(r.image).name for r in ds)
-    src = tmp_path / "src"
-    shutil.copytree(tree, src)
+    src = tree_copy
     (src / "training" / "label_2" / "000002.txt").write_text("Car 0.0 0 not-a-number\n")
     assert convert(src, out, "--limit", "3") == 1  # the bad frame is skipped ...
     assert sorted(Dataset.open(out).frame_ids) == ["kitti-000000", "kitti-000001"]  # ... and its old record gone
@@ -368,8 +362,8 @@ def test_testing_split(tmp_path):
     assert record_texts(tmp_path / "zds") == record_texts(tmp_path / "ds")
 
 
-def test_objects_with_no_part_in_the_image_are_left_out_and_counted(tree, tmp_path):
-    src = copy_tree(tree, tmp_path / "src")
+def test_objects_with_no_part_in_the_image_are_left_out_and_counted(tree_copy, tmp_path):
+    src = tree_copy
     label = src / "training/label_2/000002.txt"
     lines = label.read_text().splitlines()
     behind = "Car 0.00 0 0.00 0.00 0.00 1.00 1.00 1.50 1.60 3.90 0.00 1.65 -10.00 0.00"
@@ -427,8 +421,8 @@ def corrupt_image(src: Path) -> tuple[str, str]:
 
 @pytest.mark.parametrize("breaker", [break_field_count, break_number, break_calib, break_calib_number,
                                      remove_image, corrupt_image])
-def test_bad_frame_is_skipped_listed_and_fails_the_run(breaker, tree, tmp_path, capsys):
-    src = copy_tree(tree, tmp_path / "src")
+def test_bad_frame_is_skipped_listed_and_fails_the_run(breaker, tree_copy, tmp_path, capsys):
+    src = tree_copy
     file, message = breaker(src)
     assert convert(src, tmp_path / "ds") == 1
     out = capsys.readouterr().out
@@ -439,8 +433,8 @@ def test_bad_frame_is_skipped_listed_and_fails_the_run(breaker, tree, tmp_path, 
 
 
 @pytest.mark.parametrize("breaker", [break_field_count, break_calib, corrupt_image])
-def test_strict_stops_at_the_first_bad_frame(breaker, tree, tmp_path, capsys):
-    src = copy_tree(tree, tmp_path / "src")
+def test_strict_stops_at_the_first_bad_frame(breaker, tree_copy, tmp_path, capsys):
+    src = tree_copy
     file, message = breaker(src)
     assert convert(src, tmp_path / "ds", "--strict") == 1
     err = capsys.readouterr().err
@@ -449,8 +443,8 @@ def test_strict_stops_at_the_first_bad_frame(breaker, tree, tmp_path, capsys):
     assert len(record_texts(tmp_path / "ds")) == 4  # frames 0-3, then the stop
 
 
-def test_bad_frames_in_archives_name_archive_and_member(tree, tmp_path, capsys):
-    src = copy_tree(tree, tmp_path / "src")
+def test_bad_frames_in_archives_name_archive_and_member(tree_copy, tmp_path, capsys):
+    src = tree_copy
     _, message = break_number(src)
     write_kitti_zips(src, tmp_path / "zips")
     assert convert(tmp_path / "zips", tmp_path / "ds") == 1
