@@ -3,13 +3,27 @@
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import pytest
+from shapely.geometry import Polygon
 
 from omnigen.camera import Camera, intrinsics_from_fov, look_at
 from omnigen.scenes.generate import FrameOverrides, SceneGenerator
+from omnigen.scenes.shapes import rect_polygon
 
 PROBE_SIZE = 160
+
+
+def _footprint(agent) -> Polygon:
+    return rect_polygon(agent.center[:2], agent.dims[0], agent.dims[1], agent.yaw)
+
+
+@pytest.fixture(scope="session")
+def footprint() -> Callable[..., Polygon]:
+    """The function giving an agent's annotated footprint on the ground (its cuboid's l x w
+    rectangle at its yaw), which the placement checks compare with each other and with obstacles."""
+    return _footprint
 
 
 @pytest.fixture(scope="module")

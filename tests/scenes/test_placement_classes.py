@@ -30,18 +30,14 @@ def frame_with(preset: str, overrides: dict, seed: int, frame: int):
     return SceneGenerator(with_overrides(load_preset(preset), overrides), seed).frame(seed, frame)
 
 
-def footprint(a) -> Polygon:
-    return rect_polygon(a.center[:2], a.dims[0], a.dims[1], a.yaw)
-
-
 def lane_polygon(lane) -> Polygon:
     mid = ((lane.start[0] + lane.end[0]) / 2, (lane.start[1] + lane.end[1]) / 2)
     return rect_polygon(mid, lane.length, lane.width + 0.02, lane.heading)
 
 
-def assert_placement_rules(scene) -> None:
-    """Annotated footprints are disjoint, 0.1 m apart at least, and none stands in a building's or
-    a furniture item's footprint."""
+def assert_placement_rules(scene, footprint) -> None:
+    """Annotated footprints (`footprint`: the conftest fixture's function) are disjoint, 0.1 m apart
+    at least, and none stands in a building's or a furniture item's footprint."""
     polys = [footprint(a) for a in scene.agents]
     for i in range(len(polys)):
         for j in range(i + 1, len(polys)):
@@ -63,11 +59,11 @@ def test_counts_follow_the_preset(scene):
     assert n["traffic_cone"] >= 4 + 2 * 6  # four single cones, two work zones of at least six
 
 
-def test_no_two_cuboids_intersect_nor_stand_in_obstacles(scene):
-    assert_placement_rules(scene)
+def test_no_two_cuboids_intersect_nor_stand_in_obstacles(scene, footprint):
+    assert_placement_rules(scene, footprint)
 
 
-def test_new_classes_stand_where_they_belong(scene):
+def test_new_classes_stand_where_they_belong(scene, footprint):
     roads = {r.road_id: r for r in scene.city.roads}
     inner = [lane for r in roads.values() if sum(x.kind == "driving" for x in r.lanes) >= 6
              for lane in r.lanes if lane.lane_id.endswith(("/fwd0", "/bwd0"))]
@@ -91,7 +87,7 @@ def test_new_classes_stand_where_they_belong(scene):
             assert a.state == "placed" and a.center[2] - a.dims[2] / 2 == pytest.approx(0.0, abs=1e-6)
 
 
-def test_work_zones_ring_a_closed_stretch_no_one_enters():
+def test_work_zones_ring_a_closed_stretch_no_one_enters(footprint):
     preset = with_overrides(load_preset("downtown"), {**NO_CONES, "agents.work_zones": (1, 1)})
     gen = SceneGenerator(preset, 7)
     for frame in range(3):
@@ -161,17 +157,17 @@ def test_junction_works_ring_a_spot_near_each_junction_they_draw():
 
 
 @pytest.mark.parametrize("preset", ["intersection", "downtown"])
-def test_every_preset_keeps_the_rules_and_is_deterministic(preset):
+def test_every_preset_keeps_the_rules_and_is_deterministic(preset, footprint):
     """The rules (disjoint annotated footprints 0.1 m apart, nothing in buildings or furniture
     footprints) with every class and cone form the preset draws; the same seed, the same bytes."""
     gen = SceneGenerator(preset, 8)
     scene = gen.frame(8, 2)
     assert to_json(scene) == to_json(SceneGenerator(preset, 8).frame(8, 2))
-    assert_placement_rules(scene)
+    assert_placement_rules(scene, footprint)
     assert len({a.category for a in scene.agents}) >= 7
 
 
-def test_queues_wait_nose_to_tail_behind_the_stop_lines():
+def test_queues_wait_nose_to_tail_behind_the_stop_lines(footprint):
     scene = frame_with("intersection", {"agents.queue_probability": 1.0, "agents.queue_length": (3, 3),
                                         "agents.moving_vehicles": (0, 0), **NO_CONES, "agents.trams": (0, 0)}, 1, 0)
     vehicles = [a for a in scene.agents if a.category in ("car", "van", "truck", "bus")]
@@ -186,7 +182,7 @@ def test_queues_wait_nose_to_tail_behind_the_stop_lines():
         assert not any(footprint(v).intersects(b) for b in boxes), v.name  # behind stop line and crosswalk
 
 
-def test_riders_keep_to_the_bike_lanes_where_there_are_some():
+def test_riders_keep_to_the_bike_lanes_where_there_are_some(footprint):
     scene = SceneGenerator("intersection", 3).frame(3, 1)
     bike = [lane for r in scene.city.roads for lane in r.lanes if lane.kind == "bike"]
     assert len(bike) == 2 * len(scene.city.roads)

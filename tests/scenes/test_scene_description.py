@@ -23,10 +23,6 @@ from omnigen.scenes.weather import draw_lighting, draw_weather, solar_position
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def footprint(a) -> Polygon:
-    return rect_polygon(a.center[:2], a.dims[0], a.dims[1], a.yaw)
-
-
 # ---------------------------------------------------------------------------------------------
 # Determinism
 # ---------------------------------------------------------------------------------------------
@@ -125,7 +121,7 @@ SCENES = list(_scenes())
 
 
 @pytest.mark.parametrize("scene", SCENES, ids=lambda s: f"{s.city.preset}-{s.frame_index}")
-def test_no_two_cuboids_intersect_and_nothing_inside_buildings(scene):
+def test_no_two_cuboids_intersect_and_nothing_inside_buildings(scene, footprint):
     agents = scene.agents
     assert len(agents) > 10
     polys = [footprint(a) for a in agents]
@@ -144,7 +140,7 @@ def test_no_two_cuboids_intersect_and_nothing_inside_buildings(scene):
 
 
 @pytest.mark.parametrize("scene", SCENES[:3], ids=lambda s: f"{s.city.preset}-{s.frame_index}")
-def test_agents_stand_where_they_belong(scene):
+def test_agents_stand_where_they_belong(scene, footprint):
     city = scene.city
     lanes = {lane.lane_id: lane for r in city.roads for lane in r.lanes}
     def lane_poly(lane):
