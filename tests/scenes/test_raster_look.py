@@ -11,7 +11,7 @@ import pytest
 from shapely.geometry import Point, Polygon
 
 from omnigen.camera import Camera, intrinsics_from_fov, look_at
-from omnigen.scenes.generate import FrameOverrides, SceneGenerator
+from omnigen.scenes.generate import FrameOverrides
 from omnigen.scenes.materials import PATTERNS, ground_material, ground_surface
 from omnigen.scenes.preset import available_presets, load_preset
 from omnigen.scenes.weather import _WEATHER_RANGES, direct_sun, draw_weather

@@ -12,7 +12,7 @@ from shapely.geometry import MultiPoint
 
 from omnigen.camera import Camera, intrinsics_from_fov, look_at
 from omnigen.geometry import Box3D, rot_z, silhouette
-from omnigen.scenes.generate import FrameOverrides, SceneGenerator
+from omnigen.scenes.generate import FrameOverrides
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
