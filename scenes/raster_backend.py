@@ -301,7 +301,7 @@ class RasterScene:
 
     # -- rendering --------------------------------------------------------------------------
 
-    def _camera(self, camera: Camera, prepare: bool = True) -> np.ndarray:
+    def _view_projection(self, camera: Camera, prepare: bool = True) -> np.ndarray:
         """The camera's world -> clip matrix (VP), with the GL context current."""
         self.gl.make_current()
         if prepare:
@@ -313,7 +313,7 @@ class RasterScene:
 
     def render(self, camera: Camera, effects: bool = True) -> RasterFrame:
         """Render with an OpenCV camera: X_cam = R X_world + t, pixels as in the contract."""
-        VP = self._camera(camera, prepare=False)
+        VP = self._view_projection(camera, prepare=False)
         depth, instance = self._id_pass(camera, VP)
         width, height = camera.width, camera.height
         rgb = self.gl.color_pass(VP, camera.center, self._light(camera), width, height,
@@ -327,7 +327,7 @@ class RasterScene:
     def labels(self, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         """(depth, instance) of the id pass alone, no colour: labels for another renderer's image
         of the same geometry (the Cycles backend's)."""
-        return self._id_pass(camera, self._camera(camera, prepare=False))
+        return self._id_pass(camera, self._view_projection(camera, prepare=False))
 
     def _id_pass(self, camera: Camera, VP: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Masks and depth from the id pass, drawn without multisampling: ids are exact (never
@@ -345,7 +345,7 @@ class RasterScene:
         Used for silhouettes "drawn alone": when the given agents' projections do not overlap, each
         one's pixels here are exactly its full silhouette (rigs/annotate.py).
         """
-        VP = self._camera(camera)
+        VP = self._view_projection(camera)
         ranges = [self._ranges[int(i)] for i in sorted({int(i) for i in instance_ids}) if int(i) in self._ranges]
         first = np.array([r[0] for r in ranges], dtype=np.int32)
         count = np.array([r[1] for r in ranges], dtype=np.int32)
@@ -415,16 +415,16 @@ def illumination(scene: Scene, sky_view: float = 1.0) -> Light:
     Lighting.sun_strength (already dimmed by cloud and by a low sun); the sky gives a clear day
     about a tenth of its daylight (CLEAR_SKY_LIGHT: a cloudless sky's diffuse share of the
     daylight is 10-15% with the sun above 30 degrees), more under scattered cloud and an overcast
-    day most of it (diffuse: soft, no hard
-    shadows), tinted like the sky; the ground returns GROUND_ALBEDO of what falls on it to faces
-    looking down or sideways, scaled by `sky_view`: the floor of a street canyon receives the sky's
-    light by its sky view and the sun on a similar share of it (shade is the rest), so it returns
-    less than open ground (a tower's foot is not lit from below as a car park is). The exposure
-    is a camera's: a white horizontal face in the frame's daylight reads EXPOSURE_KEY, but the horizon is not blown out (dusk), and at night the gain stops at
-    MAX_EXPOSURE, so the night stays dark except under lamps and lit windows. `sky_view` is the
-    share of the sky that the camera's surroundings see (street_canyon; 1: open ground): a camera
-    down in a street canyon meters the light down there, as an automatic exposure does, so the
-    open sky and the sunlit tops above it come out brighter than the street.
+    day most of it (diffuse: soft, no hard shadows), tinted like the sky; the ground returns
+    GROUND_ALBEDO of what falls on it to faces looking down or sideways, scaled by `sky_view`: the
+    floor of a street canyon receives the sky's light by its sky view and the sun on a similar
+    share of it (shade is the rest), so it returns less than open ground (a tower's foot is not
+    lit from below as a car park is). The exposure is a camera's: a white horizontal face in the
+    frame's daylight reads EXPOSURE_KEY, but the horizon is not blown out (dusk), and at night the
+    gain stops at MAX_EXPOSURE, so the night stays dark except under lamps and lit windows.
+    `sky_view` is the share of the sky that the camera's surroundings see (street_canyon; 1: open
+    ground): a camera down in a street canyon meters the light down there, as an automatic exposure
+    does, so the open sky and the sunlit tops above it come out brighter than the street.
     """
     light, w = scene.lighting, scene.weather
     zenith, horizon = (np.asarray(c) for c in _sky_colors(scene))
