@@ -64,7 +64,6 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from omnigen.priors import PRIORS
 
@@ -320,6 +319,8 @@ def _canonical_rectangle(aspect: float) -> np.ndarray:
 
 def _solve(pts: np.ndarray, x0: np.ndarray, prior: np.ndarray | None,
            weights: np.ndarray) -> tuple[np.ndarray, float, int, bool]:
+    from scipy.optimize import least_squares  # here: importing it takes ~0.3 s, which `omnigen --help` would pay
+
     sol = least_squares(_residuals, x0, args=(pts, prior, weights), method="trf", x_scale="jac",
                         loss="soft_l1", f_scale=ROBUST_COS,
                         xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=400)
@@ -450,6 +451,8 @@ def refine_reprojection(x: np.ndarray, pts: np.ndarray, prior_aspect: np.ndarray
         if prior_aspect is not None:
             sparsity[8 * n + i, 4 + 5 * i:9 + 5 * i] = True
     theta0 = np.concatenate([x, inst0.ravel()])
+    from scipy.optimize import least_squares  # here, as in _solve
+
     sol = least_squares(residuals, theta0, jac_sparsity=sparsity if n > SPARSE_FROM else None, method="trf",
                         x_scale="jac",
                         loss="soft_l1", f_scale=ROBUST_PX * px_scale,

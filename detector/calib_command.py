@@ -16,12 +16,11 @@ import json
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from omnigen.detector.results_file import read_results
-from omnigen.detector.lift import DimensionPriors, fit_dimension_priors, ground_adherence_deg, lift_keypoints, to_kitti_lines
 from omnigen.conventions import FINE_CLASSES, NUM_KEYPOINTS
 from omnigen.dataset import Dataset
 from omnigen.files import atomic_write_bytes, atomic_write_json
@@ -29,6 +28,9 @@ from omnigen.formats.kitti import kitti_file_names, label_text
 from omnigen.progress import print_table
 from omnigen.splits import TRAIN, read_split, split_names
 from omnigen.taxonomy import Taxonomy, load_taxonomy
+
+if TYPE_CHECKING:  # the lift (and cv2 with it) is imported where it is used, not when `omnigen --help` builds the parser
+    from omnigen.detector.lift import DimensionPriors
 
 
 @dataclass(frozen=True)
@@ -169,6 +171,8 @@ class LiftSummary:
 def lift_frames(ds: Dataset, frames: list[int], preds: dict[int, FramePredictions], priors: DimensionPriors,
                 perturbation: Perturbation) -> LiftSummary:
     """Lift every frame's predictions with K perturbed; detections in frame order."""
+    from omnigen.detector.lift import ground_adherence_deg, lift_keypoints, to_kitti_lines
+
     lines, depth, adherence = {}, [], []
     for f in frames:
         p = preds.get(f)
@@ -268,6 +272,8 @@ def select_frames(ds: Dataset, split: str, views: str, sources: str) -> list[int
 def load_priors(ds: Dataset, path: Path | None) -> tuple[DimensionPriors, str]:
     """Priors from a file, else the train split's medians, else (no train split) the fixed priors
     of omnigen/priors.py: never the evaluated frames' own sizes."""
+    from omnigen.detector.lift import DimensionPriors, fit_dimension_priors
+
     if path is not None:
         try:
             return DimensionPriors.from_dict(json.loads(Path(path).read_bytes()), str(path)), str(path)

@@ -8,8 +8,9 @@ the part it drives (render in rigs, convert in converters, merge, validate, expo
 in the core, train, predict, eval and bev in the detector), exposing add_arguments(parser) and
 run(args) -> int; its help line is its docstring's first line. The registry names the modules as
 strings and imports each one when the parser is built: the core (omnigen/*.py) imports no part,
-and this is the one place that names them (tests/core/test_layers.py checks both). Command modules keep
-their heavy imports (torch, scipy, the renderers) inside run() so `omnigen --help` stays fast.
+and this is the one place that names them (tests/core/test_layers.py checks both). Building the
+parser imports every command module, so they import their heavy dependencies (torch, scipy, cv2, the
+renderers) only in run() or the function that uses them, and `omnigen --help` stays fast.
 """
 
 from __future__ import annotations
