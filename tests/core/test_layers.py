@@ -1,10 +1,11 @@
 """The layers, read from the source with `ast`: the core imports no part, the detector no converter,
 bpy lives in one file, and the installed package is the only way in (issue 28).
 
-The core is omnigen/*.py and omnigen/stats/; the parts are the folders scenes/, rigs/, converters/ and
-detector/, installed as omnigen.scenes, omnigen.rigs, omnigen.converters and omnigen.detector
-(pyproject's package-dir). omnigen/cli.py is the command registry: it names the parts' command
-modules as strings and is the one core module allowed to.
+The core is every module of the package outside a part (omnigen/*.py, omnigen/stats/ and
+omnigen/formats/); the parts are the folders scenes/, rigs/, converters/ and detector/, installed
+as omnigen.scenes, omnigen.rigs, omnigen.converters and omnigen.detector (pyproject's
+package-dir). omnigen/cli.py is the command registry: it names the parts' command modules as
+strings and is the one core module allowed to.
 """
 
 from __future__ import annotations
@@ -102,8 +103,8 @@ def test_the_checker_sees_every_kind_of_import():
                                               "omnigen.detector", "omnigen.converters.kitti"}
     assert part_imports("from omnigen.dataset import Dataset\nimport numpy\n", "omnigen.x") == set()
     # relative imports resolve against the module's package: inside the detector, `..converters` is a part
-    assert part_imports("from ..converters.kitti_export import KITTI_NAMES\n", "omnigen.detector.lift") \
-        == {"omnigen.converters.kitti_export", "omnigen.converters.kitti_export.KITTI_NAMES"}
+    assert part_imports("from ..converters.kitti_export import export_kitti\n", "omnigen.detector.lift") \
+        == {"omnigen.converters.kitti_export", "omnigen.converters.kitti_export.export_kitti"}
     assert imports("from . import common\n", "omnigen.converters", is_package=True) \
         == {"omnigen.converters", "omnigen.converters.common"}
     assert part_names_in_strings('"""Mentions omnigen.scenes in prose."""\nX = {"a": "omnigen.rigs.render_command"}\n') \
