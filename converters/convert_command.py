@@ -19,5 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """The converter's own run (argparse calls it directly: its parser sets it as the default)."""
+    """Never called: argparse dispatches to each converter's own run, which that converter's
+    subparser sets as its default `func`, overriding the one cli.add_commands sets here. It exists
+    because every command module the registry names gives run(args)."""
     return importlib.import_module(CONVERTERS[args.converter]).run(args)
