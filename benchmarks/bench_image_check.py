@@ -16,7 +16,6 @@ smooth gradient with noise, which compresses about as badly as a photograph.
 from __future__ import annotations
 
 import argparse
-import io
 import os
 import statistics
 import sys

@@ -116,8 +116,6 @@ def finished(run: Path, cfg: Any, epochs: int) -> dict[str, Any] | None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    import torch
-
     from benchmarks.validate import fmt
     from omnigen.detector.box_template import evaluate_with_baseline
     from omnigen.detector.corner_order import corner_order_counts
