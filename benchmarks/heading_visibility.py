@@ -81,19 +81,14 @@ class Crops:
     sides: np.ndarray  # (N,) the bbox's longer side, px
 
 
-def collect(root: Path, frame_ids: list[str], crop: int, min_side: float, min_offset: float,
+def collect(ds, frame_ids: list[str], crop: int, min_side: float, min_offset: float,
             max_occlusion: int, limit: int | None = None) -> Crops:
-    """Every labelled vehicle of the named frames that is large and unoccluded enough."""
+    """Every labelled vehicle of the named frames of dataset `ds` that is large and unoccluded enough."""
     from PIL import Image
 
-    from omnigen.dataset import Dataset
-
-    ds = Dataset.open(root)
-    wanted = set(frame_ids)
+    root = ds.root
     images, labels, views, sides = [], [], [], []
-    for i in range(len(ds)):
-        if ds.frames[i]["frame_id"] not in wanted:
-            continue
+    for i in sorted(ds.index_of(f) for f in frame_ids):  # in the dataset's order, whatever the split file's
         rec = ds[i]
         picked = []
         for obj in rec.objects:
@@ -213,8 +208,11 @@ def main(argv: list[str] | None = None) -> int:
         train_ids, test_ids = read_split(a.dataset, "train"), read_split(a.dataset, "test")
     except (OSError, ValueError) as exc:
         raise SystemExit(f"heading_visibility: {a.dataset}: needs splits/train.txt and splits/test.txt ({exc})")
+    from omnigen.dataset import Dataset
+
+    ds = Dataset.open(a.dataset)  # once, for both splits
     kw = dict(crop=a.crop, min_side=a.min_side, min_offset=a.min_offset, max_occlusion=a.max_occlusion)
-    tr, te = collect(a.dataset, train_ids, **kw), collect(a.dataset, test_ids, **kw)
+    tr, te = collect(ds, train_ids, **kw), collect(ds, test_ids, **kw)
     if len(tr.labels) < a.batch or not len(te.labels):
         raise SystemExit(f"heading_visibility: {a.dataset}: too few labelled crops (train {len(tr.labels)}, "
                          f"test {len(te.labels)}); lower --min-side or --min-offset")
