@@ -200,7 +200,7 @@ class DetectionLoss:
         self.gains = gains or LossGains()
         self.assigner = assigner or TaskAlignedAssigner()
         self.kpt_sigma = kpt_sigma
-        # a turn-aware head's corners are compared in the labelled order until the trainer frees
+        # a turn- or heading-aware head's corners are compared in the labelled order until the trainer frees
         # them (TrainConfig.kpt_turn_start): the branch first learns the labelled order, so that its
         # later choice between the two orders starts from the true heading wherever the image shows it
         self.turn_free = True

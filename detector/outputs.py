@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from omnigen.conventions import NUM_KEYPOINTS, TURN_IDX
+from omnigen.detector.boxes import box_area
 from omnigen.detector.heading import image_heading
 
 REG_MAX = 16
@@ -116,8 +117,7 @@ def apply_heading(k: torch.Tensor, heading: torch.Tensor, boxes: torch.Tensor) -
     branch ordered it has an image heading (heading.image_heading, on the decoded boxes' areas);
     where it points away from the predicted heading (B, 3, A), the front is the other face."""
     xy = k[:, :, :2].permute(0, 3, 1, 2)  # (B, A, K, 2)
-    area = ((boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])).clamp(min=1.0)  # (B, A)
-    agree = (image_heading(xy, area) * heading.transpose(1, 2)).sum(-1)  # (B, A)
+    agree = (image_heading(xy, box_area(boxes.transpose(1, 2))) * heading.transpose(1, 2)).sum(-1)  # (B, A)
     return torch.where((agree < 0)[:, None, None, :], k[:, list(TURN_IDX)], k)
 
 
