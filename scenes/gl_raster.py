@@ -35,6 +35,8 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 from OpenGL import GL as gl  # noqa: E402
 
+from omnigen.scenes.materials import SNOW, SNOW_BLEND  # noqa: E402
+
 ZNEAR, ZFAR = 0.25, 3000.0
 MSAA_SAMPLES = 4
 SLOTS_PER_ROW = 1024  # material texture: slot s at (s % 1024, 2 * (s // 1024)) and the row below
@@ -45,6 +47,13 @@ NOISE_SIZE = 256  # the value-noise table, cells a side (it repeats)
 NOISE_SEED = 26  # fixed: the same surfaces on every machine and every run
 AE_TARGET = 0.18  # auto exposure: the frame's mean linear luminance it aims at (18% grey)
 AE_STRIDE = 4  # it meters every 4th pixel of every 4th row (a camera meters a coarse grid)
+# What traffic leaves on asphalt (the road-wear map, scenes/road_wear.py), at the map's full value:
+# an oil-soaked queue zone before a stop line is about half as bright as the lane around it (the
+# dark smudges of junction approaches), a lane's middle elsewhere about a fifth darker (OIL_BASE),
+# the rubber of the wheel paths a little darker; in snow, wheels clear 90% of it off their tracks.
+WEAR_STAIN = 0.45
+WEAR_RUBBER = 0.12
+WEAR_CLEARED = 0.9
 
 # The output encoding: the sRGB transfer function (IEC 61966-2-1; its linear toe keeps shadows
 # darker than a plain 2.2 power), as the PNGs are read; _SRGB_GLSL is the same in the shaders.
@@ -179,6 +188,10 @@ def _kind_defines(kind: int) -> str:
 
 
 _SURFACES_GLSL = """
+const float WEAR_STAIN = %WEAR_STAIN%;
+const float WEAR_RUBBER = %WEAR_RUBBER%;
+const float WEAR_CLEARED = %WEAR_CLEARED%;
+const vec3 SNOW_ALBEDO = vec3(%SNOW%);
 vec2 N(vec2 p) { return texture(noise, p * (1.0 / %NOISE%.0)).rg; }
 float H(vec2 cell) { return texelFetch(noise, ivec2(mod(cell, %NOISE%.0)), 0).r; }  // one value a cell
 float roofline(float z) {  // sine of the elevation of the opposite roofline seen from height z
@@ -233,8 +246,14 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     float band = smoothstep(0.32 + 0.5 * fp, 0.32 - 0.5 * fp, fz) * (1.0 - smoothstep(0.3, 0.8, fp));
     m *= mix(1.0, mix(1.0, prm.z < 0.5 ? 0.72 : 1.22, band) * mix(0.68, 1.0, smoothstep(0.7, 0.9, P.z))
                   * (0.8 + 0.2 * smoothstep(0.0, 2.5, P.z)), facade);
+    float m_bare = m;
     m = mix(m, 1.0, snow_cover * float(up));  // snow hides the ground's texture
     vec3 albedo = base * m;
+    if (kind == 1) {  // asphalt: traffic's oil, rubber and gutter grime; tyres clear snow off their tracks
+        vec2 w = texture(wear_map, (P.xy - wear_xform.xy) * wear_xform.zw).rg;
+        vec3 bare = road_bare * m_bare * (1.0 - WEAR_STAIN * w.x) * (1.0 - WEAR_RUBBER * w.y);
+        albedo = mix(bare, SNOW_ALBEDO, %SNOW_MIX% * snow_cover * (1.0 - WEAR_CLEARED * w.y));
+    }
     albedo = mix(albedo, (rv > 0.8 ? vec3(0.62, 0.62, 0.6) : vec3(0.34, 0.33, 0.31)) * m, flat_roof * step(0.7, rv));
     // kerb stones are granite, lighter than the paving
     albedo = mix(albedo, vec3(0.36, 0.355, 0.34) * m, 0.7 * float(kind == 3 && !up));
@@ -254,7 +273,9 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     reflected = sky_along(r, P.z) * (glass * F * (0.3 + 0.7 * step(0.3, cell)) + float(kind == 9) * 0.8 * F);
     return albedo;
 }
-"""
+""".replace("%WEAR_STAIN%", f"{WEAR_STAIN:.6f}").replace("%WEAR_RUBBER%", f"{WEAR_RUBBER:.6f}").replace(
+    "%WEAR_CLEARED%", f"{WEAR_CLEARED:.6f}").replace("%SNOW%", ", ".join(f"{c:.6f}" for c in SNOW)).replace(
+    "%SNOW_MIX%", f"{SNOW_BLEND:.6f}")
 
 
 
@@ -283,6 +304,9 @@ uniform float aureole;  // the share of the sky's light from round the sun, hidd
 uniform vec3 sky_wall;  // a wall's share of the sky's light: a + b cos(phi) + c cos^2(phi), phi its azimuth from the sun's
 uniform sampler2D svf_map;
 uniform vec4 svf_xform;  // map origin x, y (m), 1 / its side (m), the cell (m)
+uniform sampler2D wear_map;  // what traffic leaves on the roads: r stain, g wheel tracks (road_wear.py)
+uniform vec4 wear_xform;  // map origin x, y (m), 1 / its width, 1 / its height (m)
+uniform vec3 road_bare;  // the road's colour without snow (wet as the weather makes it)
 uniform float exposure;
 uniform float snow_cover;
 uniform int effects;
@@ -576,11 +600,14 @@ class Light:
     # a wall's share of the sky's light on a roof, a + b cos(phi) + c cos^2(phi) with phi the wall's
     # azimuth from the sun's (raster_backend.sky_on_walls); (0.5, 0, 0): an evenly bright sky
     sky_wall: tuple = (0.5, 0.0, 0.0)
+    # where the road-wear map (GLRaster.set_road_wear) lies: origin x, y (m), 1 / width, 1 / height (m)
+    wear_xform: tuple = (0.0, 0.0, 1.0, 1.0)
+    road_bare: tuple = (0.0, 0.0, 0.0)  # the road's colour as the weather leaves it, without snow (wheel tracks show it)
     aureole: float = 0.0  # the share of the sky's light from round the sun: a face sees it where it sees the sun
     max_gain: float = 1.0  # how far the camera's automatic exposure may open up (auto_exposure; 1: not at all)
 
 
-_COLOR_UNIFORMS = ("VP", "materials", "cam_pos", "light_direction", "light_radiance", "sky_ambient", "ground_ambient",
+_COLOR_UNIFORMS = ("VP", "materials", "wear_map", "wear_xform", "road_bare", "cam_pos", "light_direction", "light_radiance", "sky_ambient", "ground_ambient",
                    "zenith", "horizon", "canyon", "sky_wall", "aureole", "svf_map", "svf_xform", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
                    "shadow_matrix", "shadow_map", "noise", "shadow_radius", "normal_bias", "n_lamps", "lamps", "lamp_color")
 
@@ -627,6 +654,8 @@ class GLRaster:
         self._noise_tex = self._noise_texture()
         self._svf_tex = gl.glGenTextures(1)
         self.set_sky_view(np.ones((1, 1), dtype=np.float32))
+        self._wear_tex = gl.glGenTextures(1)
+        self.set_road_wear(np.zeros((1, 1, 2), dtype=np.uint8))
         self._id_loc = {name: gl.glGetUniformLocation(self._id_prog, name) for name in ("VP", "has_ids")}
 
     def make_current(self) -> None:
@@ -671,6 +700,20 @@ class GLRaster:
                             (gl.GL_TEXTURE_WRAP_S, gl.GL_CLAMP_TO_EDGE), (gl.GL_TEXTURE_WRAP_T, gl.GL_CLAMP_TO_EDGE)):
             gl.glTexParameteri(gl.GL_TEXTURE_2D, name, value)
         gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_R32F, a.shape[1], a.shape[0], 0, gl.GL_RED, gl.GL_FLOAT, a.tobytes())
+        gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
+
+    def set_road_wear(self, wear: np.ndarray) -> None:
+        """The city's road-wear map (road_wear.road_wear_map), (ny, nx, 2) uint8: stain and wheel
+        tracks, row j at y = y0 + (j + 0.5) cell (Light.wear_xform places it); mipmapped, so a
+        distant road averages its tracks instead of shimmering; outside it, its edge (zero)."""
+        a = np.ascontiguousarray(wear, dtype=np.uint8)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, self._wear_tex)
+        gl.glPixelStorei(gl.GL_UNPACK_ALIGNMENT, 1)
+        gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_RG8, a.shape[1], a.shape[0], 0, gl.GL_RG, gl.GL_UNSIGNED_BYTE, a.tobytes())
+        gl.glGenerateMipmap(gl.GL_TEXTURE_2D)
+        for name, value in ((gl.GL_TEXTURE_MIN_FILTER, gl.GL_LINEAR_MIPMAP_NEAREST), (gl.GL_TEXTURE_MAG_FILTER, gl.GL_LINEAR),
+                            (gl.GL_TEXTURE_WRAP_S, gl.GL_CLAMP_TO_EDGE), (gl.GL_TEXTURE_WRAP_T, gl.GL_CLAMP_TO_EDGE)):
+            gl.glTexParameteri(gl.GL_TEXTURE_2D, name, value)
         gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
 
     def set_decals(self, positions: np.ndarray, uv: np.ndarray) -> None:
@@ -842,6 +885,8 @@ class GLRaster:
         gl.glBindTexture(gl.GL_TEXTURE_2D, self._noise_tex)
         gl.glActiveTexture(gl.GL_TEXTURE3)
         gl.glBindTexture(gl.GL_TEXTURE_2D, self._svf_tex)
+        gl.glActiveTexture(gl.GL_TEXTURE4)
+        gl.glBindTexture(gl.GL_TEXTURE_2D, self._wear_tex)
         gl.glActiveTexture(gl.GL_TEXTURE0)
         gl.glBindTexture(gl.GL_TEXTURE_2D, self._materials)
         groups: list[tuple[int | None, _Mesh, tuple | None]] = []
@@ -900,6 +945,9 @@ class GLRaster:
         gl.glUniform1i(loc["noise"], 2)
         gl.glUniform1i(loc["svf_map"], 3)
         gl.glUniform4f(loc["svf_xform"], *(float(x) for x in light.svf_xform))
+        gl.glUniform1i(loc["wear_map"], 4)
+        gl.glUniform4f(loc["wear_xform"], *(float(x) for x in light.wear_xform))
+        vec3("road_bare", light.road_bare)
         if shadows:
             bias = np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
             gl.glUniformMatrix4fv(loc["shadow_matrix"], 1, gl.GL_TRUE, np.asarray(bias @ light.shadow_lvp, dtype=np.float32))
@@ -986,7 +1034,7 @@ class GLRaster:
         self._delete_framebuffers()
         self.static.delete()
         self.agents.delete()
-        gl.glDeleteTextures([self._materials, self._shadow_tex, self._noise_tex, self._svf_tex])
+        gl.glDeleteTextures([self._materials, self._shadow_tex, self._noise_tex, self._svf_tex, self._wear_tex])
         gl.glDeleteFramebuffers(1, [self._shadow_fbo])
         for prog, _ in self._color_progs.values():
             gl.glDeleteProgram(prog)

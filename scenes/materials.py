@@ -27,6 +27,7 @@ import numpy as np
 from omnigen.scenes.description import Agent, Building, City, Furniture, Lighting, Material, Weather
 
 SNOW = (0.82, 0.84, 0.88)
+SNOW_BLEND = 0.9  # full snow cover takes an upward surface this far towards SNOW (weathered; the raster shader's asphalt too)
 AGED_ASPHALT = 1.7  # aged asphalt reflects more than a fresh surface does (about 0.077 vs 0.045)
 GROUND_ROLES = ("ground", "road", "sidewalk", "lawn", "marking_white", "marking_yellow")
 
@@ -76,7 +77,7 @@ def weathered(m: Material, weather: Weather, upward: bool) -> Material:
     c = np.asarray(m.base_color) * (1.0 - 0.4 * wet)
     rough = m.roughness * (1.0 - 0.8 * wet)
     if upward and weather.snow_cover > 0:
-        k = 0.9 * float(weather.snow_cover)
+        k = SNOW_BLEND * float(weather.snow_cover)
         c = c * (1 - k) + np.asarray(SNOW) * k
         rough = rough * (1 - k) + 0.6 * k
     return replace(m, base_color=(float(c[0]), float(c[1]), float(c[2])), roughness=float(max(rough, 0.04)))
