@@ -54,6 +54,11 @@ AE_STRIDE = 4  # it meters every 4th pixel of every 4th row (a camera meters a c
 WEAR_STAIN = 0.45
 WEAR_RUBBER = 0.12
 WEAR_CLEARED = 0.9
+# A lane's bands run along it, and a camera sees the road at a grazing angle: a pixel's footprint is
+# long along the view and narrow across it, so the map is filtered anisotropically (up to this many
+# samples along the footprint) instead of averaging the bands away across the lane.
+WEAR_ANISOTROPY = 4.0
+GL_TEXTURE_MAX_ANISOTROPY = 0x84FE  # GL 4.6 / ARB_texture_filter_anisotropic (llvmpipe has it)
 
 # The output encoding: the sRGB transfer function (IEC 61966-2-1; its linear toe keeps shadows
 # darker than a plain 2.2 power), as the PNGs are read; _SRGB_GLSL is the same in the shaders.
@@ -192,6 +197,7 @@ const float WEAR_STAIN = %WEAR_STAIN%;
 const float WEAR_RUBBER = %WEAR_RUBBER%;
 const float WEAR_CLEARED = %WEAR_CLEARED%;
 const vec3 SNOW_ALBEDO = vec3(%SNOW%);
+const float SNOW_BLEND = %SNOW_MIX%;
 vec2 N(vec2 p) { return texture(noise, p * (1.0 / %NOISE%.0)).rg; }
 float H(vec2 cell) { return texelFetch(noise, ivec2(mod(cell, %NOISE%.0)), 0).r; }  // one value a cell
 float roofline(float z) {  // sine of the elevation of the opposite roofline seen from height z
@@ -246,13 +252,22 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     float band = smoothstep(0.32 + 0.5 * fp, 0.32 - 0.5 * fp, fz) * (1.0 - smoothstep(0.3, 0.8, fp));
     m *= mix(1.0, mix(1.0, prm.z < 0.5 ? 0.72 : 1.22, band) * mix(0.68, 1.0, smoothstep(0.7, 0.9, P.z))
                   * (0.8 + 0.2 * smoothstep(0.0, 2.5, P.z)), facade);
-    float m_bare = m;
-    m = mix(m, 1.0, snow_cover * float(up));  // snow hides the ground's texture
-    vec3 albedo = base * m;
-    if (kind == 1) {  // asphalt: traffic's oil, rubber and gutter grime; tyres clear snow off their tracks
+    // Snow on the ground (roads, markings, paving, grass, plazas: their materials come blended
+    // SNOW_BLEND * snow_cover towards SNOW_ALBEDO by materials.weathered, undone here to the bare,
+    // wet ground): a partial cover lies in patches, snow_cover of the area (where the 20 m noise,
+    // ragged by the fine one, is under it), not as a grey wash; it goes on white over the ground's
+    // own pattern below. Other faces looking up (roofs) keep the blend, their texture hidden.
+    bool ground = up && (kind == 1 || kind == 2 || kind == 3 || kind == 4 || kind == 10);
+    float k_snow = SNOW_BLEND * snow_cover;
+    float field = clamp(big + 0.12 * hi, 0.04, 0.96);  // no snow at all without cover, everywhere at full cover
+    float lying = smoothstep(field - 0.03, field + 0.03, snow_cover);
+    m = mix(m, 1.0, snow_cover * float(up && !ground));
+    vec3 albedo = (ground ? (base - SNOW_ALBEDO * k_snow) / (1.0 - k_snow) : base) * m;
+    if (kind == 1 || kind == 2) {  // tyres clear the snow off their tracks, markings included
         vec2 w = texture(wear_map, (P.xy - wear_xform.xy) * wear_xform.zw).rg;
-        vec3 bare = road_bare * m_bare * (1.0 - WEAR_STAIN * w.x) * (1.0 - WEAR_RUBBER * w.y);
-        albedo = mix(bare, SNOW_ALBEDO, %SNOW_MIX% * snow_cover * (1.0 - WEAR_CLEARED * w.y));
+        lying *= 1.0 - WEAR_CLEARED * w.y;
+        // asphalt: traffic's oil, rubber and gutter grime (paint's own wear is its pattern's, below)
+        albedo *= 1.0 - float(kind == 1) * (WEAR_STAIN * w.x + WEAR_RUBBER * w.y - WEAR_STAIN * WEAR_RUBBER * w.x * w.y);
     }
     albedo = mix(albedo, (rv > 0.8 ? vec3(0.62, 0.62, 0.6) : vec3(0.34, 0.33, 0.31)) * m, flat_roof * step(0.7, rv));
     // kerb stones are granite, lighter than the paving
@@ -262,6 +277,7 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     // grass: dry patches; foliage: some clusters yellower
     albedo = mix(albedo, vec3(0.15, 0.13, 0.06) * m, 0.65 * float(kind == 4) * smoothstep(0.55, 0.8, big));
     albedo = mix(albedo, albedo * vec3(1.5, 1.25, 0.55), float(kind == 8) * smoothstep(0.1, 0.3, hi));
+    albedo = mix(albedo, SNOW_ALBEDO, SNOW_BLEND * lying * float(ground));
     // windows: in daylight rooms behind glass are dark (most panes); a few show light blinds or
     // curtains (a value per pane); the sky and the facades opposite mirrored in front (glass's
     // Fresnel reflectance: 4% head-on, most of it at grazing angles); car paint: a clear coat
@@ -306,7 +322,6 @@ uniform sampler2D svf_map;
 uniform vec4 svf_xform;  // map origin x, y (m), 1 / its side (m), the cell (m)
 uniform sampler2D wear_map;  // what traffic leaves on the roads: r stain, g wheel tracks (road_wear.py)
 uniform vec4 wear_xform;  // map origin x, y (m), 1 / its width, 1 / its height (m)
-uniform vec3 road_bare;  // the road's colour without snow (wet as the weather makes it)
 uniform float exposure;
 uniform float snow_cover;
 uniform int effects;
@@ -602,12 +617,11 @@ class Light:
     sky_wall: tuple = (0.5, 0.0, 0.0)
     # where the road-wear map (GLRaster.set_road_wear) lies: origin x, y (m), 1 / width, 1 / height (m)
     wear_xform: tuple = (0.0, 0.0, 1.0, 1.0)
-    road_bare: tuple = (0.0, 0.0, 0.0)  # the road's colour as the weather leaves it, without snow (wheel tracks show it)
     aureole: float = 0.0  # the share of the sky's light from round the sun: a face sees it where it sees the sun
     max_gain: float = 1.0  # how far the camera's automatic exposure may open up (auto_exposure; 1: not at all)
 
 
-_COLOR_UNIFORMS = ("VP", "materials", "wear_map", "wear_xform", "road_bare", "cam_pos", "light_direction", "light_radiance", "sky_ambient", "ground_ambient",
+_COLOR_UNIFORMS = ("VP", "materials", "wear_map", "wear_xform", "cam_pos", "light_direction", "light_radiance", "sky_ambient", "ground_ambient",
                    "zenith", "horizon", "canyon", "sky_wall", "aureole", "svf_map", "svf_xform", "exposure", "snow_cover", "effects", "fog_density", "fog_color",
                    "shadow_matrix", "shadow_map", "noise", "shadow_radius", "normal_bias", "n_lamps", "lamps", "lamp_color")
 
@@ -714,6 +728,7 @@ class GLRaster:
         for name, value in ((gl.GL_TEXTURE_MIN_FILTER, gl.GL_LINEAR_MIPMAP_NEAREST), (gl.GL_TEXTURE_MAG_FILTER, gl.GL_LINEAR),
                             (gl.GL_TEXTURE_WRAP_S, gl.GL_CLAMP_TO_EDGE), (gl.GL_TEXTURE_WRAP_T, gl.GL_CLAMP_TO_EDGE)):
             gl.glTexParameteri(gl.GL_TEXTURE_2D, name, value)
+        gl.glTexParameterf(gl.GL_TEXTURE_2D, GL_TEXTURE_MAX_ANISOTROPY, WEAR_ANISOTROPY)
         gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
 
     def set_decals(self, positions: np.ndarray, uv: np.ndarray) -> None:
@@ -947,7 +962,6 @@ class GLRaster:
         gl.glUniform4f(loc["svf_xform"], *(float(x) for x in light.svf_xform))
         gl.glUniform1i(loc["wear_map"], 4)
         gl.glUniform4f(loc["wear_xform"], *(float(x) for x in light.wear_xform))
-        vec3("road_bare", light.road_bare)
         if shadows:
             bias = np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
             gl.glUniformMatrix4fv(loc["shadow_matrix"], 1, gl.GL_TRUE, np.asarray(bias @ light.shadow_lvp, dtype=np.float32))

@@ -6,7 +6,9 @@ each backend only translates a Material into its own shader.
 
 Weather on surfaces: wetness darkens a surface (water fills its pores: up to 40% darker) and
 makes it glossy (roughness down to 20%); snow cover blends upward-facing surfaces (roads,
-sidewalks, lawns, roofs, ground) towards snow white. Night: lit windows, street lamps, vehicle
+sidewalks, lawns, roofs, ground) towards snow white (SNOW_BLEND * snow_cover). The raster shader
+undoes that blend on the ground's roles and lays the snow in patches instead, snow_cover of the
+area, with wheel tracks cleared (scenes/road_wear.py); Cycles keeps the blend. Night: lit windows, street lamps, vehicle
 head- and taillights and bus signs emit; traffic signals always do.
 
 Surfaces: beside its Material, a part's role names a procedural surface pattern (Surface):

@@ -46,8 +46,7 @@ from omnigen.scenes.description import Scene  # noqa: E402
 from omnigen.camera import Camera  # noqa: E402
 from omnigen.geometry import cuboid_corners, rots_z  # noqa: E402
 from omnigen.scenes.gl_raster import MAX_LAMPS, SHADOW_SIZE, ZFAR, ZNEAR, GLRaster, Light  # noqa: E402
-from omnigen.scenes.materials import (PATTERNS, agent_surface, building_surface, furniture_surface, ground_material,  # noqa: E402
-                                      ground_surface)
+from omnigen.scenes.materials import PATTERNS, agent_surface, building_surface, furniture_surface, ground_surface  # noqa: E402
 from omnigen.scenes.meshes import (agent_object, compile_scene, lamp_lights, static_materials, static_objects,  # noqa: E402
                            world_box)
 from omnigen.scenes.road_wear import road_wear_map  # noqa: E402
@@ -361,8 +360,6 @@ class RasterScene:
         ground = view_ground(camera)
         light = illumination(self.scene, metered_sky_view(self._canyon, self._svf, self._svf_xform, ground))
         light.canyon, light.svf_xform, light.wear_xform = self._canyon, self._svf_xform, self._wear_xform
-        bare = replace(self.scene.weather, snow_cover=0.0)  # what wheels clear the snow down to
-        light.road_bare = ground_material("road", self.scene.city, bare).base_color
         if light.sun_share >= MIN_SUN_SHARE:
             lvp, texel = shadow_projection(ground, light.direction, self.scene.city.bounds, self._top)
             light.shadow_lvp, light.normal_bias = lvp, 1.5 * texel

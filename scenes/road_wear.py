@@ -14,7 +14,8 @@ asphalt only) reads two channels:
   along the lane, rising to full over the QUEUE_REACH metres before a stop line (decaying
   upstream, as the queue thins), and the gutter (GUTTER_WIDTH from each kerb, not across junctions);
 - g, wheel tracks: two Gaussians (TRACK_SD) at +-TRACK_HALF from each driving lane's middle (half
-  a car's track width).
+  a car's track width), and at least JUNCTION_CHURN over a junction's box, where turning
+  vehicles cross every part of it (in snow: churned slush, not a grid of tracks).
 How dark each makes the asphalt, and how much snow the tracks clear, is the shader's (gl_raster
 WEAR_*).
 """
@@ -33,6 +34,7 @@ QUEUE_REACH = 25.0  # m: the e-folding length of the queue's stain upstream of a
 TRACK_HALF = 0.8  # m: half a car's track width (1.5-1.6 m)
 TRACK_SD = 0.18  # m: the spread of the wheel paths (tyre width and lateral wander)
 GUTTER_WIDTH = 0.45  # m: the grimy band along each kerb
+JUNCTION_CHURN = 0.6  # the wheel-track value all over a junction's box: turning traffic runs everywhere there
 
 
 def _frame(shape: tuple[int, int], x0: float, y0: float, cell: float):
@@ -93,8 +95,13 @@ def road_wear_map(city, cell: float = WEAR_CELL) -> tuple[np.ndarray, tuple[floa
             wheels = np.exp(-0.5 * ((np.abs(v) - TRACK_HALF) / TRACK_SD) ** 2)
             stain[sl] = np.maximum(stain[sl], np.where(inside, oil, 0.0))
             tracks[sl] = np.maximum(tracks[sl], np.where(inside, wheels, 0.0))
-    # gutters: along each kerb, except where the road opens into a junction
+    # junctions: turning traffic wears (and, in snow, churns) the whole box
     boxes = [(i.center, i.size) for i in city.intersections]
+    for c, size in boxes:
+        half = np.asarray(size, dtype=np.float64) / 2.0
+        sl = _window(xs, ys, np.asarray(c) - half, np.asarray(c) + half)
+        tracks[sl] = np.maximum(tracks[sl], JUNCTION_CHURN)
+    # gutters: along each kerb, except where the road opens into a junction
     for road in city.roads:
         heading = math.atan2(road.end[1] - road.start[1], road.end[0] - road.start[0])
         length = math.hypot(road.end[0] - road.start[0], road.end[1] - road.start[1])

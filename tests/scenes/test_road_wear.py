@@ -72,21 +72,24 @@ def test_oil_runs_down_the_lane_middle_darkest_before_the_stop_line_and_wheels_r
     assert not _at(wear, xform, *b).any()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def snow_raster(noon_raster):
-    gen, _, rs = noon_raster  # tests/scenes/conftest.py: the tiny preset, seed 8
+    """The tiny preset's city (tests/scenes/conftest.py) under full snow at noon; back to its clear
+    noon after the test."""
+    from dataclasses import replace
+
+    gen, clear, rs = noon_raster
     scene = gen.frame(8, 0, FrameOverrides(weather="snow", time_of_day="noon"))
+    scene = replace(scene, weather=replace(scene.weather, snow_cover=1.0))
     rs.update(scene)
     yield scene, rs
-    rs.update(noon_raster[1])
+    rs.update(clear)
 
 
 def test_in_snow_the_wheel_tracks_show_the_asphalt(snow_raster):
     """Looking straight down on a lane in snow: the pixels over its wheel tracks are darker than
     the snow between them, by far; with a blank map (no traffic) the lane is evenly white."""
     scene, rs = snow_raster
-    if scene.weather.snow_cover < 0.3:
-        pytest.skip("this draw of snow left the ground bare")
     lane, stop = _approach(scene.city)
     size = 160
     K = intrinsics_from_fov(math.radians(30), size, size)
@@ -113,3 +116,40 @@ def test_in_snow_the_wheel_tracks_show_the_asphalt(snow_raster):
     assert luma_at(worn, -TRACK_HALF) < luma_at(worn, 0.0) - 40.0
     assert abs(luma_at(blank, TRACK_HALF) - luma_at(blank, 0.0)) < 10.0
     assert np.array_equal(worn.rgb, rs.render(cam, effects=False).rgb)  # deterministic
+
+
+def test_a_partial_snow_cover_lies_in_patches_and_none_without_cover(noon_raster):
+    """Ground points are either under snow or bare (the cover is the snow's share of the area, not
+    a grey wash over everything), more of them under snow as the cover grows; a cover of 0 leaves
+    the frame exactly as in clear weather."""
+    from dataclasses import replace
+
+    _, scene, rs = noon_raster
+    size = 160
+    K = intrinsics_from_fov(math.radians(60), size, size)
+    R, t = look_at((0.0, -30.0, 45.0), (0.0, 0.0, 0.0))
+    cam = Camera(K, R, t, size, size)
+
+    def frame(cover):
+        rs.update(replace(scene, weather=replace(scene.weather, kind="snow", snow_cover=cover)))
+        return rs.render(cam, effects=False)
+
+    try:
+        clear = rs.render(cam, effects=False)
+        frames = {c: frame(c) for c in (0.0, 0.3, 0.5, 1.0)}
+    finally:
+        rs.update(scene)
+    assert np.array_equal(frames[0.0].rgb, clear.rgb)
+    luma = {c: f.rgb.astype(np.float64) @ (0.299, 0.587, 0.114) for c, f in frames.items()}
+    v, u = np.nonzero((clear.instance == 0) & np.isfinite(clear.depth))
+    z = clear.depth[v, u]
+    X = (np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1) - t) @ R
+    span = luma[1.0][v, u] - luma[0.0][v, u]
+    keep = (X[:, 2] < 0.3) & (span > 40.0)  # the ground (not roofs), where snow shows
+    assert keep.sum() > 2000
+    share = {}
+    for c in (0.3, 0.5):
+        f = (luma[c][v, u] - luma[0.0][v, u])[keep] / span[keep]  # 0: bare, 1: as under full cover
+        assert ((f > 0.25) & (f < 0.75)).mean() < 0.1  # snow or bare ground, hardly anything between
+        share[c] = (f >= 0.75).mean()
+    assert 0.15 < share[0.3] < share[0.5] < 0.85
