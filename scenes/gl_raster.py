@@ -257,6 +257,8 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     // wet ground): a partial cover lies in patches, snow_cover of the area (where the 20 m noise,
     // ragged by the fine one, is under it), not as a grey wash; it goes on white over the ground's
     // own pattern below. Other faces looking up (roofs) keep the blend, their texture hidden.
+    // (SNOW: the build for frames with snow; without, all of it is the identity and left out)
+#ifdef SNOW
     bool ground = up && (kind == 1 || kind == 2 || kind == 3 || kind == 4 || kind == 10);
     float k_snow = SNOW_BLEND * snow_cover;
     float field = clamp(big + 0.12 * hi, 0.04, 0.96);  // no snow at all without cover, everywhere at full cover
@@ -266,6 +268,11 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     if (kind == 1 || kind == 2) {  // tyres clear the snow off their tracks, markings included
         vec2 w = texture(wear_map, (P.xy - wear_xform.xy) * wear_xform.zw).rg;
         lying *= 1.0 - WEAR_CLEARED * w.y;
+#else
+    vec3 albedo = base * m;
+    if (kind == 1) {
+        vec2 w = texture(wear_map, (P.xy - wear_xform.xy) * wear_xform.zw).rg;
+#endif
         // asphalt: traffic's oil, rubber and gutter grime (paint's own wear is its pattern's, below)
         albedo *= 1.0 - float(kind == 1) * (WEAR_STAIN * w.x + WEAR_RUBBER * w.y - WEAR_STAIN * WEAR_RUBBER * w.x * w.y);
     }
@@ -277,7 +284,9 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     // grass: dry patches; foliage: some clusters yellower
     albedo = mix(albedo, vec3(0.15, 0.13, 0.06) * m, 0.65 * float(kind == 4) * smoothstep(0.55, 0.8, big));
     albedo = mix(albedo, albedo * vec3(1.5, 1.25, 0.55), float(kind == 8) * smoothstep(0.1, 0.3, hi));
+#ifdef SNOW
     albedo = mix(albedo, SNOW_ALBEDO, SNOW_BLEND * lying * float(ground));
+#endif
     // windows: in daylight rooms behind glass are dark (most panes); a few show light blinds or
     // curtains (a value per pane); the sky and the facades opposite mirrored in front (glass's
     // Fresnel reflectance: 4% head-on, most of it at grazing angles); car paint: a clear coat
@@ -635,11 +644,11 @@ class GLRaster:
         self._platform = EGLPlatform(1, 1)
         self._platform.init_context()
         self._platform.make_current()
-        # Builds of the colour shader, made when first needed, per (surface pattern or None, lamps,
+        # Builds of the colour shader, made when first needed, per (surface pattern or None, lamps, snow,
         # shadows): llvmpipe pays for the lamp loop even when it runs no iteration (~100 ms of CPU
         # a 640x640 frame), for the shadow lookup behind a uniform test and for every pattern's
         # terms at every pixel, so each draw gets only what it needs.
-        self._color_progs: dict[tuple[int | None, bool, bool], tuple[int, dict]] = {}
+        self._color_progs: dict[tuple[int | None, bool, bool, bool], tuple[int, dict]] = {}
         self._id_prog = _program(_ID_VS, _ID_FS)
         self._shadow_prog = _program(_SHADOW_VS, _SHADOW_FS)
         self._sky_prog = _program(_SKY_VS, _SKY_FS)
@@ -675,13 +684,14 @@ class GLRaster:
     def make_current(self) -> None:
         self._platform.make_current()
 
-    def _color_program(self, kind: int | None, lamps: bool, shadows: bool) -> tuple[int, dict]:
+    def _color_program(self, kind: int | None, lamps: bool, shadows: bool, snow: bool = False) -> tuple[int, dict]:
         """The colour shader built for one surface pattern (AGENT_KINDS: the agents', plain or car
-        paint, read per vertex; None: any, read per vertex), with or without the lamp loop and the
-        shadow lookup, and its uniform locations."""
-        key = (kind, lamps, shadows)
+        paint, read per vertex; None: any, read per vertex), with or without the lamp loop, the
+        shadow lookup and the snow on the ground, and its uniform locations."""
+        key = (kind, lamps, shadows, snow)
         if key not in self._color_progs:
             defines = (("#define LAMPS\n" if lamps else "") + ("#define SHADOWS\n" if shadows else "")
+                       + ("#define SNOW\n" if snow else "")
                        + {None: "", AGENT_KINDS: "#define AGENTS\n"}.get(kind, _kind_defines(kind)))
             prog = _program(_COLOR_VS, _COLOR_FS.replace("#version 330 core\n", "#version 330 core\n" + defines, 1))
             loc = {name: gl.glGetUniformLocation(prog, name) for name in _COLOR_UNIFORMS}
@@ -915,7 +925,7 @@ class GLRaster:
             groups.append((None, self.static, self.static_view))  # every pattern, read per vertex
         groups.append((AGENT_KINDS, self.agents, None))
         for kind, mesh, ranges in groups:
-            prog, loc = self._color_program(kind, len(lamps) > 0, shadows)
+            prog, loc = self._color_program(kind, len(lamps) > 0, shadows, light.snow_cover > 0)
             gl.glUseProgram(prog)
             self._color_uniforms(loc, VP, cam_pos, light, atmosphere, lamps, shadows)
             mesh.draw(ranges)
