@@ -9,7 +9,9 @@ materials live in a small float texture, so restyling the city for the frame's w
 texture upload and each pass is one or two draw calls:
 - sun shadow map (when the sun casts shadows): depth only, from the sun, orthographic;
 - colour: 4x multisampled, pyrender's metallic-roughness shading (one directional sun, emission,
-  encoded with the sRGB transfer function) with procedural surfaces, the shadow lookup, a sky/ground
+  encoded with the sRGB transfer function) with procedural surfaces (on asphalt the city's
+  road-wear map, set_road_wear: traffic's oil, rubber and grime; snow in patches, cleared off the
+  wheel tracks, in the SNOW build), the shadow lookup, a sky/ground
   hemisphere light (the sky's part scaled by the city's sky-view map, set_sky_view), lamps at night (a second build of the shader) and the exposure (see Light);
   fog over the ray length and the sky gradient (raster_backend's atmosphere) are applied here
   too, per fragment; then the camera's automatic exposure on the read-back frame (auto_exposure);
