@@ -60,6 +60,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--kpt-hidden", type=int, default=None, help="keypoint-branch width (train --kpt-hidden)")
     ap.add_argument("--kpt-heading", action="store_true", help="corners up to the turn, the front from a regressed heading")
     ap.add_argument("--heading-gain", type=float, default=1.0, help="with --kpt-heading: the heading term's gain")
+    ap.add_argument("--heading-crop", type=int, default=0, help="crop side of the second-stage heading (train --heading-crop); 0: none")
     ap.add_argument("--kpt-labelled", type=float, default=0.0, help="with --kpt-turn: the labelled-order OKS gain")
     ap.add_argument("--kpt-turn-start", type=float, default=0.0,
                     help="with --kpt-turn: fraction of the run compared as labelled only (train --kpt-turn-start)")
@@ -128,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     frames = len(read_split(args.dataset, "train"))
     per_epoch = math.ceil(frames / args.batch)
     epochs = max(1, math.ceil(args.steps / per_epoch))
-    name = args.name or (f"{args.model}-{args.kpt_mode}{'-turn' if args.kpt_turn else ''}{'-heading' if args.kpt_heading else ''}{f'-hg{args.heading_gain:g}' if args.heading_gain != 1.0 else ''}{f'-h{args.kpt_hidden}' if args.kpt_hidden else ''}"
+    name = args.name or (f"{args.model}-{args.kpt_mode}{'-turn' if args.kpt_turn else ''}{'-heading' if args.kpt_heading else ''}{f'-hg{args.heading_gain:g}' if args.heading_gain != 1.0 else ''}{f'-h{args.kpt_hidden}' if args.kpt_hidden else ''}{f'-crop{args.heading_crop}' if args.heading_crop else ''}"
                          f"{f'-lab{args.kpt_labelled:g}' if args.kpt_labelled else ''}"
                          f"{f'-ts{args.kpt_turn_start:g}' if args.kpt_turn_start else ''}-l1{args.kpt_l1:g}-s{args.steps}"
                          f"-c{args.crop}-lr{args.lr0:g}-seed{args.seed}")
@@ -137,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
                       imgsz=args.imgsz, crop=args.crop or None, epochs=epochs, batch=args.batch, lr0=args.lr0,
                       kpt_sigma_end=args.kpt_sigma_end, kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1,
                       kpt_turn=args.kpt_turn, kpt_hidden=args.kpt_hidden,
-                      kpt_labelled=args.kpt_labelled, kpt_turn_start=args.kpt_turn_start, kpt_heading=args.kpt_heading, heading_gain=args.heading_gain, amp=args.amp, workers=args.workers, seed=args.seed, device=args.device,
+                      kpt_labelled=args.kpt_labelled, kpt_turn_start=args.kpt_turn_start, kpt_heading=args.kpt_heading, heading_crop=args.heading_crop, heading_gain=args.heading_gain, amp=args.amp, workers=args.workers, seed=args.seed, device=args.device,
                       val_every=0)  # no validation while training: the test split is scored below, once
     t0 = time.perf_counter()
     last = finished(run, cfg, epochs)

@@ -299,6 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kpt-heading", action="store_true", help="the front from a regressed image heading (omnigen train --kpt-heading)")
     ap.add_argument("--heading-gain", type=float, default=None, help="omnigen train --heading-gain")
     ap.add_argument("--kpt-hidden", type=int, default=None, help="keypoint-branch width (omnigen train --kpt-hidden)")
+    ap.add_argument("--heading-crop", type=int, default=0, help="crop side of the second-stage heading (omnigen train --heading-crop); 0: none")
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
                          "natively, a step in about 0.65 of the time by benchmarks/bench_train_step.py; else auto)")
@@ -347,7 +348,7 @@ def main(argv: list[str] | None = None) -> int:
               "--optimizer", args.optimizer, "--lr0", str(args.lr0), "--val-every", str(args.val_every),
               "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp,
               "--kpt-mode", args.kpt_mode, "--kpt-l1", str(args.kpt_l1), "--kpt-labelled", str(args.kpt_labelled),
-              "--kpt-turn-start", str(args.kpt_turn_start)] + (["--kpt-turn"] if args.kpt_turn else []) + (["--kpt-heading"] if args.kpt_heading else []) + (["--heading-gain", str(args.heading_gain)] if args.heading_gain is not None else []) + (["--kpt-hidden", str(args.kpt_hidden)] if args.kpt_hidden else [])
+              "--kpt-turn-start", str(args.kpt_turn_start)] + (["--kpt-turn"] if args.kpt_turn else []) + (["--kpt-heading"] if args.kpt_heading else []) + (["--heading-gain", str(args.heading_gain)] if args.heading_gain is not None else []) + (["--kpt-hidden", str(args.kpt_hidden)] if args.kpt_hidden else []) + (["--heading-crop", str(args.heading_crop)] if args.heading_crop else [])
     common += (["--device", args.device] if args.device else []) + (["--cache"] if args.cache else [])
     runs: list[dict[str, Any]] = []
 

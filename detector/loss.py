@@ -51,9 +51,10 @@ class LossGains:
     # front (turn_targets); 0: the branch picks an order freely, and the turn class learns all of it
     kpt_labelled: float = 0.0
     heading: float = 1.0  # 1 - cosine of a heading-aware head's image heading (heading.py); no term without one
+    heading_crop: float = 1.0  # 1 - cosine of a crop-heading model's crop headings (heading_crops.py); no term without one
 
 
-PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn", "kpt_labelled", "heading")
+PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn", "kpt_labelled", "heading", "heading_crop")
 
 _TURN = list(TURN_IDX)
 
@@ -216,7 +217,9 @@ class DetectionLoss:
         out = HeadOutput(box=out.box.float(), cls=out.cls.float(), kpt=out.kpt.float(),
                          anchors=out.anchors.float(), strides=out.strides.float(), kpt_mode=out.kpt_mode,
                          turn=None if out.turn is None else out.turn.float(),
-                         heading=None if out.heading is None else out.heading.float())
+                         heading=None if out.heading is None else out.heading.float(),
+                         crop_heading=None if out.crop_heading is None else out.crop_heading.float(),
+                         crop_rows=out.crop_rows)
         gt = pad_targets(targets, b)
 
         cls_logits = out.cls.transpose(1, 2)  # (B, A, nc)
@@ -259,6 +262,13 @@ class DetectionLoss:
                 # mean over the positive anchor-object pairs (their count is a shape, known on the host)
                 turn_loss = F.binary_cross_entropy_with_logits(out.turn[bi, ai], turned.to(kpts.dtype),
                                                                reduction="sum") / max(len(obj), 1)
+        crop_loss = kpts.new_zeros(())
+        if out.crop_heading is not None:
+            # the crops' target is the one the head's channels learn: the labelled corners' image heading
+            rows = out.crop_rows
+            crop_loss = heading_loss(out.crop_heading, image_heading(
+                targets["keypoints"].to(kpts.dtype)[rows], box_area(targets["bboxes"].to(kpts.dtype)[rows]),
+                targets["kpt_mask"].bool()[rows]))
         kpt_loss = oks_keypoint_loss(kpts[..., :2], kpt_gt, kmask, area, sigma=self.kpt_sigma)
         kpt_l1 = keypoint_l1_loss(kpts[..., :2], kpt_gt, kmask, area)
         vis_target = torch.where(kmask, vis_gt, torch.zeros_like(kpts[..., 2]))
@@ -266,7 +276,7 @@ class DetectionLoss:
                      ).sum() / kmask.sum().clamp(min=1)
 
         parts_t = {"box": box_loss, "dfl": dfl_loss, "cls": cls_loss, "kpt": kpt_loss, "kvis": kvis_loss, "kpt_l1": kpt_l1,
-                   "turn": turn_loss, "kpt_labelled": kpt_labelled, "heading": heading_loss_}
+                   "turn": turn_loss, "kpt_labelled": kpt_labelled, "heading": heading_loss_, "heading_crop": crop_loss}
         gains = asdict(self.gains)
         total = sum(gains[k] * parts_t[k] for k in PARTS)
         # detached 0-dim tensors, not floats: a float() per part would wait for the device six

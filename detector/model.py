@@ -19,6 +19,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from omnigen.detector.backbones import BACKBONES, build_backbone
 from omnigen.detector.blocks import fuse_batchnorm
 from omnigen.detector.head import KeypointHead
+from omnigen.detector.heading_crops import HeadingNet, crop_heading
 from omnigen.detector.neck import PAN
 from omnigen.detector.outputs import KPT_MODES, REG_MAX, HeadOutput, decode
 from omnigen.conventions import FINE_CLASSES
@@ -56,6 +57,7 @@ class DetectorConfig:
     kpt_turn: bool = False  # corners learned up to the 180-degree turn, the turn a class of its own (loss.py)
     kpt_hidden: int | None = None  # keypoint-branch width; None: max(stride-8 width / 4, 24) as Ultralytics' pose head
     kpt_heading: bool = False  # corners up to the turn, the front read from a regressed image heading (heading.py)
+    heading_crop: int = 0  # side of the crops a second stage reads each object's front from (heading_crops.py); 0: none
 
     def __post_init__(self) -> None:
         self.validate()
@@ -80,6 +82,9 @@ class DetectorConfig:
             raise ValueError(f"DetectorConfig.kpt_mode: {self.kpt_mode!r} is not one of {', '.join(KPT_MODES)}")
         if self.kpt_hidden is not None and (not isinstance(self.kpt_hidden, int) or self.kpt_hidden < 8):
             raise ValueError(f"DetectorConfig.kpt_hidden: must be an integer >= 8 or None, got {self.kpt_hidden!r}")
+        if not isinstance(self.heading_crop, int) or self.heading_crop < 0 or self.heading_crop % 16:
+            raise ValueError(f"DetectorConfig.heading_crop: must be 0 (none) or a positive multiple of 16 "
+                             f"(the crop net halves it four times), got {self.heading_crop!r}")
         if self.reg_max != REG_MAX:
             raise ValueError(f"DetectorConfig.reg_max: decoding is built for {REG_MAX} bins, got {self.reg_max}")
 
@@ -122,14 +127,27 @@ class KeypointDetector(nn.Module):
         chans = [self.neck.out_channels[s] for s in self.strides]
         self.head = KeypointHead(chans, self.strides, cfg.num_classes, self.neck.out_channels[8], cfg.reg_max,
                                  cfg.kpt_mode, cfg.kpt_turn, cfg.kpt_hidden, cfg.kpt_heading)
+        self.heading_net = HeadingNet() if cfg.heading_crop else None
 
-    def forward(self, images: torch.Tensor) -> HeadOutput:
+    def forward(self, images: torch.Tensor, crops: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+                ) -> HeadOutput:
+        """`crops` (rows, batch index, xyxy boxes: (N,), (N,), (N, 4)) of a crop-heading model are cut
+        from `images` and their headings returned in the output with the rows of the targets they
+        stand for. Here in the forward, so that data parallelism sees the crop net's parameters used."""
         top = self.strides[-1]
         # not while traced (detector/export_onnx.py checks the fixed input first): the test would only warn
         if not torch.jit.is_tracing() and (images.shape[-1] % top or images.shape[-2] % top):
             raise ValueError(f"KeypointDetector: image size {tuple(images.shape[-2:])} is not a multiple "
                              f"of the largest stride {top}")
-        return self.head(self.neck(self.backbone(images)))
+        out = self.head(self.neck(self.backbone(images)))
+        if crops is not None:
+            if self.heading_net is None:
+                raise ValueError("KeypointDetector: crops given to a model without a crop-heading stage "
+                                 "(DetectorConfig.heading_crop is 0)")
+            rows, batch_index, boxes = crops
+            out.crop_heading = crop_heading(self.heading_net, images, batch_index, boxes, self.cfg.heading_crop)
+            out.crop_rows = rows
+        return out
 
     def infer(self, images: torch.Tensor) -> torch.Tensor:
         """Decoded predictions (B, 4 + nc + 24, A): the tensor that prediction and ONNX use."""

@@ -51,6 +51,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(detector/heading.py); --kpt-labelled and --kpt-turn-start apply as with --kpt-turn")
     p.add_argument("--heading-gain", type=float, default=None,
                    help="with --kpt-heading: gain of the heading term (default 1)")
+    p.add_argument("--heading-crop", type=int, default=0, metavar="PX",
+                   help="read each object's front from a PX x PX crop of it with a small second-stage CNN "
+                        "(detector/heading_crops.py; 64 is what benchmarks/heading_visibility.py measures); 0: none")
     p.add_argument("--kpt-hidden", type=int, default=None,
                    help="keypoint-branch width (default: max(stride-8 width / 4, 24), as Ultralytics' pose head)")
     p.add_argument("--kpt-labelled", type=float, default=0.0,
@@ -91,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every,
         kpt_sigma_start=args.kpt_sigma_start, kpt_sigma_end=args.kpt_sigma_end, kpt_sigma_anneal=args.kpt_sigma_anneal,
         kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1, kpt_turn=args.kpt_turn, kpt_hidden=args.kpt_hidden,
-        kpt_labelled=args.kpt_labelled, kpt_turn_start=args.kpt_turn_start, kpt_heading=args.kpt_heading, heading_gain=1.0 if args.heading_gain is None else args.heading_gain, amp=args.amp,
+        kpt_labelled=args.kpt_labelled, kpt_turn_start=args.kpt_turn_start, kpt_heading=args.kpt_heading, heading_crop=args.heading_crop, heading_gain=1.0 if args.heading_gain is None else args.heading_gain, amp=args.amp,
         time_minutes=args.time, weights=args.weights, channels_last=args.channels_last)
     start = time.perf_counter()
 

@@ -37,6 +37,7 @@ def test_default_size_is_the_training_size(checkpoint, tmp_path, capsys):
     assert main(["export", "onnx", str(checkpoint), "--out", str(out)]) == 0
     assert _input_dims(out) == [1, 3, TRAINED, TRAINED]
     assert f"1x3x{TRAINED}x{TRAINED}" in capsys.readouterr().out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.onnx"]  # no crop stage, no second graph
     # an explicit --imgsz still wins
     assert main(["export", "onnx", str(checkpoint), "--out", str(out), "--imgsz", "128", "--no-check"]) == 0
     assert _input_dims(out) == [1, 3, 128, 128]
@@ -68,3 +69,38 @@ def test_turn_and_heading_aware_models_export_with_their_decode(order, tmp_path)
     path = tmp_path / "m.onnx"
     export(model, path, 64)
     assert max_difference(model, path, 64) < 1e-4
+
+
+def test_crop_heading_model_exports_its_crop_stage_beside(tmp_path, capsys):
+    """A crop-heading model writes FILE-orient.onnx too; ONNX Runtime orients as PyTorch does at the
+    traced size and, with --dynamic, at another, for any number of detections."""
+    import numpy as np
+
+    from omnigen.detector.export_onnx import orient_max_difference, orient_path
+    from omnigen.detector.heading_crops import OrientWrapper
+
+    torch.manual_seed(2)
+    cfg = DetectorConfig("n", "c3k2", p2=False, num_classes=2, width=0.0625, depth=0.33, max_channels=64,
+                         kpt_heading=True, heading_crop=32)
+    model = KeypointDetector(cfg).eval()
+    with torch.no_grad():  # a crop net that is not near zero everywhere, so the turns vary
+        for p in model.heading_net.parameters():
+            p.mul_(3.0)
+    ckpt = tmp_path / "best.pt"
+    save_checkpoint(ckpt, {"config": cfg.to_dict(), "model": model.state_dict(), "classes": ["car", "bus"],
+                           "train_config": {"imgsz": 64}})
+    out = tmp_path / "m.onnx"
+    assert main(["export", "onnx", str(ckpt), "--out", str(out), "--dynamic"]) == 0
+    orient = orient_path(out)
+    assert orient.name == "m-orient.onnx" and orient.is_file() and "crop stage" in capsys.readouterr().out
+    for size in (64, (96, 160)):
+        assert orient_max_difference(model, orient, size, seed=3) < 1e-4
+    # and the turns it decides are not all one way (the check would pass for a constant graph)
+    rng = np.random.default_rng(0)
+    boxes = torch.tensor([[4.0, 4.0, 40.0, 30.0]] * 6) + torch.from_numpy(rng.random((6, 1), dtype=np.float32) * 20)
+    kpts = torch.from_numpy(rng.random((6, 8, 3), dtype=np.float32) * 60)
+    x = torch.from_numpy(rng.random((1, 3, 64, 64), dtype=np.float32))
+    with torch.no_grad():
+        got = OrientWrapper(model.heading_net, 32)(x, boxes, kpts)
+    turned = [not torch.equal(got[i], kpts[i]) for i in range(6)]
+    assert any(turned) and not all(turned)

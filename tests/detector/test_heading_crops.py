@@ -1,0 +1,164 @@
+"""The crop-level heading stage (detector/heading_crops.py): cropping, orienting, the training rows,
+the model's forward and loss term, learning a front from pixels, and prediction's use of it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from omnigen.conventions import TURN_IDX
+from omnigen.detector.boxes import box_area
+from omnigen.detector.heading import image_heading
+from omnigen.detector.heading_crops import (HeadingNet, crop_boxes, crop_heading, orient, orient_detections,
+                                            training_rois)
+from omnigen.detector.loss import DetectionLoss
+from omnigen.detector.model import DetectorConfig, KeypointDetector
+from omnigen.detector.nms import Detections
+
+TINY = dict(width=0.0625, depth=0.33, max_channels=64)
+
+
+def side_view(x0: float, y0: float, length: float, height: float, facing_right: bool) -> torch.Tensor:
+    """Eight image corners (8, 2) of a box seen from its side, its front face on the right or left."""
+    front, rear = (x0 + length, x0) if facing_right else (x0, x0 + length)
+    d = 0.15 * length  # the far faces a little up and inwards
+    top, bottom = y0, y0 + height
+    return torch.tensor([[front, top], [front - d * (1 if facing_right else -1), top - d],
+                         [rear - d * (1 if facing_right else -1), top - d], [rear, top],
+                         [front, bottom], [front - d * (1 if facing_right else -1), bottom - d],
+                         [rear - d * (1 if facing_right else -1), bottom - d], [rear, bottom]], dtype=torch.float32)
+
+
+def test_crop_boxes_samples_the_square_about_the_box():
+    img = torch.arange(64.0).view(1, 1, 8, 8)
+    # a 4x4 box at the origin with no margin is the image's top-left 4x4 block, exactly
+    c = crop_boxes(img, torch.tensor([0]), torch.tensor([[0.0, 0.0, 4.0, 4.0]]), 4, margin=0.0)
+    assert torch.equal(c[0, 0], img[0, 0, :4, :4])
+    # a 2x4 box is squared about its centre (4x4 from x = -1), and zero outside the image
+    c = crop_boxes(img, torch.tensor([0]), torch.tensor([[0.0, 0.0, 2.0, 4.0]]), 4, margin=0.0)
+    assert torch.equal(c[0, 0, :, 0], torch.zeros(4)) and torch.equal(c[0, 0, :, 1:], img[0, 0, :4, :3])
+    # the batch index picks the image
+    two = torch.stack([img[0], img[0] + 100])
+    c = crop_boxes(two, torch.tensor([1, 0]), torch.tensor([[4.0, 4.0, 8.0, 8.0]] * 2), 4, margin=0.0)
+    assert torch.equal(c[0], c[1] + 100)
+    assert crop_boxes(two, torch.zeros(0, dtype=torch.long), torch.zeros(0, 4), 16).shape == (0, 1, 16, 16)
+
+
+def test_orient_turns_only_the_layouts_that_disagree():
+    right = side_view(10, 20, 40, 15, facing_right=True)
+    k = torch.stack([right, right])
+    k3 = torch.cat([k, torch.rand(2, 8, 1)], -1)
+    boxes = torch.tensor([[10.0, 14.0, 50.0, 35.0]] * 2)
+    h = image_heading(right[None], box_area(boxes[:1]))[0]
+    out = orient(k3, boxes, torch.stack([h, -h]))
+    assert torch.equal(out[0], k3[0])  # agrees: kept as ordered
+    assert torch.equal(out[1], k3[1][list(TURN_IDX)])  # disagrees: front and rear swapped, visibility with them
+    assert torch.equal(orient(out, boxes, torch.stack([h, h])), k3)  # the turn is its own inverse
+
+
+def test_training_rois_keep_defined_headings_and_cap_the_count():
+    k = side_view(0, 0, 40, 15, True)
+    n = 10
+    targets = {"bboxes": torch.tensor([[0.0, -6.0, 40.0, 15.0]] * n), "keypoints": k.expand(n, 8, 2).clone(),
+               "kpt_mask": torch.ones(n, 8, dtype=torch.bool)}
+    targets["bboxes"][1] = torch.tensor([0.0, 0.0, 3.0, 2.0])  # too small to see
+    targets["kpt_mask"][2] = False  # no labelled corner: no heading
+    rows = training_rois(targets)
+    assert sorted(rows.tolist()) == [0, 3, 4, 5, 6, 7, 8, 9]
+    torch.manual_seed(0)
+    few = training_rois(targets, max_crops=3)
+    assert len(few) == 3 and set(few.tolist()) <= set(rows.tolist())
+
+
+def test_config_checks_the_crop_side():
+    for bad in (10, -16, 1.5):
+        with pytest.raises(ValueError, match="heading_crop"):
+            DetectorConfig(num_classes=3, heading_crop=bad, **TINY)
+    assert DetectorConfig.from_dict(DetectorConfig(num_classes=3, heading_crop=32, **TINY).to_dict()).heading_crop == 32
+
+
+def test_forward_crops_and_the_loss_trains_the_crop_net():
+    torch.manual_seed(0)
+    model = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=32, **TINY))
+    k = torch.stack([side_view(4, 20, 30, 12, True), side_view(20, 30, 30, 12, False)])
+    targets = {"batch_idx": torch.tensor([0.0, 1.0]), "cls": torch.tensor([0.0, 2.0]),
+               "bboxes": torch.tensor([[4.0, 15.5, 34.0, 32.0], [15.5, 25.5, 50.0, 42.0]]), "keypoints": k,
+               "kpt_mask": torch.ones(2, 8, dtype=torch.bool), "kpt_visible": torch.ones(2, 8)}
+    rows = training_rois(targets)
+    out = model(torch.rand(2, 3, 64, 64), (rows, targets["batch_idx"][rows], targets["bboxes"][rows]))
+    assert out.crop_heading.shape == (2, 3) and torch.equal(out.crop_rows, rows)
+    total, parts = DetectionLoss(3)(out, targets)
+    assert 0 < float(parts["heading_crop"]) < 2
+    total.backward()
+    assert model.heading_net.out.weight.grad.abs().sum() > 0
+    # without the stage there is no term, and crops are refused with the reason
+    plain = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, **TINY))
+    assert plain.heading_net is None
+    assert float(DetectionLoss(3)(plain(torch.rand(2, 3, 64, 64)), targets)[1]["heading_crop"]) == 0
+    with pytest.raises(ValueError, match="heading_crop is 0"):
+        plain(torch.rand(2, 3, 64, 64), (rows, targets["batch_idx"][rows], targets["bboxes"][rows]))
+
+
+def arrow_images(rng: np.random.Generator, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """n 64x64 images of one grey box each with a bright nose on its front end, facing left or right
+    at random: (images, boxes, corners, facing_right)."""
+    images = torch.zeros(n, 3, 64, 64)
+    boxes, corners, right = [], [], []
+    for i in range(n):
+        x0, y0 = int(rng.integers(2, 20)), int(rng.integers(10, 40))
+        r = bool(rng.random() < 0.5)
+        images[i, :, y0:y0 + 12, x0:x0 + 40] = 0.4
+        nose = slice(x0 + 32, x0 + 40) if r else slice(x0, x0 + 8)
+        images[i, :, y0 + 3:y0 + 9, nose] = 1.0
+        boxes.append([x0, y0, x0 + 40, y0 + 12])
+        corners.append(side_view(x0, y0 + 2, 40, 10, r))
+        right.append(r)
+    return images, torch.tensor(boxes, dtype=torch.float32), torch.stack(corners), torch.tensor(right)
+
+
+def test_the_crop_net_learns_a_front_it_can_see():
+    """A front the box alone cannot give away (the same box faces either way; only the bright nose
+    says which) is learned from the crops, and orienting a turned layout puts it right."""
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    net = HeadingNet(width=8)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    for _ in range(60):
+        images, boxes, corners, _ = arrow_images(rng, 32)
+        target = image_heading(corners, box_area(boxes))
+        h = crop_heading(net, images, torch.arange(32), boxes, 32)
+        loss = (1 - torch.cosine_similarity(h, target, dim=-1)).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    net.eval()
+    images, boxes, corners, right = arrow_images(np.random.default_rng(1), 64)
+    kp = torch.cat([corners[:, list(TURN_IDX)], torch.ones(64, 8, 1)], -1)  # every layout given turned
+    with torch.no_grad():
+        dets = [Detections(boxes[i:i + 1], torch.ones(1), torch.zeros(1, dtype=torch.long), kp[i:i + 1]) for i in range(64)]
+        fixed = orient_detections(net, 32, images, dets)
+    restored = np.mean([torch.equal(d.keypoints[0, :, :2], corners[i]) for i, d in enumerate(fixed)])
+    assert restored > 0.9, restored
+
+
+def test_orient_detections_stops_at_max_orient():
+    """Past max_orient an image's detections keep their order; before it a net that disagrees with
+    every layout turns each one."""
+    torch.manual_seed(0)
+    net = HeadingNet(width=8).eval()
+    # seen from the front: the front face (0, 1, 5, 4) the big square, the rear one small behind it
+    facing = torch.tensor([[10, 10], [50, 10], [40, 20], [20, 20], [10, 50], [50, 50], [40, 40], [20, 40]],
+                          dtype=torch.float32)
+    boxes = torch.tensor([[10.0, 10.0, 50.0, 50.0]] * 5)
+    kp = torch.cat([facing.expand(5, 8, 2), torch.rand(5, 8, 1)], -1)
+    assert image_heading(facing[None], box_area(boxes[:1]))[0, 2] > 0
+    with torch.no_grad():  # a constant output, its own mirror image: "the rear faces the camera"
+        for m in net.modules():
+            if isinstance(m, torch.nn.Linear):
+                m.weight.zero_()
+                m.bias.copy_(torch.tensor([0.0, 0.0, -1.0]))
+        dets = [Detections(boxes, torch.linspace(1, 0.5, 5), torch.zeros(5, dtype=torch.long), kp)]
+        out = orient_detections(net, 16, torch.rand(1, 3, 64, 64), dets, max_orient=3)[0]
+    assert torch.equal(out.keypoints[:3], kp[:3][:, list(TURN_IDX)]) and torch.equal(out.keypoints[3:], kp[3:])
+    assert torch.equal(out.boxes, boxes) and torch.equal(out.scores, dets[0].scores)
