@@ -174,44 +174,81 @@ def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator) 
     return np.array([rng.uniform(xmin + mx, xmax - mx), rng.uniform(ymin + my, ymax - my)]), 0.0, anchor
 
 
+@dataclass(frozen=True)
+class _Layer:
+    """Obstacles (shapely polygons, with the heights between which each one blocks) in an STRtree."""
+
+    polys: np.ndarray
+    tops: np.ndarray
+    bottoms: np.ndarray
+    tree: shapely.STRtree
+
+    @staticmethod
+    def of(polys: list, tops: list[float], bottoms: list[float]) -> _Layer:
+        arr = np.asarray(polys, dtype=object)
+        return _Layer(arr, np.asarray(tops, dtype=np.float64).reshape(-1), np.asarray(bottoms, dtype=np.float64).reshape(-1),
+                      shapely.STRtree(arr))
+
+
+_CITY_LAYERS: dict[int, tuple[object, _Layer]] = {}  # id(city) -> (city, its layer); the city held, so ids stay unique
+_CITY_LAYERS_SIZE = 4
+
+
+def _city_layer(city) -> _Layer:
+    """The static city's obstacles (buildings, furniture, tree crowns): built once per city, since
+    every frame of a fixed city has the same ones and only its agents change."""
+    hit = _CITY_LAYERS.get(id(city))
+    if hit is not None and hit[0] is city:
+        return hit[1]
+    polys, tops, bottoms = [], [], []
+    for b in city.buildings:
+        for part in b.parts:
+            polys.append(Polygon(part.footprint))
+            tops.append(part.top_z + part.roof_height)
+            bottoms.append(-math.inf)
+    for f in city.furniture:
+        top = f.center[2] + f.dims[2] / 2
+        polys.append(Polygon(f.footprint) if len(f.footprint) >= 3 else Point(f.center[:2]).buffer(0.2))
+        tops.append(top)
+        bottoms.append(-math.inf)
+        if f.kind == "tree":  # and its crown: a camera in or just beside it sees a wall of leaves
+            crown = shapely.box(f.center[0] - f.dims[0] / 2, f.center[1] - f.dims[1] / 2,
+                                f.center[0] + f.dims[0] / 2, f.center[1] + f.dims[1] / 2)
+            polys.append(crown.buffer(CROWN_CLEARANCE - CLEARANCE))
+            tops.append(top)
+            # below the crown (a dashcam under a street tree) the view is open
+            bottoms.append(f.center[2] - f.dims[2] / 2 + float(f.params.get("clearance", 0.0)) - CLEARANCE)
+    layer = _Layer.of(polys, tops, bottoms)
+    _CITY_LAYERS.pop(id(city), None)
+    while len(_CITY_LAYERS) >= _CITY_LAYERS_SIZE:
+        _CITY_LAYERS.pop(next(iter(_CITY_LAYERS)))
+    _CITY_LAYERS[id(city)] = (city, layer)
+    return layer
+
+
 class Obstacles:
-    """What a camera may not stand in: buildings, agents' cuboids, furniture; built per scene."""
+    """What a camera may not stand in: buildings, agents' cuboids, furniture; built per scene.
+
+    Two layers, each with its STRtree: the static city's (shared by every frame of the city) and
+    this frame's agents'. A pose is blocked when anything in either layer blocks it."""
 
     def __init__(self, scene: Scene) -> None:
-        polys, tops, bottoms = [], [], []
-        for b in scene.city.buildings:
-            for part in b.parts:
-                polys.append(Polygon(part.footprint))
-                tops.append(part.top_z + part.roof_height)
-                bottoms.append(-math.inf)
-        for f in scene.city.furniture:
-            top = f.center[2] + f.dims[2] / 2
-            polys.append(Polygon(f.footprint) if len(f.footprint) >= 3 else Point(f.center[:2]).buffer(0.2))
-            tops.append(top)
-            bottoms.append(-math.inf)
-            if f.kind == "tree":  # and its crown: a camera in or just beside it sees a wall of leaves
-                crown = shapely.box(f.center[0] - f.dims[0] / 2, f.center[1] - f.dims[1] / 2,
-                                    f.center[0] + f.dims[0] / 2, f.center[1] + f.dims[1] / 2)
-                polys.append(crown.buffer(CROWN_CLEARANCE - CLEARANCE))
-                tops.append(top)
-                # below the crown (a dashcam under a street tree) the view is open
-                bottoms.append(f.center[2] - f.dims[2] / 2 + float(f.params.get("clearance", 0.0)) - CLEARANCE)
+        polys, tops = [], []
         for a in scene.agents:
             box = shapely.box(-a.dims[0] / 2, -a.dims[1] / 2, a.dims[0] / 2, a.dims[1] / 2)
             c, s = math.cos(a.yaw), math.sin(a.yaw)
             polys.append(shapely.affinity.affine_transform(box, [c, -s, s, c, a.center[0], a.center[1]]))
             tops.append(a.center[2] + a.dims[2] / 2)
-            bottoms.append(-math.inf)
-        self.polys = np.asarray(polys, dtype=object)
-        self.tops = np.asarray(tops)
-        self.bottoms = np.asarray(bottoms)
-        self.tree = shapely.STRtree(self.polys)
+        self.layers = (_city_layer(scene.city), _Layer.of(polys, tops, [-math.inf] * len(polys)))
 
     def blocked(self, position: np.ndarray) -> bool:
         pt = Point(position[:2])
-        idx = self.tree.query(pt, predicate="dwithin", distance=CLEARANCE)
         z = position[2]
-        return bool(((self.tops[idx] + CLEARANCE > z) & (self.bottoms[idx] < z)).any())
+        for layer in self.layers:
+            idx = layer.tree.query(pt, predicate="dwithin", distance=CLEARANCE)
+            if ((layer.tops[idx] + CLEARANCE > z) & (layer.bottoms[idx] < z)).any():
+                return True
+        return False
 
     def wall_ahead(self, position: np.ndarray, yaw: float) -> bool:
         """True when something taller than the camera stands within WALL_AHEAD metres in front
@@ -219,9 +256,12 @@ class Obstacles:
         d = np.array([math.cos(yaw), math.sin(yaw)])
         corridor = shapely.box(0.0, -WALL_WIDTH / 2, WALL_AHEAD, WALL_WIDTH / 2)
         corridor = shapely.affinity.affine_transform(corridor, [d[0], -d[1], d[1], d[0], position[0], position[1]])
-        idx = self.tree.query(corridor, predicate="intersects")
         z = position[2]
-        return bool(((self.tops[idx] > z) & (self.bottoms[idx] < z)).any())
+        for layer in self.layers:
+            idx = layer.tree.query(corridor, predicate="intersects")
+            if ((layer.tops[idx] > z) & (layer.bottoms[idx] < z)).any():
+                return True
+        return False
 
 
 def projected_agents(scene: Scene, cam: Camera) -> tuple[np.ndarray, np.ndarray]:

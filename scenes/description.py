@@ -433,4 +433,34 @@ def from_json(cls: type, text: str) -> Any:
 
 def canonical(obj: Any) -> Any:
     """The object as the JSON describes it (floats rounded): what backends should draw."""
+    if type(obj) is Agent and type(obj.asset) is AssetSpec and type(obj.asset.params) is dict:
+        return _canonical_agent(obj)
     return from_dict(type(obj), to_dict(obj))
+
+
+def _canonical_agent(a: Agent) -> Agent:
+    """from_dict(Agent, to_dict(a)) without the dict round trip: every frame canonicalises each of
+    its hundreds of agents, and the generic path walks the type hints of every value. Field by
+    field it does what that round trip does (`_plain`, then `_build` by the field's type), so the
+    result is the same object (tests/scenes/test_scene_description.py compares the two)."""
+    center, dims = a.center, a.dims
+    if type(center) is not tuple or type(dims) is not tuple or len(center) != 3 or len(dims) != 3:
+        return from_dict(Agent, to_dict(a))  # arrays (to_dict lists them first) and malformed Vec3s
+    asset = a.asset
+    return Agent(_plain(a.instance_id), _plain(a.category),
+                 (float(_plain(center[0])), float(_plain(center[1])), float(_plain(center[2]))),
+                 (float(_plain(dims[0])), float(_plain(dims[1])), float(_plain(dims[2]))),
+                 float(_plain(a.yaw)), _plain(a.state),
+                 AssetSpec(_plain(asset.family), {str(k): _plain_frozen(v) for k, v in asset.params.items()}))
+
+
+def _plain_frozen(value: Any) -> Any:
+    """_freeze(_plain(value)) in one pass: what an `Any` value (an asset's params) becomes."""
+    t = type(value)
+    if t is float or t is str or t is int or t is bool or value is None:
+        return _plain(value)
+    if t is tuple or t is list:
+        return tuple(_plain_frozen(v) for v in value)
+    if t is dict:
+        return {str(k): _plain_frozen(v) for k, v in value.items()}
+    return _freeze(_plain(value))

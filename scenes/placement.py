@@ -54,14 +54,48 @@ class _World:
     agents: Occupancy
     ground: Occupancy
     overhead: list[tuple[Polygon, float]]  # (footprint of a canopy or arm, clearance height)
+    overhead_bounds: np.ndarray  # (len(overhead), 4) shapely bounds of each canopy
+    overhead_clearance: np.ndarray  # (len(overhead),) the clearances, as in `overhead`
 
     def free(self, poly: Polygon, top: float) -> bool:
         if self.agents.collides(poly, AGENT_GAP) or self.ground.collides(poly, OBSTACLE_GAP):
             return False
-        return not any(top > clearance and poly.intersects(canopy) for canopy, clearance in self.overhead)
+        if not self.overhead:
+            return True
+        # Only canopies lower than `top` whose bounding box meets the polygon's can intersect it
+        # (the same answer as testing every canopy: the box test is necessary for `intersects`).
+        x0, y0, x1, y1 = poly.bounds
+        b = self.overhead_bounds
+        near = np.nonzero((self.overhead_clearance < top) & (b[:, 0] <= x1) & (b[:, 2] >= x0)
+                          & (b[:, 1] <= y1) & (b[:, 3] >= y0))[0]
+        return not any(poly.intersects(self.overhead[i][0]) for i in near)
 
 
-def _world(city: City) -> _World:
+@dataclass
+class _Static:
+    """What placement derives from a city alone, built once per city and shared by its frames
+    (a frame's placement only adds to copies): obstacles, canopies and lane-junction geometry."""
+
+    city: City
+    ground: Occupancy
+    overhead: list[tuple[Polygon, float]]
+    overhead_bounds: np.ndarray
+    overhead_clearance: np.ndarray
+    crosses: dict[tuple[int, int], bool]  # (id of a lane, id of an intersection) -> _Placer._crosses
+    spans: dict[tuple[int, int], tuple[float, float]]  # the same -> _Placer._span
+    crossing_zones: Occupancy  # where parked cars keep out (_Placer.parked)
+    junction_zones: Occupancy  # where lone cones keep out (_Placer._clear_of_junctions)
+    areas: dict[int, Polygon]  # id of a lane, sidewalk or crosswalk -> its rectangle
+
+
+_STATIC: dict[int, _Static] = {}  # id(city) -> its _Static; the entry holds the city, so ids stay unique
+_STATIC_SIZE = 4
+
+
+def _static(city: City) -> _Static:
+    hit = _STATIC.get(id(city))
+    if hit is not None and hit.city is city:
+        return hit
     ground = Occupancy()
     for b in city.buildings:
         for part in b.parts:
@@ -73,12 +107,35 @@ def _world(city: City) -> _World:
         if "clearance" in f.params:
             canopy = rect_polygon(f.center[:2], f.dims[0], f.dims[1], f.yaw)
             overhead.append((canopy, float(f.params["clearance"]) + (f.center[2] - f.dims[2] / 2)))
-    return _World(Occupancy(), ground, overhead)
+    bounds = np.array([c.bounds for c, _ in overhead], dtype=np.float64).reshape(-1, 4)
+    clearance = np.array([h for _, h in overhead], dtype=np.float64)
+    crossing = Occupancy()  # parked cars keep 6 m clear of intersection boxes and 1.5 m of crosswalks
+    for i in city.intersections:
+        crossing.add(rect_polygon(i.center, i.size[0] + 12.0, i.size[1] + 12.0, 0.0))
+    for c in city.crosswalks:
+        crossing.add(rect_polygon(c.center, c.length, c.width + 3.0, c.yaw))
+    junction = Occupancy()  # lone cones keep 3 m clear of intersection boxes and 0.5 m of crosswalks
+    for i in city.intersections:
+        junction.add(rect_polygon(i.center, i.size[0] + 6.0, i.size[1] + 6.0, 0.0))
+    for c in city.crosswalks:
+        junction.add(rect_polygon(c.center, c.length, c.width + 1.0, c.yaw))
+    static = _Static(city, ground, overhead, bounds, clearance, {}, {}, crossing, junction, {})
+    _STATIC.pop(id(city), None)
+    while len(_STATIC) >= _STATIC_SIZE:
+        _STATIC.pop(next(iter(_STATIC)))
+    _STATIC[id(city)] = static
+    return static
+
+
+def _world(city: City) -> _World:
+    s = _static(city)
+    return _World(Occupancy(), s.ground.copy(), s.overhead, s.overhead_bounds, s.overhead_clearance)
 
 
 class _Placer:
     def __init__(self, city: City, rng: np.random.Generator, user_assets=None, user_probability: float = 0.0) -> None:
         self.city, self.rng = city, rng
+        self.static = _static(city)
         self.world = _world(city)
         self.agents: list[Agent] = []
         self.user_assets = user_assets or []
@@ -86,8 +143,6 @@ class _Placer:
         self.driving = [lane for road in city.roads for lane in road.lanes if lane.kind == "driving"]
         self.parking = [lane for road in city.roads for lane in road.lanes if lane.kind == "parking"]
         self.bike = [lane for road in city.roads for lane in road.lanes if lane.kind == "bike"]
-        self._junction_zones: Occupancy | None = None
-        self._lane_areas: dict[str, Polygon] = {}
         self.rightmost = [lane for road in city.roads for lane in road.lanes
                           if lane.kind == "driving" and not any(o.kind == "driving" and o.lane_id[:-1] == lane.lane_id[:-1]
                                                                 and int(o.lane_id[-1]) > int(lane.lane_id[-1]) for o in road.lanes)]
@@ -158,7 +213,7 @@ class _Placer:
 
     def parked(self, fraction: float, mix: dict[str, float]) -> None:
         """Fill each parking lane nose to tail, leaving gaps near intersections and crosswalks."""
-        blocked = self._crossing_zones()
+        blocked = self.static.crossing_zones
         for lane in self.parking:
             t = float(self.rng.uniform(0.5, 6.0))
             while t < lane.length - 3.0:
@@ -172,16 +227,11 @@ class _Placer:
                     across = -(lane.width / 2 - 0.25 - w / 2)  # right side 0.25 m from the kerb
                     xy = to_world(lane.start, lane.heading, mid, across)
                     poly = rect_polygon(xy, l + 1.0, w, lane.heading)
-                    if not any(poly.intersects(z) for z in blocked):
+                    if not blocked.collides(poly):
                         if self.try_add(category, "parked", dims, spec, xy, lane.heading + self.yaw_noise(0.5), 0.0):
                             t += l + float(self.rng.uniform(0.8, 2.5))
                             continue
                 t += float(self.rng.uniform(2.0, 6.0))
-
-    def _crossing_zones(self) -> list[Polygon]:
-        zones = [rect_polygon(i.center, i.size[0] + 12.0, i.size[1] + 12.0, 0.0) for i in self.city.intersections]
-        zones += [rect_polygon(c.center, c.length, c.width + 3.0, c.yaw) for c in self.city.crosswalks]
-        return zones
 
     def pedestrian_on_sidewalk(self, category: str = "pedestrian", walking: bool | None = None) -> bool:
         """A pedestrian (or a person pushing a barrow) walking along the street or standing."""
@@ -202,8 +252,7 @@ class _Placer:
                 yaw = s.road_yaw + (math.pi if self.rng.random() < 0.5 else 0.0) + float(self.rng.normal(0, math.radians(8)))
             else:
                 yaw = float(self.rng.uniform(-math.pi, math.pi))
-            inside = rect_polygon(s.center, s.length, s.width, s.yaw)
-            if self.try_add(category, state, dims, spec, xy, yaw, s.height, inside):
+            if self.try_add(category, state, dims, spec, xy, yaw, s.height, self.area(s)):
                 return True
         return False
 
@@ -217,28 +266,27 @@ class _Placer:
             across = float(self.rng.uniform(-c.width / 2 + 0.5, c.width / 2 - 0.5))
             xy = to_world(c.center, c.yaw, along, across)
             yaw = c.yaw + (math.pi if self.rng.random() < 0.5 else 0.0) + float(self.rng.normal(0, math.radians(10)))
-            inside = rect_polygon(c.center, c.length, c.width, c.yaw)
-            if self.try_add("pedestrian", "crossing", dims, spec, xy, yaw, 0.0, inside):
+            if self.try_add("pedestrian", "crossing", dims, spec, xy, yaw, 0.0, self.area(c)):
                 return True
         return False
 
     def _clear_of_junctions(self, poly: Polygon) -> bool:
         """True when `poly` keeps out of every intersection box (grown by 3 m) and crosswalk."""
-        if self._junction_zones is None:  # built once per frame: placement asks for every cone try
-            zones = Occupancy()
-            for i in self.city.intersections:
-                zones.add(rect_polygon(i.center, i.size[0] + 6.0, i.size[1] + 6.0, 0.0))
-            for c in self.city.crosswalks:
-                zones.add(rect_polygon(c.center, c.length, c.width + 1.0, c.yaw))
-            self._junction_zones = zones
-        return not self._junction_zones.collides(poly)
+        return not self.static.junction_zones.collides(poly)
 
     def lane_area(self, lane: Lane) -> Polygon:
-        """The lane's rectangle (cached: every try of every moving agent checks containment)."""
-        area = self._lane_areas.get(lane.lane_id)
+        """The lane's rectangle (cached per city: every try of every moving agent checks containment)."""
+        area = self.static.areas.get(id(lane))
         if area is None:
-            area = self._lane_areas[lane.lane_id] = rect_polygon(to_world(lane.start, lane.heading, lane.length / 2.0, 0.0),
-                                                                 lane.length, lane.width, lane.heading)
+            area = self.static.areas[id(lane)] = rect_polygon(to_world(lane.start, lane.heading, lane.length / 2.0, 0.0),
+                                                              lane.length, lane.width, lane.heading)
+        return area
+
+    def area(self, strip) -> Polygon:
+        """The rectangle of a sidewalk strip or crosswalk, where people must stand (cached per city)."""
+        area = self.static.areas.get(id(strip))
+        if area is None:
+            area = self.static.areas[id(strip)] = rect_polygon(strip.center, strip.length, strip.width, strip.yaw)
         return area
 
     def junction_spans(self, lane: Lane) -> list[tuple[float, float]]:
@@ -361,18 +409,26 @@ class _Placer:
                                                    lane.heading))
                 break
 
-    @staticmethod
-    def _crosses(lane: Lane, inter) -> bool:
-        d = np.subtract(lane.end, lane.start) / lane.length
-        off = abs(float(np.cross(d, np.subtract(inter.center, lane.start))))
-        return off < abs(d[1]) * inter.size[0] / 2 + abs(d[0]) * inter.size[1] / 2
+    def _crosses(self, lane: Lane, inter) -> bool:
+        """Whether `lane` runs through the intersection box (cached per city: pure geometry)."""
+        key = (id(lane), id(inter))
+        hit = self.static.crosses.get(key)
+        if hit is None:
+            d = np.subtract(lane.end, lane.start) / lane.length
+            off = abs(float(np.cross(d, np.subtract(inter.center, lane.start))))
+            hit = self.static.crosses[key] = bool(off < abs(d[1]) * inter.size[0] / 2 + abs(d[0]) * inter.size[1] / 2)
+        return hit
 
-    @staticmethod
-    def _span(lane: Lane, inter) -> tuple[float, float]:
-        d = np.subtract(lane.end, lane.start) / lane.length
-        t = float(np.dot(np.subtract(inter.center, lane.start), d))
-        half = abs(d[0]) * inter.size[0] / 2 + abs(d[1]) * inter.size[1] / 2
-        return t - half, t + half
+    def _span(self, lane: Lane, inter) -> tuple[float, float]:
+        """Where along `lane` it enters and leaves the intersection box (cached per city)."""
+        key = (id(lane), id(inter))
+        hit = self.static.spans.get(key)
+        if hit is None:
+            d = np.subtract(lane.end, lane.start) / lane.length
+            t = float(np.dot(np.subtract(inter.center, lane.start), d))
+            half = abs(d[0]) * inter.size[0] / 2 + abs(d[1]) * inter.size[1] / 2
+            hit = self.static.spans[key] = (t - half, t + half)
+        return hit
 
     def queues(self, probability: float, length, mix: dict[str, float]) -> None:
         """Traffic waiting at signalised junctions: in each lane approaching one, with

@@ -59,6 +59,13 @@ class Occupancy:
         self.polygons.append(poly)
         self.owners.append(owner)
 
+    def copy(self) -> Occupancy:
+        """An independent Occupancy holding the same polygons (shapely geometries are immutable,
+        so they are shared): a frame adds to a copy of the city's obstacles, not to them."""
+        out = Occupancy()
+        out.polygons, out.owners, out._bounds = list(self.polygons), list(self.owners), self._bounds.copy()
+        return out
+
     def collides(self, poly, margin: float = 0.0, ignore_owner: object = None) -> bool:
         """True if `poly` grown by `margin` touches any stored polygon (not those of `ignore_owner`)."""
         if not self.polygons:
