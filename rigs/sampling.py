@@ -226,6 +226,31 @@ def _city_layer(city) -> _Layer:
     return layer
 
 
+def _agent_layer(agents) -> _Layer:
+    """The agents' footprints: each cuboid's base, turned by its yaw, as one array operation.
+
+    The same polygons as shapely.affinity.affine_transform(shapely.box(-l/2, -w/2, l/2, w/2),
+    [c, -s, s, c, x, y]) per agent: the box's ring (shapely.box's vertex order) and that function's
+    own arithmetic (x' = c x - s y + x0, y' = s x + c y + y0, elementwise), for all agents at once."""
+    if not agents:
+        return _Layer.of([], [], [])
+    dims = np.array([a.dims for a in agents], dtype=np.float64)
+    yaw = [a.yaw for a in agents]
+    cos = np.array([math.cos(t) for t in yaw])[:, None]
+    sin = np.array([math.sin(t) for t in yaw])[:, None]
+    x0 = np.array([a.center[0] for a in agents])[:, None]
+    y0 = np.array([a.center[1] for a in agents])[:, None]
+    lx, hx = -dims[:, 0:1] / 2, dims[:, 0:1] / 2
+    ly, hy = -dims[:, 1:2] / 2, dims[:, 1:2] / 2
+    x = np.hstack([hx, hx, lx, lx, hx])  # shapely.box(xmin, ymin, xmax, ymax): counter-clockwise from (xmax, ymin)
+    y = np.hstack([ly, hy, hy, ly, ly])
+    xp = cos * x + (-sin) * y + x0
+    yp = sin * x + cos * y + y0
+    polys = shapely.polygons(np.stack([xp, yp], axis=-1))
+    tops = [a.center[2] + a.dims[2] / 2 for a in agents]
+    return _Layer.of(list(polys), tops, [-math.inf] * len(agents))
+
+
 class Obstacles:
     """What a camera may not stand in: buildings, agents' cuboids, furniture; built per scene.
 
@@ -233,13 +258,7 @@ class Obstacles:
     this frame's agents'. A pose is blocked when anything in either layer blocks it."""
 
     def __init__(self, scene: Scene) -> None:
-        polys, tops = [], []
-        for a in scene.agents:
-            box = shapely.box(-a.dims[0] / 2, -a.dims[1] / 2, a.dims[0] / 2, a.dims[1] / 2)
-            c, s = math.cos(a.yaw), math.sin(a.yaw)
-            polys.append(shapely.affinity.affine_transform(box, [c, -s, s, c, a.center[0], a.center[1]]))
-            tops.append(a.center[2] + a.dims[2] / 2)
-        self.layers = (_city_layer(scene.city), _Layer.of(polys, tops, [-math.inf] * len(polys)))
+        self.layers = (_city_layer(scene.city), _agent_layer(scene.agents))
 
     def blocked(self, position: np.ndarray) -> bool:
         pt = Point(position[:2])

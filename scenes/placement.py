@@ -57,14 +57,17 @@ class _World:
     overhead_bounds: np.ndarray  # (len(overhead), 4) shapely bounds of each canopy
     overhead_clearance: np.ndarray  # (len(overhead),) the clearances, as in `overhead`
 
-    def free(self, poly: Polygon, top: float) -> bool:
-        if self.agents.collides(poly, AGENT_GAP) or self.ground.collides(poly, OBSTACLE_GAP):
+    def free(self, poly: Polygon, top: float, bounds: tuple[float, float, float, float] | None = None) -> bool:
+        """Whether `poly` (reaching up to `top`) keeps clear of everything; `bounds`: poly.bounds."""
+        if bounds is None:
+            bounds = poly.bounds
+        if self.agents.collides(poly, AGENT_GAP, bounds=bounds) or self.ground.collides(poly, OBSTACLE_GAP, bounds=bounds):
             return False
         if not self.overhead:
             return True
         # Only canopies lower than `top` whose bounding box meets the polygon's can intersect it
         # (the same answer as testing every canopy: the box test is necessary for `intersects`).
-        x0, y0, x1, y1 = poly.bounds
+        x0, y0, x1, y1 = bounds
         b = self.overhead_bounds
         near = np.nonzero((self.overhead_clearance < top) & (b[:, 0] <= x1) & (b[:, 2] >= x0)
                           & (b[:, 1] <= y1) & (b[:, 3] >= y0))[0]
@@ -172,9 +175,10 @@ class _Placer:
         poly = rect_polygon(xy, l, w, yaw)
         if inside is not None and not inside.contains(poly):
             return False
-        if not self.world.free(poly, ground_z + h):
+        bounds = poly.bounds
+        if not self.world.free(poly, ground_z + h, bounds):
             return False
-        self.world.agents.add(poly)
+        self.world.agents.add(poly, bounds=bounds)
         iid = len(self.agents) + 1
         yaw = math.atan2(math.sin(yaw), math.cos(yaw))
         self.agents.append(Agent(iid, category, (float(xy[0]), float(xy[1]), ground_z + h / 2.0), (float(l), float(w), float(h)),
@@ -182,7 +186,8 @@ class _Placer:
         return True
 
     def yaw_noise(self, scale: float = 1.0) -> float:
-        return float(np.clip(self.rng.normal(0.0, YAW_NOISE * scale), -YAW_NOISE_MAX, YAW_NOISE_MAX))
+        # min/max: np.clip's value for a finite draw and these nonzero bounds, without its overhead
+        return min(max(float(self.rng.normal(0.0, YAW_NOISE * scale)), -YAW_NOISE_MAX), YAW_NOISE_MAX)
 
     def pick_lane(self, lanes: list[Lane]) -> Lane:
         lengths = np.array([lane.length for lane in lanes])

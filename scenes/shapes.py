@@ -51,11 +51,12 @@ class Occupancy:
         self.owners: list[object] = []
         self._bounds = np.zeros((64, 4))
 
-    def add(self, poly: Polygon, owner: object = None) -> None:
+    def add(self, poly: Polygon, owner: object = None, bounds: tuple[float, float, float, float] | None = None) -> None:
+        """Store `poly`; `bounds`, when the caller has them, must be poly.bounds (saves asking again)."""
         n = len(self.polygons)
         if n == len(self._bounds):
             self._bounds = np.vstack([self._bounds, np.zeros_like(self._bounds)])
-        self._bounds[n] = poly.bounds
+        self._bounds[n] = poly.bounds if bounds is None else bounds
         self.polygons.append(poly)
         self.owners.append(owner)
 
@@ -66,11 +67,13 @@ class Occupancy:
         out.polygons, out.owners, out._bounds = list(self.polygons), list(self.owners), self._bounds.copy()
         return out
 
-    def collides(self, poly, margin: float = 0.0, ignore_owner: object = None) -> bool:
-        """True if `poly` grown by `margin` touches any stored polygon (not those of `ignore_owner`)."""
+    def collides(self, poly, margin: float = 0.0, ignore_owner: object = None,
+                 bounds: tuple[float, float, float, float] | None = None) -> bool:
+        """True if `poly` grown by `margin` touches any stored polygon (not those of `ignore_owner`);
+        `bounds`, when the caller has them, must be poly.bounds."""
         if not self.polygons:
             return False
-        x0, y0, x1, y1 = poly.bounds
+        x0, y0, x1, y1 = poly.bounds if bounds is None else bounds
         b = self._bounds[: len(self.polygons)]
         near = np.nonzero((b[:, 0] <= x1 + margin) & (b[:, 2] >= x0 - margin) & (b[:, 1] <= y1 + margin) & (b[:, 3] >= y0 - margin))[0]
         if ignore_owner is not None:

@@ -90,3 +90,24 @@ def test_camera_obstacles_same_with_a_fresh_or_used_city_cache():
     # the static layer is shared, the agents' layer is the frame's own: frames differ in it
     assert Obstacles(scenes[0]).layers[0] is Obstacles(scenes[1]).layers[0]
     assert Obstacles(scenes[0]).layers[1] is not Obstacles(scenes[1]).layers[1]
+
+
+def test_agent_footprints_are_the_affine_transform_of_their_box():
+    """The camera's agent layer builds every footprint at once; each must be the very polygon
+    the per-agent shapely.affinity call makes (same vertices, same order, same bits)."""
+    import math
+
+    import shapely
+
+    from omnigen.rigs.sampling import _agent_layer
+
+    gen = SceneGenerator("intersection", 4)
+    agents = gen.frame(4, 1).agents
+    layer = _agent_layer(agents)
+    assert len(layer.polys) == len(agents) > 10
+    for a, poly in zip(agents, layer.polys):
+        box = shapely.box(-a.dims[0] / 2, -a.dims[1] / 2, a.dims[0] / 2, a.dims[1] / 2)
+        c, s = math.cos(a.yaw), math.sin(a.yaw)
+        assert shapely.to_wkb(poly) == shapely.to_wkb(shapely.affinity.affine_transform(box, [c, -s, s, c, a.center[0], a.center[1]]))
+    assert list(layer.tops) == [a.center[2] + a.dims[2] / 2 for a in agents]
+    assert len(_agent_layer(()).polys) == 0
