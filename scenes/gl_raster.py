@@ -57,10 +57,12 @@ WEAR_STAIN = 0.45
 WEAR_RUBBER = 0.12
 WEAR_CLEARED = 0.9
 # A lane's bands run along it, and a camera sees the road at a grazing angle: a pixel's footprint is
-# long along the view and narrow across it, so the map is filtered anisotropically (up to this many
-# samples along the footprint) instead of averaging the bands away across the lane.
-WEAR_ANISOTROPY = 4.0
-GL_TEXTURE_MAX_ANISOTROPY = 0x84FE  # GL 4.6 / ARB_texture_filter_anisotropic (llvmpipe has it)
+# long along the view and narrow across it, so the map is filtered anisotropically (WEAR_TAPS
+# lookups along the footprint's long axis, each at the mip level of its short axis: wear() in the
+# shader) instead of averaging the bands away across the lane. Not the texture's own anisotropic
+# filter: llvmpipe's (Mesa 22.3) took 4 minutes for one 640 x 640 dashcam frame of a street lined
+# with parked cars (the asphalt draw alone; 0.1 s without it), where this costs WEAR_TAPS lookups.
+WEAR_TAPS = 4
 
 # The output encoding: the sRGB transfer function (IEC 61966-2-1; its linear toe keeps shadows
 # darker than a plain 2.2 power), as the PNGs are read; _SRGB_GLSL is the same in the shaders.
@@ -198,6 +200,18 @@ _SURFACES_GLSL = """
 const float WEAR_STAIN = %WEAR_STAIN%;
 const float WEAR_RUBBER = %WEAR_RUBBER%;
 const float WEAR_CLEARED = %WEAR_CLEARED%;
+vec2 wear(vec2 xy) {  // the road-wear map at xy, filtered over the pixel's footprint (WEAR_TAPS)
+    vec2 uv = (xy - wear_xform.xy) * wear_xform.zw;
+    vec2 size = vec2(textureSize(wear_map, 0));
+    vec2 dx = dFdx(uv), dy = dFdy(uv);
+    float lx = length(dx * size), ly = length(dy * size);  // the footprint's axes in texels
+    vec2 major = lx >= ly ? dx : dy;
+    float lod = log2(max(max(lx, ly) / %WEAR_TAPS%.0, min(lx, ly)));
+    vec2 w = vec2(0.0);
+    for (int k = 0; k < %WEAR_TAPS%; k++)
+        w += textureLod(wear_map, uv + major * ((float(k) + 0.5) / %WEAR_TAPS%.0 - 0.5), lod).rg;
+    return w * (1.0 / %WEAR_TAPS%.0);
+}
 const vec3 SNOW_ALBEDO = vec3(%SNOW%);
 const float SNOW_BLEND = %SNOW_MIX%;
 vec2 N(vec2 p) { return texture(noise, p * (1.0 / %NOISE%.0)).rg; }
@@ -268,12 +282,12 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     m = mix(m, 1.0, snow_cover * float(up && !ground));
     vec3 albedo = (ground ? (base - SNOW_ALBEDO * k_snow) / (1.0 - k_snow) : base) * m;
     if (kind == 1 || kind == 2) {  // tyres clear the snow off their tracks, markings included
-        vec2 w = texture(wear_map, (P.xy - wear_xform.xy) * wear_xform.zw).rg;
+        vec2 w = wear(P.xy);
         lying *= 1.0 - WEAR_CLEARED * w.y;
 #else
     vec3 albedo = base * m;
     if (kind == 1) {
-        vec2 w = texture(wear_map, (P.xy - wear_xform.xy) * wear_xform.zw).rg;
+        vec2 w = wear(P.xy);
 #endif
         // asphalt: traffic's oil, rubber and gutter grime (paint's own wear is its pattern's, below)
         albedo *= 1.0 - float(kind == 1) * (WEAR_STAIN * w.x + WEAR_RUBBER * w.y - WEAR_STAIN * WEAR_RUBBER * w.x * w.y);
@@ -300,7 +314,7 @@ vec3 surface(int kind, vec4 prm, vec4 a, vec3 c, vec3 base, vec3 P, vec3 n, vec3
     reflected = sky_along(r, P.z) * (glass * F * (0.3 + 0.7 * step(0.3, cell)) + float(kind == 9) * 0.8 * F);
     return albedo;
 }
-""".replace("%WEAR_STAIN%", f"{WEAR_STAIN:.6f}").replace("%WEAR_RUBBER%", f"{WEAR_RUBBER:.6f}").replace(
+""".replace("%WEAR_STAIN%", f"{WEAR_STAIN:.6f}").replace("%WEAR_TAPS%", str(WEAR_TAPS)).replace("%WEAR_RUBBER%", f"{WEAR_RUBBER:.6f}").replace(
     "%WEAR_CLEARED%", f"{WEAR_CLEARED:.6f}").replace("%SNOW%", ", ".join(f"{c:.6f}" for c in SNOW)).replace(
     "%SNOW_MIX%", f"{SNOW_BLEND:.6f}")
 
@@ -740,7 +754,6 @@ class GLRaster:
         for name, value in ((gl.GL_TEXTURE_MIN_FILTER, gl.GL_LINEAR_MIPMAP_NEAREST), (gl.GL_TEXTURE_MAG_FILTER, gl.GL_LINEAR),
                             (gl.GL_TEXTURE_WRAP_S, gl.GL_CLAMP_TO_EDGE), (gl.GL_TEXTURE_WRAP_T, gl.GL_CLAMP_TO_EDGE)):
             gl.glTexParameteri(gl.GL_TEXTURE_2D, name, value)
-        gl.glTexParameterf(gl.GL_TEXTURE_2D, GL_TEXTURE_MAX_ANISOTROPY, WEAR_ANISOTROPY)
         gl.glBindTexture(gl.GL_TEXTURE_2D, 0)
 
     def set_decals(self, positions: np.ndarray, uv: np.ndarray) -> None:
