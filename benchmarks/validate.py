@@ -264,7 +264,19 @@ def synthetic_row(report: dict[str, Any]) -> dict[str, Any]:
     raise SystemExit("validate: the evaluation has no synthetic test frames")
 
 
-def main(argv: list[str] | None = None) -> int:
+def keypoint_recipe(args: argparse.Namespace) -> list[str]:
+    """The keypoint branch's `omnigen train` arguments of the recipe. --kpt-heading is on unless
+    asked off or --kpt-turn is given (the two answer the same question; train refuses both)."""
+    heading = not args.kpt_turn if args.kpt_heading is None else args.kpt_heading
+    return (["--kpt-mode", args.kpt_mode, "--kpt-l1", str(args.kpt_l1), "--kpt-labelled", str(args.kpt_labelled),
+             "--kpt-turn-start", str(args.kpt_turn_start)] + (["--kpt-turn"] if args.kpt_turn else [])
+            + (["--kpt-heading"] if heading else [])
+            + (["--heading-gain", str(args.heading_gain)] if args.heading_gain is not None else [])
+            + (["--kpt-hidden", str(args.kpt_hidden)] if args.kpt_hidden else [])
+            + (["--heading-crop", str(args.heading_crop)] if args.heading_crop else []))
+
+
+def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, default=Path("runs/validate"), help="working folder (resumable)")
     ap.add_argument("--kitti", type=Path, help="a KITTI tree to convert and merge (real data)")
@@ -290,16 +302,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kpt-sigma-end", type=float, default=0.25,
                     help="keypoint-loss sigma after the anneal: 0.25 trains on the kernel of the OKS metric "
                          "reported here (pycocotools, sigma 0.125); 0.125 is the design's formula read literally")
-    ap.add_argument("--kpt-mode", default="anchor", choices=["anchor", "box"],
+    # The default recipe is the one that first put the corners ahead of the box template on the
+    # learning benchmark (docs/detector-training.md, "The front from the object's own pixels")
+    ap.add_argument("--kpt-mode", default="box", choices=["anchor", "box"],
                     help="how the keypoint branch places corners (omnigen train --kpt-mode)")
-    ap.add_argument("--kpt-l1", type=float, default=0.0, help="gain of the L1 corner term (omnigen train --kpt-l1)")
+    ap.add_argument("--kpt-l1", type=float, default=2.0, help="gain of the L1 corner term (omnigen train --kpt-l1)")
     ap.add_argument("--kpt-turn", action="store_true", help="corners up to the 180-degree turn (omnigen train --kpt-turn)")
-    ap.add_argument("--kpt-labelled", type=float, default=0.0, help="omnigen train --kpt-labelled")
-    ap.add_argument("--kpt-turn-start", type=float, default=0.0, help="omnigen train --kpt-turn-start")
-    ap.add_argument("--kpt-heading", action="store_true", help="the front from a regressed image heading (omnigen train --kpt-heading)")
+    ap.add_argument("--kpt-labelled", type=float, default=1.0, help="omnigen train --kpt-labelled")
+    ap.add_argument("--kpt-turn-start", type=float, default=0.3, help="omnigen train --kpt-turn-start")
+    ap.add_argument("--kpt-heading", action=argparse.BooleanOptionalAction, default=None,
+                    help="the front from a regressed image heading (omnigen train --kpt-heading); default: on "
+                         "unless --kpt-turn, which answers the same question")
     ap.add_argument("--heading-gain", type=float, default=None, help="omnigen train --heading-gain")
     ap.add_argument("--kpt-hidden", type=int, default=None, help="keypoint-branch width (omnigen train --kpt-hidden)")
-    ap.add_argument("--heading-crop", type=int, default=0, help="crop side of the second-stage heading (omnigen train --heading-crop); 0: none")
+    ap.add_argument("--heading-crop", type=int, default=64, help="crop side of the second-stage heading (omnigen train --heading-crop); 0: none")
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
                          "natively, a step in about 0.65 of the time by benchmarks/bench_train_step.py; else auto)")
@@ -314,7 +330,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fresh", action="store_true", help="delete the working folder first")
     ap.add_argument("--data-only", action="store_true",
                     help="stop once the dataset (WORK/uov) is merged: the data bench_learning.py compares recipes on")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     args.amp = args.amp or default_amp(args.device)  # resolved, so RESULTS.md's command line says which
 
     work = args.work
@@ -346,9 +366,7 @@ def main(argv: list[str] | None = None) -> int:
     common = ["--imgsz", str(args.imgsz), "--epochs", str(args.epochs), "--batch", str(args.batch),
               "--workers", str(args.workers), "--seed", str(args.seed),
               "--optimizer", args.optimizer, "--lr0", str(args.lr0), "--val-every", str(args.val_every),
-              "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp,
-              "--kpt-mode", args.kpt_mode, "--kpt-l1", str(args.kpt_l1), "--kpt-labelled", str(args.kpt_labelled),
-              "--kpt-turn-start", str(args.kpt_turn_start)] + (["--kpt-turn"] if args.kpt_turn else []) + (["--kpt-heading"] if args.kpt_heading else []) + (["--heading-gain", str(args.heading_gain)] if args.heading_gain is not None else []) + (["--kpt-hidden", str(args.kpt_hidden)] if args.kpt_hidden else []) + (["--heading-crop", str(args.heading_crop)] if args.heading_crop else [])
+              "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp] + keypoint_recipe(args)
     common += (["--device", args.device] if args.device else []) + (["--cache"] if args.cache else [])
     runs: list[dict[str, Any]] = []
 

@@ -282,3 +282,16 @@ def test_data_only_stops_at_the_merged_dataset(tmp_path, monkeypatch):
         (tmp_path / folder / "manifest.json").write_text("{}")
     assert validate.main(["--work", str(tmp_path), "--frames", "2", "--cities", "1", "--data-only"]) == 0
     assert [c[0] for c in calls] == ["merge"]
+
+
+def test_default_recipe_is_the_crop_heading_one():
+    """make validate trains the recipe that beat the box template on the learning benchmark; with
+    --kpt-turn the heading head is left out (train refuses both), and each part can be turned off."""
+    recipe = validate.keypoint_recipe(validate.build_parser().parse_args([]))
+    assert recipe == ["--kpt-mode", "box", "--kpt-l1", "2.0", "--kpt-labelled", "1.0", "--kpt-turn-start", "0.3",
+                      "--kpt-heading", "--heading-crop", "64"]
+    turn = validate.keypoint_recipe(validate.build_parser().parse_args(["--kpt-turn"]))
+    assert "--kpt-turn" in turn and "--kpt-heading" not in turn
+    plain = validate.keypoint_recipe(validate.build_parser().parse_args(
+        ["--no-kpt-heading", "--heading-crop", "0", "--kpt-mode", "anchor"]))
+    assert "--kpt-heading" not in plain and "--heading-crop" not in plain and plain[1] == "anchor"
