@@ -273,6 +273,11 @@ def data_stage(run, work: Path, base: list[Path], extra: list[Path], args: argpa
     return uov, ran > 0
 
 
+RECIPE = "--kpt-mode box --kpt-l1 2.0 --kpt-labelled 1.0 --kpt-turn-start 0.3 --kpt-heading --heading-crop 64"
+"""The keypoint recipe trained by default: make validate's (benchmarks/validate.py keypoint_recipe),
+the first the learning benchmark showed ahead of the box template (docs/detector-training.md)."""
+
+
 def train_arguments(uov: Path, out: Path, args: argparse.Namespace) -> list[str]:
     """`omnigen train`: nano with P2 on whole images, its schedule fitted to --minutes (--time)."""
     budget = ["--time", f"{args.minutes:g}", "--epochs", str(MAX_EPOCHS)]
@@ -419,8 +424,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--kitti", type=Path, default=default_kitti(), help="KITTI tree to merge (default: the shared sample)")
     ap.add_argument("--no-kitti", action="store_true", help="synthetic frames alone")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--train-args", default="",
-                    help="more `omnigen train` arguments, one string (e.g. '--kpt-mode box --kpt-l1 2 --kpt-turn')")
+    ap.add_argument("--train-args", default=RECIPE,
+                    help="more `omnigen train` arguments, one string; default: make validate's keypoint recipe, "
+                         f"'{RECIPE}' ('' for the design's plain branch)")
     ap.add_argument("--results", type=Path, default=ROOT / "docs", help="folder of RESULTS.md (its section) and gpu_results.json")
     ap.add_argument("--peer", action="store_true", help="also train Ultralytics' YOLO11n-pose (peer_ultralytics.py)")
     args = ap.parse_args(argv)

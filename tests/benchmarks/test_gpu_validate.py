@@ -254,3 +254,9 @@ def test_training_takes_more_arguments_and_renders_make_validates_mix():
     assert argv[0] == "train" and argv[-3:] == ["--kpt-mode", "box", "--kpt-turn"]
     assert gpu_validate.train_arguments(Path("uov"), Path("run"), argparse.Namespace(**{**vars(args), "train_args": ""}))[-1] != "--kpt-turn"
     assert gpu_validate.parse_args(["--work", "w"]).scene == SCENE_MIX
+    # and the default recipe is make validate's, written once in each script and kept equal here
+    import shlex
+
+    from benchmarks.validate import build_parser, keypoint_recipe
+
+    assert gpu_validate.parse_args(["--work", "w"]).train_args == shlex.join(keypoint_recipe(build_parser().parse_args([])))
