@@ -108,9 +108,31 @@ def building_material(role: str, b: Building, weather: Weather, lighting: Lighti
         return weathered(b.roof, weather, upward=True)
     if role == "frame":
         return f.frame
+    if role in ("shopfront", "awning"):
+        return shop_material(role, f.seed, weather)
     if role == "window_lit" and lighting.windows_lit:
         return replace(f.window, emission_color=(1.0, 0.78, 0.45), emission_strength=2.5)
     return f.window
+
+
+# A building's shopfront surround and its awnings' fabric (static.py's shopfronts), linear RGB:
+# surrounds mostly dark (black or dark-painted timber and metal, dark granite, bronze aluminium),
+# some light stone or render; awnings in the dark greens, maroons, navies and blacks of shop
+# awnings, a few red, orange, blue or canvas. One of each a building, drawn from its facade's seed.
+SHOPFRONT_COLORS = ((0.03, 0.03, 0.03), (0.05, 0.05, 0.055), (0.08, 0.06, 0.045), (0.02, 0.05, 0.04),
+                    (0.1, 0.1, 0.1), (0.05, 0.03, 0.025), (0.32, 0.3, 0.27), (0.5, 0.49, 0.46))
+AWNING_COLORS = ((0.02, 0.08, 0.04), (0.12, 0.02, 0.02), (0.02, 0.03, 0.1), (0.03, 0.03, 0.03),
+                 (0.35, 0.03, 0.02), (0.5, 0.18, 0.03), (0.05, 0.12, 0.35), (0.45, 0.4, 0.3))
+
+
+def shop_material(role: str, seed: int, weather: Weather) -> Material:
+    """The shopfront surround (role "shopfront") or awning fabric ("awning") of the building
+    whose facade seed is `seed`; awnings face up, so snow and rain weather them as roofs."""
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5F0])
+    surround, fabric = SHOPFRONT_COLORS[int(rng.integers(len(SHOPFRONT_COLORS)))], AWNING_COLORS[int(rng.integers(len(AWNING_COLORS)))]
+    if role == "shopfront":
+        return Material(surround, roughness=0.45, metallic=0.2)
+    return weathered(Material(fabric, roughness=0.9), weather, upward=True)
 
 
 def furniture_material(role: str, item: Furniture, weather: Weather, lighting: Lighting) -> Material:

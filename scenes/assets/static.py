@@ -18,7 +18,7 @@ import numpy as np
 import trimesh
 from shapely.geometry import LineString, Polygon
 
-from omnigen.scenes.assets.parts import Parts, _mesh, box, quad
+from omnigen.scenes.assets.parts import _HEX_FACES, Parts, Piece, _mesh, box, hexahedron, quad
 from omnigen.scenes.description import Building, City
 from omnigen.scenes.shapes import Occupancy, rect_corners
 
@@ -151,7 +151,9 @@ def building_parts(b: Building, neighbours: Occupancy | None = None) -> Parts:
             a, b_ = poly[i], poly[(i + 1) % n]
             if neighbours is not None and _party_wall(a, b_, neighbours, b.building_id):
                 continue
-            _windows(parts, rng, a, b_, part.base_z, part.top_z, f, ground_floor=part.base_z < 1.0 and part.top_z - part.base_z > 12.0)
+            shops = part.base_z < 1.0 and part.top_z - part.base_z > 12.0
+            _windows(parts, rng, a, b_, part.base_z, part.top_z, f, ground_floor=shops,
+                     street=shops and not _faces_building(a, b_, neighbours, b.building_id))
     return parts
 
 
@@ -167,7 +169,20 @@ def _party_wall(a, b, neighbours: Occupancy, owner: str) -> bool:
     return neighbours.collides(probe.buffer(0.05), 0.0, ignore_owner=owner)
 
 
-def _windows(parts: Parts, rng: np.random.Generator, a, b, z0: float, z1: float, f, ground_floor: bool) -> None:
+def _faces_building(a, b, neighbours: Occupancy | None, owner: str) -> bool:
+    """True when another building stands within AWNING_ROOM metres in front of this wall's
+    middle (a gap between neighbours, not a street or plaza: no awning reaches into it)."""
+    if neighbours is None:
+        return False
+    d = np.asarray(b) - np.asarray(a)
+    normal = np.array([d[1], -d[0]]) / max(float(np.hypot(*d)), 1e-9)
+    mid = (np.asarray(a) + np.asarray(b)) / 2.0
+    probe = LineString([mid + normal * 0.2, mid + normal * AWNING_ROOM])
+    return neighbours.collides(probe.buffer(0.05), 0.0, ignore_owner=owner)
+
+
+def _windows(parts: Parts, rng: np.random.Generator, a, b, z0: float, z1: float, f, ground_floor: bool,
+             street: bool = False) -> None:
     d = np.asarray(b, dtype=np.float64) - np.asarray(a, dtype=np.float64)
     length = float(np.hypot(*d))
     u = d / max(length, 1e-9)
@@ -180,7 +195,9 @@ def _windows(parts: Parts, rng: np.random.Generator, a, b, z0: float, z1: float,
     for k in range(floors):
         base = z0 + k * f.floor_height
         if ground_floor and k == 0:
-            wh, ww, zb = 0.75 * f.floor_height, 0.85 * f.window_spacing, base + 0.15 * f.floor_height
+            if z0 + f.floor_height < z1 - 0.2:
+                _shopfronts(parts, rng, a, u, normal, margin, n_cols, z0, f, street)
+            continue
         else:
             wh, ww, zb = f.window_height, f.window_width, base + 0.5 * (f.floor_height - f.window_height) + 0.15
         if zb + wh > z1 - 0.2:
@@ -195,6 +212,80 @@ def _windows(parts: Parts, rng: np.random.Generator, a, b, z0: float, z1: float,
                 w2 = ww / 2 + grow
                 pa, pb = p - u * w2, p + u * w2
                 parts.add(role, quad((pa[0], pa[1], h0), (pb[0], pb[1], h0), (pb[0], pb[1], h1), (pa[0], pa[1], h1)))
+
+
+# Shopfronts: the ground floor of a tall downtown building is shops, not more of the storeys above.
+# Their glazing is near the whole frontage between narrow piers, down to a stallriser (or the
+# floor, at a shop's door), set in a surround of its own (cladding, painted or dark stone: the
+# "shopfront" role, materials.shopfront_material), and some shops put out an awning. In daylight
+# a shop seen from the street is dark: its interior is lit a tenth as brightly as the street, the
+# glass mirrors mostly the street below the opposite roofline, and an awning shades the glazing
+# and the footway in front. Awnings clear people on the footway (their lowest edge stands at
+# least AWNING_CLEARANCE above it) and only walls with AWNING_ROOM free in front get them.
+STALLRISER = 0.45  # metres of the surround under a shop window
+SHOP_GLASS_TOP = 0.78  # of the storey's height: the glazing's top; the fascia (the sign band) above
+SHOP_BAYS = (2, 4)  # bays (window columns) a shop takes, inclusive
+AWNING_PROBABILITY = 0.4  # of the shops on a street wall
+AWNING_DEPTH = (1.1, 1.6)  # metres out from the wall
+AWNING_DROP = 0.45  # metres its outer edge hangs below where it meets the wall
+AWNING_VALANCE = 0.22  # the hanging front strip
+AWNING_CLEARANCE = 2.3  # metres from the footway to the valance's lower edge, at least
+AWNING_ROOM = 2.5  # metres free in front of a wall for it to get awnings
+AWNING_SPAWN = 0x5A0  # the shops' own stream beside the facade's seed: the windows' lit draws stay as they were
+
+
+def _shopfronts(parts: Parts, rng: np.random.Generator, a, u, normal, margin: float, n_cols: int, z0: float, f,
+                street: bool) -> None:
+    """One wall's ground floor as shops: the surround over the storey, each bay's glazing in its
+    frame (a shop's first or last bay its door, glazed to the floor), awnings over some shops.
+    Draws one number a bay from `rng` (lit at night), as the storeys' windows do."""
+    fh, sp = f.floor_height, f.window_spacing
+    a = np.asarray(a, dtype=np.float64)
+    shop_rng = np.random.default_rng([int(f.seed), AWNING_SPAWN, int(round(a[0] * 100.0)) & 0xFFFFFF, int(round(a[1] * 100.0)) & 0xFFFFFF])
+    lo, hi = a + u * (margin * 0.5), a + u * (1.5 * margin + n_cols * sp)  # the wall less half its end margins
+    s0, s1 = lo + normal * 0.005, hi + normal * 0.005
+    parts.add("shopfront", quad((s0[0], s0[1], z0), (s1[0], s1[1], z0), (s1[0], s1[1], z0 + fh), (s0[0], s0[1], z0 + fh)))
+    top = z0 + SHOP_GLASS_TOP * fh
+    c = 0
+    while c < n_cols:
+        bays = min(int(shop_rng.integers(SHOP_BAYS[0], SHOP_BAYS[1] + 1)), n_cols - c)
+        door = c if shop_rng.random() < 0.5 else c + bays - 1
+        awning = street and shop_rng.random() < AWNING_PROBABILITY
+        depth = float(shop_rng.uniform(*AWNING_DEPTH))
+        for col in range(c, c + bays):
+            center = a + u * (margin + (col + 0.5) * sp)
+            lit = bool(rng.random() < f.lit_fraction)
+            zb = z0 + (0.03 if col == door else STALLRISER)
+            w2 = 0.46 * sp if col != door else 0.3 * sp
+            for role, off, grow in (("frame", 0.01, 0.06), ("window_lit" if lit else "window", 0.02, 0.0)):
+                q = center + normal * off
+                pa, pb = q - u * (w2 + grow), q + u * (w2 + grow)
+                h0, h1 = max(zb - grow, z0 + 0.01), top + grow
+                parts.add(role, quad((pa[0], pa[1], h0), (pb[0], pb[1], h0), (pb[0], pb[1], h1), (pa[0], pa[1], h1)))
+        if awning:
+            z_wall = max(top + 0.5 * (z0 + fh - top), z0 + AWNING_CLEARANCE + AWNING_DROP + AWNING_VALANCE)
+            left, right = a + u * (margin + c * sp + 0.1), a + u * (margin + (c + bays) * sp - 0.1)
+            _awning(parts, left, right, normal, z_wall, depth)
+        c += bays
+
+
+def _awning(parts: Parts, left, right, normal, z_wall: float, depth: float) -> None:
+    """A fabric awning from the wall (left to right along it, at z_wall) sloping down and out
+    `depth` metres, 4 cm thick, with its valance hanging from the outer edge."""
+    t = 0.04
+    w0, w1 = left + normal * 0.03, right + normal * 0.03
+    o0, o1 = w0 + normal * depth, w1 + normal * depth
+    z_out = z_wall - AWNING_DROP
+    # corners counter-clockwise from above: outer left, outer right, wall right, wall left
+    xy = np.array([o0, o1, w1, w0])
+    zs = np.array([z_out, z_out, z_wall, z_wall])
+    v = np.empty((8, 3))
+    v[:4, :2], v[:4, 2] = xy, zs - t
+    v[4:, :2], v[4:, 2] = xy, zs
+    parts.add("awning", Piece(v, _HEX_FACES))
+    inner0, inner1 = o0 - normal * 0.03, o1 - normal * 0.03
+    foot = np.array([o0, o1, inner1, inner0])
+    parts.add("awning", hexahedron(foot, z_out - AWNING_VALANCE, foot, z_out - t))
 
 
 def _gable(parts: Parts, poly: np.ndarray, eave: float, rise: float) -> None:
