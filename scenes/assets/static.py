@@ -152,8 +152,9 @@ def building_parts(b: Building, neighbours: Occupancy | None = None) -> Parts:
             if neighbours is not None and _party_wall(a, b_, neighbours, b.building_id):
                 continue
             shops = part.base_z < 1.0 and part.top_z - part.base_z > 12.0
+            street = shops and not _faces_building(a, b_, neighbours, b.building_id)
             _windows(parts, rng, a, b_, part.base_z, part.top_z, f, ground_floor=shops,
-                     street=shops and not _faces_building(a, b_, neighbours, b.building_id))
+                     awnings=(neighbours, b.building_id) if street else None)
     return parts
 
 
@@ -182,7 +183,9 @@ def _faces_building(a, b, neighbours: Occupancy | None, owner: str) -> bool:
 
 
 def _windows(parts: Parts, rng: np.random.Generator, a, b, z0: float, z1: float, f, ground_floor: bool,
-             street: bool = False) -> None:
+             awnings: tuple | None = None) -> None:
+    """`awnings`: (the city's building footprints, this building's id) where the wall's shops may
+    put out awnings (a street or plaza in front), else None."""
     d = np.asarray(b, dtype=np.float64) - np.asarray(a, dtype=np.float64)
     length = float(np.hypot(*d))
     u = d / max(length, 1e-9)
@@ -196,7 +199,7 @@ def _windows(parts: Parts, rng: np.random.Generator, a, b, z0: float, z1: float,
         base = z0 + k * f.floor_height
         if ground_floor and k == 0:
             if z0 + f.floor_height < z1 - 0.2:
-                _shopfronts(parts, rng, a, u, normal, margin, n_cols, z0, f, street)
+                _shopfronts(parts, rng, a, u, normal, margin, n_cols, z0, f, awnings)
             continue
         else:
             wh, ww, zb = f.window_height, f.window_width, base + 0.5 * (f.floor_height - f.window_height) + 0.15
@@ -235,9 +238,10 @@ AWNING_SPAWN = 0x5A0  # the shops' own stream beside the facade's seed: the wind
 
 
 def _shopfronts(parts: Parts, rng: np.random.Generator, a, u, normal, margin: float, n_cols: int, z0: float, f,
-                street: bool) -> None:
+                awnings: tuple | None) -> None:
     """One wall's ground floor as shops: the surround over the storey, each bay's glazing in its
-    frame (a shop's first or last bay its door, glazed to the floor), awnings over some shops.
+    frame (a shop's first or last bay its door, glazed to the floor), awnings over some shops
+    (`awnings` as _windows'; none that would reach within 0.1 m of another building).
     Draws one number a bay from `rng` (lit at night), as the storeys' windows do."""
     fh, sp = f.floor_height, f.window_spacing
     a = np.asarray(a, dtype=np.float64)
@@ -250,7 +254,7 @@ def _shopfronts(parts: Parts, rng: np.random.Generator, a, u, normal, margin: fl
     while c < n_cols:
         bays = min(int(shop_rng.integers(SHOP_BAYS[0], SHOP_BAYS[1] + 1)), n_cols - c)
         door = c if shop_rng.random() < 0.5 else c + bays - 1
-        awning = street and shop_rng.random() < AWNING_PROBABILITY
+        awning = awnings is not None and shop_rng.random() < AWNING_PROBABILITY
         depth = float(shop_rng.uniform(*AWNING_DEPTH))
         for col in range(c, c + bays):
             center = a + u * (margin + (col + 0.5) * sp)
@@ -265,7 +269,10 @@ def _shopfronts(parts: Parts, rng: np.random.Generator, a, u, normal, margin: fl
         if awning:
             z_wall = max(top + 0.5 * (z0 + fh - top), z0 + AWNING_CLEARANCE + AWNING_DROP + AWNING_VALANCE)
             left, right = a + u * (margin + c * sp + 0.1), a + u * (margin + (c + bays) * sp - 0.1)
-            _awning(parts, left, right, normal, z_wall, depth)
+            reach = Polygon([left + normal * 0.05, right + normal * 0.05, right + normal * (depth + 0.05), left + normal * (depth + 0.05)])
+            neighbours, owner = awnings
+            if neighbours is None or not neighbours.collides(reach, 0.1, ignore_owner=owner):
+                _awning(parts, left, right, normal, z_wall, depth)
         c += bays
 
 
