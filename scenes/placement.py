@@ -186,8 +186,11 @@ class _Placer:
         return True
 
     def yaw_noise(self, scale: float = 1.0) -> float:
-        # min/max: np.clip's value for a finite draw and these nonzero bounds, without its overhead
-        return min(max(float(self.rng.normal(0.0, YAW_NOISE * scale)), -YAW_NOISE_MAX), YAW_NOISE_MAX)
+        # min/max: np.clip's value for a finite draw and these nonzero bounds, without its overhead;
+        # the cut scales with the spread (parked and queued: 1 degree, cut at 3; with full kerbs a
+        # 6-degree cut let a parked car stand 5 degrees off its kerb in most frames)
+        cut = YAW_NOISE_MAX * scale
+        return min(max(float(self.rng.normal(0.0, YAW_NOISE * scale)), -cut), cut)
 
     def pick_lane(self, lanes: list[Lane]) -> Lane:
         lengths = np.array([lane.length for lane in lanes])
