@@ -24,8 +24,8 @@ from dataclasses import replace
 
 import torch
 import torch.nn as nn
-import torch.onnx.operators
 import torch.nn.functional as F
+import torch.onnx.operators
 
 from omnigen.conventions import TURN_IDX
 from omnigen.detector.boxes import box_area
@@ -39,7 +39,10 @@ MAX_CROPS = 128
 MAX_ORIENT = 300
 """Detections oriented per image at prediction, the best-scoring first (NMS sorts them): a crop and
 its mirror cost about 3 ms on a CPU core, and evaluation keeps up to 1000 detections an image.
-Those past the 300th keep the keypoint branch's own order (the heading head's, with kpt_heading)."""
+Those past the 300th keep the keypoint branch's own order (the heading head's, with kpt_heading).
+Not fewer: a weakly trained model ranks many of its matched objects low (the learning benchmark's
+400-step model: corner error 0.445 orienting 300 an image, 0.460 orienting 100; 18 labelled objects
+a frame on average, 104 at most)."""
 MIN_SIDE = 4.0
 """Boxes whose longer side is under this many pixels are not cropped in training: nothing to see."""
 _MIRROR = (-1.0, 1.0, 1.0)  # the image heading of the horizontally mirrored crop, component by component
