@@ -187,8 +187,8 @@ class _Placer:
 
     def yaw_noise(self, scale: float = 1.0) -> float:
         # min/max: np.clip's value for a finite draw and these nonzero bounds, without its overhead;
-        # the cut scales with the spread (parked and queued: 1 degree, cut at 3; with full kerbs a
-        # 6-degree cut let a parked car stand 5 degrees off its kerb in most frames)
+        # the cut scales with the spread (parked and queued: 1 degree, cut at 3; with downtown's
+        # full kerbs a 6-degree cut let a parked car stand over 0.06 rad off its kerb in frame 0)
         cut = YAW_NOISE_MAX * scale
         return min(max(float(self.rng.normal(0.0, YAW_NOISE * scale)), -cut), cut)
 

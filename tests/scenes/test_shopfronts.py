@@ -97,7 +97,7 @@ def test_shopfront_surrounds_are_mostly_darker_than_the_walls_above(downtown):
 def test_downtown_kerbs_are_mostly_taken():
     """A city centre's kerbs by day: most spaces taken. Parked bodies cover over a fifth of the
     parking lanes' whole length (junction and crosswalk clearances and the gaps between cars
-    included; about 0.29 in frames 0-2 of seed 0, where the old 0.2-0.45 draw gave 0.11-0.15)."""
+    included); the old 0.2-0.45 draw covered under a sixth in these frames."""
     gen = SceneGenerator("downtown", 0)
     for i in range(3):
         scene = gen.frame(0, i)
