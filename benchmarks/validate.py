@@ -333,8 +333,19 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def check_recipe(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse, before any data stage, the keypoint flags `omnigen train` would refuse at training."""
+    if args.kpt_turn and args.kpt_heading:
+        ap.error("--kpt-turn and --kpt-heading both say which face is the front; give one (--no-kpt-heading)")
+    heading = not args.kpt_turn if args.kpt_heading is None else args.kpt_heading
+    if args.heading_gain is not None and not heading:
+        ap.error("--heading-gain weighs the heading of --kpt-heading, which is off here")
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    check_recipe(ap, args)
     args.amp = args.amp or default_amp(args.device)  # resolved, so RESULTS.md's command line says which
 
     work = args.work

@@ -58,7 +58,8 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     Why it is not a resume: fine-tuning (e.g. a model pretrained on a large synthetic set, then
     real data: the design's Table 8 setting) wants the weights and nothing else: a fresh optimiser,
     a new schedule from epoch 0, possibly other classes.
-    The architecture must be the same (every DetectorConfig field but num_classes): otherwise the
+    The architecture must be the same (every DetectorConfig field but num_classes and heading_crop,
+    the crop-heading stage, which starts fresh where the checkpoint has none): otherwise the
     tensors mean other things, and the refusal names the file and the field. Where the classes
     differ, the class branches' last layers get the checkpoint's rows of the classes both
     taxonomies name, and keep the fresh initialisation for the others; any class-branch tensor
@@ -67,7 +68,9 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     state = load_checkpoint(path)
     theirs, mine = DetectorConfig.from_dict(state["config"]).to_dict(), model.cfg.to_dict()
     for key in mine:
-        if key != "num_classes" and theirs.get(key) != mine[key]:
+        # the crop-heading stage is a network of its own beside the detector: it may be added,
+        # dropped or resized (its net ends in a global pool) without changing any detector tensor
+        if key not in ("num_classes", "heading_crop") and theirs.get(key) != mine[key]:
             raise ValueError(f"{path}: config field {key!r} is {theirs.get(key)!r}, this run builds {mine[key]!r}: "
                              "--weights needs the same architecture (only the classes may differ)")
     src = state["model"]
@@ -76,7 +79,7 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     new_classes = list(taxonomy.classes)
     last_layers = {f"head.cls.{i}.{len(branch) - 1}.{name}"
                    for i, branch in enumerate(model.head.cls) for name in ("weight", "bias")}
-    fresh, partial = [], []
+    fresh, partial, fresh_crop = [], [], []
     loaded: dict[str, torch.Tensor] = {}
     for key, value in dst.items():
         if key in last_layers and old_classes != new_classes:
@@ -92,6 +95,8 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
             loaded[key] = src[key]
         elif key.startswith("head.cls."):
             fresh.append(key)
+        elif key.startswith("heading_net."):
+            fresh_crop.append(key)
         else:
             raise ValueError(f"{path}: tensor {key!r} is missing or has shape "
                              f"{tuple(src[key].shape) if key in src else None}, this model's is {tuple(value.shape)}")
@@ -105,6 +110,8 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
                      f"the class branches' last layers {layers}")
     if fresh:
         notes.append(f"{path}: re-initialised {len(fresh)} class-head tensor(s): {', '.join(fresh)}")
+    if fresh_crop:
+        notes.append(f"{path}: has no crop-heading stage of this shape; it starts fresh ({len(fresh_crop)} tensors)")
     if partial:
         notes.append(f"{path}: re-initialised the rows of new classes in {', '.join(partial)}")
     return notes

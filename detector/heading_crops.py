@@ -75,11 +75,12 @@ def crop_boxes(images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Ten
     """Square crops (N, C, size, size) of `images` (B, C, H, W): box n (xyxy pixels) of image
     batch_index[n], grown by `margin` of its longer side on each side and squared about its centre;
     zero outside the image. Bilinear sampling (F.grid_sample), so it runs on any device and in
-    ONNX; pixel centres at +0.5 as everywhere in omnigen."""
+    ONNX. The contract's pixel convention: pixel centres at integers, an image of width W spans
+    -0.5 .. W - 0.5 (detector/data.py Letterbox)."""
     # the size as a tensor, so that an ONNX graph traced at one size crops right at any other
     hw = torch.onnx.operators.shape_as_tensor(images)[2:].to(images.dtype)
     boxes = boxes.to(images.dtype)
-    centre = (boxes[:, :2] + boxes[:, 2:]) / 2
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2 + 0.5  # from the contract's pixel centres to edge-based
     half = (boxes[:, 2:] - boxes[:, :2]).amax(1).clamp(min=1.0) * (0.5 + margin)
     # grid_sample's normalised coordinates (align_corners=False): -1 and +1 are the image's outer
     # edges; the crop's pixel centres sit at (i + 0.5) / size of the square. Written out rather than

@@ -293,5 +293,16 @@ def test_default_recipe_is_the_crop_heading_one():
     turn = validate.keypoint_recipe(validate.build_parser().parse_args(["--kpt-turn"]))
     assert "--kpt-turn" in turn and "--kpt-heading" not in turn
     plain = validate.keypoint_recipe(validate.build_parser().parse_args(
-        ["--no-kpt-heading", "--heading-crop", "0", "--kpt-mode", "anchor"]))
-    assert "--kpt-heading" not in plain and "--heading-crop" not in plain and plain[1] == "anchor"
+        ["--no-kpt-heading", "--heading-crop", "0", "--kpt-mode", "anchor", "--kpt-l1", "0", "--kpt-labelled", "0",
+         "--kpt-turn-start", "0"]))
+    assert plain == ["--kpt-mode", "anchor", "--kpt-l1", "0.0", "--kpt-labelled", "0.0", "--kpt-turn-start", "0.0"]
+
+
+@pytest.mark.parametrize("argv", [["--kpt-turn", "--kpt-heading"], ["--kpt-turn", "--heading-gain", "2"],
+                                  ["--no-kpt-heading", "--heading-gain", "2"]])
+def test_recipes_train_would_refuse_are_refused_first(argv, capsys):
+    ap = validate.build_parser()
+    with pytest.raises(SystemExit):
+        validate.check_recipe(ap, ap.parse_args(argv))
+    assert "--kpt-" in capsys.readouterr().err
+    validate.check_recipe(ap, ap.parse_args(["--heading-gain", "2"]))  # the default heading takes a gain

@@ -32,16 +32,19 @@ def side_view(x0: float, y0: float, length: float, height: float, facing_right: 
 
 def test_crop_boxes_samples_the_square_about_the_box():
     img = torch.arange(64.0).view(1, 1, 8, 8)
-    # a 4x4 box at the origin with no margin is the image's top-left 4x4 block, exactly
-    c = crop_boxes(img, torch.tensor([0]), torch.tensor([[0.0, 0.0, 4.0, 4.0]]), 4, margin=0.0)
+    # pixel centres at integers (the contract's): the top-left 4x4 block spans -0.5 .. 3.5, and a box
+    # on it with no margin crops those 16 pixels exactly
+    c = crop_boxes(img, torch.tensor([0]), torch.tensor([[-0.5, -0.5, 3.5, 3.5]]), 4, margin=0.0)
     assert torch.equal(c[0, 0], img[0, 0, :4, :4])
-    # a 2x4 box is squared about its centre (4x4 from x = -1), and zero outside the image
-    c = crop_boxes(img, torch.tensor([0]), torch.tensor([[0.0, 0.0, 2.0, 4.0]]), 4, margin=0.0)
+    # a 2x4 box is squared about its centre (4x4 from pixel -1), and zero outside the image
+    c = crop_boxes(img, torch.tensor([0]), torch.tensor([[-0.5, -0.5, 1.5, 3.5]]), 4, margin=0.0)
     assert torch.equal(c[0, 0, :, 0], torch.zeros(4)) and torch.equal(c[0, 0, :, 1:], img[0, 0, :4, :3])
-    # the batch index picks the image
+    # the batch index picks the image, in the batched path as in the single-image one
     two = torch.stack([img[0], img[0] + 100])
-    c = crop_boxes(two, torch.tensor([1, 0]), torch.tensor([[4.0, 4.0, 8.0, 8.0]] * 2), 4, margin=0.0)
-    assert torch.equal(c[0], c[1] + 100)
+    box = torch.tensor([[3.5, 3.5, 7.5, 7.5]])
+    c = crop_boxes(two, torch.tensor([1, 0]), box.expand(2, 4), 4, margin=0.0)
+    assert torch.equal(c[0], c[1] + 100) and torch.equal(c[1, 0], img[0, 0, 4:, 4:])
+    assert torch.equal(crop_boxes(img, torch.tensor([0]), box, 4, margin=0.0)[0], c[1])
     assert crop_boxes(two, torch.zeros(0, dtype=torch.long), torch.zeros(0, 4), 16).shape == (0, 1, 16, 16)
 
 
@@ -162,3 +165,80 @@ def test_orient_detections_stops_at_max_orient():
         out = orient_detections(net, 16, torch.rand(1, 3, 64, 64), dets, max_orient=3)[0]
     assert torch.equal(out.keypoints[:3], kp[:3][:, list(TURN_IDX)]) and torch.equal(out.keypoints[3:], kp[3:])
     assert torch.equal(out.boxes, boxes) and torch.equal(out.scores, dets[0].scores)
+
+
+def _labelled_batch() -> dict[str, torch.Tensor]:
+    k = torch.stack([side_view(4, 20, 30, 12, True), side_view(20, 30, 30, 12, False)])
+    return {"batch_idx": torch.tensor([0.0, 1.0]), "cls": torch.tensor([0.0, 2.0]),
+            "bboxes": torch.tensor([[4.0, 15.5, 34.0, 32.0], [15.5, 25.5, 50.0, 42.0]]), "keypoints": k,
+            "kpt_mask": torch.ones(2, 8, dtype=torch.bool), "kpt_visible": torch.ones(2, 8)}
+
+
+def test_train_step_crops_the_labelled_boxes_and_trains_the_crop_net():
+    from omnigen.detector.ema import ModelEMA
+    from omnigen.detector.train_step import TrainStep
+
+    torch.manual_seed(0)
+    model = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=16, **TINY))
+    before = {k: v.clone() for k, v in model.heading_net.state_dict().items()}
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-2)
+    step = TrainStep(model, model, DetectionLoss(3), opt, torch.amp.GradScaler(enabled=False),
+                     ModelEMA(model, 0.9999, 2000.0), None)
+    parts = step(torch.rand(2, 3, 64, 64), _labelled_batch())
+    assert 0 < float(parts["heading_crop"]) < 2
+    assert not torch.equal(model.heading_net.out.weight, before["out.weight"])
+    # a batch without labelled objects: no crops, no term, and the step still runs
+    empty = {k: v[:0] for k, v in _labelled_batch().items()}
+    assert float(step(torch.rand(2, 3, 64, 64), empty)["heading_crop"]) == 0
+
+
+def test_prediction_orients_before_mapping_back_to_the_image():
+    """infer_batch turns the layouts its crop net disagrees with, and hands back image coordinates:
+    a constant crop net ("the front face is the nearer, larger one": its own mirror image, so the
+    mirror averaging keeps it) against the same model without the stage."""
+    from omnigen.detector.data import letterbox
+    from omnigen.detector.predict import PredictOptions, infer_batch
+
+    torch.manual_seed(0)
+    model = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=16, **TINY)).eval()
+    with torch.no_grad():
+        for m in model.heading_net.modules():
+            if isinstance(m, torch.nn.Linear):
+                m.weight.zero_()
+                m.bias.copy_(torch.tensor([0.0, 0.0, 1.0]))
+    image = (np.random.default_rng(0).random((48, 80, 3)) * 255).astype(np.uint8)  # letterboxed: padded rows
+    boxed, lb = letterbox(image, 64)
+    opts = PredictOptions(imgsz=64, conf=0.0, max_det=50)
+    oriented = infer_batch(model, [boxed], [lb], opts)[0]
+    net, model.heading_net = model.heading_net, None
+    plain = infer_batch(model, [boxed], [lb], opts)[0]
+    model.heading_net = net
+    assert np.array_equal(oriented["boxes"], plain["boxes"]) and len(plain["boxes"]) > 10
+    k = torch.from_numpy(plain["keypoints"]).float()
+    b = torch.from_numpy(plain["boxes"]).float()
+    rear_nearer = (image_heading(k[..., :2], box_area(b))[:, 2] < 0).numpy()
+    want = np.where(rear_nearer[:, None, None], plain["keypoints"][:, list(TURN_IDX)], plain["keypoints"])
+    assert 0 < rear_nearer.sum() < len(rear_nearer)
+    np.testing.assert_allclose(oriented["keypoints"], want, rtol=0, atol=1e-4)
+
+
+def test_weights_without_a_crop_stage_fine_tune_with_one(tmp_path):
+    """--weights from a plain model into a crop-heading one: every detector tensor is the
+    checkpoint's, the crop stage starts fresh, and a note says so."""
+    from omnigen.detector.checkpoint import load_pretrained, save_checkpoint
+    from omnigen.taxonomy import load_taxonomy
+
+    torch.manual_seed(0)
+    cfg = DetectorConfig(num_classes=12, kpt_heading=True, **TINY)
+    src = KeypointDetector(cfg)
+    path = tmp_path / "plain.pt"
+    save_checkpoint(path, {"config": cfg.to_dict(), "model": src.state_dict(),
+                           "classes": list(load_taxonomy("fine").classes)})
+    model = KeypointDetector(DetectorConfig(num_classes=12, kpt_heading=True, heading_crop=64, **TINY))
+    notes = load_pretrained(model, path, load_taxonomy("fine"))
+    assert len(notes) == 1 and "crop-heading stage" in notes[0] and "starts fresh" in notes[0]
+    for k, v in src.state_dict().items():
+        assert torch.equal(model.state_dict()[k], v), k
+    other = KeypointDetector(DetectorConfig(num_classes=12, kpt_heading=False, heading_crop=64, **TINY))
+    with pytest.raises(ValueError, match="kpt_heading"):  # any other field still must match
+        load_pretrained(other, path, load_taxonomy("fine"))
