@@ -288,7 +288,10 @@ def test_two_gloo_processes_run_one_data_parallel_step(fake, tmp_path):
 # ---------------------------------------------------------------------------------------------
 
 OVERFIT_SIZE = (256, 192)
-OVERFIT_EPOCHS = 700  # one batch of the four frames per epoch: 700 Adam steps
+# One batch of the four frames per epoch: 1000 Adam steps. 700 cleared the bar until issue 26's
+# shopfronts, road wear and parked-yaw cut changed the tiny city's frames; on the new ones 700
+# reached 0.855 and 1000 reached 0.973.
+OVERFIT_EPOCHS = 1000
 
 
 @pytest.fixture(scope="module")
@@ -323,7 +326,7 @@ def test_tiny_model_overfits_four_rendered_frames(rendered, tmp_path):
     print(f"overfit: OKS mAP50:95 {last['oks_map50_95']:.3f}")
     assert last["oks_map50_95"] >= 0.9, last
     # Wall time is reported, not asserted: on a shared 2-core machine it varies by 2x (tests are
-    # not benchmarks); about 105 s on an idle one.
+    # not benchmarks); 700 steps took about 105 s on an idle one.
     print(f"overfit: {OVERFIT_EPOCHS} steps in {elapsed:.0f} s")
 
 
