@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import torch
 
-from omnigen.conventions import FRONT_CORNERS, REAR_CORNERS
+from omnigen.conventions import FRONT_CORNERS, REAR_CORNERS, TURN_IDX
 
 HEADING_CHANNELS = 3
 # Each rear tuple is its front tuple under the turn (TURN_IDX), element by element, so the turned
@@ -73,3 +73,11 @@ def heading_loss(pred: torch.Tensor, target: torch.Tensor, eps: float = 1e-3) ->
     keep = norm > eps
     cos = (pred * target).sum(-1) / (pred.norm(dim=-1).clamp(min=eps) * norm.clamp(min=eps))
     return ((1.0 - cos) * keep).sum() / keep.sum().clamp(min=1)
+
+
+def orient(keypoints: torch.Tensor, area: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
+    """Layouts (..., 8, C) turned 180 degrees (TURN_IDX, every channel with its corner) where their
+    own image heading, on box areas `area` (...), points away from the predicted `heading` (..., 3):
+    the one rule the head's decode (outputs.apply_heading) and the crop stage (heading_crops) share."""
+    agree = (image_heading(keypoints[..., :2], area) * heading).sum(-1)
+    return torch.where((agree < 0)[..., None, None], keypoints[..., list(TURN_IDX), :], keypoints)

@@ -9,7 +9,7 @@ pixels of the object; the anchor's features do not carry it yet. So the detector
 object out of its own input image (bilinear, square about the box centre, as that benchmark
 does) and a small CNN of that benchmark's shape regresses the image heading's direction from the
 crop. The corners still come from the keypoint branch, learned up to the turn; after NMS the crop
-heading decides which face of each detection's layout is the front (`orient`).
+heading decides which face of each detection's layout is the front (`heading.orient`).
 
 Training crops the labelled boxes (the targets, in the augmented batch) and learns with the same
 target and loss as the head's channels: heading.image_heading of the labelled corners, 1 - cosine.
@@ -27,9 +27,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 import torch.onnx.operators
 
-from omnigen.conventions import TURN_IDX
 from omnigen.detector.boxes import box_area
-from omnigen.detector.heading import HEADING_CHANNELS, image_heading
+from omnigen.detector.heading import HEADING_CHANNELS, image_heading, orient
 from omnigen.detector.nms import Detections
 
 MARGIN = 0.1
@@ -37,8 +36,8 @@ MARGIN = 0.1
 MAX_CROPS = 128
 """Objects cropped per training step, at most (a random subset of the batch's labelled ones)."""
 MAX_ORIENT = 300
-"""Detections oriented per image at prediction, the best-scoring first (NMS sorts them): a crop and
-its mirror cost about 3 ms on a CPU core, and evaluation keeps up to 1000 detections an image.
+"""Detections oriented per image at prediction, the best-scoring first (NMS sorts them): each costs
+two passes of the crop net (the crop and its mirror), and evaluation keeps up to 1000 an image.
 Those past the 300th keep the keypoint branch's own order (the heading head's, with kpt_heading).
 Not fewer: a weakly trained model ranks many of its matched objects low (the learning benchmark's
 400-step model: corner error 0.445 orienting 300 an image, 0.460 orienting 100; 18 labelled objects
@@ -142,13 +141,6 @@ def crop_heading_chunked(net: HeadingNet, images: torch.Tensor, batch_index: tor
     return torch.cat(parts) if parts else boxes.new_zeros((0, HEADING_CHANNELS))
 
 
-def orient(keypoints: torch.Tensor, boxes: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
-    """Detections' corners (n, 8, C) turned 180 degrees (TURN_IDX) where their layout's image
-    heading points away from the crop's predicted heading (n, 3)."""
-    agree = (image_heading(keypoints[..., :2], box_area(boxes)) * heading).sum(-1)
-    return torch.where((agree < 0)[:, None, None], keypoints[:, list(TURN_IDX)], keypoints)
-
-
 def orient_detections(net: HeadingNet, size: int, images: torch.Tensor, dets: list[Detections],
                       max_orient: int = MAX_ORIENT) -> list[Detections]:
     """Per-image detections (in `images`' coordinates, best score first) with the layouts of the
@@ -160,7 +152,7 @@ def orient_detections(net: HeadingNet, size: int, images: torch.Tensor, dets: li
     batch_index = torch.cat([torch.full((k,), i, dtype=torch.long, device=images.device) for i, k in enumerate(n)])
     boxes = torch.cat([d.boxes[:k] for d, k in zip(dets, n)]).to(images.dtype)
     h = crop_heading_chunked(net, images, batch_index, boxes, size)
-    kpts = orient(torch.cat([d.keypoints[:k] for d, k in zip(dets, n)]), boxes, h.to(boxes.dtype)).split(n)
+    kpts = orient(torch.cat([d.keypoints[:k] for d, k in zip(dets, n)]), box_area(boxes), h.to(boxes.dtype)).split(n)
     return [replace(d, keypoints=torch.cat([k.to(d.keypoints.dtype), d.keypoints[len(k):]]))
             for d, k in zip(dets, kpts)]
 
@@ -177,4 +169,4 @@ class OrientWrapper(nn.Module):
     def forward(self, images: torch.Tensor, boxes: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
         batch_index = torch.zeros_like(boxes[:, 0], dtype=torch.long)
         h = crop_heading(self.net, images, batch_index, boxes, self.size, mirror=True)
-        return orient(keypoints, boxes, h.to(boxes.dtype))
+        return orient(keypoints, box_area(boxes), h.to(boxes.dtype))

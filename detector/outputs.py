@@ -16,7 +16,7 @@ import torch
 
 from omnigen.conventions import NUM_KEYPOINTS, TURN_IDX
 from omnigen.detector.boxes import box_area
-from omnigen.detector.heading import image_heading
+from omnigen.detector.heading import orient
 
 REG_MAX = 16
 """Bins of the distribution focal loss: each box side is a distribution over 0..REG_MAX-1 strides."""
@@ -120,9 +120,8 @@ def apply_heading(k: torch.Tensor, heading: torch.Tensor, boxes: torch.Tensor) -
     """Corners (B, K, C, A) put in the labelled order by a heading-aware head: the layout as the
     branch ordered it has an image heading (heading.image_heading, on the decoded boxes' areas);
     where it points away from the predicted heading (B, 3, A), the front is the other face."""
-    xy = k[:, :, :2].permute(0, 3, 1, 2)  # (B, A, K, 2)
-    agree = (image_heading(xy, box_area(boxes.transpose(1, 2))) * heading.transpose(1, 2)).sum(-1)  # (B, A)
-    return torch.where((agree < 0)[:, None, None, :], k[:, list(TURN_IDX)], k)
+    turned = orient(k.permute(0, 3, 1, 2), box_area(boxes.transpose(1, 2)), heading.transpose(1, 2))
+    return turned.permute(0, 2, 3, 1).contiguous()  # the layout decode's sigmoid reads (its vector path)
 
 
 def decode(out: HeadOutput) -> torch.Tensor:

@@ -248,7 +248,7 @@ def _agent_layer(agents) -> _Layer:
     yp = sin * x + cos * y + y0
     polys = shapely.polygons(np.stack([xp, yp], axis=-1))
     tops = [a.center[2] + a.dims[2] / 2 for a in agents]
-    return _Layer.of(list(polys), tops, [-math.inf] * len(agents))
+    return _Layer.of(polys, tops, [-math.inf] * len(agents))
 
 
 class Obstacles:

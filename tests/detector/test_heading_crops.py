@@ -9,9 +9,8 @@ import torch
 
 from omnigen.conventions import TURN_IDX
 from omnigen.detector.boxes import box_area
-from omnigen.detector.heading import image_heading
-from omnigen.detector.heading_crops import (HeadingNet, crop_boxes, crop_heading, orient, orient_detections,
-                                            training_rois)
+from omnigen.detector.heading import image_heading, orient
+from omnigen.detector.heading_crops import HeadingNet, crop_boxes, crop_heading, orient_detections, training_rois
 from omnigen.detector.loss import DetectionLoss
 from omnigen.detector.model import DetectorConfig, KeypointDetector
 from omnigen.detector.nms import Detections
@@ -54,10 +53,10 @@ def test_orient_turns_only_the_layouts_that_disagree():
     k3 = torch.cat([k, torch.rand(2, 8, 1)], -1)
     boxes = torch.tensor([[10.0, 14.0, 50.0, 35.0]] * 2)
     h = image_heading(right[None], box_area(boxes[:1]))[0]
-    out = orient(k3, boxes, torch.stack([h, -h]))
+    out = orient(k3, box_area(boxes), torch.stack([h, -h]))
     assert torch.equal(out[0], k3[0])  # agrees: kept as ordered
     assert torch.equal(out[1], k3[1][list(TURN_IDX)])  # disagrees: front and rear swapped, visibility with them
-    assert torch.equal(orient(out, boxes, torch.stack([h, h])), k3)  # the turn is its own inverse
+    assert torch.equal(orient(out, box_area(boxes), torch.stack([h, h])), k3)  # the turn is its own inverse
 
 
 def test_training_rois_keep_defined_headings_and_cap_the_count():
