@@ -30,13 +30,14 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import shapely
 from shapely.geometry import Polygon
 
-from omnigen.scenes.assets.catalog import draw_asset
+from omnigen.scenes.assets.catalog import SIZES, draw_asset
 from omnigen.scenes.description import Agent, AssetSpec, City, Lane
 from omnigen.scenes.preset import AgentSpec
 from omnigen.scenes.seeding import choice_index
-from omnigen.scenes.shapes import Occupancy, rect_polygon, to_world
+from omnigen.scenes.shapes import Occupancy, rect_corners, rect_polygon, to_world
 from omnigen.scenes.weather import pick
 
 AGENT_GAP = 0.1  # metres between annotated footprints
@@ -73,6 +74,15 @@ class _World:
                           & (b[:, 1] <= y1) & (b[:, 3] >= y0))[0]
         return not any(poly.intersects(self.overhead[i][0]) for i in near)
 
+    def free_many(self, polys: np.ndarray, tops: np.ndarray) -> np.ndarray:
+        """`free` for an array of polygons at once (each against what is placed, not each other)."""
+        ok = ~self.agents.collides_many(polys, AGENT_GAP) & ~self.ground.collides_many(polys, OBSTACLE_GAP)
+        if self.overhead and ok.any():
+            cand, canopy = shapely.STRtree([c for c, _ in self.overhead]).query(polys, predicate="intersects")
+            low = self.overhead_clearance[canopy] < tops[cand]
+            ok[cand[low]] = False
+        return ok
+
 
 @dataclass
 class _Static:
@@ -89,6 +99,7 @@ class _Static:
     crossing_zones: Occupancy  # where parked cars keep out (_Placer.parked)
     junction_zones: Occupancy  # where lone cones keep out (_Placer._clear_of_junctions)
     areas: dict[int, Polygon]  # id of a lane, sidewalk or crosswalk -> its rectangle
+    parking_spans: dict[int, list[tuple[float, float]]]  # id of a parking lane -> _Placer.parking_spans
 
 
 _STATIC: dict[int, _Static] = {}  # id(city) -> its _Static; the entry holds the city, so ids stay unique
@@ -122,7 +133,7 @@ def _static(city: City) -> _Static:
         junction.add(rect_polygon(i.center, i.size[0] + 6.0, i.size[1] + 6.0, 0.0))
     for c in city.crosswalks:
         junction.add(rect_polygon(c.center, c.length, c.width + 1.0, c.yaw))
-    static = _Static(city, ground, overhead, bounds, clearance, {}, {}, crossing, junction, {})
+    static = _Static(city, ground, overhead, bounds, clearance, {}, {}, crossing, junction, {}, {})
     _STATIC.pop(id(city), None)
     while len(_STATIC) >= _STATIC_SIZE:
         _STATIC.pop(next(iter(_STATIC)))
@@ -220,26 +231,87 @@ class _Placer:
         return False
 
     def parked(self, fraction: float, mix: dict[str, float]) -> None:
-        """Fill each parking lane nose to tail, leaving gaps near intersections and crosswalks."""
-        blocked = self.static.crossing_zones
+        """Fill each parking lane nose to tail, leaving gaps near intersections and crosswalks.
+
+        Why in this order: a city centre's kerbs hold hundreds of vehicles a frame, and half the
+        slots of a lane lie near a junction or crosswalk. The stretches kept clear are known per
+        city (parking_spans), so a slot there is passed over before a vehicle is drawn for it, and
+        the rows' footprints are tested against what stands already in one vectorised query
+        (add_many) instead of one shapely call each.
+        """
+        shortest = 0.0 if self.user_probability > 0 else min((SIZES[c].lo[0] for c in mix if c in SIZES), default=0.0)
+        row = []
         for lane in self.parking:
+            spans = self.parking_spans(lane)
             t = float(self.rng.uniform(0.5, 6.0))
             while t < lane.length - 3.0:
+                # Each vehicle keeps 0.5 m (nose and tail) out of the stretches kept clear.
+                span = _meets(spans, t - 0.5, t + shortest + 0.5)
+                if span is not None:  # not even the shortest vehicle fits here: go past the stretch
+                    t = span[1] + 0.5 + float(self.rng.uniform(0.0, 4.0))
+                    continue
                 if self.rng.random() < fraction:  # a car here; drawn only then (most slots stay empty)
                     category = pick(self.rng, mix)
                     dims, spec = self.asset(category)
                     l, w, _ = dims
-                    mid = t + l / 2
-                    if mid + l / 2 > lane.length - 0.5:
+                    if t + l > lane.length - 0.5:
                         break
-                    across = -(lane.width / 2 - 0.25 - w / 2)  # right side 0.25 m from the kerb
-                    xy = to_world(lane.start, lane.heading, mid, across)
-                    poly = rect_polygon(xy, l + 1.0, w, lane.heading)
-                    if not blocked.collides(poly):
-                        if self.try_add(category, "parked", dims, spec, xy, lane.heading + self.yaw_noise(0.5), 0.0):
-                            t += l + float(self.rng.uniform(0.8, 2.5))
-                            continue
+                    if _meets(spans, t - 0.5, t + l + 0.5) is None:
+                        across = -(lane.width / 2 - 0.25 - w / 2)  # right side 0.25 m from the kerb
+                        xy = to_world(lane.start, lane.heading, t + l / 2, across)
+                        row.append((category, dims, spec, xy, lane.heading + self.yaw_noise(0.5)))
+                        t += l + float(self.rng.uniform(0.8, 2.5))
+                        continue
                 t += float(self.rng.uniform(2.0, 6.0))
+        self.add_many(row, "parked")
+
+    def add_many(self, items: list, state: str) -> None:
+        """try_add for many agents on the ground at once: (category, dims, spec, xy, yaw) each, in
+        order; one that meets what stands already, or an earlier item, is left out."""
+        if not items:
+            return
+        corners = np.stack([rect_corners(xy, dims[0], dims[1], yaw) for _, dims, _, xy, yaw in items])
+        polys = shapely.polygons(corners)
+        ok = self.world.free_many(polys, np.array([dims[2] for _, dims, _, _, _ in items], dtype=np.float64))
+        # Items of one call may meet each other (rows of two lanes round a corner): the later goes.
+        grown = shapely.buffer(polys, AGENT_GAP, join_style="mitre")
+        a, b = shapely.STRtree(polys).query(grown, predicate="intersects")
+        for i, j in sorted(zip(a.tolist(), b.tolist())):
+            if i < j and ok[i]:
+                ok[j] = False
+        bounds = shapely.bounds(polys)
+        for k in np.nonzero(ok)[0]:
+            category, dims, spec, xy, yaw = items[k]
+            l, w, h = dims
+            self.world.agents.add(polys[k], bounds=tuple(bounds[k]))
+            yaw = math.atan2(math.sin(yaw), math.cos(yaw))
+            self.agents.append(Agent(len(self.agents) + 1, category, (float(xy[0]), float(xy[1]), h / 2.0),
+                                     (float(l), float(w), float(h)), float(yaw), state, spec))
+
+    def parking_spans(self, lane: Lane) -> list[tuple[float, float]]:
+        """Where along a parking lane (from its start) its rectangle meets a crossing zone (6 m
+        round an intersection box, 1.5 m either side of a crosswalk): sorted, merged stretches,
+        cached per city. A vehicle whose stretch of the lane keeps out of them keeps out of the
+        zones, since its footprint lies inside the lane's rectangle."""
+        hit = self.static.parking_spans.get(id(lane))
+        if hit is not None:
+            return hit
+        area = self.lane_area(lane)
+        d = np.array([math.cos(lane.heading), math.sin(lane.heading)])
+        spans = []
+        for zone in self.static.crossing_zones.polygons:
+            meet = area.intersection(zone)
+            if not meet.is_empty:
+                along = (shapely.get_coordinates(meet) - np.asarray(lane.start, dtype=np.float64)) @ d
+                spans.append((float(along.min()), float(along.max())))
+        merged: list[tuple[float, float]] = []
+        for a, b in sorted(spans):
+            if merged and a <= merged[-1][1]:
+                merged[-1] = (merged[-1][0], max(merged[-1][1], b))
+            else:
+                merged.append((a, b))
+        self.static.parking_spans[id(lane)] = merged
+        return merged
 
     def pedestrian_on_sidewalk(self, category: str = "pedestrian", walking: bool | None = None) -> bool:
         """A pedestrian (or a person pushing a barrow) walking along the street or standing."""
@@ -474,6 +546,16 @@ class _Placer:
             dims, spec = self.asset("traffic_cone")
             xy = to_world(lane.start, lane.heading, t0 + k * gap, across)
             self.try_add("traffic_cone", "placed", dims, spec, xy, lane.heading + float(self.rng.uniform(-0.3, 0.3)), 0.0)
+
+
+def _meets(spans: list[tuple[float, float]], lo: float, hi: float) -> tuple[float, float] | None:
+    """The first of the sorted stretches `spans` that meets [lo, hi], or None."""
+    for a, b in spans:
+        if a > hi:
+            return None
+        if b >= lo:
+            return (a, b)
+    return None
 
 
 def place_agents(city: City, spec: AgentSpec, rng: np.random.Generator, user_assets=None) -> tuple[Agent, ...]:

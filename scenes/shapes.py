@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import shapely
 from shapely.geometry import Polygon
 
 
@@ -82,3 +83,14 @@ class Occupancy:
             return False
         grown = poly.buffer(margin, join_style=2) if margin > 0 else poly
         return any(grown.intersects(self.polygons[i]) for i in near)
+
+    def collides_many(self, polys: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """`collides` for an array of polygons in one vectorised query (a kerb's row of parked
+        vehicles at once): True where a polygon grown by `margin` touches a stored one."""
+        hit = np.zeros(len(polys), dtype=bool)
+        if not self.polygons or not len(polys):
+            return hit
+        grown = shapely.buffer(polys, margin, join_style="mitre") if margin > 0 else polys
+        cand, _ = shapely.STRtree(self.polygons).query(grown, predicate="intersects")
+        hit[cand] = True
+        return hit
