@@ -511,14 +511,22 @@ class _Placer:
         return hit
 
     def queues(self, probability: float, length, mix: dict[str, float]) -> None:
-        """Traffic waiting at signalised junctions: in each lane approaching one, with
-        `probability`, a queue of `length` vehicles nose to tail (1.5-3 m apart) behind the stop
-        line and crosswalk, as pole cameras see at a red light."""
+        """Traffic at signalised junctions by the signal's phase: red to one road, green to the
+        other. In each lane approaching on the red road, with `probability`, a queue of `length`
+        vehicles nose to tail (1.5-3 m apart) behind the stop line and crosswalk, as pole cameras
+        see at a red light; each lane of the green road, with `probability`, carries traffic
+        through the junction instead (`through`). Why: queues on all four approaches round an
+        empty junction box is a junction at all-red; a roadside camera over a real junction sees
+        one road waiting and the other's vehicles crossing the box."""
         for inter in self.city.intersections:
             if not inter.traffic_lights:
                 continue
+            green_x = bool(self.rng.random() < 0.5)  # whether the road along x has green
             for lane in self.driving:
                 if not self._crosses(lane, inter) or self.rng.random() >= probability:
+                    continue
+                if (abs(math.cos(lane.heading)) > 0.5) == green_x:
+                    self.through(lane, inter, mix)
                     continue
                 a, _ = self._span(lane, inter)
                 front = a - float(self.rng.uniform(6.5, 7.5))  # behind the widest crosswalk and stop line
@@ -533,6 +541,22 @@ class _Placer:
                                         self.lane_area(lane)):
                         break  # something stands in the queue's way: it ends there
                     front = t - dims[0] / 2 - float(self.rng.uniform(1.5, 3.0))
+
+    def through(self, lane: Lane, inter, mix: dict[str, float]) -> None:
+        """A lane with green: vehicles from 8 m before the junction box (over the stop line and
+        crosswalk) to 12 m past it, crossing the box or entering or leaving it, 8-25 m apart
+        (city traffic moving off and through a junction at 20-40 km/h, about 1.5-3 s apart)."""
+        a, b = self._span(lane, inter)
+        t = a - 8.0 + float(self.rng.uniform(0.0, 12.0))
+        while t < b + 12.0:
+            category = pick(self.rng, mix)
+            dims, spec = self.asset(category)
+            mid = t + dims[0] / 2
+            if not dims[0] / 2 + 1.0 < mid < lane.length - dims[0] / 2 - 1.0:
+                break
+            xy = to_world(lane.start, lane.heading, mid, float(np.clip(self.rng.normal(0.0, 0.15), -0.3, 0.3)))
+            self.try_add(category, "moving", dims, spec, xy, lane.heading + self.yaw_noise(), 0.0, self.lane_area(lane))
+            t += dims[0] + float(self.rng.uniform(8.0, 25.0))
 
     def cone_line(self) -> None:
         """3 to 6 cones 1.5 to 3 m apart along the right edge of a driving lane (road works)."""

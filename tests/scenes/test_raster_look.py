@@ -14,6 +14,7 @@ from omnigen.camera import Camera, intrinsics_from_fov, look_at
 from omnigen.scenes.generate import FrameOverrides
 from omnigen.scenes.materials import PATTERNS, ground_material, ground_surface
 from omnigen.scenes.preset import available_presets, load_preset
+from omnigen.scenes.shapes import rect_polygon
 from omnigen.scenes.weather import _WEATHER_RANGES, direct_sun, draw_weather
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -74,7 +75,8 @@ def test_surfaces_belong_to_the_world_not_the_camera(noon):
 
 
 def test_sun_shadows_fall_where_the_city_blocks_the_sun(noon, monkeypatch):
-    """Pixels the shadow pass darkens are ground points whose way to the sun a building blocks."""
+    """Pixels the shadow pass darkens are ground points whose way to the sun a building or an
+    agent (vehicles cast shadows too: this view holds traffic crossing a junction) blocks."""
     _, scene, rs, K = noon
     R, t = look_at((-5.0, -45.0, 60.0), (0.0, 0.0, 0.0))
     shaded = rs.render(Camera(K, R, t, W, H), effects=False)
@@ -88,6 +90,7 @@ def test_sun_shadows_fall_where_the_city_blocks_the_sun(noon, monkeypatch):
     assert len(X) > 50
     sun = np.asarray(scene.lighting.sun_direction)
     parts = [(Polygon(p.footprint), p.top_z) for b in scene.city.buildings for p in b.parts]
+    parts += [(rect_polygon(a.center[:2], a.dims[0], a.dims[1], a.yaw), a.center[2] + a.dims[2] / 2) for a in scene.agents]
     blocked = 0
     for x in X[:: max(1, len(X) // 80)]:
         for s in np.arange(0.5, 150.0, 0.5):
