@@ -35,6 +35,7 @@ import json
 import os
 import shutil
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -468,6 +469,15 @@ class Renderer:
         claim_render_folder(job, render_args(job, self.rig, self.gen.preset))  # before any frame is written
         self.writer = DatasetWriter(job.out, durable=job.durable)
         self.summary = RenderSummary()
+        # Write-behind (run() turns it on): a frame's files are encoded and written on a thread
+        # while the next frame is drawn. Why: PNG and EXR compression release the GIL and the
+        # scene stage is single-threaded Python, so on a second core the writing costs the frame
+        # rate next to nothing. At most one frame's writing is pending (flush() waits for it); a
+        # frame's record is still written after its images, so a killed run leaves no record
+        # without its files. Off, render_frame returns with the frame on disk (Ray actors, tests).
+        self.write_behind = False
+        self._pending: Future | None = None
+        self._pool: ThreadPoolExecutor | None = None
 
     def frame_id(self, index: int) -> str:
         return frame_id_for(self.rig.name, self.job.seed, index)
@@ -506,10 +516,6 @@ class Renderer:
         t5 = time.perf_counter()
         fid = self.frame_id(index)
         image, depth, instance = f"images/{fid}.png", f"depth/{fid}.exr", f"instance/{fid}.png"
-        root = Path(job.out)
-        atomic_write_bytes(root / image, png_bytes(out.rgb), durable=job.durable)
-        write_depth_exr(root / depth, out.depth)
-        atomic_write_bytes(root / instance, png_bytes(out.instance), durable=job.durable)
         plane = cam.ground_plane
         record = FrameRecord(
             frame_id=fid, source="synthetic", view=self.rig.view, image=image, width=self.width, height=self.height,
@@ -520,7 +526,14 @@ class Renderer:
                                     weather=to_dict(scene.weather), lighting=to_dict(scene.lighting),
                                     depth=depth, instance=instance),
         )
-        self.writer.write(record)
+        files = (image, out.rgb), (depth, out.depth), (instance, out.instance)
+        if self.write_behind:
+            self.flush()  # the previous frame's files, written while this frame was drawn
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="omnigen-write")
+            self._pending = self._pool.submit(self._write_frame, files, record)
+        else:
+            self._write_frame(files, record)
         if job.save_blend is not None and not self._blend_saved:
             self.backend.save_blend(job.save_blend)
             self._blend_saved = True
@@ -528,6 +541,22 @@ class Renderer:
         self.summary.rendered += 1
         self.summary.objects += len(record.objects)
         return record
+
+    def _write_frame(self, files, record: FrameRecord) -> None:
+        """A frame's image, depth and instance mask, each atomically, then its record (last: a
+        frame whose record exists is complete)."""
+        root, durable = Path(self.job.out), self.job.durable
+        (image, rgb), (depth, z), (instance, ids) = files
+        atomic_write_bytes(root / image, png_bytes(rgb), durable=durable)
+        write_depth_exr(root / depth, z)
+        atomic_write_bytes(root / instance, png_bytes(ids), durable=durable)
+        self.writer.write(record)
+
+    def flush(self) -> None:
+        """Wait until every frame rendered so far is on disk (write-behind); a failed write raises here."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.result()
 
     def run(self, show_progress: bool = True) -> RenderSummary:
         from omnigen.progress import progress
@@ -537,6 +566,7 @@ class Renderer:
         indices = job.shard_indices()
         todo = [i for i in indices if not self.writer.has(self.frame_id(i))]
         self.summary.skipped = len(indices) - len(todo)
+        self.write_behind = True
         try:
             for i in progress(todo, desc=f"render {self.rig.name}", disable=not show_progress, unit="frame"):
                 self.render_frame(i)
@@ -548,6 +578,13 @@ class Renderer:
         return self.summary
 
     def close(self) -> None:
-        if self.backend is not None:
-            self.backend.close()
-            self.backend = None
+        """Flush pending writes, then free the backend (also when a write failed)."""
+        try:
+            self.flush()
+        finally:
+            if self._pool is not None:
+                self._pool.shutdown()
+                self._pool = None
+            if self.backend is not None:
+                self.backend.close()
+                self.backend = None

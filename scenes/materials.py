@@ -23,6 +23,7 @@ black; both backends get it from ground_material.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -125,11 +126,18 @@ AWNING_COLORS = ((0.02, 0.08, 0.04), (0.12, 0.02, 0.02), (0.02, 0.03, 0.1), (0.0
                  (0.35, 0.03, 0.02), (0.5, 0.18, 0.03), (0.05, 0.12, 0.35), (0.45, 0.4, 0.3))
 
 
+@lru_cache(maxsize=4096)
+def _shop_colors(seed: int) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """(surround, fabric) of the building whose facade seed is `seed`: a pure function of the seed,
+    cached because every frame restyles every shopfront (a generator per call cost more than the rest)."""
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5F0])
+    return SHOPFRONT_COLORS[int(rng.integers(len(SHOPFRONT_COLORS)))], AWNING_COLORS[int(rng.integers(len(AWNING_COLORS)))]
+
+
 def shop_material(role: str, seed: int, weather: Weather) -> Material:
     """The shopfront surround (role "shopfront") or awning fabric ("awning") of the building
     whose facade seed is `seed`; awnings face up, so snow and rain weather them as roofs."""
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5F0])
-    surround, fabric = SHOPFRONT_COLORS[int(rng.integers(len(SHOPFRONT_COLORS)))], AWNING_COLORS[int(rng.integers(len(AWNING_COLORS)))]
+    surround, fabric = _shop_colors(int(seed))
     if role == "shopfront":
         return Material(surround, roughness=0.45, metallic=0.2)
     return weathered(Material(fabric, roughness=0.9), weather, upward=True)
