@@ -35,6 +35,7 @@ import json
 import os
 import shutil
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -118,10 +119,11 @@ def read_instance_png(path: str | os.PathLike) -> np.ndarray:
 
 @dataclass
 class Rendered:
-    rgb: np.ndarray
+    rgb: np.ndarray | None  # None until finish() (a deferred raster render)
     depth: np.ndarray
     instance: np.ndarray
     render_seconds: float = 0.0  # the renderer's own work: Cycles' beauty path tracing; pyrender's whole render
+    finish: Callable[[], np.ndarray] | None = None  # a deferred render's image (RasterScene.render(defer=True))
 
 
 class RasterBackend:
@@ -138,10 +140,11 @@ class RasterBackend:
         if scene is not self.rs.scene:
             self.rs.update(scene)
 
-    def render(self, cam: Camera) -> Rendered:
+    def render(self, cam: Camera, defer: bool = False) -> Rendered:
+        """defer: the colour image is left to `finish` (shaded meanwhile on llvmpipe's threads)."""
         t0 = time.perf_counter()
-        f = self.rs.render(cam)
-        return Rendered(f.rgb, f.depth, f.instance, time.perf_counter() - t0)
+        f = self.rs.render(cam, defer=defer)
+        return Rendered(f.rgb, f.depth, f.instance, time.perf_counter() - t0, f.finish)
 
     def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
         return self.rs.render_instances(cam, ids)
@@ -475,9 +478,13 @@ class Renderer:
         # rate next to nothing. At most one frame's writing is pending (flush() waits for it); a
         # frame's record is still written after its images, so a killed run leaves no record
         # without its files. Off, render_frame returns with the frame on disk (Ray actors, tests).
+        # With write-behind the raster backend's colour pass is also left to finish while the next
+        # frame's scene is drawn (pure Python, on one core, while llvmpipe shades on its threads):
+        # the frame's image is read back at the start of the next render_frame, or by flush().
         self.write_behind = False
         self._pending: Future | None = None
         self._pool: ThreadPoolExecutor | None = None
+        self._unfinished: tuple[Rendered, FrameRecord, tuple[str, str, str]] | None = None
 
     def frame_id(self, index: int) -> str:
         return frame_id_for(self.rig.name, self.job.seed, index)
@@ -487,8 +494,9 @@ class Renderer:
         job, tm = self.job, self.summary.timings
         t0 = time.perf_counter()
         scene = self.gen.frame(job.seed, index, job.overrides)
+        tm["scene"] += time.perf_counter() - t0
+        self._finish_frame()  # the previous frame's image, shaded while this frame's scene was drawn
         t1 = time.perf_counter()
-        tm["scene"] += t1 - t0
         if self.backend is None:
             self.backend = make_backend(job.backend, scene, job.quality, job.labels, job.device)
             tm["build"] += time.perf_counter() - t1
@@ -498,13 +506,14 @@ class Renderer:
         rng = rig_rng(job.seed, index)
         obstacles = Obstacles(scene)
         tries = 0
+        defer = self.write_behind and isinstance(self.backend, RasterBackend)
         while True:
             t2 = time.perf_counter()
             cam = sample_camera(self.rig, scene, rng, self.width, self.height, obstacles, start_try=tries)
             tries = cam.tries
             t3 = time.perf_counter()
             tm["camera"] += t3 - t2
-            out = self.backend.render(cam)
+            out = self.backend.render(cam, defer=True) if defer else self.backend.render(cam)
             t4 = time.perf_counter()
             tm["render"] += t4 - t3
             tm["renderer_core"] += out.render_seconds
@@ -526,14 +535,12 @@ class Renderer:
                                     weather=to_dict(scene.weather), lighting=to_dict(scene.lighting),
                                     depth=depth, instance=instance),
         )
-        files = (image, out.rgb), (depth, out.depth), (instance, out.instance)
-        if self.write_behind:
-            self.flush()  # the previous frame's files, written while this frame was drawn
-            if self._pool is None:
-                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="omnigen-write")
-            self._pending = self._pool.submit(self._write_frame, files, record)
+        if out.finish is not None:
+            self._unfinished = (out, record, (image, depth, instance))
+        elif self.write_behind:
+            self._submit(((image, out.rgb), (depth, out.depth), (instance, out.instance)), record)
         else:
-            self._write_frame(files, record)
+            self._write_frame(((image, out.rgb), (depth, out.depth), (instance, out.instance)), record)
         if job.save_blend is not None and not self._blend_saved:
             self.backend.save_blend(job.save_blend)
             self._blend_saved = True
@@ -552,11 +559,36 @@ class Renderer:
         atomic_write_bytes(root / instance, png_bytes(ids), durable=durable)
         self.writer.write(record)
 
-    def flush(self) -> None:
-        """Wait until every frame rendered so far is on disk (write-behind); a failed write raises here."""
+    def _finish_frame(self) -> None:
+        """Read back the deferred image of the last frame rendered, if any, and hand its files to
+        the writer (the wait for the shading counts as render time)."""
+        held, self._unfinished = self._unfinished, None
+        if held is None:
+            return
+        out, record, (image, depth, instance) = held
+        t0 = time.perf_counter()
+        rgb = out.finish()
+        waited = time.perf_counter() - t0
+        self.summary.timings["render"] += waited
+        self.summary.timings["renderer_core"] += waited
+        self._submit(((image, rgb), (depth, out.depth), (instance, out.instance)), record)
+
+    def _submit(self, files, record: FrameRecord) -> None:
+        """Queue a frame's files for the writer thread, after the previous frame's are written."""
+        self._wait_for_writes()
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="omnigen-write")
+        self._pending = self._pool.submit(self._write_frame, files, record)
+
+    def _wait_for_writes(self) -> None:
         pending, self._pending = self._pending, None
         if pending is not None:
             pending.result()
+
+    def flush(self) -> None:
+        """Wait until every frame rendered so far is on disk (write-behind); a failed write raises here."""
+        self._finish_frame()
+        self._wait_for_writes()
 
     def run(self, show_progress: bool = True) -> RenderSummary:
         from omnigen.progress import progress

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -908,6 +909,14 @@ class GLRaster:
         `atmosphere` (None: none; background black): fog_density (1/m), fog_color, zenith and
         horizon (linear rgb), sky_distance (m) and ndc_to_world (3x3, see _SKY_FS).
         """
+        return self.color_draw(VP, cam_pos, light, width, height, atmosphere)()
+
+    def color_draw(self, VP: np.ndarray, cam_pos, light: Light, width: int, height: int,
+                   atmosphere: dict | None = None) -> Callable[[], np.ndarray]:
+        """color_pass's draw calls, handed to the rasteriser without waiting for them; returns the
+        read-back that gives color_pass's image. Why: llvmpipe rasterises on threads of its own, so
+        Python work done between the two (the next frame's scene) runs while the frame is shaded.
+        Call the read-back before the next colour pass (it reads this pass's framebuffer)."""
         shadows = light.shadow_lvp is not None
         if shadows:
             self.shadow_pass(light.shadow_lvp)
@@ -952,11 +961,19 @@ class GLRaster:
         gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, ms_fb)
         gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, color_fb)
         gl.glBlitFramebuffer(0, 0, width, height, 0, 0, width, height, gl.GL_COLOR_BUFFER_BIT, gl.GL_NEAREST)
-        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, color_fb)
-        rgba = _read_pixels(width, height, gl.GL_RGBA, gl.GL_UNSIGNED_BYTE, np.uint8, 4)
         gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)
-        rgb = rgba[::-1, :, :3]
-        return auto_exposure(rgb, light.max_gain) if atmosphere is not None else rgb
+        gl.glFlush()
+        max_gain, effects = light.max_gain, atmosphere is not None
+
+        def read() -> np.ndarray:
+            self.make_current()
+            gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, color_fb)
+            rgba = _read_pixels(width, height, gl.GL_RGBA, gl.GL_UNSIGNED_BYTE, np.uint8, 4)
+            gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)
+            rgb = rgba[::-1, :, :3]
+            return auto_exposure(rgb, max_gain) if effects else rgb
+
+        return read
 
     @staticmethod
     def _color_uniforms(loc: dict, VP, cam_pos, light: Light, atmosphere: dict | None, lamps: np.ndarray, shadows: bool) -> None:

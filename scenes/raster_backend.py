@@ -36,6 +36,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -74,9 +75,10 @@ NON_CASTERS = frozenset({"window", "window_lit", "frame", "shopfront", "marking_
 
 @dataclass
 class RasterFrame:
-    rgb: np.ndarray  # (H, W, 3) uint8, sRGB
+    rgb: np.ndarray | None  # (H, W, 3) uint8, sRGB; None until `finish` is called (render(defer=True))
     depth: np.ndarray  # (H, W) float32, camera z in metres; inf where nothing was hit
     instance: np.ndarray  # (H, W) uint16, 0 background, k = instance id
+    finish: Callable[[], np.ndarray] | None = None  # render(defer=True): the colour image, once shaded
 
 
 def material_table(materials) -> np.ndarray:
@@ -314,18 +316,29 @@ class RasterScene:
             self.gl.static_view, self.gl.static_view_kinds = self._static_ranges(VP, self._all_parts, near=True, kinds=True)
         return VP
 
-    def render(self, camera: Camera, effects: bool = True) -> RasterFrame:
-        """Render with an OpenCV camera: X_cam = R X_world + t, pixels as in the contract."""
+    def render(self, camera: Camera, effects: bool = True, defer: bool = False) -> RasterFrame:
+        """Render with an OpenCV camera: X_cam = R X_world + t, pixels as in the contract.
+
+        defer: return once the masks and depth are read and the colour pass is handed to the
+        rasteriser; the frame's `finish()` gives the image (call it before the next render or
+        update). Work done meanwhile overlaps the shading (GLRaster.color_draw)."""
         VP = self._view_projection(camera, prepare=False)
         depth, instance = self._id_pass(camera, VP)
         width, height = camera.width, camera.height
-        rgb = self.gl.color_pass(VP, camera.center, self._light(camera), width, height,
-                                 self._atmosphere(camera) if effects else None)
-        rgb = np.ascontiguousarray(rgb)
-        weather = self.scene.weather
-        if effects and weather.precipitation > 0 and weather.kind in ("rain", "snow"):
-            rgb = _precipitation(rgb, self.scene)
-        return RasterFrame(rgb, depth, instance)
+        read = self.gl.color_draw(VP, camera.center, self._light(camera), width, height,
+                                  self._atmosphere(camera) if effects else None)
+        scene = self.scene
+
+        def finish() -> np.ndarray:
+            rgb = np.ascontiguousarray(read())
+            weather = scene.weather
+            if effects and weather.precipitation > 0 and weather.kind in ("rain", "snow"):
+                rgb = _precipitation(rgb, scene)
+            return rgb
+
+        if defer:
+            return RasterFrame(None, depth, instance, finish)
+        return RasterFrame(finish(), depth, instance)
 
     def labels(self, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         """(depth, instance) of the id pass alone, no colour: labels for another renderer's image

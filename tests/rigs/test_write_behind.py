@@ -57,8 +57,10 @@ def test_a_failed_write_is_raised(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(render, "write_depth_exr", broken)
-    r.render_frame(0)  # returns: its files are written on the thread
+    r.render_frame(0)  # returns: its image is read back and its files written later
+    r.render_frame(1)
+    assert not list((tmp_path / "ds" / "records").glob("*.json"))
     with pytest.raises(OSError, match="disk full"):
-        r.render_frame(1)  # waits for frame 0's writing first, which failed
+        r.flush()  # at the latest when everything rendered is flushed (run() does in close())
     r.close()
     assert not list((tmp_path / "ds" / "records").glob("*.json"))  # no record without its files
