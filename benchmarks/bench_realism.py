@@ -321,7 +321,7 @@ def camera_line(cam: dict) -> str:
     return (f"DAIR-V2X sample's camera (fitted to its {cam['boxes']} labelled boxes, rms {cam['rms_px']:.1f} px in "
             f"{DAIR_IMAGE[0]}x{DAIR_IMAGE[1]}): pitch {cam['pitch_deg']:.1f} deg below the horizon, hfov "
             f"{cam['hfov_deg']:.1f} deg, {cam['height_m']:.1f} m above the cuboids' bottoms, its frame's top edge "
-            f"{cam['top_edge_deg']:.1f} deg below the horizon; the pole rig draws pitch {pole.pitch[0]:g}-{pole.pitch[1]:g} "
+            f"{abs(cam['top_edge_deg']):.1f} deg {'below' if cam['top_edge_deg'] >= 0 else 'above'} the horizon; the pole rig draws pitch {pole.pitch[0]:g}-{pole.pitch[1]:g} "
             f"deg, hfov {pole.hfov[0]:g}-{pole.hfov[1]:g} deg, height {pole.height[0]:g}-{pole.height[1]:g} m")
 
 
