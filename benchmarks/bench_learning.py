@@ -60,7 +60,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--kpt-hidden", type=int, default=None, help="keypoint-branch width (train --kpt-hidden)")
     ap.add_argument("--kpt-heading", action="store_true", help="corners up to the turn, the front from a regressed heading")
     ap.add_argument("--heading-gain", type=float, default=1.0, help="with --kpt-heading: the heading term's gain")
-    ap.add_argument("--heading-crop", type=int, default=0, help="crop side of the second-stage heading (train --heading-crop); 0: none")
+    ap.add_argument("--heading-crop", type=int, default=0, help="crop side of the second stage that places corners and reads the front (train --heading-crop); 0: none")
     ap.add_argument("--kpt-labelled", type=float, default=0.0, help="with --kpt-turn: the labelled-order OKS gain")
     ap.add_argument("--kpt-turn-start", type=float, default=0.0,
                     help="with --kpt-turn: fraction of the run compared as labelled only (train --kpt-turn-start)")

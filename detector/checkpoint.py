@@ -59,7 +59,7 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     real data: the design's Table 8 setting) wants the weights and nothing else: a fresh optimiser,
     a new schedule from epoch 0, possibly other classes.
     The architecture must be the same (every DetectorConfig field but num_classes and heading_crop,
-    the crop-heading stage, which starts fresh where the checkpoint has none): otherwise the
+    the crop stage, which starts fresh where the checkpoint has none): otherwise the
     tensors mean other things, and the refusal names the file and the field. Where the classes
     differ, the class branches' last layers get the checkpoint's rows of the classes both
     taxonomies name, and keep the fresh initialisation for the others; any class-branch tensor
@@ -68,7 +68,7 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     state = load_checkpoint(path)
     theirs, mine = DetectorConfig.from_dict(state["config"]).to_dict(), model.cfg.to_dict()
     for key in mine:
-        # the crop-heading stage is a network of its own beside the detector: it may be added,
+        # the crop stage is a network of its own beside the detector: it may be added,
         # dropped or resized (its net ends in a global pool) without changing any detector tensor
         if key not in ("num_classes", "heading_crop") and theirs.get(key) != mine[key]:
             raise ValueError(f"{path}: config field {key!r} is {theirs.get(key)!r}, this run builds {mine[key]!r}: "
@@ -95,7 +95,7 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
             loaded[key] = src[key]
         elif key.startswith("head.cls."):
             fresh.append(key)
-        elif key.startswith("heading_net."):
+        elif key.startswith("crop_net."):
             fresh_crop.append(key)
         else:
             raise ValueError(f"{path}: tensor {key!r} is missing or has shape "
@@ -111,7 +111,7 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     if fresh:
         notes.append(f"{path}: re-initialised {len(fresh)} class-head tensor(s): {', '.join(fresh)}")
     if fresh_crop:
-        notes.append(f"{path}: has no crop-heading stage of this shape; it starts fresh ({len(fresh_crop)} tensors)")
+        notes.append(f"{path}: has no crop stage of this shape; it starts fresh ({len(fresh_crop)} tensors)")
     if partial:
         notes.append(f"{path}: re-initialised the rows of new classes in {', '.join(partial)}")
     return notes

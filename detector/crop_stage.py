@@ -1,21 +1,27 @@
-"""The front of each object read from its own image crop: a second, crop-level heading stage.
+"""Each object's corners and front read from its own image crop: a second, crop-level stage.
 
-Why a second stage: the heading-aware head (heading.py) regresses an object's image heading from
-the one feature vector at its anchor, shared with the box, class and corners of a nano model. On
-the CPU budget that head never learns it (its 1 - cosine stays near 0.93: docs/detector-training.md),
-while a small CNN on 64x64 crops of the same objects tells facing left from facing right with a
-balanced accuracy of 0.85 after 400 steps (benchmarks/heading_visibility.py). The cue is in the
-pixels of the object; the anchor's features do not carry it yet. So the detector crops each
-object out of its own input image (bilinear, square about the box centre, as that benchmark
-does) and a small CNN of that benchmark's shape regresses the image heading's direction from the
-crop. The corners still come from the keypoint branch, learned up to the turn; after NMS the crop
-heading decides which face of each detection's layout is the front (`heading.orient`).
+Why a second stage. The keypoint branch regresses an object's eight corners from the one feature
+vector at its anchor, at every scale at once, shared with the box and class of a nano model. On
+the CPU budget its corners stay 0.41 of sqrt(box area) from the truth and its front is a coin
+toss (its heading loss stays near 0.93: docs/detector-training.md). Human-pose estimation knows
+the alternative: top-down, a network that sees one object at one scale. A small CNN on 64x64 crops
+of the same objects places their corners 0.26 of sqrt(box area) from the truth, about boxes moved
+as a detector's are, after 400 steps (benchmarks/crop_layout.py), and tells facing left from
+facing right at a balanced accuracy of 0.85 (benchmarks/heading_visibility.py). So the detector
+crops each object out of its own input image (bilinear, square about the box centre) and a small
+CNN of those benchmarks' shape regresses from the crop both the corners (in the crop's units:
+(x - box centre) / half side) and the image heading's direction. The keypoint branch still learns
+(its corners are what the detections past MAX_ORIENT keep); after NMS each of the best detections
+takes the crop's corners, turned where the crop's heading says the other face is the front
+(`heading.orient`).
 
-Training crops the labelled boxes (the targets, in the augmented batch) and learns with the same
-target and loss as the head's channels: heading.image_heading of the labelled corners, 1 - cosine.
-At most MAX_CROPS objects a step, drawn at random, keep its cost a fraction of the detector's.
-Inference crops the predicted boxes and averages the crop's heading with its mirror image's (a
-horizontal flip negates the heading's x component and keeps the rest).
+Training crops the labelled boxes of the augmented batch, each moved at random as a detector's
+boxes miss the truth (`jitter_boxes`), and learns the corners with an L1 term (`crop_corners`) and
+the heading with the head's target and loss (heading.image_heading of the labelled corners,
+1 - cosine; `heading_crop`). At most MAX_CROPS objects a step, drawn at random, keep its cost
+bounded (benchmarks/bench_crop_stage.py prints it). Inference crops the predicted boxes and
+averages each crop's outputs with its mirror image's (a horizontal flip negates x and renumbers
+the corners by FLIP_IDX; it negates the heading's x component and keeps the rest).
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 import torch.onnx.operators
 
+from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
 from omnigen.detector.boxes import box_area
 from omnigen.detector.heading import HEADING_CHANNELS, image_heading, orient
 from omnigen.detector.nms import Detections
@@ -36,25 +43,37 @@ MARGIN = 0.1
 MAX_CROPS = 128
 """Objects cropped per training step, at most (a random subset of the batch's labelled ones)."""
 MAX_ORIENT = 300
-"""Detections oriented per image at prediction, the best-scoring first (NMS sorts them): each costs
+"""Detections refined per image at prediction, the best-scoring first (NMS sorts them): each costs
 two passes of the crop net (the crop and its mirror), and evaluation keeps up to 1000 an image.
-Those past the 300th keep the keypoint branch's own order (the heading head's, with kpt_heading).
-Not fewer: a weakly trained model ranks many of its matched objects low (the learning benchmark's
-400-step model: corner error 0.445 orienting 300 an image, 0.460 orienting 100; 18 labelled objects
-a frame on average, 104 at most)."""
+Those past the 300th keep the keypoint branch's corners (in the heading head's order, with
+kpt_heading). Not fewer: a weakly trained model ranks many of its matched objects low (the
+learning benchmark's 400-step model of the heading-only stage: corner error 0.445 orienting 300 an
+image, 0.460 orienting 100; 18 labelled objects a frame on average, 104 at most)."""
 MIN_SIDE = 4.0
 """Boxes whose longer side is under this many pixels are not cropped in training: nothing to see."""
+CENTRE_JITTER = 0.06
+"""Training boxes' centres move by N(0, this) of their width and height (benchmarks/crop_layout.py's
+noise, what a detector's boxes miss the truth by), so that the stage places corners about
+predicted boxes, not only about perfect ones."""
+SIDE_JITTER = 0.1
+"""...and each side is scaled by a log-normal factor of this sigma."""
+HIDDEN = 128
 _MIRROR = (-1.0, 1.0, 1.0)  # the image heading of the horizontally mirrored crop, component by component
 
 
-class HeadingNet(nn.Module):
-    """Crops (N, 3, S, S) in 0..1 -> image heading directions (N, 3), unnormalised.
+class CropNet(nn.Module):
+    """Crops (N, 3, S, S) in 0..1 -> (N, 3 + 16): the image heading's direction (unnormalised) and
+    the eight corners (x, y) in the crop's units (`to_crop_units`).
 
-    Four blocks of two 3x3 convolutions, batch norm, SiLU and a 2x2 max-pool, then a global average:
-    the classifier that benchmarks/heading_visibility.py showed can see the front at 64x64."""
+    Four blocks of two 3x3 convolutions, batch norm, SiLU and a 2x2 max-pool (the classifier that
+    benchmarks/heading_visibility.py showed can see the front at 64x64), then the last feature map
+    flattened, not averaged: where a corner lies is what a global average would throw away
+    (benchmarks/crop_layout.py's model)."""
 
-    def __init__(self, width: int = 16):
+    def __init__(self, size: int, width: int = 16):
         super().__init__()
+        if size <= 0 or size % 16:
+            raise ValueError(f"CropNet: crop side must be a positive multiple of 16, got {size}")
 
         def block(cin: int, cout: int) -> nn.Sequential:
             return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.SiLU(),
@@ -62,11 +81,48 @@ class HeadingNet(nn.Module):
                                  nn.MaxPool2d(2))
 
         self.features = nn.Sequential(block(3, width), block(width, 2 * width), block(2 * width, 4 * width),
-                                      block(4 * width, 4 * width), nn.AdaptiveAvgPool2d(1), nn.Flatten())
-        self.out = nn.Linear(4 * width, HEADING_CHANNELS)
+                                      block(4 * width, 4 * width), nn.Flatten())
+        self.hidden = nn.Sequential(nn.Linear(4 * width * (size // 16) ** 2, HIDDEN), nn.SiLU())
+        self.out = nn.Linear(HIDDEN, HEADING_CHANNELS + 2 * NUM_KEYPOINTS)
 
     def forward(self, crops: torch.Tensor) -> torch.Tensor:
-        return self.out(self.features(crops))
+        return self.out(self.hidden(self.features(crops)))
+
+
+def split_outputs(y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """CropNet's (N, 19) -> headings (N, 3), corners (N, 8, 2) in crop units."""
+    return y[:, :HEADING_CHANNELS], y[:, HEADING_CHANNELS:].reshape(-1, NUM_KEYPOINTS, 2)
+
+
+def half_side(boxes: torch.Tensor, margin: float = MARGIN) -> torch.Tensor:
+    """(N,) half the side of each box's square crop, as crop_boxes cuts it."""
+    return (boxes[:, 2:] - boxes[:, :2]).amax(1).clamp(min=1.0) * (0.5 + margin)
+
+
+def to_crop_units(points: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+    """Image points (N, K, 2) -> (point - box centre) / crop half side: the crop's edges at +-1."""
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2
+    return (points - centre[:, None]) / half_side(boxes)[:, None, None]
+
+
+def from_crop_units(t: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+    """The inverse of to_crop_units."""
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2
+    return t * half_side(boxes)[:, None, None] + centre[:, None]
+
+
+def mirror_corners(t: torch.Tensor) -> torch.Tensor:
+    """Corners (N, 8, 2) in crop units of the horizontally mirrored crop: x negated, corners renumbered."""
+    return t[:, list(FLIP_IDX)] * t.new_tensor([-1.0, 1.0])
+
+
+def jitter_boxes(boxes: torch.Tensor) -> torch.Tensor:
+    """Boxes (N, 4) moved and resized at random (CENTRE_JITTER, SIDE_JITTER; torch's generator, which
+    the trainer seeds)."""
+    wh = boxes[:, 2:] - boxes[:, :2]
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2 + torch.randn_like(wh) * CENTRE_JITTER * wh
+    wh = wh * torch.exp(torch.randn_like(wh) * SIDE_JITTER)
+    return torch.cat([centre - wh / 2, centre + wh / 2], 1)
 
 
 def crop_boxes(images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Tensor, size: int,
@@ -80,7 +136,7 @@ def crop_boxes(images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Ten
     hw = torch.onnx.operators.shape_as_tensor(images)[2:].to(images.dtype)
     boxes = boxes.to(images.dtype)
     centre = (boxes[:, :2] + boxes[:, 2:]) / 2 + 0.5  # from the contract's pixel centres to edge-based
-    half = (boxes[:, 2:] - boxes[:, :2]).amax(1).clamp(min=1.0) * (0.5 + margin)
+    half = half_side(boxes, margin)
     # grid_sample's normalised coordinates (align_corners=False): -1 and +1 are the image's outer
     # edges; the crop's pixel centres sit at (i + 0.5) / size of the square. Written out rather than
     # F.affine_grid, which ONNX has only from opset 20.
@@ -122,51 +178,59 @@ def training_rois(targets: dict[str, torch.Tensor], max_crops: int = MAX_CROPS, 
     return rows
 
 
-def crop_heading(net: HeadingNet, images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Tensor,
-                 size: int, mirror: bool = False) -> torch.Tensor:
-    """(N, 3) headings of the boxes' crops; with `mirror`, averaged with the mirrored crop's."""
+def crop_outputs(net: CropNet, images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Tensor,
+                 size: int, mirror: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Headings (N, 3) and corners (N, 8, 2, crop units) of the boxes' crops; with `mirror`, each
+    averaged with the mirrored crop's."""
     crops = crop_boxes(images, batch_index, boxes, size)
-    h = net(crops)
+    h, t = split_outputs(net(crops))
     if mirror:
-        h = (h + net(crops.flip(-1)) * h.new_tensor(_MIRROR)) / 2
-    return h
+        hm, tm = split_outputs(net(crops.flip(-1)))
+        h = (h + hm * h.new_tensor(_MIRROR)) / 2
+        t = (t + mirror_corners(tm)) / 2
+    return h, t
 
 
-def crop_heading_chunked(net: HeadingNet, images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Tensor,
-                         size: int, mirror: bool = True, chunk: int = 128) -> torch.Tensor:
-    """crop_heading over at most `chunk` boxes at a time (inference: bounded memory whatever the
-    number of detections)."""
-    parts = [crop_heading(net, images, batch_index[i:i + chunk], boxes[i:i + chunk], size, mirror)
+def refine(net: CropNet, size: int, images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Tensor,
+           keypoints: torch.Tensor, chunk: int = 128) -> torch.Tensor:
+    """Keypoints (N, 8, C) of detections `boxes` (N, 4) of `images`: x, y replaced by their crops'
+    corners (mirror-averaged), the layout turned where the crop's heading says the other face is the
+    front; the other channels (visibility) kept. At most `chunk` crops at a time: bounded memory
+    whatever the number of detections."""
+    parts = [crop_outputs(net, images, batch_index[i:i + chunk], boxes[i:i + chunk], size, mirror=True)
              for i in range(0, boxes.shape[0], chunk)]
-    return torch.cat(parts) if parts else boxes.new_zeros((0, HEADING_CHANNELS))
+    if not parts:
+        return keypoints
+    h = torch.cat([p[0] for p in parts]).to(boxes.dtype)
+    xy = from_crop_units(torch.cat([p[1] for p in parts]).to(boxes.dtype), boxes)
+    kpts = torch.cat([xy.to(keypoints.dtype), keypoints[..., 2:]], -1)
+    return orient(kpts, box_area(boxes), h)
 
 
-def orient_detections(net: HeadingNet, size: int, images: torch.Tensor, dets: list[Detections],
-                      max_orient: int = MAX_ORIENT) -> list[Detections]:
-    """Per-image detections (in `images`' coordinates, best score first) with the layouts of the
-    first `max_orient` turned to the front their crops show (mirror-averaged): what prediction does
-    after NMS for a crop-heading model."""
-    n = [min(len(d), max_orient) for d in dets]
+def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[Detections],
+                      max_refine: int = MAX_ORIENT) -> list[Detections]:
+    """Per-image detections (in `images`' coordinates, best score first) with the corners of the
+    first `max_refine` placed by their crops (`refine`): what prediction does after NMS for a
+    crop-stage model."""
+    n = [min(len(d), max_refine) for d in dets]
     if not sum(n):
         return dets
     batch_index = torch.cat([torch.full((k,), i, dtype=torch.long, device=images.device) for i, k in enumerate(n)])
     boxes = torch.cat([d.boxes[:k] for d, k in zip(dets, n)]).to(images.dtype)
-    h = crop_heading_chunked(net, images, batch_index, boxes, size)
-    kpts = orient(torch.cat([d.keypoints[:k] for d, k in zip(dets, n)]), box_area(boxes), h.to(boxes.dtype)).split(n)
+    kpts = refine(net, size, images, batch_index, boxes, torch.cat([d.keypoints[:k] for d, k in zip(dets, n)])).split(n)
     return [replace(d, keypoints=torch.cat([k.to(d.keypoints.dtype), d.keypoints[len(k):]]))
             for d, k in zip(dets, kpts)]
 
 
-class OrientWrapper(nn.Module):
+class RefineWrapper(nn.Module):
     """The crop stage as a graph of its own for ONNX (detector/export_onnx.py), run after NMS:
     (images (1, 3, H, W) as the detector saw them, boxes (N, 4), keypoints (N, 8, 3) of the
-    detections) -> the keypoints with each layout's front set by its crop (orient_detections)."""
+    detections) -> the keypoints with each detection's corners and front from its crop (`refine`)."""
 
-    def __init__(self, net: HeadingNet, size: int):
+    def __init__(self, net: CropNet, size: int):
         super().__init__()
         self.net, self.size = net, size
 
     def forward(self, images: torch.Tensor, boxes: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
         batch_index = torch.zeros_like(boxes[:, 0], dtype=torch.long)
-        h = crop_heading(self.net, images, batch_index, boxes, self.size, mirror=True)
-        return orient(keypoints, box_area(boxes), h.to(boxes.dtype))
+        return refine(self.net, self.size, images, batch_index, boxes, keypoints, chunk=1 << 30)

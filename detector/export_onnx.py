@@ -1,8 +1,9 @@
 """Export a checkpoint to ONNX: the forward pass with box and keypoint decoding, NMS left outside.
 
-A crop-heading model (DetectorConfig.heading_crop) reads each detection's front off a crop after
-NMS, so it exports a second graph beside the first, FILE-orient.onnx (`orient_path`): the input
-image, the kept boxes and keypoints in, the keypoints with their fronts set out."""
+A crop-stage model (DetectorConfig.heading_crop, detector/crop_stage.py) places each detection's
+corners and front from its crop after NMS, so it exports a second graph beside the first,
+FILE-crops.onnx (`crop_stage_path`): the input image, the kept boxes and keypoints in, the
+keypoints with the crops' corners out."""
 
 from __future__ import annotations
 
@@ -50,42 +51,42 @@ def export(model, path: Path, imgsz: int, dynamic: bool = False) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def orient_path(path: Path) -> Path:
-    """Where a crop-heading model's second graph goes: FILE.onnx -> FILE-orient.onnx."""
-    return path.with_name(f"{path.stem}-orient{path.suffix or '.onnx'}")
+def crop_stage_path(path: Path) -> Path:
+    """Where a crop-stage model's second graph goes: FILE.onnx -> FILE-crops.onnx."""
+    return path.with_name(f"{path.stem}-crops{path.suffix or '.onnx'}")
 
 
-ORIENT_DYNAMIC_AXES = {"boxes": {0: "detections"}, "keypoints": {0: "detections"}, "oriented": {0: "detections"}}
+CROP_STAGE_AXES = {"boxes": {0: "detections"}, "keypoints": {0: "detections"}, "refined": {0: "detections"}}
 
 
-def export_orient(model, path: Path, imgsz: int, dynamic: bool = False) -> None:
-    """Trace the crop stage (heading_crops.OrientWrapper) with three example detections; the
+def export_crop_stage(model, path: Path, imgsz: int, dynamic: bool = False) -> None:
+    """Trace the crop stage (crop_stage.RefineWrapper) with three example detections; the
     detection count is always a free axis, height and width with `dynamic`."""
     import io
 
     import torch
 
-    from omnigen.detector.heading_crops import OrientWrapper
+    from omnigen.detector.crop_stage import RefineWrapper
     from omnigen.files import atomic_write_bytes
 
     boxes = torch.tensor([[8.0, 8.0, 40.0, 30.0], [20.0, 4.0, 30.0, 44.0], [0.0, 0.0, 16.0, 16.0]])
-    axes = dict(ORIENT_DYNAMIC_AXES, **({"images": {2: "height", 3: "width"}} if dynamic else {}))
+    axes = dict(CROP_STAGE_AXES, **({"images": {2: "height", 3: "width"}} if dynamic else {}))
     buf = io.BytesIO()
-    torch.onnx.export(OrientWrapper(model.heading_net.eval(), model.cfg.heading_crop),
+    torch.onnx.export(RefineWrapper(model.crop_net.eval(), model.cfg.heading_crop),
                       (torch.zeros(1, 3, imgsz, imgsz), boxes, torch.zeros(3, 8, 3)), buf, opset_version=OPSET,
-                      input_names=["images", "boxes", "keypoints"], output_names=["oriented"], dynamo=False,
+                      input_names=["images", "boxes", "keypoints"], output_names=["refined"], dynamo=False,
                       dynamic_axes=axes)
     atomic_write_bytes(path, buf.getvalue())
 
 
-def orient_max_difference(model, path: Path, imgsz: int | tuple[int, int], seed: int = 0) -> float:
+def crop_stage_max_difference(model, path: Path, imgsz: int | tuple[int, int], seed: int = 0) -> float:
     """Largest absolute difference between ONNX Runtime and PyTorch for the crop stage, on a random
     image and five random detections of size `imgsz`."""
     import numpy as np
     import onnxruntime as ort
     import torch
 
-    from omnigen.detector.heading_crops import OrientWrapper
+    from omnigen.detector.crop_stage import RefineWrapper
 
     h, w = (imgsz, imgsz) if isinstance(imgsz, int) else imgsz
     rng = np.random.default_rng(seed)
@@ -95,7 +96,7 @@ def orient_max_difference(model, path: Path, imgsz: int | tuple[int, int], seed:
     boxes = np.concatenate([xy, xy + rng.random((5, 2), dtype=np.float32) * 40 + 4], 1)
     kpts = np.concatenate([rng.random((5, 8, 2), dtype=np.float32) * size, rng.random((5, 8, 1), dtype=np.float32)], 2)
     with torch.inference_mode():
-        ref = OrientWrapper(model.heading_net.eval(), model.cfg.heading_crop)(
+        ref = RefineWrapper(model.crop_net.eval(), model.cfg.heading_crop)(
             torch.from_numpy(x), torch.from_numpy(boxes), torch.from_numpy(kpts)).numpy()
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     got = sess.run(None, {"images": x, "boxes": boxes, "keypoints": kpts})[0]
@@ -128,20 +129,20 @@ def run(args: argparse.Namespace) -> int:
     # was trained on, and sees objects at scales it did not learn.
     imgsz = trained_imgsz(state) if args.imgsz is None else args.imgsz
     export(model, args.out, imgsz, args.dynamic)
-    orient = orient_path(args.out) if model.heading_net is not None else None
-    if orient is not None:
-        export_orient(model, orient, imgsz, args.dynamic)
+    stage = crop_stage_path(args.out) if model.crop_net is not None else None
+    if stage is not None:
+        export_crop_stage(model, stage, imgsz, args.dynamic)
     top = model.strides[-1]
     shape = f"1x3xHxW (multiples of {top}; traced at {imgsz})" if args.dynamic else f"1x3x{imgsz}x{imgsz}"
     rows = [("file", str(args.out)), ("input", shape), ("opset", OPSET)]
-    if orient is not None:
-        rows.append(("crop stage (after NMS)", str(orient)))
+    if stage is not None:
+        rows.append(("crop stage (after NMS)", str(stage)))
     if args.check:
         # dynamic: also at a non-square size other than the traced one, the point of the option
         sizes = [imgsz, (imgsz, imgsz + top)] if args.dynamic else [imgsz]
         diff = max(max_difference(model, args.out, size) for size in sizes)
-        if orient is not None:
-            diff = max([diff] + [orient_max_difference(model, orient, size) for size in sizes])
+        if stage is not None:
+            diff = max([diff] + [crop_stage_max_difference(model, stage, size) for size in sizes])
         rows.append(("max |ORT - PyTorch|", f"{diff:.2e}"))
         if diff > 1e-4:
             print_table("omnigen export onnx", ["", ""], rows)

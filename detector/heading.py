@@ -78,6 +78,6 @@ def heading_loss(pred: torch.Tensor, target: torch.Tensor, eps: float = 1e-3) ->
 def orient(keypoints: torch.Tensor, area: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
     """Layouts (..., 8, C) turned 180 degrees (TURN_IDX, every channel with its corner) where their
     own image heading, on box areas `area` (...), points away from the predicted `heading` (..., 3):
-    the one rule the head's decode (outputs.apply_heading) and the crop stage (heading_crops) share."""
+    the one rule the head's decode (outputs.apply_heading) and the crop stage (crop_stage) share."""
     agree = (image_heading(keypoints[..., :2], area) * heading).sum(-1)
     return torch.where((agree < 0)[..., None, None], keypoints[..., list(TURN_IDX), :], keypoints)

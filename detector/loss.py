@@ -17,6 +17,7 @@ import torch.nn.functional as F
 
 from omnigen.detector.assign import TaskAlignedAssigner
 from omnigen.detector.boxes import bbox2dist, box_area, box_ciou
+from omnigen.detector.crop_stage import to_crop_units
 from omnigen.detector.heading import heading_loss, image_heading
 from omnigen.detector.outputs import REG_MAX, HeadOutput, decode_boxes, head_keypoints
 from omnigen.conventions import NUM_KEYPOINTS, TURN_IDX
@@ -51,10 +52,11 @@ class LossGains:
     # front (turn_targets); 0: the branch picks an order freely, and the turn class learns all of it
     kpt_labelled: float = 0.0
     heading: float = 1.0  # 1 - cosine of a heading-aware head's image heading (heading.py); no term without one
-    heading_crop: float = 1.0  # 1 - cosine of a crop-heading model's crop headings (heading_crops.py); no term without one
+    heading_crop: float = 1.0  # 1 - cosine of a crop-stage model's crop headings (crop_stage.py); no term without one
+    crop_corners: float = 1.0  # L1 of a crop-stage model's crop corners, in crop units (crop_stage.py); no term without one
 
 
-PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn", "kpt_labelled", "heading", "heading_crop")
+PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn", "kpt_labelled", "heading", "heading_crop", "crop_corners")
 
 _TURN = list(TURN_IDX)
 
@@ -219,7 +221,9 @@ class DetectionLoss:
                          turn=None if out.turn is None else out.turn.float(),
                          heading=None if out.heading is None else out.heading.float(),
                          crop_heading=None if out.crop_heading is None else out.crop_heading.float(),
-                         crop_rows=out.crop_rows)
+                         crop_corners=None if out.crop_corners is None else out.crop_corners.float(),
+                         crop_rows=out.crop_rows,
+                         crop_boxes=None if out.crop_boxes is None else out.crop_boxes.float())
         gt = pad_targets(targets, b)
 
         cls_logits = out.cls.transpose(1, 2)  # (B, A, nc)
@@ -262,7 +266,14 @@ class DetectionLoss:
                 # mean over the positive anchor-object pairs (their count is a shape, known on the host)
                 turn_loss = F.binary_cross_entropy_with_logits(out.turn[bi, ai], turned.to(kpts.dtype),
                                                                reduction="sum") / max(len(obj), 1)
-        crop_loss = kpts.new_zeros(())
+        crop_loss = corner_loss = kpts.new_zeros(())
+        if out.crop_corners is not None:
+            # the corners in front of the camera, in the units of the crop each was cut from (the
+            # targets' box, moved), as the stage predicts them
+            rows = out.crop_rows
+            target = to_crop_units(targets["keypoints"].to(kpts.dtype)[rows], out.crop_boxes)
+            cmask = targets["kpt_mask"].bool()[rows]
+            corner_loss = ((out.crop_corners - target.nan_to_num()).abs().sum(-1) * cmask).sum() / cmask.sum().clamp(min=1)
         if out.crop_heading is not None:
             # the crops' target is the one the head's channels learn: the labelled corners' image heading
             rows = out.crop_rows
@@ -276,7 +287,8 @@ class DetectionLoss:
                      ).sum() / kmask.sum().clamp(min=1)
 
         parts_t = {"box": box_loss, "dfl": dfl_loss, "cls": cls_loss, "kpt": kpt_loss, "kvis": kvis_loss, "kpt_l1": kpt_l1,
-                   "turn": turn_loss, "kpt_labelled": kpt_labelled, "heading": heading_loss_, "heading_crop": crop_loss}
+                   "turn": turn_loss, "kpt_labelled": kpt_labelled, "heading": heading_loss_, "heading_crop": crop_loss,
+                   "crop_corners": corner_loss}
         gains = asdict(self.gains)
         total = sum(gains[k] * parts_t[k] for k in PARTS)
         # detached 0-dim tensors, not floats: a float() per part would wait for the device six

@@ -19,7 +19,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from omnigen.detector.backbones import BACKBONES, build_backbone
 from omnigen.detector.blocks import fuse_batchnorm
 from omnigen.detector.head import KeypointHead
-from omnigen.detector.heading_crops import HeadingNet, crop_heading
+from omnigen.detector.crop_stage import CropNet, crop_outputs
 from omnigen.detector.neck import PAN
 from omnigen.detector.outputs import KPT_MODES, REG_MAX, HeadOutput, decode
 from omnigen.conventions import FINE_CLASSES
@@ -57,7 +57,7 @@ class DetectorConfig:
     kpt_turn: bool = False  # corners learned up to the 180-degree turn, the turn a class of its own (loss.py)
     kpt_hidden: int | None = None  # keypoint-branch width; None: max(stride-8 width / 4, 24) as Ultralytics' pose head
     kpt_heading: bool = False  # corners up to the turn, the front read from a regressed image heading (heading.py)
-    heading_crop: int = 0  # side of the crops a second stage reads each object's front from (heading_crops.py); 0: none
+    heading_crop: int = 0  # side of the crops a second stage places each object's corners and front from (crop_stage.py); 0: none
 
     def __post_init__(self) -> None:
         self.validate()
@@ -127,11 +127,11 @@ class KeypointDetector(nn.Module):
         chans = [self.neck.out_channels[s] for s in self.strides]
         self.head = KeypointHead(chans, self.strides, cfg.num_classes, self.neck.out_channels[8], cfg.reg_max,
                                  cfg.kpt_mode, cfg.kpt_turn, cfg.kpt_hidden, cfg.kpt_heading)
-        self.heading_net = HeadingNet() if cfg.heading_crop else None
+        self.crop_net = CropNet(cfg.heading_crop) if cfg.heading_crop else None
 
     def forward(self, images: torch.Tensor, crops: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
                 ) -> HeadOutput:
-        """`crops` (rows, batch index, xyxy boxes: (N,), (N,), (N, 4)) of a crop-heading model are cut
+        """`crops` (rows, batch index, xyxy boxes: (N,), (N,), (N, 4)) of a crop-stage model are cut
         from `images` and their headings returned in the output with the rows of the targets they
         stand for. Here in the forward, so that data parallelism sees the crop net's parameters used."""
         top = self.strides[-1]
@@ -141,12 +141,13 @@ class KeypointDetector(nn.Module):
                              f"of the largest stride {top}")
         out = self.head(self.neck(self.backbone(images)))
         if crops is not None:
-            if self.heading_net is None:
-                raise ValueError("KeypointDetector: crops given to a model without a crop-heading stage "
+            if self.crop_net is None:
+                raise ValueError("KeypointDetector: crops given to a model without a crop stage "
                                  "(DetectorConfig.heading_crop is 0)")
             rows, batch_index, boxes = crops
-            out.crop_heading = crop_heading(self.heading_net, images, batch_index, boxes, self.cfg.heading_crop)
-            out.crop_rows = rows
+            out.crop_heading, out.crop_corners = crop_outputs(self.crop_net, images, batch_index, boxes,
+                                                              self.cfg.heading_crop)
+            out.crop_rows, out.crop_boxes = rows, boxes
         return out
 
     def infer(self, images: torch.Tensor) -> torch.Tensor:

@@ -37,10 +37,13 @@ class HeadOutput:
     kpt_mode: str = "anchor"  # KPT_MODES: how `kpt` decodes (decode_keypoints)
     turn: torch.Tensor | None = None  # (B, A) logit that the corners are turned 180 degrees (turn-aware heads)
     heading: torch.Tensor | None = None  # (B, 3, A) direction of the image heading (heading-aware heads, heading.py)
-    # a crop-heading model's forward given crops (heading_crops.py): their headings (N, 3), and the rows
-    # of the flat targets they were cut for (N,)
+    # a crop-stage model's forward given crops (crop_stage.py): their headings (N, 3) and corners
+    # (N, 8, 2, in crop units), the rows of the flat targets they were cut for (N,) and the boxes
+    # they were cut about (N, 4: the targets' boxes, moved at random)
     crop_heading: torch.Tensor | None = None
+    crop_corners: torch.Tensor | None = None
     crop_rows: torch.Tensor | None = None
+    crop_boxes: torch.Tensor | None = None
 
     @property
     def num_classes(self) -> int:

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from omnigen.detector.data import KeypointDataset, Letterbox, letterbox, read_image, split_frames
-from omnigen.detector.heading_crops import orient_detections
+from omnigen.detector.crop_stage import refine_detections
 from omnigen.detector.model import KeypointDetector
 from omnigen.detector.nms import Detections, postprocess
 from omnigen.conventions import NUM_KEYPOINTS
@@ -87,8 +87,8 @@ def infer_batch(model: KeypointDetector, images: list[np.ndarray], boxes: list[L
     x = x.to(device, non_blocking=True).permute(0, 3, 1, 2).float().div_(255)
     pred = model.infer(x)
     dets = postprocess(pred.float(), model.cfg.num_classes, opts.conf, opts.iou, opts.max_det)
-    if model.heading_net is not None:  # a crop-heading model reads each detection's front off its crop
-        dets = orient_detections(model.heading_net, model.cfg.heading_crop, x, dets)
+    if model.crop_net is not None:  # a crop-stage model places each detection's corners from its crop
+        dets = refine_detections(model.crop_net, model.cfg.heading_crop, x, dets)
     return batch_to_image_coords(dets, boxes)
 
 

@@ -85,7 +85,7 @@ class TrainConfig:
     kpt_turn_start: float = 0.0  # fraction of the run before a turn-aware loss may choose the order (loss.turn_free)
     kpt_heading: bool = False  # corners up to the turn, the front from a regressed image heading (detector/heading.py)
     heading_gain: float = 1.0  # gain of a heading-aware head's heading term (LossGains.heading)
-    heading_crop: int = 0  # crop side of a second stage that reads each object's front (DetectorConfig.heading_crop)
+    heading_crop: int = 0  # crop side of a second stage that places each object's corners and front (DetectorConfig.heading_crop)
     taxonomy: str = "fine"
     train_split: str = "train"
     val_split: str | None = None  # None: 'val' if the dataset has it, else 'test', else all frames

@@ -52,8 +52,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--heading-gain", type=float, default=None,
                    help="with --kpt-heading: gain of the heading term (default 1)")
     p.add_argument("--heading-crop", type=int, default=0, metavar="PX",
-                   help="read each object's front from a PX x PX crop of it with a small second-stage CNN "
-                        "(detector/heading_crops.py; 64 is what benchmarks/heading_visibility.py measures); 0: none")
+                   help="place each object's corners and read its front from a PX x PX crop of it with a small "
+                        "second-stage CNN (detector/crop_stage.py; 64 is what benchmarks/crop_layout.py and "
+                        "heading_visibility.py measure); 0: none")
     p.add_argument("--kpt-hidden", type=int, default=None,
                    help="keypoint-branch width (default: max(stride-8 width / 4, 24), as Ultralytics' pose head)")
     p.add_argument("--kpt-labelled", type=float, default=0.0,

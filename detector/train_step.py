@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from omnigen.detector.ema import ModelEMA
-from omnigen.detector.heading_crops import training_rois
+from omnigen.detector.crop_stage import jitter_boxes, training_rois
 
 
 def use_channels_last(setting: bool | None, device: torch.device) -> bool:
@@ -72,9 +72,9 @@ class TrainStep:
     def __call__(self, images: torch.Tensor, targets: dict[str, torch.Tensor]) -> dict[str, torch.Tensor | float]:
         dtype = self.amp_dtype
         crops = None
-        if getattr(self.model, "heading_net", None) is not None:  # a crop-heading model crops labelled boxes
+        if getattr(self.model, "crop_net", None) is not None:  # a crop-stage model crops labelled boxes, moved
             rows = training_rois(targets)
-            crops = (rows, targets["batch_idx"][rows], targets["bboxes"][rows])
+            crops = (rows, targets["batch_idx"][rows], jitter_boxes(targets["bboxes"][rows].float()))
         with torch.autocast(images.device.type, dtype=dtype or torch.float32, enabled=dtype is not None):
             out = self.net(images, crops) if crops is not None else self.net(images)
         loss, parts = self.criterion(out, targets)

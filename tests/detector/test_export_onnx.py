@@ -71,36 +71,39 @@ def test_turn_and_heading_aware_models_export_with_their_decode(order, tmp_path)
     assert max_difference(model, path, 64) < 1e-4
 
 
-def test_crop_heading_model_exports_its_crop_stage_beside(tmp_path, capsys):
-    """A crop-heading model writes FILE-orient.onnx too; ONNX Runtime orients as PyTorch does at the
-    traced size and, with --dynamic, at another, for any number of detections."""
+def test_crop_stage_model_exports_its_crop_stage_beside(tmp_path, capsys):
+    """A crop-stage model writes FILE-crops.onnx too; ONNX Runtime places the corners as PyTorch does
+    at the traced size and, with --dynamic, at another, for any number of detections."""
     import numpy as np
 
-    from omnigen.detector.export_onnx import orient_max_difference, orient_path
-    from omnigen.detector.heading_crops import OrientWrapper
+    from omnigen.detector.export_onnx import crop_stage_max_difference, crop_stage_path
+    from omnigen.detector.crop_stage import RefineWrapper, to_crop_units
 
     torch.manual_seed(2)
     cfg = DetectorConfig("n", "c3k2", p2=False, num_classes=2, width=0.0625, depth=0.33, max_channels=64,
                          kpt_heading=True, heading_crop=32)
     model = KeypointDetector(cfg).eval()
-    with torch.no_grad():  # a crop net that is not near zero everywhere, so the turns vary
-        for p in model.heading_net.parameters():
-            p.mul_(3.0)
+    with torch.no_grad():  # batch-norm statistics of real activations, so that the crops' outputs differ
+        for m in model.crop_net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.momentum = None
+        model.crop_net.train()(torch.rand(16, 3, 32, 32))
+        model.crop_net.eval()
     ckpt = tmp_path / "best.pt"
     save_checkpoint(ckpt, {"config": cfg.to_dict(), "model": model.state_dict(), "classes": ["car", "bus"],
                            "train_config": {"imgsz": 64}})
     out = tmp_path / "m.onnx"
     assert main(["export", "onnx", str(ckpt), "--out", str(out), "--dynamic"]) == 0
-    orient = orient_path(out)
-    assert orient.name == "m-orient.onnx" and orient.is_file() and "crop stage" in capsys.readouterr().out
+    stage = crop_stage_path(out)
+    assert stage.name == "m-crops.onnx" and stage.is_file() and "crop stage" in capsys.readouterr().out
     for size in (64, (96, 160)):
-        assert orient_max_difference(model, orient, size, seed=3) < 1e-4
-    # and the turns it decides are not all one way (the check would pass for a constant graph)
+        assert crop_stage_max_difference(model, stage, size, seed=3) < 1e-4
+    # and the layouts it places differ from crop to crop (the check would pass for a constant graph)
     rng = np.random.default_rng(0)
     boxes = torch.tensor([[4.0, 4.0, 40.0, 30.0]] * 6) + torch.from_numpy(rng.random((6, 1), dtype=np.float32) * 20)
     kpts = torch.from_numpy(rng.random((6, 8, 3), dtype=np.float32) * 60)
     x = torch.from_numpy(rng.random((1, 3, 64, 64), dtype=np.float32))
     with torch.no_grad():
-        got = OrientWrapper(model.heading_net, 32)(x, boxes, kpts)
-    turned = [not torch.equal(got[i], kpts[i]) for i in range(6)]
-    assert any(turned) and not all(turned)
+        got = RefineWrapper(model.crop_net, 32)(x, boxes, kpts)
+    layouts = to_crop_units(got[..., :2], boxes)
+    assert float(layouts.std(0).max()) > 1e-3

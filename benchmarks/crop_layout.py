@@ -1,0 +1,308 @@
+"""Can a small CNN place an object's eight corners from its own crop? A top-down yardstick for issue 25.
+
+    .venv/bin/python benchmarks/crop_layout.py runs/validate/uov [--steps 1500] [--crop 64] [--jitter 1]
+
+The detector regresses every object's corners from the one feature vector at its anchor, at every
+scale at once; on the CPU budget its corners land 0.41 of sqrt(box area) from the truth (median,
+box-matched objects, docs/detector-training.md), where OKS 0.5 needs about 0.29 and OKS 0.75
+about 0.19. Human-pose estimation answers the same question in two ways: bottom-up (one network,
+as our detector) and top-down (crop each detected person, then a network that sees only that
+crop), and top-down is the more precise at small budgets because every crop is seen at one scale.
+This script measures what the top-down way would give here before the detector is changed: a
+small CNN (the crop-heading stage's shape, detector/crop_stage.py) regresses the eight corners
+of an object from a square crop about its 2D box, cut exactly as the detector's crop stage cuts
+(`crop_boxes`), trained for a fixed number of steps from a fixed seed on the train split's
+objects and scored on the test split's.
+
+- The target of corner k is (x_k - c) / half for each axis: c the box centre and half the crop's
+  half side (the box's longer side x (0.5 + margin)), so a corner at the crop's edge is +-1.
+- The boxes the crops are cut about are the true ones moved at random (`--jitter` scales the
+  noise: centre by N(0, 0.06) of the box's width and height, each side by a log-normal factor of
+  sigma 0.1), as a detector's boxes are; scored both on the true boxes and on moved ones, the
+  predicted corners mapped back to the image with the box the crop was cut about.
+- Horizontal flips (x negated, corners renumbered by conventions.FLIP_IDX) double the train set
+  and average the prediction with its mirror image's (test-time flip).
+- Scored as `omnigen eval` scores corners (detector/corner_errors.py): over the labelled corners
+  (in the image, in front of the camera), the median distance relative to sqrt(true box area);
+  `layout` forgives the 180-degree turn; `OKS>=.5` and `OKS>=.75` are the shares of objects whose
+  own OKS (sigma 0.125, COCO's formula) reaches that threshold, what OKS mAP at those thresholds
+  counts when the box is found. The box template (detector/box_template.py, fitted on the train
+  split) placed on the same boxes is the baseline.
+
+Last line: `crop_layout: rel X (template Y) on N test objects, jittered boxes rel A (template B); OKS>=.5 C`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS, TURN_IDX, VIEWS  # noqa: E402
+
+OKS_K = 2 * 0.125  # COCO's kappa = 2 sigma, sigma the one omnigen.detector.oks_eval uses
+CENTRE_NOISE = 0.06  # of the box's width / height, one standard deviation, at --jitter 1
+SIDE_NOISE = 0.1  # log-normal sigma of each side's factor, at --jitter 1
+
+
+@dataclass
+class LayoutCrops:
+    images: np.ndarray  # (N, S, S, 3) uint8, cut about `boxes`
+    boxes: np.ndarray  # (N, 4) the xyxy box each crop was cut about (true or moved)
+    true_boxes: np.ndarray  # (N, 4) the object's true 2D box
+    keypoints: np.ndarray  # (N, 8, 2) true corners, NaN behind the camera
+    labelled: np.ndarray  # (N, 8) bool: in the image and in front of the camera (what OKS scores)
+    views: np.ndarray  # (N,) index into VIEWS
+    classes: np.ndarray  # (N,) category names
+
+
+def move_boxes(boxes: np.ndarray, rng: np.random.Generator, jitter: float) -> np.ndarray:
+    """Boxes moved and resized as a detector's boxes miss the truth (module docstring)."""
+    if jitter <= 0:
+        return boxes.copy()
+    wh = boxes[:, 2:] - boxes[:, :2]
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2 + rng.normal(0, CENTRE_NOISE * jitter, wh.shape) * wh
+    wh = wh * np.exp(rng.normal(0, SIDE_NOISE * jitter, wh.shape))
+    return np.concatenate([centre - wh / 2, centre + wh / 2], axis=1)
+
+
+def half_side(boxes: np.ndarray, margin: float) -> np.ndarray:
+    """The crop's half side per box, as crop_boxes computes it."""
+    return np.maximum((boxes[:, 2:] - boxes[:, :2]).max(1), 1.0) * (0.5 + margin)
+
+
+def to_targets(keypoints: np.ndarray, boxes: np.ndarray, margin: float) -> np.ndarray:
+    """(N, 8, 2) corners in the crop's units: (x - box centre) / half side."""
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2
+    return (keypoints - centre[:, None]) / half_side(boxes, margin)[:, None, None]
+
+
+def from_targets(t: np.ndarray, boxes: np.ndarray, margin: float) -> np.ndarray:
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2
+    return t * half_side(boxes, margin)[:, None, None] + centre[:, None]
+
+
+def collect(ds, frame_ids: list[str], crop: int, min_side: float, copies: int, jitter: float,
+            rng: np.random.Generator, limit: int | None = None) -> LayoutCrops:
+    """Crops of every object of the named frames whose box's longer side is at least min_side,
+    `copies` of each, cut about boxes moved by `jitter` (0: the true box)."""
+    import torch
+    from PIL import Image
+
+    from omnigen.detector.crop_stage import MARGIN, crop_boxes
+
+    out: dict[str, list] = {k: [] for k in ("images", "boxes", "true_boxes", "keypoints", "labelled", "views", "classes")}
+    n = 0
+    for i in sorted(ds.index_of(f) for f in frame_ids):
+        rec = ds[i]
+        objs = [o for o in rec.objects
+                if max(o.bbox[2] - o.bbox[0], o.bbox[3] - o.bbox[1]) >= min_side and np.isfinite(o.keypoints).any()]
+        if not objs:
+            continue
+        image = torch.from_numpy(np.asarray(Image.open(ds.root / rec.image).convert("RGB"))).permute(2, 0, 1)
+        true = np.repeat(np.stack([o.bbox for o in objs]).astype(np.float64), copies, axis=0)
+        boxes = move_boxes(true, rng, jitter)
+        crops = crop_boxes(image[None].float(), torch.zeros(len(boxes), dtype=torch.long),
+                           torch.from_numpy(boxes).float(), crop, MARGIN)
+        out["images"].append(crops.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).numpy())
+        out["boxes"].append(boxes)
+        out["true_boxes"].append(true)
+        out["keypoints"].append(np.repeat(np.stack([o.keypoints for o in objs]), copies, axis=0))
+        out["labelled"].append(np.repeat(np.stack([o.in_image & ~o.behind_camera for o in objs]), copies, axis=0))
+        out["views"].append(np.full(len(boxes), VIEWS.index(rec.view)))
+        out["classes"].append(np.repeat(np.array([o.category for o in objs], dtype=object), copies))
+        n += len(boxes)
+        if limit and n >= limit:
+            break
+    if not n:
+        raise SystemExit(f"crop_layout: {ds.root}: no object of at least {min_side} px in {len(frame_ids)} frames")
+    return LayoutCrops(**{k: np.concatenate(v) for k, v in out.items()})
+
+
+def build_model(width: int = 16, crop: int = 64):
+    """crop_stage.CropNet's four blocks; the last feature map flattened (where a corner is,
+    which a global average would throw away) into 16 outputs."""
+    import torch.nn as nn
+
+    def block(cin, cout):
+        return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.SiLU(),
+                             nn.Conv2d(cout, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.SiLU(),
+                             nn.MaxPool2d(2))
+
+    side = crop // 16
+    return nn.Sequential(block(3, width), block(width, 2 * width), block(2 * width, 4 * width),
+                         block(4 * width, 4 * width), nn.Flatten(), nn.Linear(4 * width * side * side, 128), nn.SiLU(),
+                         nn.Linear(128, 2 * NUM_KEYPOINTS))
+
+
+def to_tensor(images: np.ndarray):
+    import torch
+
+    return torch.from_numpy(images).permute(0, 3, 1, 2).float().div_(255.0)
+
+
+def flip_targets(t):
+    """Corner targets of the horizontally mirrored crop: x negated, corners renumbered."""
+    t = t[:, list(FLIP_IDX)].clone()
+    t[..., 0] = -t[..., 0]
+    return t
+
+
+def train(crops: LayoutCrops, steps: int, batch: int, seed: int, margin: float, lr: float = 2e-3):
+    """A fixed-seed AdamW run with a one-cycle schedule; L1 on the corners in front of the camera;
+    half of each batch mirrored."""
+    import torch
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    model = build_model(crop=crops.images.shape[1])
+    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=0.1)
+    x_all = to_tensor(crops.images)
+    t_np = to_targets(crops.keypoints, crops.boxes, margin)
+    valid_all = torch.from_numpy(np.isfinite(t_np).all(-1))
+    t_all = torch.from_numpy(np.nan_to_num(t_np)).float()
+    model.train()
+    losses = []
+    for _ in range(steps):
+        idx = torch.from_numpy(rng.integers(0, len(t_all), batch))
+        x, t, valid = x_all[idx].clone(), t_all[idx].clone(), valid_all[idx].clone()
+        flip = torch.from_numpy(rng.random(batch) < 0.5)
+        x[flip] = x[flip].flip(-1)
+        t[flip] = flip_targets(t[flip])
+        valid[flip] = valid[flip][:, list(FLIP_IDX)]
+        pred = model(x).view(-1, NUM_KEYPOINTS, 2)
+        loss = ((pred - t).abs().sum(-1) * valid).sum() / valid.sum().clamp(min=1)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        losses.append(float(loss.detach()))
+    return model, losses
+
+
+def predict(model, crops: LayoutCrops, margin: float, batch: int = 256) -> np.ndarray:
+    """(N, 8, 2) corners in image pixels, averaged with the mirrored crop's prediction."""
+    import torch
+
+    model.eval()
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(crops.images), batch):
+            x = to_tensor(crops.images[i:i + batch])
+            p = model(x).view(-1, NUM_KEYPOINTS, 2)
+            q = flip_targets(model(x.flip(-1)).view(-1, NUM_KEYPOINTS, 2))
+            out.append(((p + q) / 2).numpy())
+    return from_targets(np.concatenate(out).astype(np.float64), crops.boxes, margin)
+
+
+def template_corners(template, crops: LayoutCrops) -> np.ndarray:
+    """The box template's corners on the boxes the crops were cut about."""
+    wh = crops.boxes[:, 2:] - crops.boxes[:, :2]
+    centre = (crops.boxes[:, :2] + crops.boxes[:, 2:]) / 2
+    layouts = np.stack([template.layout(str(c), VIEWS[v]) for c, v in zip(crops.classes, crops.views)])
+    return layouts * wh[:, None] + centre[:, None]
+
+
+@dataclass
+class Score:
+    rel: float  # median corner error / sqrt(true box area), labelled corners
+    layout_rel: float  # the same with the 180-degree turn forgiven per object
+    oks50: float  # share of objects with OKS >= 0.5
+    oks75: float
+    objects: int
+
+
+def score(pred: np.ndarray, crops: LayoutCrops, mask: np.ndarray | None = None) -> Score:
+    m = np.ones(len(pred), bool) if mask is None else mask
+    lab = crops.labelled[m] & np.isfinite(crops.keypoints[m]).all(-1)
+    keep = lab.any(1)
+    lab, gt, p = lab[keep], crops.keypoints[m][keep], pred[m][keep]
+    if not len(gt):
+        return Score(float("nan"), float("nan"), float("nan"), float("nan"), 0)
+    wh = crops.true_boxes[m][keep, 2:] - crops.true_boxes[m][keep, :2]
+    area = np.maximum(wh.prod(1), 1e-9)
+    d = np.linalg.norm(np.nan_to_num(p - gt), axis=-1)  # (n, 8)
+    d_turn = np.linalg.norm(np.nan_to_num(p[:, list(TURN_IDX)] - gt), axis=-1)
+    rel = d / np.sqrt(area)[:, None]
+    mean_d = (d * lab).sum(1) / lab.sum(1)
+    mean_turn = (d_turn * lab).sum(1) / lab.sum(1)
+    layout = np.where((mean_turn < mean_d)[:, None], d_turn, d) / np.sqrt(area)[:, None]
+    oks = (np.exp(-d ** 2 / (2 * area[:, None] * OKS_K ** 2)) * lab).sum(1) / lab.sum(1)
+    return Score(float(np.median(rel[lab])), float(np.median(layout[lab])), float(np.mean(oks >= 0.5)),
+                 float(np.mean(oks >= 0.75)), int(len(gt)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("dataset", type=Path, help="a merged UrbanOmniView dataset with train and test splits")
+    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--crop", type=int, default=64, help="crop side in pixels (a multiple of 16)")
+    ap.add_argument("--min-side", type=float, default=4.0, help="smallest longer box side kept, px (the crop stage's)")
+    ap.add_argument("--jitter", type=float, default=1.0, help="scale of the box noise (0: crops about the true boxes)")
+    ap.add_argument("--copies", type=int, default=2, help="crops per train object, each about its own moved box")
+    ap.add_argument("--limit", type=int, default=None, help="at most this many train crops (a quick look)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    a = ap.parse_args(argv)
+    if a.crop % 16:
+        raise SystemExit(f"crop_layout: --crop {a.crop}: must be a multiple of 16 (four 2x2 pools)")
+
+    import torch
+
+    from omnigen.dataset import Dataset
+    from omnigen.detector.box_template import fit_box_template
+    from omnigen.detector.crop_stage import MARGIN
+    from omnigen.progress import print_table
+    from omnigen.splits import read_split
+
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    t0 = time.perf_counter()
+    try:
+        train_ids, test_ids = read_split(a.dataset, "train"), read_split(a.dataset, "test")
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"crop_layout: {a.dataset}: needs splits/train.txt and splits/test.txt ({exc})")
+    ds = Dataset.open(a.dataset)
+    rng = np.random.default_rng(a.seed)
+    tr = collect(ds, train_ids, a.crop, a.min_side, a.copies, a.jitter, rng, a.limit)
+    te_true = collect(ds, test_ids, a.crop, a.min_side, 1, 0.0, rng)
+    te_moved = collect(ds, test_ids, a.crop, a.min_side, 1, max(a.jitter, 1.0), rng)
+    print(f"crops: train {len(tr.images)} ({a.copies} a object), test {len(te_true.images)} "
+          f"({time.perf_counter() - t0:.1f} s)", flush=True)
+    template = fit_box_template(ds, train_ids, fitted_from="train")
+    t1 = time.perf_counter()
+    model, losses = train(tr, a.steps, a.batch, a.seed, MARGIN)
+    print(f"trained {a.steps} steps in {time.perf_counter() - t1:.1f} s; L1 first 50 {np.mean(losses[:50]):.3f}, "
+          f"last 50 {np.mean(losses[-50:]):.3f}", flush=True)
+
+    rows, last = [], {}
+    for boxes_name, te in (("true", te_true), ("moved", te_moved)):
+        preds = {"crop net": predict(model, te, MARGIN), "box template": template_corners(template, te)}
+        for who, pred in preds.items():
+            groups = [("all", None)] + [(f"view={v}", te.views == VIEWS.index(v)) for v in VIEWS
+                                        if np.any(te.views == VIEWS.index(v))]
+            for group, mask in groups:
+                s = score(pred, te, mask)
+                rows.append([boxes_name, who, group, str(s.objects), f"{s.rel:.3f}", f"{s.layout_rel:.3f}",
+                             f"{s.oks50:.3f}", f"{s.oks75:.3f}"])
+                if mask is None:
+                    last[(boxes_name, who)] = s
+    print_table("corners from the object's own crop, test objects",
+                ["boxes", "corners by", "group", "objects", "rel", "layout", "OKS>=.5", "OKS>=.75"], rows)
+    c, t = last[("true", "crop net")], last[("true", "box template")]
+    cm, tm = last[("moved", "crop net")], last[("moved", "box template")]
+    print(f"crop_layout: rel {c.rel:.3f} (template {t.rel:.3f}) on {c.objects} test objects, jittered boxes rel "
+          f"{cm.rel:.3f} (template {tm.rel:.3f}); OKS>=.5 {cm.oks50:.3f} (template {tm.oks50:.3f})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
