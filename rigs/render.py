@@ -124,6 +124,7 @@ class Rendered:
     instance: np.ndarray
     render_seconds: float = 0.0  # the renderer's own work: Cycles' beauty path tracing; pyrender's whole render
     finish: Callable[[], np.ndarray] | None = None  # a deferred render's image (RasterScene.render(defer=True))
+    shade: Callable[[], None] | None = None  # a deferred render: start its colour pass (RasterScene.render)
 
 
 class RasterBackend:
@@ -141,10 +142,11 @@ class RasterBackend:
             self.rs.update(scene)
 
     def render(self, cam: Camera, defer: bool = False) -> Rendered:
-        """defer: the colour image is left to `finish` (shaded meanwhile on llvmpipe's threads)."""
+        """defer: masks and depth only; `shade` starts the colour pass on llvmpipe's threads and
+        `finish` gives the image."""
         t0 = time.perf_counter()
         f = self.rs.render(cam, defer=defer)
-        return Rendered(f.rgb, f.depth, f.instance, time.perf_counter() - t0, f.finish)
+        return Rendered(f.rgb, f.depth, f.instance, time.perf_counter() - t0, f.finish, f.shade)
 
     def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
         return self.rs.render_instances(cam, ids)
@@ -480,7 +482,8 @@ class Renderer:
         # without its files. Off, render_frame returns with the frame on disk (Ray actors, tests).
         # With write-behind the raster backend's colour pass is also left to finish while the next
         # frame's scene is drawn (pure Python, on one core, while llvmpipe shades on its threads):
-        # the frame's image is read back at the start of the next render_frame, or by flush().
+        # it is started once annotation has kept the camera (a rejected camera is never shaded)
+        # and read back at the start of the next render_frame, or by flush().
         self.write_behind = False
         self._pending: Future | None = None
         self._pool: ThreadPoolExecutor | None = None
@@ -522,6 +525,11 @@ class Renderer:
             if len(ann.objects) >= self.rig.min_objects or tries >= self.rig.max_tries:
                 break
             self.summary.redraws += 1
+        if out.shade is not None:  # the kept camera's colour pass, shaded while the next scene is drawn
+            t = time.perf_counter()
+            out.shade()
+            tm["render"] += time.perf_counter() - t
+            tm["renderer_core"] += time.perf_counter() - t
         t5 = time.perf_counter()
         fid = self.frame_id(index)
         image, depth, instance = f"images/{fid}.png", f"depth/{fid}.exr", f"instance/{fid}.png"

@@ -914,9 +914,10 @@ class GLRaster:
     def color_draw(self, VP: np.ndarray, cam_pos, light: Light, width: int, height: int,
                    atmosphere: dict | None = None) -> Callable[[], np.ndarray]:
         """color_pass's draw calls, handed to the rasteriser without waiting for them; returns the
-        read-back that gives color_pass's image. Why: llvmpipe rasterises on threads of its own, so
-        Python work done between the two (the next frame's scene) runs while the frame is shaded.
-        Call the read-back before the next colour pass (it reads this pass's framebuffer)."""
+        read-back (the multisample resolve and the read) that gives color_pass's image. Why:
+        llvmpipe rasterises on threads of its own, so Python work done between the two (the next
+        frame's scene) runs while the frame is shaded. Call the read-back before the next colour
+        pass (it resolves this pass's framebuffer)."""
         shadows = light.shadow_lvp is not None
         if shadows:
             self.shadow_pass(light.shadow_lvp)
@@ -958,15 +959,15 @@ class GLRaster:
         self._decals(VP, light.contact_shadow)
         if atmosphere is not None:
             self._sky(atmosphere, width, height, light.exposure)
-        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, ms_fb)
-        gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, color_fb)
-        gl.glBlitFramebuffer(0, 0, width, height, 0, 0, width, height, gl.GL_COLOR_BUFFER_BIT, gl.GL_NEAREST)
         gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)
-        gl.glFlush()
+        gl.glFlush()  # hand the pass to the rasteriser's threads; the resolve below waits for it
         max_gain, effects = light.max_gain, atmosphere is not None
 
         def read() -> np.ndarray:
             self.make_current()
+            gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, ms_fb)
+            gl.glBindFramebuffer(gl.GL_DRAW_FRAMEBUFFER, color_fb)
+            gl.glBlitFramebuffer(0, 0, width, height, 0, 0, width, height, gl.GL_COLOR_BUFFER_BIT, gl.GL_NEAREST)
             gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, color_fb)
             rgba = _read_pixels(width, height, gl.GL_RGBA, gl.GL_UNSIGNED_BYTE, np.uint8, 4)
             gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)

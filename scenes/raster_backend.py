@@ -78,7 +78,8 @@ class RasterFrame:
     rgb: np.ndarray | None  # (H, W, 3) uint8, sRGB; None until `finish` is called (render(defer=True))
     depth: np.ndarray  # (H, W) float32, camera z in metres; inf where nothing was hit
     instance: np.ndarray  # (H, W) uint16, 0 background, k = instance id
-    finish: Callable[[], np.ndarray] | None = None  # render(defer=True): the colour image, once shaded
+    finish: Callable[[], np.ndarray] | None = None  # render(defer=True): the colour image (shading it if need be)
+    shade: Callable[[], None] | None = None  # render(defer=True): hand the colour pass to the rasteriser now
 
 
 def material_table(materials) -> np.ndarray:
@@ -319,17 +320,28 @@ class RasterScene:
     def render(self, camera: Camera, effects: bool = True, defer: bool = False) -> RasterFrame:
         """Render with an OpenCV camera: X_cam = R X_world + t, pixels as in the contract.
 
-        defer: return once the masks and depth are read and the colour pass is handed to the
-        rasteriser; the frame's `finish()` gives the image (call it before the next render or
-        update). Work done meanwhile overlaps the shading (GLRaster.color_draw)."""
+        defer: return once the masks and depth are read, with no colour drawn yet: the frame's
+        `shade()` hands the colour pass to the rasteriser's threads (after annotation, whose
+        silhouette passes would otherwise wait for it; a camera annotation rejects is never
+        shaded) and `finish()` gives the image (shading first if need be). Call finish() before
+        the next render or update; work done between the two overlaps the shading."""
         VP = self._view_projection(camera, prepare=False)
         depth, instance = self._id_pass(camera, VP)
         width, height = camera.width, camera.height
-        read = self.gl.color_draw(VP, camera.center, self._light(camera), width, height,
-                                  self._atmosphere(camera) if effects else None)
-        scene = self.scene
+        light = self._light(camera)
+        atmosphere = self._atmosphere(camera) if effects else None
+        scene, view = self.scene, (self.gl.static_view, self.gl.static_view_kinds, self.gl.static_shadow)
+        read: Callable[[], np.ndarray] | None = None
+
+        def shade() -> None:
+            nonlocal read
+            if read is None:
+                self.gl.make_current()
+                self.gl.static_view, self.gl.static_view_kinds, self.gl.static_shadow = view
+                read = self.gl.color_draw(VP, camera.center, light, width, height, atmosphere)
 
         def finish() -> np.ndarray:
+            shade()
             rgb = np.ascontiguousarray(read())
             weather = scene.weather
             if effects and weather.precipitation > 0 and weather.kind in ("rain", "snow"):
@@ -337,7 +349,7 @@ class RasterScene:
             return rgb
 
         if defer:
-            return RasterFrame(None, depth, instance, finish)
+            return RasterFrame(None, depth, instance, finish, shade)
         return RasterFrame(finish(), depth, instance)
 
     def labels(self, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
