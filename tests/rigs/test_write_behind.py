@@ -64,3 +64,29 @@ def test_a_failed_write_is_raised(tmp_path, monkeypatch):
         r.flush()  # at the latest when everything rendered is flushed (run() does in close())
     r.close()
     assert not list((tmp_path / "ds" / "records").glob("*.json"))  # no record without its files
+
+
+def test_a_camera_annotation_rejects_is_not_shaded(tmp_path, monkeypatch):
+    """With the colour pass deferred, only the kept camera of each frame is shaded: here
+    annotation finds too few objects for every frame's first camera (as when buildings hide what
+    the geometric estimate counted), so each frame is drawn twice and shaded once."""
+    import dataclasses
+
+    from omnigen.scenes import gl_raster
+
+    calls, seen = [], set()
+    real_draw, real_annotate = gl_raster.GLRaster.color_draw, render.annotate
+
+    def first_camera_finds_nothing(scene, *a, **k):
+        ann = real_annotate(scene, *a, **k)
+        if scene.frame_index in seen:
+            return ann
+        seen.add(scene.frame_index)
+        return dataclasses.replace(ann, objects=[])
+
+    monkeypatch.setattr(gl_raster.GLRaster, "color_draw", lambda self, *a, **k: calls.append(1) or real_draw(self, *a, **k))
+    monkeypatch.setattr(render, "annotate", first_camera_finds_nothing)
+    summary = Renderer(_job(tmp_path / "ds", frames=2)).run(show_progress=False)
+    assert summary.redraws == 2  # one camera a frame rejected
+    assert len(calls) == 2  # one colour pass a frame: the kept camera's
+    assert len(list((tmp_path / "ds" / "images").glob("*.png"))) == 2
