@@ -2,7 +2,7 @@
 
 A crop-heading model (`omnigen train --heading-crop S`, detector/crop_stage.py) runs a small
 CNN on up to MAX_CROPS labelled boxes every training step and, after NMS, on each image's
-MAX_ORIENT best detections and their mirror images. That CNN works on S x S crops at full
+MAX_REFINE best detections and their mirror images. That CNN works on S x S crops at full
 resolution in its first block, which on a CPU costs far more than its size suggests (few channels,
 large feature maps: memory bound). This script times, in one run with the configurations
 alternating round by round so that a busy machine slows all alike:
@@ -10,13 +10,14 @@ alternating round by round so that a busy machine slows all alike:
 - a whole training step as `omnigen train` runs it (detector/train_step.TrainStep: forward with the
   crops, loss, backward, clipping, AdamW, EMA; bf16 autocast where the CPU runs it natively), for
   nano P2 without the stage and with each crop side, on a batch of fake frames with 8 objects each
-  (16 x 8 = 128 labelled boxes: the stage's cap);
+  (16 x 8 = 128 labelled boxes: the stage's cap), or with `--dataset` on the first batch of a real
+  dataset's train split as training draws it (augmented, `--imgsz` windows of 640-pixel inputs);
 - the stage at prediction: `refine_detections` on one 640 x 640 image with 300 and with 100
   detections (each cropped and mirrored), per crop side.
 
 Prints medians and each configuration's step time as a ratio of the stage-free step's.
 
-    .venv/bin/python benchmarks/bench_crop_stage.py [--sides 32 64] [--rounds 8] [--threads 2]
+    .venv/bin/python benchmarks/bench_crop_stage.py [--sides 32 64] [--rounds 8] [--threads 2] [--dataset runs/validate/uov]
 """
 
 from __future__ import annotations
@@ -64,16 +65,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--imgsz", type=int, default=320, help="training input (make validate's --crop window)")
     ap.add_argument("--rounds", type=int, default=8, help="timed rounds; each runs every configuration once")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--dataset", type=Path, default=None,
+                    help="time on a batch of this dataset's train split (640-pixel inputs, --imgsz windows)")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     device = torch.device("cpu")
     amp = autocast_dtype("auto" if device.type != "cpu" else "bf16", device)
     taxonomy = load_taxonomy("fine")
     nc = len(taxonomy.classes)
-    with tempfile.TemporaryDirectory() as tmp:
-        write_fake_dataset(tmp, a.batch, objects_per_frame=8, seed=0)
-        data = KeypointDataset(tmp, taxonomy, a.imgsz, None, Augment())
+    if a.dataset is not None:
+        from omnigen.splits import read_split
+
+        data = KeypointDataset(a.dataset, taxonomy, 640, read_split(a.dataset, "train"), Augment(), crop=a.imgsz)
         images, targets, _ = collate_uint8([data[i] for i in range(a.batch)])
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            write_fake_dataset(tmp, a.batch, objects_per_frame=8, seed=0)
+            data = KeypointDataset(tmp, taxonomy, a.imgsz, None, Augment())
+            images, targets, _ = collate_uint8([data[i] for i in range(a.batch)])
     images, targets = to_device(images, targets, device, False)
 
     runs, models = {}, {}
@@ -103,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     med = {k: statistics.median(v) for k, v in times.items()}
     base = med["train step, side -"]
     labelled = int(targets["bboxes"].shape[0])
-    print(f"crop stage cost: nano P2, batch {a.batch} at {a.imgsz} px, {labelled} labelled boxes "
+    print(f"crop stage cost: nano P2, batch {a.batch} at {a.imgsz} px ({a.dataset or 'fake frames'}), {labelled} labelled boxes "
           f"(at most {MAX_CROPS} cropped), {a.threads} threads, autocast {amp}; median of {a.rounds} rounds")
     print("| what | s | / stage-free step |")
     print("|---|---|---|")

@@ -315,13 +315,15 @@ def build_parser() -> argparse.ArgumentParser:
                          "unless --kpt-turn, which answers the same question")
     ap.add_argument("--heading-gain", type=float, default=None, help="omnigen train --heading-gain")
     ap.add_argument("--kpt-hidden", type=int, default=None, help="keypoint-branch width (omnigen train --kpt-hidden)")
-    ap.add_argument("--heading-crop", type=int, default=64, help="crop side of the second-stage heading (omnigen train --heading-crop); 0: none")
+    ap.add_argument("--heading-crop", type=int, default=64, help="crop side of the second stage that places corners and reads the front (omnigen train --heading-crop); 0: none")
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
                          "natively, a step in about 0.65 of the time by benchmarks/bench_train_step.py; else auto)")
-    ap.add_argument("--val-every", type=int, default=10,
+    ap.add_argument("--val-every", type=int, default=50,
                     help="validate every N epochs (and at the end): the curve in results.csv; the test split is "
-                         "evaluated with the last weights, never the best-validated ones")
+                         "evaluated with the last weights, never the best-validated ones. 50: each validation "
+                         "refines 300 detections a test frame with the crop stage (benchmarks/bench_crop_stage.py), "
+                         "about a minute of the 2-hour budget")
     ap.add_argument("--scales", nargs="+", default=["n"], help="model scales to train with P2 (n first)")
     ap.add_argument("--ablations", nargs="*", default=[], choices=["no-p2", "hires", "no-synthetic"],
                     help="also train: without P2, at 1.5x the input size (same crop), on the real sources alone")

@@ -11,7 +11,7 @@ facing right at a balanced accuracy of 0.85 (benchmarks/heading_visibility.py). 
 crops each object out of its own input image (bilinear, square about the box centre) and a small
 CNN of those benchmarks' shape regresses from the crop both the corners (in the crop's units:
 (x - box centre) / half side) and the image heading's direction. The keypoint branch still learns
-(its corners are what the detections past MAX_ORIENT keep); after NMS each of the best detections
+(its corners are what the detections past MAX_REFINE keep); after NMS each of the best detections
 takes the crop's corners, turned where the crop's heading says the other face is the front
 (`heading.orient`).
 
@@ -42,7 +42,7 @@ MARGIN = 0.1
 """Context around the box on each side, as a share of its longer side (heading_visibility's)."""
 MAX_CROPS = 128
 """Objects cropped per training step, at most (a random subset of the batch's labelled ones)."""
-MAX_ORIENT = 300
+MAX_REFINE = 300
 """Detections refined per image at prediction, the best-scoring first (NMS sorts them): each costs
 two passes of the crop net (the crop and its mirror), and evaluation keeps up to 1000 an image.
 Those past the 300th keep the keypoint branch's corners (in the heading head's order, with
@@ -208,7 +208,7 @@ def refine(net: CropNet, size: int, images: torch.Tensor, batch_index: torch.Ten
 
 
 def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[Detections],
-                      max_refine: int = MAX_ORIENT) -> list[Detections]:
+                      max_refine: int = MAX_REFINE) -> list[Detections]:
     """Per-image detections (in `images`' coordinates, best score first) with the corners of the
     first `max_refine` placed by their crops (`refine`): what prediction does after NMS for a
     crop-stage model."""

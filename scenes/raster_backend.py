@@ -70,7 +70,7 @@ MIN_SKY_VIEW = 0.3  # the least share of the sky a street canyon's floor sees (s
 SVF_CELL, SVF_REACH, SVF_DIRECTIONS = 2.0, 120.0, 16  # the sky-view map: cell (m), how far it looks (m), azimuths
 MIN_SUN_SHARE = 0.25  # below this share of the daylight the sun casts no visible shadow: no shadow pass
 DRAW_ORDER = {"road": 1, "sidewalk": 1, "lawn": 1, "marking_white": 2, "marking_yellow": 2, "ground": 3}  # others 0
-NON_CASTERS = frozenset({"window", "window_lit", "frame", "shopfront", "marking_white", "marking_yellow"})  # lie on other faces  # a street lamp: irradiance at 1 m (inverse square beyond), before exposure
+NON_CASTERS = frozenset({"window", "window_lit", "frame", "shopfront", "marking_white", "marking_yellow"})  # lie on other faces: cast no shadow
 
 
 @dataclass
