@@ -15,7 +15,8 @@ of an object from a square crop about its 2D box, cut exactly as the detector's 
 objects and scored on the test split's.
 
 - The target of corner k is (x_k - c) / half for each axis: c the box centre and half the crop's
-  half side (the box's longer side x (0.5 + margin)), so a corner at the crop's edge is +-1.
+  half side (the box's longer side x (0.5 + margin)), so a corner at the crop's edge is +-1: the
+  detector's crop units (crop_stage.to_crop_units).
 - The boxes the crops are cut about are the true ones moved at random (`--jitter` scales the
   noise: centre by N(0, 0.06) of the box's width and height, each side by a log-normal factor of
   sigma 0.1), as a detector's boxes are; scored both on the true boxes and on moved ones, the
@@ -44,11 +45,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.heading_visibility import to_tensor  # noqa: E402
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS, TURN_IDX, VIEWS  # noqa: E402
+from omnigen.detector.crop_stage import (CENTRE_JITTER, MARGIN, SIDE_JITTER, crop_boxes, from_crop_units,  # noqa: E402
+                                         mirror_corners, to_crop_units)
 
 OKS_K = 2 * 0.125  # COCO's kappa = 2 sigma, sigma the one omnigen.detector.oks_eval uses
-CENTRE_NOISE = 0.06  # of the box's width / height, one standard deviation, at --jitter 1
-SIDE_NOISE = 0.1  # log-normal sigma of each side's factor, at --jitter 1
 
 
 @dataclass
@@ -63,29 +65,14 @@ class LayoutCrops:
 
 
 def move_boxes(boxes: np.ndarray, rng: np.random.Generator, jitter: float) -> np.ndarray:
-    """Boxes moved and resized as a detector's boxes miss the truth (module docstring)."""
+    """Boxes moved and resized as a detector's boxes miss the truth: the crop stage's training noise
+    (crop_stage.jitter_boxes) scaled by `jitter`, drawn from a numpy generator."""
     if jitter <= 0:
         return boxes.copy()
     wh = boxes[:, 2:] - boxes[:, :2]
-    centre = (boxes[:, :2] + boxes[:, 2:]) / 2 + rng.normal(0, CENTRE_NOISE * jitter, wh.shape) * wh
-    wh = wh * np.exp(rng.normal(0, SIDE_NOISE * jitter, wh.shape))
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2 + rng.normal(0, CENTRE_JITTER * jitter, wh.shape) * wh
+    wh = wh * np.exp(rng.normal(0, SIDE_JITTER * jitter, wh.shape))
     return np.concatenate([centre - wh / 2, centre + wh / 2], axis=1)
-
-
-def half_side(boxes: np.ndarray, margin: float) -> np.ndarray:
-    """The crop's half side per box, as crop_boxes computes it."""
-    return np.maximum((boxes[:, 2:] - boxes[:, :2]).max(1), 1.0) * (0.5 + margin)
-
-
-def to_targets(keypoints: np.ndarray, boxes: np.ndarray, margin: float) -> np.ndarray:
-    """(N, 8, 2) corners in the crop's units: (x - box centre) / half side."""
-    centre = (boxes[:, :2] + boxes[:, 2:]) / 2
-    return (keypoints - centre[:, None]) / half_side(boxes, margin)[:, None, None]
-
-
-def from_targets(t: np.ndarray, boxes: np.ndarray, margin: float) -> np.ndarray:
-    centre = (boxes[:, :2] + boxes[:, 2:]) / 2
-    return t * half_side(boxes, margin)[:, None, None] + centre[:, None]
 
 
 def collect(ds, frame_ids: list[str], crop: int, min_side: float, copies: int, jitter: float,
@@ -95,7 +82,6 @@ def collect(ds, frame_ids: list[str], crop: int, min_side: float, copies: int, j
     import torch
     from PIL import Image
 
-    from omnigen.detector.crop_stage import MARGIN, crop_boxes
 
     out: dict[str, list] = {k: [] for k in ("images", "boxes", "true_boxes", "keypoints", "labelled", "views", "classes")}
     n = 0
@@ -141,20 +127,7 @@ def build_model(width: int = 16, crop: int = 64):
                          nn.Linear(128, 2 * NUM_KEYPOINTS))
 
 
-def to_tensor(images: np.ndarray):
-    import torch
-
-    return torch.from_numpy(images).permute(0, 3, 1, 2).float().div_(255.0)
-
-
-def flip_targets(t):
-    """Corner targets of the horizontally mirrored crop: x negated, corners renumbered."""
-    t = t[:, list(FLIP_IDX)].clone()
-    t[..., 0] = -t[..., 0]
-    return t
-
-
-def train(crops: LayoutCrops, steps: int, batch: int, seed: int, margin: float, lr: float = 2e-3):
+def train(crops: LayoutCrops, steps: int, batch: int, seed: int, lr: float = 2e-3):
     """A fixed-seed AdamW run with a one-cycle schedule; L1 on the corners in front of the camera;
     half of each batch mirrored."""
     import torch
@@ -165,7 +138,7 @@ def train(crops: LayoutCrops, steps: int, batch: int, seed: int, margin: float, 
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=0.1)
     x_all = to_tensor(crops.images)
-    t_np = to_targets(crops.keypoints, crops.boxes, margin)
+    t_np = to_crop_units(torch.from_numpy(crops.keypoints), torch.from_numpy(crops.boxes)).numpy()
     valid_all = torch.from_numpy(np.isfinite(t_np).all(-1))
     t_all = torch.from_numpy(np.nan_to_num(t_np)).float()
     model.train()
@@ -175,7 +148,7 @@ def train(crops: LayoutCrops, steps: int, batch: int, seed: int, margin: float, 
         x, t, valid = x_all[idx].clone(), t_all[idx].clone(), valid_all[idx].clone()
         flip = torch.from_numpy(rng.random(batch) < 0.5)
         x[flip] = x[flip].flip(-1)
-        t[flip] = flip_targets(t[flip])
+        t[flip] = mirror_corners(t[flip])
         valid[flip] = valid[flip][:, list(FLIP_IDX)]
         pred = model(x).view(-1, NUM_KEYPOINTS, 2)
         loss = ((pred - t).abs().sum(-1) * valid).sum() / valid.sum().clamp(min=1)
@@ -187,7 +160,7 @@ def train(crops: LayoutCrops, steps: int, batch: int, seed: int, margin: float, 
     return model, losses
 
 
-def predict(model, crops: LayoutCrops, margin: float, batch: int = 256) -> np.ndarray:
+def predict(model, crops: LayoutCrops, batch: int = 256) -> np.ndarray:
     """(N, 8, 2) corners in image pixels, averaged with the mirrored crop's prediction."""
     import torch
 
@@ -197,9 +170,9 @@ def predict(model, crops: LayoutCrops, margin: float, batch: int = 256) -> np.nd
         for i in range(0, len(crops.images), batch):
             x = to_tensor(crops.images[i:i + batch])
             p = model(x).view(-1, NUM_KEYPOINTS, 2)
-            q = flip_targets(model(x.flip(-1)).view(-1, NUM_KEYPOINTS, 2))
+            q = mirror_corners(model(x.flip(-1)).view(-1, NUM_KEYPOINTS, 2))
             out.append(((p + q) / 2).numpy())
-    return from_targets(np.concatenate(out).astype(np.float64), crops.boxes, margin)
+    return from_crop_units(torch.from_numpy(np.concatenate(out).astype(np.float64)), torch.from_numpy(crops.boxes)).numpy()
 
 
 def template_corners(template, crops: LayoutCrops) -> np.ndarray:
@@ -259,7 +232,6 @@ def main(argv: list[str] | None = None) -> int:
 
     from omnigen.dataset import Dataset
     from omnigen.detector.box_template import fit_box_template
-    from omnigen.detector.crop_stage import MARGIN
     from omnigen.progress import print_table
     from omnigen.splits import read_split
 
@@ -279,13 +251,13 @@ def main(argv: list[str] | None = None) -> int:
           f"({time.perf_counter() - t0:.1f} s)", flush=True)
     template = fit_box_template(ds, train_ids, fitted_from="train")
     t1 = time.perf_counter()
-    model, losses = train(tr, a.steps, a.batch, a.seed, MARGIN)
+    model, losses = train(tr, a.steps, a.batch, a.seed)
     print(f"trained {a.steps} steps in {time.perf_counter() - t1:.1f} s; L1 first 50 {np.mean(losses[:50]):.3f}, "
           f"last 50 {np.mean(losses[-50:]):.3f}", flush=True)
 
     rows, last = [], {}
     for boxes_name, te in (("true", te_true), ("moved", te_moved)):
-        preds = {"crop net": predict(model, te, MARGIN), "box template": template_corners(template, te)}
+        preds = {"crop net": predict(model, te), "box template": template_corners(template, te)}
         for who, pred in preds.items():
             groups = [("all", None)] + [(f"view={v}", te.views == VIEWS.index(v)) for v in VIEWS
                                         if np.any(te.views == VIEWS.index(v))]

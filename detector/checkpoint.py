@@ -68,8 +68,9 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     state = load_checkpoint(path)
     theirs, mine = DetectorConfig.from_dict(state["config"]).to_dict(), model.cfg.to_dict()
     for key in mine:
-        # the crop stage is a network of its own beside the detector: it may be added,
-        # dropped or resized (its net ends in a global pool) without changing any detector tensor
+        # the crop stage is a network of its own beside the detector: it may be added, dropped or
+        # resized without changing any detector tensor (resized, its flattened head changes shape and
+        # the whole stage starts fresh)
         if key not in ("num_classes", "heading_crop") and theirs.get(key) != mine[key]:
             raise ValueError(f"{path}: config field {key!r} is {theirs.get(key)!r}, this run builds {mine[key]!r}: "
                              "--weights needs the same architecture (only the classes may differ)")
@@ -111,7 +112,7 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     if fresh:
         notes.append(f"{path}: re-initialised {len(fresh)} class-head tensor(s): {', '.join(fresh)}")
     if fresh_crop:
-        notes.append(f"{path}: has no crop stage of this shape; it starts fresh ({len(fresh_crop)} tensors)")
+        notes.append(f"{path}: has no crop stage of this crop side; it starts fresh ({len(fresh_crop)} tensors)")
     if partial:
         notes.append(f"{path}: re-initialised the rows of new classes in {', '.join(partial)}")
     return notes

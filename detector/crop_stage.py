@@ -48,7 +48,8 @@ two passes of the crop net (the crop and its mirror), and evaluation keeps up to
 Those past the 300th keep the keypoint branch's corners (in the heading head's order, with
 kpt_heading). Not fewer: a weakly trained model ranks many of its matched objects low (the
 learning benchmark's 400-step model of the heading-only stage: corner error 0.445 orienting 300 an
-image, 0.460 orienting 100; 18 labelled objects a frame on average, 104 at most)."""
+image, 0.460 orienting 100 when rescored with this constant edited; 18 labelled objects a frame on
+average, 104 at most)."""
 MIN_SIDE = 4.0
 """Boxes whose longer side is under this many pixels are not cropped in training: nothing to see."""
 CENTRE_JITTER = 0.06
