@@ -12,7 +12,9 @@ rather than silently reused).
 
 The default fits a 2-core CPU: 600 raster frames at 640 x 640, and training on random 320 x 320
 windows of the 640-pixel input (`--crop 320`): a step costs what a 320-pixel input costs while
-every object keeps the scale it has when the model predicts on the whole 640-pixel image. On a
+every object keeps the scale it has when the model predicts on the whole 640-pixel image.
+Training is time-boxed (`--minutes 100`, train --time): the schedule is planned over the epochs
+that fit, at most `--epochs`, so the whole run stays within 2 hours on 2 cores. On a
 CPU that runs bfloat16 natively the steps run in bf16 (`--amp`, about 0.65 of a float32 step by
 benchmarks/bench_train_step.py). Training uses AdamW at 2e-3 (docs/detector-training.md says why).
 `--cache` keeps the decoded images in memory (565 MiB here; a few seconds of CPU an epoch by
@@ -292,7 +294,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--crop", type=int, default=320,
                     help="train on random CROP x CROP windows of the input (objects keep their scale, a step "
                          "costs what a CROP-pixel input costs); 0: whole images")
-    ap.add_argument("--epochs", type=int, default=150)
+    ap.add_argument("--epochs", type=int, default=150, help="epochs at most (--minutes may plan fewer)")
+    ap.add_argument("--minutes", type=float, default=100.0,
+                    help="training's wall-clock budget per model (train --time): the schedule is fitted to the "
+                         "epochs that fit, so the whole default run stays within 2 hours on 2 cores; 0: none")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--cache", action="store_true", help="train with the images decoded once, in memory (train --cache)")
@@ -380,6 +385,7 @@ def main(argv: list[str] | None = None) -> int:
               "--workers", str(args.workers), "--seed", str(args.seed),
               "--optimizer", args.optimizer, "--lr0", str(args.lr0), "--val-every", str(args.val_every),
               "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp] + keypoint_recipe(args)
+    common += ["--time", str(args.minutes)] if args.minutes else []
     common += (["--device", args.device] if args.device else []) + (["--cache"] if args.cache else [])
     runs: list[dict[str, Any]] = []
 
