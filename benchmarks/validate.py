@@ -278,6 +278,12 @@ def keypoint_recipe(args: argparse.Namespace) -> list[str]:
             + (["--heading-crop", str(args.heading_crop)] if args.heading_crop else []))
 
 
+def time_box(args: argparse.Namespace) -> list[str]:
+    """`omnigen train --time MINUTES` from --minutes (none for 0): the trainer plans the epochs that
+    fit, so the 2-hour figure of the default run is a budget kept, not a projection."""
+    return ["--time", str(args.minutes)] if args.minutes else []
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, default=Path("runs/validate"), help="working folder (resumable)")
@@ -385,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
               "--workers", str(args.workers), "--seed", str(args.seed),
               "--optimizer", args.optimizer, "--lr0", str(args.lr0), "--val-every", str(args.val_every),
               "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp] + keypoint_recipe(args)
-    common += ["--time", str(args.minutes)] if args.minutes else []
+    common += time_box(args)
     common += (["--device", args.device] if args.device else []) + (["--cache"] if args.cache else [])
     runs: list[dict[str, Any]] = []
 

@@ -298,6 +298,13 @@ def test_default_recipe_is_the_crop_heading_one():
     assert plain == ["--kpt-mode", "anchor", "--kpt-l1", "0.0", "--kpt-labelled", "0.0", "--kpt-turn-start", "0.0"]
 
 
+def test_training_is_time_boxed_by_default_and_can_be_left_unboxed():
+    ap = validate.build_parser()
+    assert validate.time_box(ap.parse_args([])) == ["--time", "100.0"]
+    assert validate.time_box(ap.parse_args(["--minutes", "30"])) == ["--time", "30.0"]
+    assert validate.time_box(ap.parse_args(["--minutes", "0"])) == []
+
+
 @pytest.mark.parametrize("argv", [["--kpt-turn", "--kpt-heading"], ["--kpt-turn", "--heading-gain", "2"],
                                   ["--no-kpt-heading", "--heading-gain", "2"]])
 def test_recipes_train_would_refuse_are_refused_first(argv, capsys):
