@@ -56,6 +56,8 @@ RIGS = ("ego", "pole", "drone")
 TARGETS = {"ego": 55.0, "pole": 55.0, "drone": 40.0}
 """Issue 26's contrast targets: median per-frame luminance std of default raster frames."""
 BINS = 32
+HIST_SPAN = 256.0
+"""Histograms cover 8-bit values over [0, HIST_SPAN): 255 falls in the last bin."""
 EDGE_THRESHOLD = 32.0
 """Grey levels per pixel (the Sobel response divided by 8) at which a pixel counts as an edge: a
 step of 64 grey levels between neighbours passes, sensor noise and smooth shading do not."""
@@ -102,9 +104,14 @@ def colourfulness(rgb: np.ndarray) -> float:
 
 
 def histogram(values: np.ndarray, bins: int = BINS) -> np.ndarray:
-    """Normalised histogram of 0-255 values in `bins` equal bins (sums to 1)."""
-    h, _ = np.histogram(np.asarray(values, dtype=np.float64).ravel(), bins=bins, range=(0.0, 256.0))
+    """Normalised histogram of 0-255 values in `bins` equal bins over [0, HIST_SPAN) (sums to 1)."""
+    h, _ = np.histogram(np.asarray(values, dtype=np.float64).ravel(), bins=bins, range=(0.0, HIST_SPAN))
     return h / max(h.sum(), 1)
+
+
+def bin_centres(bins: int = BINS) -> np.ndarray:
+    """The 8-bit value at the middle of each of histogram()'s bins (where the figure plots them)."""
+    return (np.arange(bins) + 0.5) * HIST_SPAN / bins
 
 
 def intersection(p: np.ndarray, q: np.ndarray) -> float:
@@ -112,7 +119,7 @@ def intersection(p: np.ndarray, q: np.ndarray) -> float:
     return float(np.minimum(p, q).sum())
 
 
-def emd(p: np.ndarray, q: np.ndarray, span: float = 256.0) -> float:
+def emd(p: np.ndarray, q: np.ndarray, span: float = HIST_SPAN) -> float:
     """Earth mover's distance between two normalised 1D histograms over [0, span), in the values'
     units (grey levels): the L1 distance of their cumulative sums times the bin width."""
     return float(np.abs(np.cumsum(p) - np.cumsum(q)).sum() * span / len(p))
@@ -144,7 +151,7 @@ class SetStats:
     frames: int
     lum_mean: float
     lum_std: float
-    lum_std_per_frame: list[float]
+    lum_std_per_frame: list[float]  # unrounded (the figure picks its frame by them); to_dict rounds
     edge_density: float
     colourfulness: float
     hist_lum: np.ndarray
@@ -152,6 +159,7 @@ class SetStats:
 
     def to_dict(self) -> dict:
         d = asdict(self)
+        d["lum_std_per_frame"] = [round(v, 3) for v in self.lum_std_per_frame]
         d["hist_lum"] = self.hist_lum.round(6).tolist()
         d["hist_rgb"] = self.hist_rgb.round(6).tolist()
         return d
@@ -162,7 +170,7 @@ def set_stats(name: str, images: list[np.ndarray]) -> SetStats:
     if not fs:
         raise ValueError(f"{name}: no frames")
     med = lambda k: float(np.median([getattr(f, k) for f in fs]))  # noqa: E731
-    return SetStats(name, len(fs), med("lum_mean"), med("lum_std"), [round(f.lum_std, 3) for f in fs],
+    return SetStats(name, len(fs), med("lum_mean"), med("lum_std"), [f.lum_std for f in fs],
                     med("edge_density"), med("colourfulness"), np.mean([f.hist_lum for f in fs], axis=0),
                     np.mean([f.hist_rgb for f in fs], axis=0))
 
@@ -215,11 +223,12 @@ def summary(v: np.ndarray) -> dict[str, float | int | None]:
             "p90": float(np.percentile(v, 90)), "min": float(v.min()), "max": float(v.max())}
 
 
-def synthetic_objects(name: str, dataset: Path) -> Objects:
-    """Every annotated object of a rendered dataset's records (box centre in the camera frame)."""
+def synthetic_objects(name: str, records: list[dict]) -> Objects:
+    """Every annotated object of a rendered dataset's records (dataset_records; box centre in the
+    camera frame)."""
     objs = Objects(name)
-    for p in sorted((dataset / "records").glob("*.json")):
-        for o in json.loads(p.read_text())["objects"]:
+    for record in records:
+        for o in record["objects"]:
             b = o["box3d"]
             objs.add(o["category"], b["dims"], np.linalg.norm(b["center"]))
     return objs
@@ -254,10 +263,11 @@ def dair_labels(root: Path) -> list:
     return [o for p in sorted(root.rglob("*.json")) for o in parse_label(read_json(p), p).objects]
 
 
-def dair_objects(root: Path) -> Objects:
-    """DAIR-V2X label objects by fine class; distance of the box centre from the virtual-LiDAR origin."""
+def dair_objects(labels: list) -> Objects:
+    """DAIR-V2X label objects (dair_labels) by fine class; distance of the box centre from the
+    virtual-LiDAR origin."""
     objs = Objects("dair-v2x", note="distance from the virtual-LiDAR origin (no calibration in the sample)")
-    for o in dair_labels(root):
+    for o in labels:
         objs.add(o.category, o.lwh, math.sqrt(sum(float(v) ** 2 for v in o.center)))
     return objs
 
@@ -266,26 +276,31 @@ DAIR_IMAGE = (1920, 1080)
 """DAIR-V2X's infrastructure images (the sample has none: the size is the dataset's)."""
 
 
-def dair_camera(root: Path) -> dict | None:
-    """The sample's roadside camera as its own labels imply it: the pinhole camera (focal length,
-    pitch, yaw, roll and position; principal point at the centre of a DAIR_IMAGE frame, no
-    distortion) under which each labelled cuboid's projected corners span its labelled 2D box, by
-    least squares. Why: the sample has no image and no calibration, yet how a real roadside camera
-    looks at a junction (how far down, how wide) is what the pole rig draws. None with fewer than
-    four boxes (seven unknowns)."""
-    from scipy.optimize import least_squares  # here: only this figure needs it
+def untruncated(o) -> bool:
+    """A DAIR-V2X label object whose truncated_state is 0 (1 and 2: cut by the image's side or
+    bottom edge, its 2d_box clipped to the image)."""
+    return str(o.attributes.get("truncated_state", "0")).strip() in ("0", "0.0")
 
-    objs = dair_labels(root)
+
+def dair_camera(labels: list) -> dict | None:
+    """The sample's roadside camera as its own labels (dair_labels) imply it: the pinhole camera
+    (focal length, pitch, yaw, roll and position; principal point at the centre of a DAIR_IMAGE
+    frame, no distortion) under which each untruncated labelled cuboid's projected corners span its
+    labelled 2D box, by least squares. Why: the sample has no image and no calibration, yet how a
+    real roadside camera looks at a junction (how far down, how wide) is what the pole rig draws.
+    Truncated objects are left out: their 2D boxes are clipped to the image, which the unclipped
+    projection does not model (with them the fit missed the known cameras of the converters' DAIR
+    fixture, omnigen.converters.dair_fixture, by degrees and metres). None with fewer than four
+    untruncated boxes (seven unknowns)."""
+    objs = [o for o in labels if untruncated(o)]
     if len(objs) < 4:
         return None
-    signs = np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)], dtype=np.float64) / 2.0
-    corners = []
-    for o in objs:
-        cs, sn = math.cos(o.yaw), math.sin(o.yaw)
-        local = signs * np.asarray(o.lwh, dtype=np.float64)
-        corners.append(np.asarray(o.center, dtype=np.float64) + np.stack(
-            [cs * local[:, 0] - sn * local[:, 1], sn * local[:, 0] + cs * local[:, 1], local[:, 2]], axis=1))
-    corners = np.stack(corners)
+    from scipy.optimize import least_squares  # here: only this figure needs it
+
+    from omnigen.geometry import cuboid_corners, rots_z
+
+    corners = cuboid_corners(np.array([o.center for o in objs], dtype=np.float64),
+                             np.array([o.lwh for o in objs], dtype=np.float64), rots_z([o.yaw for o in objs]))
     boxes = np.array([[o.box2d[0], o.box2d[1], o.box2d[2], o.box2d[3]] for o in objs], dtype=np.float64)
     cx, cy = DAIR_IMAGE[0] / 2.0, DAIR_IMAGE[1] / 2.0
 
@@ -392,6 +407,16 @@ def dataset_images(dataset: Path) -> list[np.ndarray]:
     return [read_rgb(p) for p in sorted((dataset / "images").glob("*.png"))]
 
 
+def dataset_records(dataset: Path) -> list[dict]:
+    """A rendered dataset's records (records/*.json, in frame order)."""
+    return [json.loads(p.read_text()) for p in sorted((dataset / "records").glob("*.json"))]
+
+
+def kitti_images(kitti: Path, width: int) -> list[np.ndarray]:
+    """KITTI's left colour frames (image_2), resized to the renders' width as the benchmark measures them."""
+    return [read_rgb(p, width) for p in sorted((kitti / "image_2").glob("*.png"))]
+
+
 def dataset_scene(dataset: Path) -> str:
     return json.loads((dataset / "manifest.json").read_text())["render"]["scene"]
 
@@ -448,8 +473,8 @@ def class_figure(work: Path, seed: int, stamp: str, scene: str | None) -> dict:
         ds = render(rig, work / f"classes-{rig}-{n}-{CLASS_SIZE[0]}x{CLASS_SIZE[1]}-s{seed}", n, *CLASS_SIZE, seed,
                     stamp, scene)
         scenes.add(dataset_scene(ds))
-        for p in sorted((ds / "records").glob("*.json")):
-            objs = json.loads(p.read_text())["objects"]
+        for record in dataset_records(ds):
+            objs = record["objects"]
             mix.add_frame([o["category"] for o in objs], [tuple(o["box3d"]["dims"]) for o in objs])
     return class_summary(mix, sorted(scenes))
 
@@ -477,7 +502,7 @@ def run(args: argparse.Namespace) -> dict:
     scenes = sorted({dataset_scene(ds) for ds in datasets.values()})
     sets = {rig: set_stats(rig, dataset_images(ds)) for rig, ds in datasets.items()}
     if kitti is not None:
-        sets["kitti"] = set_stats("kitti", [read_rgb(p, args.size) for p in sorted((kitti / "image_2").glob("*.png"))])
+        sets["kitti"] = set_stats("kitti", kitti_images(kitti, args.size))
     print(f"realism: {args.frames} frames a rig at {args.size}x{args.size}, raster preview, scene "
           f"{', '.join(scenes)}, seed {args.seed}; renders in {shown(work)}")
     for n in notes:
@@ -494,13 +519,14 @@ def run(args: argparse.Namespace) -> dict:
                     [[rig, f"{d['lum_intersection']:.3f}", f"{d['lum_emd']:.1f}", f"{d['rgb_intersection']:.3f}",
                       f"{d['r_emd']:.1f}", f"{d['g_emd']:.1f}", f"{d['b_emd']:.1f}"] for rig, d in distances.items()])
 
-    objects = [synthetic_objects(rig, ds) for rig, ds in datasets.items()]
+    objects = [synthetic_objects(rig, dataset_records(ds)) for rig, ds in datasets.items()]
     if kitti is not None:
         objects.append(kitti_objects(kitti))
-    if dair is not None:
-        objects.append(dair_objects(dair))
+    labels = dair_labels(dair) if dair is not None else None
+    if labels is not None:
+        objects.append(dair_objects(labels))
     sizes = {o.name: {m: summary(o.values(m)) for m in MEASURES} for o in objects}
-    camera = dair_camera(dair) if dair is not None else None
+    camera = dair_camera(labels) if labels is not None else None
     f = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
     print_table("object sizes and distances (m)", ["source", "measure", "n", "median", "p10", "p90", "min", "max"],
                 [[name, m, s["n"], f(s["median"]), f(s["p10"]), f(s["p90"]), f(s["min"]), f(s["max"])]
@@ -525,14 +551,20 @@ def run(args: argparse.Namespace) -> dict:
     return result
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_render_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options that name the renders and the real sample, shared with realism_figure.py so that
+    both scripts default to the same work folder (and so reuse the same renders)."""
     ap.add_argument("--frames", type=int, default=12, help="frames a rig")
     ap.add_argument("--size", type=int, default=640, help="square frame size of the rig renders")
     ap.add_argument("--work", default=str(ROOT / "runs" / "realism"), help="render folder, reused")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scene", default=None, help="city preset or TOML (default: omnigen render's default)")
     ap.add_argument("--realdata", default=str(ROOT.parent / "shared" / "realdata"))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_render_arguments(ap)
     ap.add_argument("--out", default="", help="write the figures as JSON here")
     ap.add_argument("--no-classes", action="store_true", help="leave out the 10-frame class figure")
     return ap

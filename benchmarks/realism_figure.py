@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import io
-import json
 import math
 import sys
 from pathlib import Path
@@ -41,10 +40,10 @@ CLASS_COLOURS = {"car": "tab:blue", "van": "tab:cyan", "truck": "tab:orange", "b
                  "tricyclist": "tab:pink", "barrow": "tab:gray", "traffic_cone": "gold", "misc": "black"}
 
 
-def representative(images: list[np.ndarray]) -> int:
-    """Index of the image whose luminance std is nearest the median of the set's."""
-    stds = np.array([br.luminance(im).std() for im in images])
-    return int(np.argmin(np.abs(stds - np.median(stds))))
+def representative(s: br.SetStats) -> int:
+    """Index of the frame whose luminance std is nearest the set's median (as the benchmark measured
+    them)."""
+    return int(np.argmin(np.abs(np.asarray(s.lum_std_per_frame) - s.lum_std)))
 
 
 def save_small(fig, path: Path) -> int:
@@ -63,7 +62,7 @@ def save_small(fig, path: Path) -> int:
 
 def plot_histograms(ax, sets: list[tuple[br.SetStats, str]], title: str) -> None:
     """Luminance (black) and R, G, B histograms of each set; the first set solid, the next dashed."""
-    centres = (np.arange(br.BINS) + 0.5) * 256 / br.BINS
+    centres = br.bin_centres()
     for s, style in sets:
         ax.plot(centres, s.hist_lum, color="black", ls=style, lw=1.6, label=f"{s.name} luminance")
         for c, colour in enumerate(("tab:red", "tab:green", "tab:blue")):
@@ -81,17 +80,17 @@ def show_image(ax, im: np.ndarray, title: str) -> None:
     ax.axis("off")
 
 
-def ego_figure(ego: list[np.ndarray], kitti: list[np.ndarray] | None, path: Path) -> int:
+def ego_figure(ego: list[np.ndarray], kitti: list[np.ndarray] | None, k: br.SetStats | None, path: Path) -> int:
+    """The ego figure; `k` is set_stats of the `kitti` frames (None without them)."""
     import matplotlib.pyplot as plt
 
     e = br.set_stats("rendered ego", ego)
     fig, axes = plt.subplots(2, 2, figsize=(11, 7), gridspec_kw={"height_ratios": [1.3, 1]})
-    i = representative(ego)
-    show_image(axes[0, 0], ego[i], f"rendered ego (raster), frame {i}: lum std {br.luminance(ego[i]).std():.1f}")
+    i = representative(e)
+    show_image(axes[0, 0], ego[i], f"rendered ego (raster), frame {i}: lum std {e.lum_std_per_frame[i]:.1f}")
     if kitti:
-        k = br.set_stats("KITTI", kitti)
-        j = representative(kitti)
-        show_image(axes[0, 1], kitti[j], f"KITTI training frame {j}: lum std {br.luminance(kitti[j]).std():.1f}")
+        j = representative(k)
+        show_image(axes[0, 1], kitti[j], f"KITTI training frame {j}: lum std {k.lum_std_per_frame[j]:.1f}")
         plot_histograms(axes[1, 0], [(e, "-"), (k, "--")], "luminance and R, G, B: rendered (solid), KITTI (dashed)")
         d = br.compare(e, k)
         axes[1, 1].axis("off")
@@ -135,61 +134,66 @@ def ground_view(record: dict) -> list[tuple[str, float, float, float, float, flo
     return out
 
 
-def dair_view(root: Path) -> list[tuple[str, float, float, float, float, float]]:
-    """The DAIR-V2X label's objects from above in the virtual-LiDAR frame (x forward, y left; the yaw
-    about +z, 0 along +x, as omnigen.formats.dair reads it), by bench_realism's (the converter's) reading."""
+def dair_view(labels: list) -> list[tuple[str, float, float, float, float, float]]:
+    """The DAIR-V2X label's objects (bench_realism.dair_labels: the converter's reading) from above
+    in the virtual-LiDAR frame (x forward, y left; the yaw about +z, 0 along +x, as
+    omnigen.formats.dair reads it)."""
     return [(o.category, float(o.center[0]), float(o.center[1]), o.yaw, float(o.lwh[0]), float(o.lwh[1]))
-            for o in br.dair_labels(root)]
+            for o in labels]
 
 
 def draw_top(ax, objs, fill: bool, label: str) -> None:
-    """Objects as rectangles from above: forward up the page, left to the left."""
+    """Objects as rectangles from above (their cuboids' top corners 0-3, omnigen.geometry's):
+    forward up the page, left to the left."""
     from matplotlib.patches import Polygon
 
+    from omnigen.geometry import cuboid_corners, rot_z
+
     for cat, x, y, yaw, l, w in objs:
-        f, s = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
-        corners = [np.array([x, y]) + a * l / 2 * f + b * w / 2 * s for a, b in ((1, 1), (1, -1), (-1, -1), (-1, 1))]
+        corners = cuboid_corners(np.array([x, y, 0.0]), np.array([l, w, 0.0]), rot_z(yaw))[:4, :2]
         pts = [(-c[1], c[0]) for c in corners]  # page x = -left, page y = forward
         colour = CLASS_COLOURS.get(cat, "black")
         ax.add_patch(Polygon(pts, closed=True, fill=fill, facecolor=colour, edgecolor=colour, lw=1.0, alpha=0.8))
     ax.plot([], [], "s", mfc="gray" if fill else "none", mec="gray", ls="", label=label)
 
 
-def pole_figure(pole: list[np.ndarray], records: list[dict], kitti: list[np.ndarray] | None, dair: Path | None,
+def pole_figure(pole: list[np.ndarray], records: list[dict], k: br.SetStats | None, labels: list | None,
                 distances: np.ndarray, path: Path) -> int:
+    """The pole figure; `k` is KITTI's set_stats, `labels` the DAIR-V2X sample's (dair_labels)."""
     import matplotlib.pyplot as plt
 
     p = br.set_stats("rendered pole", pole)
     fig, axes = plt.subplots(2, 2, figsize=(11, 8), gridspec_kw={"height_ratios": [1.2, 1]})
-    i = representative(pole)
-    show_image(axes[0, 0], pole[i], f"rendered pole (raster), frame {i}: lum std {br.luminance(pole[i]).std():.1f}")
+    i = representative(p)
+    show_image(axes[0, 0], pole[i], f"rendered pole (raster), frame {i}: lum std {p.lum_std_per_frame[i]:.1f}")
     ax = axes[0, 1]
-    draw_top(ax, ground_view(records[i]), fill=False, label=f"pole frame {i} (outline)")
-    if dair is not None:
-        draw_top(ax, dair_view(dair), fill=True, label="DAIR-V2X-C 001366 label (filled)")
+    ours, theirs = ground_view(records[i]), (dair_view(labels) if labels is not None else [])
+    draw_top(ax, ours, fill=False, label=f"pole frame {i} (outline)")
+    if labels is not None:
+        draw_top(ax, theirs, fill=True, label="DAIR-V2X-C 001366 label (filled)")
     ax.plot([0], [0], "k^", ms=8, label="camera / LiDAR")
-    everything = ground_view(records[i]) + (dair_view(dair) if dair else [])
+    everything = ours + theirs
     reach = max([10.0] + [abs(o[1]) + o[4] for o in everything] + [2 * abs(o[2]) + o[4] for o in everything])
     ax.set_xlim(-0.8 * reach, reach / 2)  # room on the left for the legend
     ax.set_ylim(-5, reach)
     ax.set_aspect("equal")
     ax.set_xlabel("metres to the right")
     ax.set_ylabel("metres forward")
-    seen = sorted({o[0] for o in ground_view(records[i])} | ({o[0] for o in dair_view(dair)} if dair else set()))
+    seen = sorted({o[0] for o in everything})
     for cat in seen:
         ax.plot([], [], "s", color=CLASS_COLOURS.get(cat, "black"), ls="", label=cat)
     ax.legend(fontsize=6, loc="lower left")
     ax.set_title("objects from above: the pole frame and the DAIR-V2X label (it has no image)", fontsize=9)
-    if kitti:
-        plot_histograms(axes[1, 0], [(p, "-"), (br.set_stats("KITTI", kitti), "--")],
+    if k is not None:
+        plot_histograms(axes[1, 0], [(p, "-"), (k, "--")],
                         "pole (solid) against KITTI (dashed; no roadside photo in the sample)")
     else:
         plot_histograms(axes[1, 0], [(p, "-")], "luminance and R, G, B: rendered pole")
     ax = axes[1, 1]
     bins = np.linspace(0, 200, 21)
     ax.hist(np.clip(distances, 0, 200), bins=bins, density=True, alpha=0.6, label=f"rendered pole ({len(distances)} objects)")
-    if dair is not None:
-        dd = br.dair_objects(dair).values("distance")
+    if labels is not None:
+        dd = br.dair_objects(labels).values("distance")
         ax.hist(np.clip(dd, 0, 200), bins=bins, density=True, histtype="step", lw=2, color="black",
                 label=f"DAIR-V2X sample ({len(dd)} objects)")
     ax.set_xlabel("distance to the camera (m; DAIR: to the LiDAR)")
@@ -207,12 +211,7 @@ def main(argv: list[str] | None = None) -> int:
 
     matplotlib.use("Agg")
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=12)
-    ap.add_argument("--size", type=int, default=640)
-    ap.add_argument("--work", default=str(ROOT / "runs" / "realism"))
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--scene", default=None, help="city preset or TOML (default: omnigen render's default)")
-    ap.add_argument("--realdata", default=str(ROOT.parent / "shared" / "realdata"))
+    br.add_render_arguments(ap)
     ap.add_argument("--out-dir", default=str(ROOT / "docs" / "images"))
     args = ap.parse_args(argv)
     work, out = Path(args.work), Path(args.out_dir)
@@ -225,13 +224,14 @@ def main(argv: list[str] | None = None) -> int:
     except RuntimeError as exc:
         print(f"realism_figure: {exc}", file=sys.stderr)
         return 1
-    kitti = [br.read_rgb(p, args.size) for p in sorted((kitti_root / "image_2").glob("*.png"))] if kitti_root else None
-    # The KITTI frames resized to the renders' width, as the benchmark measures them.
-    size = ego_figure(br.dataset_images(ds["ego"]), kitti, out / "realism-ego.png")
+    kitti = br.kitti_images(kitti_root, args.size) if kitti_root else None
+    k = br.set_stats("KITTI", kitti) if kitti else None
+    size = ego_figure(br.dataset_images(ds["ego"]), kitti, k, out / "realism-ego.png")
     print(f"wrote {out / 'realism-ego.png'} ({size / 1024:.0f} KB)")
-    records = [json.loads(p.read_text()) for p in sorted((ds["pole"] / "records").glob("*.json"))]
-    size = pole_figure(br.dataset_images(ds["pole"]), records, kitti, dair,
-                       br.synthetic_objects("pole", ds["pole"]).values("distance"), out / "realism-pole.png")
+    records = br.dataset_records(ds["pole"])
+    labels = br.dair_labels(dair) if dair is not None else None
+    size = pole_figure(br.dataset_images(ds["pole"]), records, k, labels,
+                       br.synthetic_objects("pole", records).values("distance"), out / "realism-pole.png")
     print(f"wrote {out / 'realism-pole.png'} ({size / 1024:.0f} KB)")
     return 0
 

@@ -71,6 +71,24 @@ def test_histogram_distances():
     assert d["r_emd"] == d["lum_emd"] and d["rgb_intersection"] == 0.0
 
 
+def test_bin_centres_lie_in_their_own_bins():
+    c = br.bin_centres()
+    assert len(c) == br.BINS and c[0] == pytest.approx(4.0) and c[-1] == pytest.approx(252.0)
+    assert [int(np.argmax(br.histogram(v))) for v in c] == list(range(br.BINS))
+
+
+def test_the_figure_shows_the_frame_nearest_the_median_std_and_the_json_rounds_it():
+    from benchmarks.realism_figure import representative
+
+    half = np.zeros((10, 20), np.uint8)
+    half[:, 10:] = 200  # std 100
+    third = np.zeros((9, 20), np.uint8)
+    third[:3] = 100  # std 100 * sqrt(2) / 3, not a round number
+    s = br.set_stats("x", [grey(np.full((10, 20), 50)), grey(half), grey(third)])
+    assert representative(s) == 2 and s.lum_std == s.lum_std_per_frame[2]
+    assert s.to_dict()["lum_std_per_frame"] == [0.0, 100.0, round(100 * 2 ** 0.5 / 3, 3)]
+
+
 def test_colourfulness_is_zero_for_grey_and_grows_with_colour():
     assert br.colourfulness(grey(np.random.default_rng(0).integers(0, 255, (8, 8)))) == pytest.approx(0.0)
     im = np.zeros((8, 8, 3), np.uint8)
@@ -109,7 +127,7 @@ def test_kitti_and_dair_labels_are_read_with_their_sizes_and_distances():
     assert k.values("ped. height").tolist() == [1.89]
     # The pedestrian of 000000: bottom centre (1.84, 1.47, 8.41), h 1.89: centre 0.945 m higher.
     assert k.distance[0] == pytest.approx(np.linalg.norm([1.84, 1.47 - 0.945, 8.41]))
-    d = br.dair_objects(REALDATA / "dair-v2x-c" / "infrastructure-side")
+    d = br.dair_objects(br.dair_labels(REALDATA / "dair-v2x-c" / "infrastructure-side"))
     assert d.category.count("car") == 4 and d.category.count("motorcyclist") == 3
     assert d.category.count("traffic_cone") == 1  # 'Trafficcone', mixed case
     assert br.summary(d.values("ped. height"))["n"] == 0

@@ -1,52 +1,48 @@
 """bench_realism.dair_camera: a roadside camera recovered from a DAIR-V2X label's own 2D and 3D boxes
-(the sample has no calibration): a label made by a known camera gives that camera back."""
+(the sample has no calibration). The labels come from the converters' DAIR fixture
+(omnigen.converters.dair_fixture), which projects each cuboid's corners with its own pinhole camera,
+independently of bench_realism and omnigen.geometry, and returns that camera: the fit must give it
+back. The fixture's frames also hold truncated objects (2D boxes clipped to the image), which the
+fit has to leave out."""
 
 from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
-import numpy as np
 import pytest
 
 from benchmarks import bench_realism as br
+from omnigen.converters.dair_fixture import IGNORE_NAMES, FixtureCamera, write_dair_tree
 
 
-def _label(f: float, pitch: float, yaw: float, pos) -> list[dict]:
-    """Cars on the ground ahead of a camera (DAIR's virtual-LiDAR frame, z up), their 2d_box the
-    projection of their cuboids by that camera into a 1920 x 1080 image."""
-    rng = np.random.default_rng(4)
-    cp, sp, cw, sw = math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
-    ahead, down, right = np.array([cp * cw, cp * sw, -sp]), np.array([-sp * cw, -sp * sw, -cp]), np.array([sw, -cw, 0.0])
-    out = []
-    for _ in range(9):
-        d, side, rot = rng.uniform(20, 90), rng.uniform(-0.25, 0.25), rng.uniform(-math.pi, math.pi)
-        l, w, h = rng.uniform(3.8, 4.8), rng.uniform(1.7, 1.9), rng.uniform(1.4, 1.6)
-        c = np.array([pos[0] + d * math.cos(yaw + side), pos[1] + d * math.sin(yaw + side), h / 2])
-        s = np.array([[a, b, e] for a in (-1, 1) for b in (-1, 1) for e in (-1, 1)]) * [l / 2, w / 2, h / 2]
-        pts = c + np.stack([math.cos(rot) * s[:, 0] - math.sin(rot) * s[:, 1], math.sin(rot) * s[:, 0] + math.cos(rot) * s[:, 1], s[:, 2]], 1)
-        rel = pts - np.asarray(pos)
-        u, v = 960 + f * (rel @ right) / (rel @ ahead), 540 + f * (rel @ down) / (rel @ ahead)
-        out.append({"type": "Car", "truncated_state": "0", "occluded_state": "0", "alpha": "0",
-                    "2d_box": {"xmin": u.min(), "ymin": v.min(), "xmax": u.max(), "ymax": v.max()},
-                    "3d_dimensions": {"h": h, "w": w, "l": l}, "3d_location": {"x": c[0], "y": c[1], "z": c[2]},
-                    "rotation": rot})
-    return out
+def _fixture_frame(root: Path, seed: int) -> tuple[list, list[dict], FixtureCamera]:
+    """One fixture frame at DAIR-V2X's image size: (parsed labels, raw label JSON, its camera)."""
+    fx = write_dair_tree(root, 1, seed=seed, image_size=br.DAIR_IMAGE, objects=(12, 14))
+    folder = root / "label" / "camera"
+    raw = json.loads((folder / f"{fx.keys[0]}.json").read_text())
+    return br.dair_labels(folder), raw, fx.cameras[0]
 
 
-def test_a_known_camera_is_recovered_from_its_labels(tmp_path):
+@pytest.mark.parametrize("seed", [0, 7])
+def test_the_fixture_camera_is_recovered_from_its_labels(tmp_path, seed):
     pytest.importorskip("scipy")
-    (tmp_path / "label").mkdir()
-    (tmp_path / "label" / "000001.json").write_text(json.dumps(_label(2000.0, math.radians(18.0), math.radians(5.0), (1.0, -3.0, 7.5))))
-    cam = br.dair_camera(tmp_path)
-    assert cam["boxes"] == 9 and cam["rms_px"] < 0.5
-    assert cam["pitch_deg"] == pytest.approx(18.0, abs=0.2)
-    assert cam["hfov_deg"] == pytest.approx(2 * math.degrees(math.atan(960 / 2000.0)), abs=0.3)
-    assert cam["height_m"] == pytest.approx(7.5, abs=0.1)
-    assert cam["top_edge_deg"] == pytest.approx(18.0 - math.degrees(math.atan(540 / 2000.0)), abs=0.3)
+    labels, raw, truth = _fixture_frame(tmp_path, seed)
+    untruncated = [o for o in raw if o["truncated_state"] == "0" and o["type"] not in IGNORE_NAMES]
+    assert len(untruncated) < len(labels)  # the frame has truncated objects for the fit to leave out
+    cam = br.dair_camera(labels)
+    assert cam["boxes"] == len(untruncated) and cam["rms_px"] < 1.0
+    assert cam["pitch_deg"] == pytest.approx(math.degrees(truth.pitch), abs=0.2)
+    f = truth.K[1, 1]  # the fixture's fx is f within 0.2 %
+    assert cam["hfov_deg"] == pytest.approx(2 * math.degrees(math.atan(br.DAIR_IMAGE[0] / 2 / f)), abs=0.3)
+    assert cam["height_m"] == pytest.approx(truth.height, abs=0.1)
+    vfov = 2 * math.degrees(math.atan(br.DAIR_IMAGE[1] / 2 / f))
+    assert cam["top_edge_deg"] == pytest.approx(math.degrees(truth.pitch) - vfov / 2, abs=0.3)
 
 
-def test_too_few_boxes_give_no_camera(tmp_path):
-    (tmp_path / "label").mkdir()
-    (tmp_path / "label" / "000001.json").write_text(json.dumps(_label(2000.0, 0.3, 0.0, (0.0, 0.0, 6.0))[:3]))
-    assert br.dair_camera(tmp_path) is None
+def test_too_few_untruncated_boxes_give_no_camera(tmp_path):
+    labels, _, _ = _fixture_frame(tmp_path, 0)
+    kept = [o for o in labels if br.untruncated(o)]
+    assert len(kept) >= 4 and br.dair_camera(kept[:3]) is None
+    assert br.dair_camera(kept[:3] + [o for o in labels if not br.untruncated(o)]) is None
