@@ -439,6 +439,16 @@ def finalize_run(job: RenderJob, show_progress: bool = True, writer: DatasetWrit
     return True
 
 
+FrameFiles = tuple[tuple[str, np.ndarray], tuple[str, np.ndarray], tuple[str, np.ndarray]]
+
+
+def _frame_files(record: FrameRecord, rgb: np.ndarray, out: Rendered) -> FrameFiles:
+    """A frame's files as the writer takes them: (path under the render folder, array) for the
+    image, depth and instance mask, the paths as its record names them. `rgb` apart from `out`:
+    a deferred render's image is read back later (Rendered.finish)."""
+    return ((record.image, rgb), (record.synthetic.depth, out.depth), (record.synthetic.instance, out.instance))
+
+
 @dataclass
 class RenderSummary:
     rendered: int = 0
@@ -487,7 +497,7 @@ class Renderer:
         self.write_behind = False
         self._pending: Future | None = None
         self._pool: ThreadPoolExecutor | None = None
-        self._unfinished: tuple[Rendered, FrameRecord, tuple[str, str, str]] | None = None
+        self._unfinished: tuple[Rendered, FrameRecord] | None = None  # a deferred frame, its image to read back
 
     def frame_id(self, index: int) -> str:
         return frame_id_for(self.rig.name, self.job.seed, index)
@@ -528,8 +538,7 @@ class Renderer:
         if out.shade is not None:  # the kept camera's colour pass, shaded while the next scene is drawn
             t = time.perf_counter()
             out.shade()
-            tm["render"] += time.perf_counter() - t
-            tm["renderer_core"] += time.perf_counter() - t
+            self._charge(t, "render", "renderer_core")
         t5 = time.perf_counter()
         fid = self.frame_id(index)
         image, depth, instance = f"images/{fid}.png", f"depth/{fid}.exr", f"instance/{fid}.png"
@@ -544,11 +553,11 @@ class Renderer:
                                     depth=depth, instance=instance),
         )
         if out.finish is not None:
-            self._unfinished = (out, record, (image, depth, instance))
+            self._unfinished = (out, record)
         elif self.write_behind:
-            self._submit(((image, out.rgb), (depth, out.depth), (instance, out.instance)), record)
+            self._submit(_frame_files(record, out.rgb, out), record)
         else:
-            self._write_frame(((image, out.rgb), (depth, out.depth), (instance, out.instance)), record)
+            self._write_frame(_frame_files(record, out.rgb, out), record)
         if job.save_blend is not None and not self._blend_saved:
             self.backend.save_blend(job.save_blend)
             self._blend_saved = True
@@ -557,7 +566,7 @@ class Renderer:
         self.summary.objects += len(record.objects)
         return record
 
-    def _write_frame(self, files, record: FrameRecord) -> None:
+    def _write_frame(self, files: FrameFiles, record: FrameRecord) -> None:
         """A frame's image, depth and instance mask, each atomically, then its record (last: a
         frame whose record exists is complete)."""
         root, durable = Path(self.job.out), self.job.durable
@@ -573,15 +582,20 @@ class Renderer:
         held, self._unfinished = self._unfinished, None
         if held is None:
             return
-        out, record, (image, depth, instance) = held
+        out, record = held
         t0 = time.perf_counter()
         rgb = out.finish()
-        waited = time.perf_counter() - t0
-        self.summary.timings["render"] += waited
-        self.summary.timings["renderer_core"] += waited
-        self._submit(((image, rgb), (depth, out.depth), (instance, out.instance)), record)
+        self._charge(t0, "render", "renderer_core")
+        self._submit(_frame_files(record, rgb, out), record)
 
-    def _submit(self, files, record: FrameRecord) -> None:
+    def _charge(self, since: float, *stages: str) -> None:
+        """Add the time since `since` to each of `stages` (one reading of the clock for all: the
+        raster colour pass is both render time and the renderer's own work)."""
+        took = time.perf_counter() - since
+        for stage in stages:
+            self.summary.timings[stage] += took
+
+    def _submit(self, files: FrameFiles, record: FrameRecord) -> None:
         """Queue a frame's files for the writer thread, after the previous frame's are written."""
         self._wait_for_writes()
         if self._pool is None:

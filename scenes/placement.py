@@ -57,6 +57,7 @@ class _World:
     overhead: list[tuple[Polygon, float]]  # (footprint of a canopy or arm, clearance height)
     overhead_bounds: np.ndarray  # (len(overhead), 4) shapely bounds of each canopy
     overhead_clearance: np.ndarray  # (len(overhead),) the clearances, as in `overhead`
+    overhead_tree: shapely.STRtree | None  # over the canopies in `overhead` order (None: no canopy)
 
     def free(self, poly: Polygon, top: float, bounds: tuple[float, float, float, float] | None = None) -> bool:
         """Whether `poly` (reaching up to `top`) keeps clear of everything; `bounds`: poly.bounds."""
@@ -77,8 +78,8 @@ class _World:
     def free_many(self, polys: np.ndarray, tops: np.ndarray) -> np.ndarray:
         """`free` for an array of polygons at once (each against what is placed, not each other)."""
         ok = ~self.agents.collides_many(polys, AGENT_GAP) & ~self.ground.collides_many(polys, OBSTACLE_GAP)
-        if self.overhead and ok.any():
-            cand, canopy = shapely.STRtree([c for c, _ in self.overhead]).query(polys, predicate="intersects")
+        if self.overhead_tree is not None and ok.any():
+            cand, canopy = self.overhead_tree.query(polys, predicate="intersects")
             low = self.overhead_clearance[canopy] < tops[cand]
             ok[cand[low]] = False
         return ok
@@ -94,6 +95,7 @@ class _Static:
     overhead: list[tuple[Polygon, float]]
     overhead_bounds: np.ndarray
     overhead_clearance: np.ndarray
+    overhead_tree: shapely.STRtree | None  # free_many's query tree over the canopies, built once per city
     crosses: dict[tuple[int, int], bool]  # (id of a lane, id of an intersection) -> _Placer._crosses
     spans: dict[tuple[int, int], tuple[float, float]]  # the same -> _Placer._span
     crossing_zones: Occupancy  # where parked cars keep out (_Placer.parked)
@@ -123,6 +125,8 @@ def _static(city: City) -> _Static:
             overhead.append((canopy, float(f.params["clearance"]) + (f.center[2] - f.dims[2] / 2)))
     bounds = np.array([c.bounds for c, _ in overhead], dtype=np.float64).reshape(-1, 4)
     clearance = np.array([h for _, h in overhead], dtype=np.float64)
+    tree = shapely.STRtree([c for c, _ in overhead]) if overhead else None
+    ground.freeze()  # every frame's copy queries this tree in free_many (parked rows)
     crossing = Occupancy()  # parked cars keep 6 m clear of intersection boxes and 1.5 m of crosswalks
     for i in city.intersections:
         crossing.add(rect_polygon(i.center, i.size[0] + 12.0, i.size[1] + 12.0, 0.0))
@@ -133,7 +137,7 @@ def _static(city: City) -> _Static:
         junction.add(rect_polygon(i.center, i.size[0] + 6.0, i.size[1] + 6.0, 0.0))
     for c in city.crosswalks:
         junction.add(rect_polygon(c.center, c.length, c.width + 1.0, c.yaw))
-    static = _Static(city, ground, overhead, bounds, clearance, {}, {}, crossing, junction, {}, {})
+    static = _Static(city, ground, overhead, bounds, clearance, tree, {}, {}, crossing, junction, {}, {})
     _STATIC.pop(id(city), None)
     while len(_STATIC) >= _STATIC_SIZE:
         _STATIC.pop(next(iter(_STATIC)))
@@ -143,7 +147,7 @@ def _static(city: City) -> _Static:
 
 def _world(city: City) -> _World:
     s = _static(city)
-    return _World(Occupancy(), s.ground.copy(), s.overhead, s.overhead_bounds, s.overhead_clearance)
+    return _World(Occupancy(), s.ground.copy(), s.overhead, s.overhead_bounds, s.overhead_clearance, s.overhead_tree)
 
 
 class _Placer:
@@ -189,12 +193,18 @@ class _Placer:
         bounds = poly.bounds
         if not self.world.free(poly, ground_z + h, bounds):
             return False
-        self.world.agents.add(poly, bounds=bounds)
-        iid = len(self.agents) + 1
-        yaw = math.atan2(math.sin(yaw), math.cos(yaw))
-        self.agents.append(Agent(iid, category, (float(xy[0]), float(xy[1]), ground_z + h / 2.0), (float(l), float(w), float(h)),
-                                 float(yaw), state, spec))
+        self._keep(category, state, dims, spec, xy, yaw, ground_z, poly, bounds)
         return True
+
+    def _keep(self, category: str, state: str, dims, spec: AssetSpec, xy, yaw: float, ground_z: float,
+              poly: Polygon, bounds: tuple[float, float, float, float]) -> None:
+        """Record an agent whose footprint `poly` (with its `bounds`) was found free: later ones keep
+        clear of it, and it gets the next instance id. The one place try_add and add_many keep one."""
+        l, w, h = dims
+        self.world.agents.add(poly, bounds=bounds)
+        yaw = math.atan2(math.sin(yaw), math.cos(yaw))
+        self.agents.append(Agent(len(self.agents) + 1, category, (float(xy[0]), float(xy[1]), ground_z + h / 2.0),
+                                 (float(l), float(w), float(h)), float(yaw), state, spec))
 
     def yaw_noise(self, scale: float = 1.0) -> float:
         # min/max: np.clip's value for a finite draw and these nonzero bounds, without its overhead;
@@ -282,11 +292,7 @@ class _Placer:
         bounds = shapely.bounds(polys)
         for k in np.nonzero(ok)[0]:
             category, dims, spec, xy, yaw = items[k]
-            l, w, h = dims
-            self.world.agents.add(polys[k], bounds=tuple(bounds[k]))
-            yaw = math.atan2(math.sin(yaw), math.cos(yaw))
-            self.agents.append(Agent(len(self.agents) + 1, category, (float(xy[0]), float(xy[1]), h / 2.0),
-                                     (float(l), float(w), float(h)), float(yaw), state, spec))
+            self._keep(category, state, dims, spec, xy, yaw, 0.0, polys[k], tuple(bounds[k]))
 
     def parking_spans(self, lane: Lane) -> list[tuple[float, float]]:
         """Where along a parking lane (from its start) its rectangle meets a crossing zone (6 m

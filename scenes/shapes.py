@@ -42,15 +42,19 @@ def polygon_tuple(poly: Polygon | np.ndarray) -> tuple[tuple[float, float], ...]
 class Occupancy:
     """Polygons already placed, with a bounding-box prefilter so each query stays cheap.
 
-    Why not an STRtree: shapely's tree is immutable and placement inserts one shape at a time;
-    a numpy box test followed by exact shapely tests on the few candidates is fast enough for the
-    hundreds of shapes a city block holds.
+    Why not an STRtree for single queries: shapely's tree is immutable and placement inserts one
+    shape at a time; a numpy box test followed by exact shapely tests on the few candidates is fast
+    enough for the hundreds of shapes a city block holds. The vectorised `collides_many` does query
+    a tree: `freeze` builds one over the polygons held so far (a city's static obstacles, once per
+    city), copies share it, and only polygons added after it get a tree of their own per query.
     """
 
     def __init__(self) -> None:
         self.polygons: list[Polygon] = []
         self.owners: list[object] = []
         self._bounds = np.zeros((64, 4))
+        self._tree: shapely.STRtree | None = None  # over polygons[:_frozen] (freeze); they never change
+        self._frozen = 0
 
     def add(self, poly: Polygon, owner: object = None, bounds: tuple[float, float, float, float] | None = None) -> None:
         """Store `poly`; `bounds`, when the caller has them, must be poly.bounds (saves asking again)."""
@@ -66,7 +70,15 @@ class Occupancy:
         so they are shared): a frame adds to a copy of the city's obstacles, not to them."""
         out = Occupancy()
         out.polygons, out.owners, out._bounds = list(self.polygons), list(self.owners), self._bounds.copy()
+        out._tree, out._frozen = self._tree, self._frozen  # the frozen polygons are the copy's first ones too
         return out
+
+    def freeze(self) -> None:
+        """Build `collides_many`'s tree over the polygons held now and keep it (for a set queried
+        many times: a city's obstacles, which every frame's copy shares). Polygons added later are
+        still found, through a tree built per query over them alone."""
+        self._tree = shapely.STRtree(self.polygons) if self.polygons else None
+        self._frozen = len(self.polygons)
 
     def collides(self, poly, margin: float = 0.0, ignore_owner: object = None,
                  bounds: tuple[float, float, float, float] | None = None) -> bool:
@@ -91,6 +103,11 @@ class Occupancy:
         if not self.polygons or not len(polys):
             return hit
         grown = shapely.buffer(polys, margin, join_style="mitre") if margin > 0 else polys
-        cand, _ = shapely.STRtree(self.polygons).query(grown, predicate="intersects")
-        hit[cand] = True
+        # The same pairs as one tree over all polygons: `intersects` is tested exactly either way.
+        if self._tree is not None:
+            cand, _ = self._tree.query(grown, predicate="intersects")
+            hit[cand] = True
+        if len(self.polygons) > self._frozen:
+            cand, _ = shapely.STRtree(self.polygons[self._frozen:]).query(grown, predicate="intersects")
+            hit[cand] = True
         return hit

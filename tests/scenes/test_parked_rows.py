@@ -33,6 +33,55 @@ def test_collides_many_agrees_with_collides():
     assert not Occupancy().collides_many(np.array(polys, dtype=object)).any()
 
 
+def _counting_trees(monkeypatch) -> list[int]:
+    """The sizes of the STRtrees built from now on (shapes and placement look shapely.STRtree up
+    at each call)."""
+    built, real = [], shapely.STRtree
+    monkeypatch.setattr(shapely, "STRtree", lambda geoms, *a, **k: built.append(len(geoms)) or real(geoms, *a, **k))
+    return built
+
+
+def test_a_frozen_occupancy_keeps_its_tree_and_still_finds_later_polygons(monkeypatch):
+    """freeze() builds collides_many's tree once (a city's obstacles); copies share it; polygons
+    added after it (a frame's work zones) are found through a small tree of their own."""
+    rng = np.random.default_rng(5)
+    box = lambda: rect_polygon(rng.uniform(0, 50, 2), rng.uniform(0.5, 5), rng.uniform(0.5, 3), rng.uniform(-3, 3))  # noqa: E731
+    static = Occupancy()
+    for _ in range(60):
+        static.add(box())
+    static.freeze()
+    polys = np.array([box() for _ in range(300)], dtype=object)
+    built = _counting_trees(monkeypatch)
+    frame = static.copy()
+    assert frame.collides_many(polys, 0.1).tolist() == [static.collides(p, 0.1) for p in polys]
+    assert built == []  # nothing added since freeze: the kept tree alone
+    for _ in range(5):
+        frame.add(box())
+    many = frame.collides_many(polys, 0.1)
+    assert many.tolist() == [frame.collides(p, 0.1) for p in polys]
+    assert built == [5]  # only the polygons added since freeze
+    assert (many & ~static.collides_many(polys, 0.1)).any()  # the added ones count
+    assert static.collides_many(polys, 0.1).tolist() == [static.collides(p, 0.1) for p in polys]  # the copy's adds stay out
+
+
+def test_free_many_builds_no_tree_for_a_citys_static_obstacles(downtown, monkeypatch):
+    """A frame's world queries the trees its city's _Static keeps (obstacles and canopies) and
+    gives the same answers as `free`, one polygon at a time."""
+    gen, _ = downtown
+    world = placement._world(gen.city)
+    assert world.overhead_tree is not None and world.ground._tree is not None
+    rng = np.random.default_rng(1)
+    x0, y0, x1, y1 = shapely.total_bounds([c for c, _ in world.overhead])
+    polys = np.array([rect_polygon((rng.uniform(x0, x1), rng.uniform(y0, y1)), 4.5, 1.8, rng.uniform(-3, 3))
+                      for _ in range(2000)], dtype=object)
+    tops = rng.uniform(1.0, 12.0, len(polys))
+    built = _counting_trees(monkeypatch)
+    ok = world.free_many(polys, tops)
+    assert built == []
+    assert ok.tolist() == [world.free(p, t) for p, t in zip(polys, tops)]
+    assert 0 < ok.sum() < len(polys)
+
+
 def test_parked_vehicles_keep_clear_of_junctions_and_crosswalks(downtown):
     """6 m round intersection boxes and 1.5 m either side of crosswalks, 0.5 m nose and tail."""
     _, scenes = downtown
