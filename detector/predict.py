@@ -128,13 +128,18 @@ def trained_imgsz(state: dict[str, Any], default: int = 640) -> int:
 
 def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | None = "test",
                     imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
-                    device: str | None = None) -> list[dict[str, Any]]:
+                    device: str | None = None, crop_stage: bool = True) -> list[dict[str, Any]]:
     """Detections of a checkpoint on a dataset split, ready for `omnigen eval` (at the training
     input size unless `imgsz` says otherwise), on `device` (default: CUDA when there is one: a
-    checkpoint loads onto the CPU, where a GPU machine's evaluation would otherwise run)."""
+    checkpoint loads onto the CPU, where a GPU machine's evaluation would otherwise run).
+
+    `crop_stage=False` keeps the head's own corners for a model with a crop stage: the same
+    detections with and without the stage's corners (benchmarks/crop_stage_ablation.py)."""
     from omnigen.detector.checkpoint import checkpoint_taxonomy, load_model
 
     model, state = load_model(weights)
+    if not crop_stage:
+        model.crop_net = None
     model.to(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     imgsz = imgsz or trained_imgsz(state)
     taxonomy = checkpoint_taxonomy(state)

@@ -280,3 +280,32 @@ def test_weights_without_a_crop_stage_fine_tune_with_one(tmp_path):
     other = KeypointDetector(DetectorConfig(num_classes=12, kpt_heading=False, heading_crop=64, **TINY))
     with pytest.raises(ValueError, match="kpt_heading"):  # any other field still must match
         load_pretrained(other, path, load_taxonomy("fine"))
+
+
+def test_predict_dataset_without_the_crop_stage_keeps_the_detections_and_the_heads_corners(tmp_path):
+    """crop_stage=False (benchmarks/crop_stage_ablation.py): the same boxes and scores, the head's
+    corners; with the stage (a constant crop net) the corners are the crop's."""
+    from omnigen.detector.checkpoint import save_checkpoint
+    from omnigen.detector.predict import predict_dataset
+    from omnigen.fakes import write_fake_dataset
+    from omnigen.taxonomy import load_taxonomy
+
+    torch.manual_seed(0)
+    classes = list(load_taxonomy("fine").classes)
+    cfg = DetectorConfig(num_classes=len(classes), kpt_heading=True, heading_crop=16, **TINY)
+    model = KeypointDetector(cfg)
+    with torch.no_grad():  # every crop says: the front view's layout, front towards the camera
+        model.crop_net.out.weight.zero_()
+        model.crop_net.out.bias.copy_(torch.cat([torch.tensor([0.0, 0.0, 1.0]), torch.linspace(-0.9, 0.9, 16)]))
+    path = tmp_path / "crop.pt"
+    save_checkpoint(path, {"config": cfg.to_dict(), "model": model.state_dict(), "classes": classes})
+    root = tmp_path / "ds"
+    write_fake_dataset(root, n_frames=2, objects_per_frame=3)
+    staged = predict_dataset(path, root, split=None, imgsz=64, device="cpu")
+    plain = predict_dataset(path, root, split=None, imgsz=64, device="cpu", crop_stage=False)
+    assert len(staged) == len(plain) > 0
+    assert [(d["image_id"], d["bbox"], d["score"]) for d in staged] == [(d["image_id"], d["bbox"], d["score"]) for d in plain]
+    kp_s = np.array([d["keypoints"] for d in staged]).reshape(len(staged), 8, 3)
+    kp_p = np.array([d["keypoints"] for d in plain]).reshape(len(plain), 8, 3)
+    assert not np.allclose(kp_s[..., :2], kp_p[..., :2], atol=1.0)  # the crop's corners, not the head's
+    np.testing.assert_array_equal(kp_s[..., 2], kp_p[..., 2])  # visibility stays the head's either way

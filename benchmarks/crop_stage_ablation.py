@@ -1,0 +1,101 @@
+"""What the crop stage's corners add, at the same detections: a crop-stage checkpoint scored twice.
+
+Why: a model trained with the crop stage (`train --heading-crop`) predicts each detection's corners
+twice, once by its head and once from the detection's own crop, and prediction keeps the crop's.
+Scored on its own, a run mixes what the stage does with everything else the recipe changed. Here
+the same weights predict the same split with and without the stage (predict_dataset's
+`crop_stage`), so boxes, scores and matches are the same and only the corners differ, and both
+are set beside the box-template baseline (corners from each box and the class's mean layout).
+It answers, for instance, whether the stage is what moves the ground-plane adherence.
+
+    .venv/bin/python benchmarks/crop_stage_ablation.py WEIGHTS DATASET [--split test] [--imgsz 640]
+        [--batch 16] [--device cpu] [--out ablation.json]
+
+Prints a table per row (the synthetic rows, then each view) and, last,
+`crop stage: mAP50:95 X (head's corners Y), corner error rel A (head B, box template C),
+adherence D deg (head E)`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.bench_learning import rows_of  # noqa: E402
+from omnigen.files import atomic_write_json  # noqa: E402
+
+COLUMNS = (("oks_map50_95", "mAP50:95", 3), ("ap_oks50", "AP50", 3), ("ground_adherence_deg", "adherence (deg)", 2),
+           ("corner_error_px", "corner error px", 2), ("corner_error_rel", "rel", 3))
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("weights", type=Path, help="a checkpoint trained with the crop stage (last.pt, best.pt)")
+    ap.add_argument("dataset", type=Path, help="the dataset it is scored on (a merged UrbanOmniView folder)")
+    ap.add_argument("--split", default="test", help="the split scored ('all': every frame)")
+    ap.add_argument("--imgsz", type=int, default=None, help="input size (default: the training's)")
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--out", type=Path, default=None, help="write every row as JSON here")
+    return ap.parse_args(argv)
+
+
+def score(args: argparse.Namespace, crop_stage: bool) -> tuple[dict[str, Any], dict[str, Any], int]:
+    """(model rows, box-template rows, detections) of the checkpoint with or without its crop stage."""
+    from omnigen.dataset import Dataset
+    from omnigen.detector.box_template import evaluate_with_baseline
+    from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint
+    from omnigen.detector.predict import predict_dataset
+
+    split = None if args.split == "all" else args.split
+    preds = predict_dataset(args.weights, args.dataset, split=split, imgsz=args.imgsz, batch=args.batch,
+                            device=args.device, crop_stage=crop_stage)
+    ds = Dataset.open(args.dataset, show_progress=False)
+    taxonomy = checkpoint_taxonomy(load_checkpoint(args.weights))
+    report, baseline = evaluate_with_baseline(ds, preds, split=split, taxonomy=taxonomy)
+    return rows_of(report), rows_of(baseline), len(preds)
+
+
+def cell(v: Any, digits: int) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    from omnigen.detector.checkpoint import load_model
+
+    model, _ = load_model(args.weights)
+    if model.crop_net is None:
+        raise SystemExit(f"crop_stage_ablation: {args.weights} has no crop stage (trained without --heading-crop)")
+    stage, template, n_stage = score(args, crop_stage=True)
+    head, _, n_head = score(args, crop_stage=False)
+    if n_stage != n_head:  # the stage moves corners, never boxes or scores
+        raise SystemExit(f"crop_stage_ablation: {n_stage} detections with the stage, {n_head} without")
+    print(f"{args.weights} on {args.dataset} ({args.split} split, {n_stage} detections): corners from the crop "
+          "stage, from the head, and the box template's (the same detections each time)")
+    print("| rows | corners | " + " | ".join(title for _, title, _ in COLUMNS) + " |")
+    print("|---|---|" + "---|" * len(COLUMNS))
+    for key in stage:
+        for name, rows in (("crop stage", stage), ("head", head), ("box template", template)):
+            r = rows[key]
+            print(f"| {key} | {name} | " + " | ".join(cell(r[f], d) for f, _, d in COLUMNS) + " |")
+    main_key = next(iter(stage))
+    s, h, t = stage[main_key], head[main_key], template[main_key]
+    if args.out:
+        atomic_write_json(args.out, {"weights": str(args.weights), "dataset": str(args.dataset), "split": args.split,
+                                     "detections": n_stage, "crop_stage": stage, "head": head, "box_template": template},
+                          indent=1)
+    print(f"crop stage: mAP50:95 {cell(s['oks_map50_95'], 3)} (head's corners {cell(h['oks_map50_95'], 3)}), "
+          f"corner error rel {cell(s['corner_error_rel'], 3)} (head {cell(h['corner_error_rel'], 3)}, box template "
+          f"{cell(t['corner_error_rel'], 3)}), adherence {cell(s['ground_adherence_deg'], 2)} deg "
+          f"(head {cell(h['ground_adherence_deg'], 2)})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
