@@ -45,20 +45,30 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
-def score(args: argparse.Namespace, crop_stage: bool) -> tuple[dict[str, Any], dict[str, Any], int]:
-    """(model rows, box-template rows, detections) of the checkpoint with or without its crop stage."""
+def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any], int]:
+    """(crop-stage rows, head rows, box-template rows, detections): the checkpoint's predictions with
+    and without its crop stage, scored on one opened dataset; the template scores the boxes once
+    (they are the same both ways)."""
     from omnigen.dataset import Dataset
     from omnigen.detector.box_template import evaluate_with_baseline
     from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint
+    from omnigen.detector.model import DetectorConfig
+    from omnigen.detector.oks_eval import evaluate
     from omnigen.detector.predict import predict_dataset
 
+    state = load_checkpoint(args.weights)
+    if not DetectorConfig.from_dict(state["config"]).heading_crop:
+        raise SystemExit(f"crop_stage_ablation: {args.weights} has no crop stage (trained without --heading-crop)")
     split = None if args.split == "all" else args.split
-    preds = predict_dataset(args.weights, args.dataset, split=split, imgsz=args.imgsz, batch=args.batch,
-                            device=args.device, crop_stage=crop_stage)
+    staged, plain = (predict_dataset(args.weights, args.dataset, split=split, imgsz=args.imgsz, batch=args.batch,
+                                     device=args.device, crop_stage=stage) for stage in (True, False))
+    if [d["bbox"] for d in staged] != [d["bbox"] for d in plain]:  # the stage moves corners, never boxes
+        raise SystemExit("crop_stage_ablation: the detections differ with and without the stage")
     ds = Dataset.open(args.dataset, show_progress=False)
-    taxonomy = checkpoint_taxonomy(load_checkpoint(args.weights))
-    report, baseline = evaluate_with_baseline(ds, preds, split=split, taxonomy=taxonomy)
-    return rows_of(report), rows_of(baseline), len(preds)
+    taxonomy = checkpoint_taxonomy(state)
+    report, baseline = evaluate_with_baseline(ds, staged, split=split, taxonomy=taxonomy)
+    head = evaluate(ds, plain, split=split, taxonomy=taxonomy)
+    return rows_of(report), rows_of(head), rows_of(baseline), len(staged)
 
 
 def cell(v: Any, digits: int) -> str:
@@ -67,15 +77,7 @@ def cell(v: Any, digits: int) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    from omnigen.detector.checkpoint import load_model
-
-    model, _ = load_model(args.weights)
-    if model.crop_net is None:
-        raise SystemExit(f"crop_stage_ablation: {args.weights} has no crop stage (trained without --heading-crop)")
-    stage, template, n_stage = score(args, crop_stage=True)
-    head, _, n_head = score(args, crop_stage=False)
-    if n_stage != n_head:  # the stage moves corners, never boxes or scores
-        raise SystemExit(f"crop_stage_ablation: {n_stage} detections with the stage, {n_head} without")
+    stage, head, template, n_stage = score(args)
     print(f"{args.weights} on {args.dataset} ({args.split} split, {n_stage} detections): corners from the crop "
           "stage, from the head, and the box template's (the same detections each time)")
     print("| rows | corners | " + " | ".join(title for _, title, _ in COLUMNS) + " |")
