@@ -51,6 +51,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--out", type=Path, default=None, help="write the numbers as JSON here")
     ap.add_argument("--imgsz", type=int, default=RECIPE["imgsz"])
     ap.add_argument("--crop", type=int, default=RECIPE["crop"], help="0: whole images")
+    ap.add_argument("--crop-focus", type=float, default=0.0, help="with --crop: share of the windows centred class-balanced (train --crop-focus)")
+    ap.add_argument("--repeat-thresh", type=float, default=0.0, help="repeat-factor sampling threshold (train --repeat-thresh); 0: off")
     ap.add_argument("--batch", type=int, default=RECIPE["batch"])
     ap.add_argument("--lr0", type=float, default=RECIPE["lr0"])
     ap.add_argument("--kpt-sigma-end", type=float, default=RECIPE["kpt_sigma_end"])
@@ -127,15 +129,25 @@ def main(argv: list[str] | None = None) -> int:
     from omnigen.splits import read_split
 
     frames = len(read_split(args.dataset, "train"))
+    if args.repeat_thresh:  # an epoch draws more frames: count them, so --steps stays the steps trained
+        from omnigen.detector.balance import epoch_frames, repeat_factors
+        from omnigen.detector.data import KeypointDataset
+        from omnigen.taxonomy import load_taxonomy
+
+        taxonomy = load_taxonomy("fine")
+        split = KeypointDataset(args.dataset, taxonomy, args.imgsz, list(read_split(args.dataset, "train")))
+        frames = epoch_frames(repeat_factors(split.frame_classes(), len(taxonomy.classes), args.repeat_thresh))
     per_epoch = math.ceil(frames / args.batch)
     epochs = max(1, math.ceil(args.steps / per_epoch))
     name = args.name or (f"{args.model}-{args.kpt_mode}{'-turn' if args.kpt_turn else ''}{'-heading' if args.kpt_heading else ''}{f'-hg{args.heading_gain:g}' if args.heading_gain != 1.0 else ''}{f'-h{args.kpt_hidden}' if args.kpt_hidden else ''}{f'-crop{args.heading_crop}' if args.heading_crop else ''}"
                          f"{f'-lab{args.kpt_labelled:g}' if args.kpt_labelled else ''}"
                          f"{f'-ts{args.kpt_turn_start:g}' if args.kpt_turn_start else ''}-l1{args.kpt_l1:g}-s{args.steps}"
-                         f"-c{args.crop}-lr{args.lr0:g}-seed{args.seed}")
+                         f"-c{args.crop}{f'-f{args.crop_focus:g}' if args.crop_focus else ''}{f'-r{args.repeat_thresh:g}' if args.repeat_thresh else ''}"
+                         f"-lr{args.lr0:g}-seed{args.seed}")
     run = args.work / name
     cfg = TrainConfig(dataset=str(args.dataset), out=str(run), model=args.model, width=args.width, depth=args.depth,
-                      imgsz=args.imgsz, crop=args.crop or None, epochs=epochs, batch=args.batch, lr0=args.lr0,
+                      imgsz=args.imgsz, crop=args.crop or None, crop_focus=args.crop_focus,
+                      repeat_thresh=args.repeat_thresh, epochs=epochs, batch=args.batch, lr0=args.lr0,
                       kpt_sigma_end=args.kpt_sigma_end, kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1,
                       kpt_turn=args.kpt_turn, kpt_hidden=args.kpt_hidden,
                       kpt_labelled=args.kpt_labelled, kpt_turn_start=args.kpt_turn_start, kpt_heading=args.kpt_heading, heading_crop=args.heading_crop, heading_gain=args.heading_gain, amp=args.amp, workers=args.workers, seed=args.seed, device=args.device,

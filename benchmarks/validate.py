@@ -278,6 +278,12 @@ def keypoint_recipe(args: argparse.Namespace) -> list[str]:
             + (["--heading-crop", str(args.heading_crop)] if args.heading_crop else []))
 
 
+def frame_sampling(args: argparse.Namespace) -> list[str]:
+    """`omnigen train --repeat-thresh` from --repeat-thresh (none for 0): frames holding rare classes
+    drawn more often (detector/balance.py); the GPU script's recipe carries it too."""
+    return ["--repeat-thresh", str(args.repeat_thresh)] if args.repeat_thresh else []
+
+
 def time_box(args: argparse.Namespace) -> list[str]:
     """`omnigen train --time MINUTES` from --minutes (none for 0): the trainer plans the epochs that
     fit, so the 2-hour figure of the default run is a budget kept, not a projection."""
@@ -300,6 +306,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--crop", type=int, default=320,
                     help="train on random CROP x CROP windows of the input (objects keep their scale, a step "
                          "costs what a CROP-pixel input costs); 0: whole images")
+    ap.add_argument("--crop-focus", type=float, default=0.5,
+                    help="share of the crop windows centred on an object drawn class-balanced (train --crop-focus); 0: none")
+    ap.add_argument("--repeat-thresh", type=float, default=0.3,
+                    help="repeat-factor sampling threshold: frames holding classes rarer than this are repeated "
+                         "(train --repeat-thresh); 0: off")
     ap.add_argument("--epochs", type=int, default=150, help="epochs at most (--minutes may plan fewer)")
     ap.add_argument("--minutes", type=float, default=100.0,
                     help="training's wall-clock budget per model (train --time): the schedule is fitted to the "
@@ -386,11 +397,13 @@ def main(argv: list[str] | None = None) -> int:
     from omnigen.dataset import Dataset
 
     uov_ds = Dataset.open(uov, show_progress=False)  # read once: the heading table and the object sizes
-    crop = ["--crop", str(args.crop)] if args.crop else []
+    crop = ["--crop", str(args.crop)] + (["--crop-focus", str(args.crop_focus)] if args.crop_focus else []) \
+        if args.crop else []
     common = ["--imgsz", str(args.imgsz), "--epochs", str(args.epochs), "--batch", str(args.batch),
               "--workers", str(args.workers), "--seed", str(args.seed),
               "--optimizer", args.optimizer, "--lr0", str(args.lr0), "--val-every", str(args.val_every),
               "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp] + keypoint_recipe(args)
+    common += frame_sampling(args)
     common += time_box(args)
     common += (["--device", args.device] if args.device else []) + (["--cache"] if args.cache else [])
     runs: list[dict[str, Any]] = []

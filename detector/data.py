@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
+from omnigen.detector.balance import focus_weights, focused_range, instance_counts, pick_focus
 from omnigen.dataset import Dataset
 from omnigen.splits import TRAIN, read_split, split_names
 from omnigen.taxonomy import Taxonomy
@@ -158,7 +159,7 @@ def random_affine(sample: Sample, scale: float, translate: float, rng: np.random
                   sample.frame_index, sample.letterbox)
 
 
-def random_crop(sample: Sample, window: int, rng: np.random.Generator) -> Sample:
+def random_crop(sample: Sample, window: int, rng: np.random.Generator, focus: int | None = None) -> Sample:
     """A random window x window part of the letterboxed canvas, at the canvas's scale.
 
     Why: a small network input (what a CPU can afford) normally means shrinking the whole image,
@@ -168,7 +169,8 @@ def random_crop(sample: Sample, window: int, rng: np.random.Generator) -> Sample
     convolutional), for a quarter of the pixels per step when the window is half the size.
     The window is drawn inside the image's content (the letterbox padding only where the content
     is narrower than the window); corners and boxes shift with it and `clip_to_canvas` then treats
-    objects cut by the window as truncated ones.
+    objects cut by the window as truncated ones. With `focus` (an object's index) the window is
+    drawn among those that put that object's box centre in their middle half (balance.focused_range).
     """
     size = sample.image.shape[0]
     if window >= size:
@@ -181,6 +183,9 @@ def random_crop(sample: Sample, window: int, rng: np.random.Generator) -> Sample
         content = size - 2 * pad  # the letterbox centres the content
         lo, hi = (pad, pad + content - window) if content >= window else (pad + content - window, pad)
         lo, hi = max(0, lo), min(extent - window, hi)
+        if focus is not None:
+            b = sample.bboxes[focus]
+            lo, hi = focused_range(lo, hi, (b[axis] + b[axis + 2]) / 2, window)
         origin.append(int(round(rng.uniform(lo, max(lo, hi)))))
     x0, y0 = origin
     shift = np.array([x0, y0], dtype=np.float64)
@@ -208,7 +213,8 @@ class KeypointDataset(torch.utils.data.Dataset):
     """Frames of one split as training samples for a taxonomy (classes it drops are not targets).
 
     Each image is letterboxed to `size`; with `crop`, a sample is a random crop x crop window of
-    it (see random_crop), drawn before the other augmentations.
+    it (see random_crop), drawn before the other augmentations; with `crop_focus` that share of the
+    windows is centred on an object drawn class-balanced (detector/balance.py).
 
     Ignore regions (KITTI DontCare) are not used in training: objects inside them are simply
     unlabelled, which costs a little recall signal and never teaches a wrong box.
@@ -216,12 +222,15 @@ class KeypointDataset(torch.utils.data.Dataset):
 
     def __init__(self, root: str | Path, taxonomy: Taxonomy, size: int, frame_ids: list[str] | None = None,
                  augment: Augment | None = None, out_of_image: OutOfImage = "learn", seed: int = 0,
-                 crop: int | None = None):
+                 crop: int | None = None, crop_focus: float = 0.0):
         if out_of_image not in ("learn", "drop"):
             raise ValueError(f"out_of_image must be 'learn' or 'drop', got {out_of_image!r}")
         if crop is not None and not 0 < crop <= size:
             raise ValueError(f"crop must be between 1 and the input size {size}, got {crop}")
         self.crop = crop  # training window (random_crop); None: the whole letterboxed image
+        if not 0.0 <= crop_focus <= 1.0:
+            raise ValueError(f"crop_focus must be a probability in [0, 1], got {crop_focus}")
+        self.crop_focus = crop_focus
         self.ds = Dataset.open(root, show_progress=False)
         self.taxonomy = taxonomy
         self.size = size
@@ -234,6 +243,8 @@ class KeypointDataset(torch.utils.data.Dataset):
         else:
             self.indices = np.array([self.ds.index_of(f) for f in frame_ids], dtype=np.int64)
         self.class_of_fine = taxonomy.fine_class_ids()
+        self._focus_weights = focus_weights(instance_counts(self.frame_classes(), len(taxonomy.classes))) \
+            if crop_focus > 0 else None
         self._cache: list[tuple[np.ndarray, Letterbox]] | None = None  # cache_images()
 
     def __len__(self) -> int:
@@ -266,6 +277,16 @@ class KeypointDataset(torch.utils.data.Dataset):
         self._cache = cache
         return need
 
+    def frame_classes(self) -> list[np.ndarray]:
+        """Each frame's target classes (taxonomy ids, one per object), without reading images:
+        what class-balanced sampling counts (detector/balance.py)."""
+        ds, t = self.ds, self.ds.objects
+        out = []
+        for f in self.indices:
+            cls = self.class_of_fine[t.category[int(ds.offsets[f]):int(ds.offsets[f + 1])]]
+            out.append(cls[cls >= 0].astype(np.int64))
+        return out
+
     def _image_path(self, i: int) -> Path:
         return self.ds.path(self.ds.table.image[int(self.indices[i])])
 
@@ -292,11 +313,20 @@ class KeypointDataset(torch.utils.data.Dataset):
         return Sample(boxed, self.class_of_fine[t.category[rows]], bb, np.nan_to_num(kp), mask, visible, f, lb)
 
     def __getitem__(self, i: int) -> Sample:
+        return self.item(i)
+
+    def item(self, i: int, copy: int = 0) -> Sample:
+        """Frame i augmented for this epoch; `copy` numbers a frame's repeats within an epoch
+        (repeat-factor sampling), each its own draw (copy 0 is the draw without repeats)."""
         sample = self.sample(i)
-        rng = np.random.default_rng([self.seed, self.epoch, int(self.indices[i])])
+        seed = [self.seed, self.epoch, int(self.indices[i])] + ([copy] if copy else [])
+        rng = np.random.default_rng(seed)
         a = self.augment
         if self.crop is not None:
-            sample = random_crop(sample, self.crop, rng)
+            focus = None
+            if self.crop_focus > 0 and rng.random() < self.crop_focus:  # no draw when off: same samples as before
+                focus = pick_focus(sample.cls, self._focus_weights, rng)
+            sample = random_crop(sample, self.crop, rng, focus)
         sample = random_affine(sample, a.scale, a.translate, rng)
         if rng.random() < a.flip:
             sample = flip_horizontal(sample)

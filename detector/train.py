@@ -34,6 +34,8 @@ from typing import Any, Callable
 import torch
 import torch.distributed as dist
 
+from omnigen.detector.balance import describe as describe_repeat
+from omnigen.detector.balance import repeat_factors
 from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint, load_pretrained, save_checkpoint
 from omnigen.detector.data import Augment, KeypointDataset, split_frames
 from omnigen.detector.ema import ModelEMA
@@ -64,6 +66,8 @@ class TrainConfig:
     depth: float | None = None
     imgsz: int = 640
     crop: int | None = None  # train on random crop x crop windows of the imgsz input (data.random_crop)
+    crop_focus: float = 0.0  # share of the crop windows centred on an object drawn class-balanced (detector/balance.py)
+    repeat_thresh: float = 0.0  # LVIS repeat-factor sampling threshold (balance.repeat_factors); 0: off
     cache: bool = False  # decode and letterbox every image once, into memory (KeypointDataset.cache_images)
     epochs: int = 100
     batch: int = 16
@@ -213,6 +217,16 @@ def check_sizes(cfg: TrainConfig) -> None:
         raise ValueError(f"TrainConfig.crop: {cfg.crop} is larger than imgsz {cfg.imgsz}")
 
 
+def check_sampling(cfg: TrainConfig) -> None:
+    """Class-balanced sampling's settings: a focus share needs crop windows to place."""
+    if not 0.0 <= cfg.crop_focus <= 1.0:
+        raise ValueError(f"TrainConfig.crop_focus: {cfg.crop_focus} is not a probability in [0, 1]")
+    if cfg.crop_focus > 0 and cfg.crop is None:
+        raise ValueError("TrainConfig.crop_focus: centres crop windows, but crop is not set (train --crop)")
+    if cfg.repeat_thresh < 0:
+        raise ValueError(f"TrainConfig.repeat_thresh: {cfg.repeat_thresh} is negative")
+
+
 def resolve_val_split(root: str, name: str | None) -> str | None:
     if name is not None:
         return name
@@ -274,8 +288,9 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     train_ids = split_frames(cfg.dataset, cfg.train_split)
     val_name = resolve_val_split(cfg.dataset, cfg.val_split)
     check_sizes(cfg)
+    check_sampling(cfg)
     data = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, train_ids, Augment(**cfg.augment),
-                           cfg.out_of_image, cfg.seed, crop=cfg.crop)
+                           cfg.out_of_image, cfg.seed, crop=cfg.crop, crop_focus=cfg.crop_focus)
     if len(data) == 0:
         raise ValueError(f"{cfg.dataset}: split {cfg.train_split!r} has no frames")
     val = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, split_frames(cfg.dataset, val_name))
@@ -316,7 +331,11 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     shard = torch.utils.data.distributed.DistributedSampler(data, world, rank, shuffle=True, seed=cfg.seed) \
         if world > 1 else None
     per_step = max(1, cfg.batch // world)
-    sampler = EpochBatches(len(data), per_step, cfg.seed, start_epoch, shard)
+    repeat = repeat_factors(data.frame_classes(), len(taxonomy.classes), cfg.repeat_thresh) \
+        if cfg.repeat_thresh > 0 else None
+    if repeat is not None and rank == 0:
+        print(f"note: {describe_repeat(repeat)}", file=sys.stderr, flush=True)
+    sampler = EpochBatches(len(data), per_step, cfg.seed, start_epoch, shard, repeat)
     batches = iter(make_loader(data, sampler, cfg.workers, pin=device.type == "cuda", collate_fn=collate_uint8))
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)

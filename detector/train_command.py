@@ -18,6 +18,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--crop", type=int, default=None,
                    help="train on random CROP x CROP windows of the IMGSZ input: objects keep the scale they are "
                         "predicted at, for (CROP/IMGSZ)^2 of the pixels per step")
+    p.add_argument("--crop-focus", type=float, default=0.0, metavar="P",
+                   help="with --crop: centre this share of the windows on an object drawn class-balanced "
+                        "(weight 1 / its class's training instances; detector/balance.py)")
+    p.add_argument("--repeat-thresh", type=float, default=0.0, metavar="T",
+                   help="repeat-factor sampling (LVIS): a frame whose rarest class is in a fraction f < T of the "
+                        "training frames is drawn sqrt(T / f) times an epoch; 0: off")
     p.add_argument("--cache", action="store_true",
                    help="decode and letterbox every image once and keep it in memory (train and val splits; "
                         "refused when it would not fit)")
@@ -88,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--heading-gain weighs the heading of --kpt-heading, which is not given")
     cfg = TrainConfig(
         dataset=str(args.dataset), out=str(args.out), model=args.model, backbone=args.backbone, p2=args.p2,
-        p6=args.p6, imgsz=args.imgsz, crop=args.crop, cache=args.cache, epochs=args.epochs, batch=args.batch,
+        p6=args.p6, imgsz=args.imgsz, crop=args.crop, crop_focus=args.crop_focus,
+        repeat_thresh=args.repeat_thresh, cache=args.cache, epochs=args.epochs, batch=args.batch,
         optimizer=args.optimizer, lr0=args.lr0, lrf=args.lrf,
         taxonomy=args.taxonomy, train_split=args.train_split, val_split=args.val_split,
         out_of_image=args.out_of_image, augment=asdict(Augment.off() if args.no_augment else Augment()),

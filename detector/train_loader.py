@@ -8,7 +8,7 @@ the epoch boundary and through validation, with `prefetch_factor` batches each i
 
 A worker holds the copy of the dataset it started with, so `KeypointDataset.set_epoch` in the
 main process would not reach it: each index carries its epoch, (epoch, frame), and `EpochData`
-sets the epoch before it draws the sample. Each sample's augmentation thus stays seeded by
+sets the epoch before it draws the sample (repeat-factor sampling adds the frame's copy number). Each sample's augmentation thus stays seeded by
 (seed, epoch, frame) and the shuffling by (seed, epoch) exactly as before, so a resumed run still
 equals an uninterrupted one.
 
@@ -26,6 +26,7 @@ from typing import Iterator
 import numpy as np
 import torch
 
+from omnigen.detector.balance import epoch_frames
 from omnigen.detector.data import KeypointDataset, Sample, collate
 
 
@@ -34,30 +35,78 @@ class EpochBatches(torch.utils.data.Sampler):
 
     An epoch's order is a permutation seeded by (seed, epoch), the one DataLoader(shuffle=True)
     drew with such a generator, or this process's shard of a DistributedSampler; its last batch
-    may be short (batches never mix two epochs)."""
+    may be short (batches never mix two epochs).
+
+    With `repeat` (each frame's repeat factor, balance.repeat_factors) an epoch draws each frame
+    floor(r) times plus, without replacement and weighted by the fractional parts, as many extra
+    frames as those parts add up to: the same number of frames every epoch, all from (seed, epoch).
+    Under several processes each takes every world-th of that order, padded from its start as
+    DistributedSampler pads."""
 
     def __init__(self, n: int, batch: int, seed: int, start: int = 0,
-                 shard: torch.utils.data.distributed.DistributedSampler | None = None):
+                 shard: torch.utils.data.distributed.DistributedSampler | None = None,
+                 repeat: np.ndarray | None = None):
+        if repeat is not None and (len(repeat) != n or (np.asarray(repeat) < 1).any()):
+            raise ValueError(f"repeat factors must be {n} values >= 1")
         self.n, self.batch, self.seed, self.start, self.shard = n, batch, seed, start, shard
+        self.repeat = None if repeat is None else np.asarray(repeat, dtype=np.float64)
 
     def order(self, epoch: int) -> list[int]:
+        if self.repeat is not None:
+            return self._repeated(epoch)
         if self.shard is not None:
             self.shard.set_epoch(epoch)
             return list(self.shard)
         gen = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
         return torch.randperm(self.n, generator=gen).tolist()
 
+    def _repeated(self, epoch: int) -> list[int]:
+        gen = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
+        whole = np.floor(self.repeat)
+        frames = np.repeat(np.arange(self.n), whole.astype(np.int64))
+        frac = self.repeat - whole
+        extra = epoch_frames(self.repeat) - len(frames)
+        if extra > 0:
+            drawn = torch.multinomial(torch.from_numpy(frac), extra, replacement=False, generator=gen).numpy()
+            frames = np.concatenate([frames, drawn])
+        order = frames[torch.randperm(len(frames), generator=gen).numpy()].tolist()
+        if self.shard is None:
+            return order
+        world, rank = self.shard.num_replicas, self.shard.rank
+        total = math.ceil(len(order) / world) * world
+        order = (order * math.ceil(total / len(order)))[:total]
+        return order[rank::world]
+
+    def frames_per_epoch(self) -> int:
+        """Frames this process draws an epoch."""
+        if self.repeat is not None:
+            total = epoch_frames(self.repeat)
+            return math.ceil(total / self.shard.num_replicas) if self.shard is not None else total
+        return len(self.shard) if self.shard is not None else self.n
+
     def per_epoch(self) -> int:
         """Batches an epoch."""
-        return math.ceil((len(self.shard) if self.shard is not None else self.n) / self.batch)
+        return math.ceil(self.frames_per_epoch() / self.batch)
 
-    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+    def __iter__(self) -> Iterator[list[tuple[int, ...]]]:
         epoch = self.start
         while True:
             order = self.order(epoch)
-            for k in range(0, len(order), self.batch):
-                yield [(epoch, i) for i in order[k:k + self.batch]]
+            keys = [(epoch, i) for i in order] if self.repeat is None else with_copies(epoch, order)
+            for k in range(0, len(keys), self.batch):
+                yield keys[k:k + self.batch]
             epoch += 1
+
+
+def with_copies(epoch: int, order: list[int]) -> list[tuple[int, int, int]]:
+    """(epoch, frame, copy) keys: a frame drawn twice in an epoch is augmented twice, differently
+    (its copy number enters the sample's seed, KeypointDataset.item)."""
+    seen: dict[int, int] = {}
+    keys = []
+    for i in order:
+        keys.append((epoch, i, seen.get(i, 0)))
+        seen[i] = seen.get(i, 0) + 1
+    return keys
 
 
 class EpochData(torch.utils.data.Dataset):
@@ -70,10 +119,10 @@ class EpochData(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return len(self.data)
 
-    def __getitem__(self, key: tuple[int, int]) -> Sample:
-        epoch, i = key
+    def __getitem__(self, key: tuple[int, ...]) -> Sample:
+        epoch, i, *copy = key
         self.data.set_epoch(epoch)
-        return self.data[i]
+        return self.data.item(i, copy[0] if copy else 0)
 
 
 def collate_uint8(samples: list[Sample]) -> tuple[torch.Tensor, dict[str, torch.Tensor], list[Sample]]:

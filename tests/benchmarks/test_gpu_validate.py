@@ -257,6 +257,7 @@ def test_training_takes_more_arguments_and_renders_make_validates_mix():
     # and the default recipe is make validate's, written once in each script and kept equal here
     import shlex
 
-    from benchmarks.validate import build_parser, keypoint_recipe
+    from benchmarks.validate import build_parser, frame_sampling, keypoint_recipe
 
-    assert gpu_validate.parse_args(["--work", "w"]).train_args == shlex.join(keypoint_recipe(build_parser().parse_args([])))
+    assert gpu_validate.parse_args(["--work", "w"]).train_args == shlex.join(keypoint_recipe(build_parser().parse_args([]))
+                                                                                    + frame_sampling(build_parser().parse_args([])))
