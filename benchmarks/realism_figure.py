@@ -158,8 +158,9 @@ def draw_top(ax, objs, fill: bool, label: str) -> None:
 
 
 def pole_figure(pole: list[np.ndarray], records: list[dict], k: br.SetStats | None, labels: list | None,
-                distances: np.ndarray, path: Path) -> int:
-    """The pole figure; `k` is KITTI's set_stats, `labels` the DAIR-V2X sample's (dair_labels)."""
+                distances: np.ndarray, path: Path, label_names: list[str] = ()) -> int:
+    """The pole figure; `k` is KITTI's set_stats, `labels` the DAIR-V2X sample's (dair_labels),
+    read from the label files `label_names` (their stems, for the legend)."""
     import matplotlib.pyplot as plt
 
     p = br.set_stats("rendered pole", pole)
@@ -170,7 +171,8 @@ def pole_figure(pole: list[np.ndarray], records: list[dict], k: br.SetStats | No
     ours, theirs = ground_view(records[i]), (dair_view(labels) if labels is not None else [])
     draw_top(ax, ours, fill=False, label=f"pole frame {i} (outline)")
     if labels is not None:
-        draw_top(ax, theirs, fill=True, label="DAIR-V2X-C 001366 label (filled)")
+        names = ", ".join(label_names) or "sample"
+        draw_top(ax, theirs, fill=True, label=f"DAIR-V2X-C {names} label{'s' if len(label_names) > 1 else ''} (filled)")
     ax.plot([0], [0], "k^", ms=8, label="camera / LiDAR")
     everything = ours + theirs
     reach = max([10.0] + [abs(o[1]) + o[4] for o in everything] + [2 * abs(o[2]) + o[4] for o in everything])
@@ -230,8 +232,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"wrote {out / 'realism-ego.png'} ({size / 1024:.0f} KB)")
     records = br.dataset_records(ds["pole"])
     labels = br.dair_labels(dair) if dair is not None else None
+    names = sorted(p.stem for p in dair.rglob("*.json")) if dair is not None else []  # the files dair_labels read
     size = pole_figure(br.dataset_images(ds["pole"]), records, k, labels,
-                       br.synthetic_objects("pole", records).values("distance"), out / "realism-pole.png")
+                       br.synthetic_objects("pole", records).values("distance"), out / "realism-pole.png", names)
     print(f"wrote {out / 'realism-pole.png'} ({size / 1024:.0f} KB)")
     return 0
 

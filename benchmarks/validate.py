@@ -358,12 +358,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def check_recipe(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Refuse, before any data stage, the keypoint flags `omnigen train` would refuse at training."""
+    """Refuse, before any data stage, the keypoint and sampling flags `omnigen train` would refuse
+    at training."""
     if args.kpt_turn and args.kpt_heading:
         ap.error("--kpt-turn and --kpt-heading both say which face is the front; give one (--no-kpt-heading)")
     heading = not args.kpt_turn if args.kpt_heading is None else args.kpt_heading
     if args.heading_gain is not None and not heading:
         ap.error("--heading-gain weighs the heading of --kpt-heading, which is off here")
+    from omnigen.detector.train import TrainConfig, check_sampling
+
+    try:  # train's own check of the sampling flags, as train_stage will pass them
+        check_sampling(TrainConfig(dataset=str(args.work), out=str(args.work), crop=args.crop or None,
+                                   crop_focus=args.crop_focus if args.crop else 0.0, repeat_thresh=args.repeat_thresh))
+    except ValueError as e:
+        ap.error(f"--crop-focus / --repeat-thresh: {e}")
 
 
 def main(argv: list[str] | None = None) -> int:

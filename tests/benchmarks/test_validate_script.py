@@ -313,3 +313,15 @@ def test_recipes_train_would_refuse_are_refused_first(argv, capsys):
         validate.check_recipe(ap, ap.parse_args(argv))
     assert "--kpt-" in capsys.readouterr().err
     validate.check_recipe(ap, ap.parse_args(["--heading-gain", "2"]))  # the default heading takes a gain
+
+
+@pytest.mark.parametrize("argv, message", [(["--crop-focus", "1.5"], "crop_focus: 1.5"),
+                                           (["--repeat-thresh", "-1"], "repeat_thresh")])
+def test_sampling_flags_train_would_refuse_are_refused_first(argv, message, capsys):
+    ap = validate.build_parser()
+    with pytest.raises(SystemExit):
+        validate.check_recipe(ap, ap.parse_args(argv))
+    assert message in capsys.readouterr().err
+    validate.check_recipe(ap, ap.parse_args(["--crop", "0", "--crop-focus", "0.5"]))  # whole images: no windows to centre
+    assert validate.frame_sampling(ap.parse_args([])) == ["--repeat-thresh", "0.3"]
+    assert validate.frame_sampling(ap.parse_args(["--repeat-thresh", "0"])) == []
