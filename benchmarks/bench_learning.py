@@ -129,14 +129,16 @@ def main(argv: list[str] | None = None) -> int:
     from omnigen.splits import read_split
 
     frames = len(read_split(args.dataset, "train"))
-    if args.repeat_thresh:  # an epoch draws more frames: count them, so --steps stays the steps trained
-        from omnigen.detector.balance import epoch_frames, repeat_factors
-        from omnigen.detector.data import KeypointDataset
+    if args.repeat_thresh:  # an epoch draws more frames: count them as train does, so --steps stays the steps trained
+        from omnigen.detector.balance import epoch_frames
+        from omnigen.detector.data import KeypointDataset, split_frames
+        from omnigen.detector.train import frame_repeats
         from omnigen.taxonomy import load_taxonomy
 
-        taxonomy = load_taxonomy("fine")
-        split = KeypointDataset(args.dataset, taxonomy, args.imgsz, list(read_split(args.dataset, "train")))
-        frames = epoch_frames(repeat_factors(split.frame_classes(), len(taxonomy.classes), args.repeat_thresh))
+        taxonomy = load_taxonomy(TrainConfig.taxonomy)  # the taxonomy the runs below train with
+        split = KeypointDataset(args.dataset, taxonomy, args.imgsz, split_frames(str(args.dataset), "train"))
+        frames = epoch_frames(frame_repeats(TrainConfig(dataset=str(args.dataset), out="-", repeat_thresh=args.repeat_thresh),
+                                            split, len(taxonomy.classes)))
     per_epoch = math.ceil(frames / args.batch)
     epochs = max(1, math.ceil(args.steps / per_epoch))
     name = args.name or (f"{args.model}-{args.kpt_mode}{'-turn' if args.kpt_turn else ''}{'-heading' if args.kpt_heading else ''}{f'-hg{args.heading_gain:g}' if args.heading_gain != 1.0 else ''}{f'-h{args.kpt_hidden}' if args.kpt_hidden else ''}{f'-crop{args.heading_crop}' if args.heading_crop else ''}"

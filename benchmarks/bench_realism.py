@@ -260,7 +260,12 @@ def dair_labels(root: Path) -> list:
     (omnigen.formats.dair's convention)."""
     from omnigen.converters.dair import parse_label, read_json
 
-    return [o for p in sorted(root.rglob("*.json")) for o in parse_label(read_json(p), p).objects]
+    return [o for p in dair_label_files(root) for o in parse_label(read_json(p), p).objects]
+
+
+def dair_label_files(root: Path) -> list[Path]:
+    """The DAIR-V2X label files dair_labels reads: every *.json under `root`, sorted."""
+    return sorted(root.rglob("*.json"))
 
 
 def dair_objects(labels: list) -> Objects:

@@ -106,7 +106,9 @@ def compare(old: dict[str, Any], new: dict[str, Any], labels: tuple[str, str]) -
     classes = group_rows(old["by_class"], new["by_class"])
     lines += table("By class (whole test split)", labels, classes)
     moved = [(r["new"].get("oks_map50_95"), r["old"].get("oks_map50_95")) for r in classes]
-    moved = [(n, o) for n, o in moved if n is not None and o is not None]
+    # as printed: a change that rounds to 0.000 is no change; a class without a score in one run is left out
+    moved = [(round(n, 3), round(o, 3)) for n, o in moved
+             if n is not None and o is not None and not (math.isnan(n) or math.isnan(o))]
     summary = {"old": old["oks_map50_95"], "new": new["oks_map50_95"], "target": CPU_TARGET,
                "better": sum(n > o for n, o in moved), "worse": sum(n < o for n, o in moved), "classes": len(moved)}
     return lines, summary

@@ -158,7 +158,7 @@ def draw_top(ax, objs, fill: bool, label: str) -> None:
 
 
 def pole_figure(pole: list[np.ndarray], records: list[dict], k: br.SetStats | None, labels: list | None,
-                distances: np.ndarray, path: Path, label_names: list[str] = ()) -> int:
+                distances: np.ndarray, path: Path, label_names: tuple[str, ...] | list[str] = ()) -> int:
     """The pole figure; `k` is KITTI's set_stats, `labels` the DAIR-V2X sample's (dair_labels),
     read from the label files `label_names` (their stems, for the legend)."""
     import matplotlib.pyplot as plt
@@ -232,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"wrote {out / 'realism-ego.png'} ({size / 1024:.0f} KB)")
     records = br.dataset_records(ds["pole"])
     labels = br.dair_labels(dair) if dair is not None else None
-    names = sorted(p.stem for p in dair.rglob("*.json")) if dair is not None else []  # the files dair_labels read
+    names = [p.stem for p in br.dair_label_files(dair)] if dair is not None else []
     size = pole_figure(br.dataset_images(ds["pole"]), records, k, labels,
                        br.synthetic_objects("pole", records).values("distance"), out / "realism-pole.png", names)
     print(f"wrote {out / 'realism-pole.png'} ({size / 1024:.0f} KB)")

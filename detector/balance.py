@@ -32,8 +32,8 @@ def repeat_factors(frame_classes: list[np.ndarray], num_classes: int, thresh: fl
     """(frames,) LVIS repeat factor of each frame: max over its classes of max(1, sqrt(thresh / f_c)).
 
     A frame without objects is drawn once. `thresh` 0 repeats nothing."""
-    if thresh < 0:
-        raise ValueError(f"repeat threshold must be >= 0, got {thresh}")
+    if not np.isfinite(thresh) or thresh < 0:
+        raise ValueError(f"repeat_factors: thresh must be a finite number >= 0, got {thresh}")
     f = frame_fractions(frame_classes, num_classes)
     with np.errstate(divide="ignore"):
         per_class = np.maximum(1.0, np.sqrt(thresh / np.where(f > 0, f, np.inf)))

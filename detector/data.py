@@ -230,6 +230,8 @@ class KeypointDataset(torch.utils.data.Dataset):
         self.crop = crop  # training window (random_crop); None: the whole letterboxed image
         if not 0.0 <= crop_focus <= 1.0:
             raise ValueError(f"crop_focus must be a probability in [0, 1], got {crop_focus}")
+        if crop_focus > 0 and crop is None:
+            raise ValueError("crop_focus centres crop windows, but crop is not set")
         self.crop_focus = crop_focus
         self.ds = Dataset.open(root, show_progress=False)
         self.taxonomy = taxonomy
@@ -243,6 +245,7 @@ class KeypointDataset(torch.utils.data.Dataset):
         else:
             self.indices = np.array([self.ds.index_of(f) for f in frame_ids], dtype=np.int64)
         self.class_of_fine = taxonomy.fine_class_ids()
+        self._frame_classes: list[np.ndarray] | None = None  # frame_classes(), counted once
         self._focus_weights = focus_weights(instance_counts(self.frame_classes(), len(taxonomy.classes))) \
             if crop_focus > 0 else None
         self._cache: list[tuple[np.ndarray, Letterbox]] | None = None  # cache_images()
@@ -280,12 +283,17 @@ class KeypointDataset(torch.utils.data.Dataset):
     def frame_classes(self) -> list[np.ndarray]:
         """Each frame's target classes (taxonomy ids, one per object), without reading images:
         what class-balanced sampling counts (detector/balance.py)."""
-        ds, t = self.ds, self.ds.objects
-        out = []
-        for f in self.indices:
-            cls = self.class_of_fine[t.category[int(ds.offsets[f]):int(ds.offsets[f + 1])]]
-            out.append(cls[cls >= 0].astype(np.int64))
-        return out
+        if self._frame_classes is None:
+            cat = self.ds.objects.category
+            self._frame_classes = [self.class_of_fine[cat[self._target_rows(int(f))]].astype(np.int64)
+                                   for f in self.indices]
+        return self._frame_classes
+
+    def _target_rows(self, f: int) -> np.ndarray:
+        """Object-table rows of frame f whose class the taxonomy keeps."""
+        ds = self.ds
+        rows = np.arange(int(ds.offsets[f]), int(ds.offsets[f + 1]))
+        return rows[self.class_of_fine[ds.objects.category[rows]] >= 0] if len(rows) else rows
 
     def _image_path(self, i: int) -> Path:
         return self.ds.path(self.ds.table.image[int(self.indices[i])])
@@ -301,9 +309,8 @@ class KeypointDataset(torch.utils.data.Dataset):
 
     def _targets(self, i: int, boxed: np.ndarray, lb: Letterbox) -> Sample:
         f = int(self.indices[i])
-        ds, t = self.ds, self.ds.objects
-        rows = np.arange(int(ds.offsets[f]), int(ds.offsets[f + 1]))
-        rows = rows[self.class_of_fine[t.category[rows]] >= 0] if len(rows) else rows
+        t = self.ds.objects
+        rows = self._target_rows(f)
         kp = lb.to_input(t.keypoints[rows]) if len(rows) else np.zeros((0, NUM_KEYPOINTS, 2))
         bb = lb.to_input(t.bbox[rows].reshape(-1, 2, 2)).reshape(-1, 4) if len(rows) else np.zeros((0, 4))
         front = ~t.behind_camera[rows] & np.isfinite(kp).all(-1)

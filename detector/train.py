@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
 import torch
 import torch.distributed as dist
 
@@ -219,12 +220,18 @@ def check_sizes(cfg: TrainConfig) -> None:
 
 def check_sampling(cfg: TrainConfig) -> None:
     """Class-balanced sampling's settings: a focus share needs crop windows to place."""
-    if not 0.0 <= cfg.crop_focus <= 1.0:
+    if not 0.0 <= cfg.crop_focus <= 1.0:  # False for NaN too
         raise ValueError(f"TrainConfig.crop_focus: {cfg.crop_focus} is not a probability in [0, 1]")
     if cfg.crop_focus > 0 and cfg.crop is None:
         raise ValueError("TrainConfig.crop_focus: centres crop windows, but crop is not set (train --crop)")
-    if cfg.repeat_thresh < 0:
-        raise ValueError(f"TrainConfig.repeat_thresh: {cfg.repeat_thresh} is negative")
+    if not math.isfinite(cfg.repeat_thresh) or cfg.repeat_thresh < 0:
+        raise ValueError(f"TrainConfig.repeat_thresh: {cfg.repeat_thresh} is not a finite number >= 0")
+
+
+def frame_repeats(cfg: TrainConfig, data: KeypointDataset, num_classes: int) -> np.ndarray | None:
+    """Each training frame's repeat factor (balance.repeat_factors), None without --repeat-thresh;
+    also what bench_learning counts an epoch's frames by."""
+    return repeat_factors(data.frame_classes(), num_classes, cfg.repeat_thresh) if cfg.repeat_thresh > 0 else None
 
 
 def resolve_val_split(root: str, name: str | None) -> str | None:
@@ -331,8 +338,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     shard = torch.utils.data.distributed.DistributedSampler(data, world, rank, shuffle=True, seed=cfg.seed) \
         if world > 1 else None
     per_step = max(1, cfg.batch // world)
-    repeat = repeat_factors(data.frame_classes(), len(taxonomy.classes), cfg.repeat_thresh) \
-        if cfg.repeat_thresh > 0 else None
+    repeat = frame_repeats(cfg, data, len(taxonomy.classes))
     if repeat is not None and rank == 0:
         print(f"note: {describe_repeat(repeat)}", file=sys.stderr, flush=True)
     sampler = EpochBatches(len(data), per_step, cfg.seed, start_epoch, shard, repeat)

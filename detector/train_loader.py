@@ -46,21 +46,41 @@ class EpochBatches(torch.utils.data.Sampler):
     def __init__(self, n: int, batch: int, seed: int, start: int = 0,
                  shard: torch.utils.data.distributed.DistributedSampler | None = None,
                  repeat: np.ndarray | None = None):
-        if repeat is not None and (len(repeat) != n or (np.asarray(repeat) < 1).any()):
-            raise ValueError(f"repeat factors must be {n} values >= 1")
+        if repeat is not None:
+            repeat = np.asarray(repeat, dtype=np.float64)
+            if len(repeat) != n or not (np.isfinite(repeat) & (repeat >= 1)).all():
+                raise ValueError(f"EpochBatches.repeat: expected {n} finite factors >= 1, got {len(repeat)} "
+                                 f"(smallest {np.min(repeat) if len(repeat) else 'none'}, largest "
+                                 f"{np.max(repeat) if len(repeat) else 'none'})")
         self.n, self.batch, self.seed, self.start, self.shard = n, batch, seed, start, shard
-        self.repeat = None if repeat is None else np.asarray(repeat, dtype=np.float64)
+        self.repeat = repeat
 
     def order(self, epoch: int) -> list[int]:
+        """This process's frames of the epoch, in order."""
         if self.repeat is not None:
-            return self._repeated(epoch)
+            return [i for _, i, _ in self.keys(epoch)]
         if self.shard is not None:
             self.shard.set_epoch(epoch)
             return list(self.shard)
         gen = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
         return torch.randperm(self.n, generator=gen).tolist()
 
+    def keys(self, epoch: int) -> list[tuple[int, ...]]:
+        """This process's loader keys of the epoch: (epoch, frame), or (epoch, frame, copy) under
+        repeat factors, the copies numbered over all processes' draws before the order is split
+        (two processes never draw one copy)."""
+        if self.repeat is None:
+            return [(epoch, i) for i in self.order(epoch)]
+        keys = with_copies(epoch, self._repeated(epoch))
+        if self.shard is None:
+            return keys
+        world, rank = self.shard.num_replicas, self.shard.rank
+        total = math.ceil(len(keys) / world) * world
+        keys = (keys * math.ceil(total / len(keys)))[:total]  # padded from the start, as DistributedSampler pads
+        return keys[rank::world]
+
     def _repeated(self, epoch: int) -> list[int]:
+        """The whole epoch's frames under repeat factors (every process's), shuffled by (seed, epoch)."""
         gen = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
         whole = np.floor(self.repeat)
         frames = np.repeat(np.arange(self.n), whole.astype(np.int64))
@@ -69,13 +89,7 @@ class EpochBatches(torch.utils.data.Sampler):
         if extra > 0:
             drawn = torch.multinomial(torch.from_numpy(frac), extra, replacement=False, generator=gen).numpy()
             frames = np.concatenate([frames, drawn])
-        order = frames[torch.randperm(len(frames), generator=gen).numpy()].tolist()
-        if self.shard is None:
-            return order
-        world, rank = self.shard.num_replicas, self.shard.rank
-        total = math.ceil(len(order) / world) * world
-        order = (order * math.ceil(total / len(order)))[:total]
-        return order[rank::world]
+        return frames[torch.randperm(len(frames), generator=gen).numpy()].tolist()
 
     def frames_per_epoch(self) -> int:
         """Frames this process draws an epoch."""
@@ -91,8 +105,7 @@ class EpochBatches(torch.utils.data.Sampler):
     def __iter__(self) -> Iterator[list[tuple[int, ...]]]:
         epoch = self.start
         while True:
-            order = self.order(epoch)
-            keys = [(epoch, i) for i in order] if self.repeat is None else with_copies(epoch, order)
+            keys = self.keys(epoch)
             for k in range(0, len(keys), self.batch):
                 yield keys[k:k + self.batch]
             epoch += 1

@@ -3,7 +3,6 @@ crop windows centred on rare objects."""
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 
 import numpy as np
@@ -35,8 +34,9 @@ def test_repeat_factors_follow_lvis_by_the_rarest_class_of_a_frame():
     assert r == pytest.approx([2.0, 1.0, 2.0, 1.0, 1.0])  # sqrt(0.8 / 0.2) = 2; sqrt(0.8 / 0.8) = 1
     assert repeat_factors(frames, 4, thresh=0.0) == pytest.approx([1.0] * 5)
     assert repeat_factors(frames, 4, thresh=0.45) == pytest.approx([1.5, 1.0, 1.5, 1.0, 1.0])
-    with pytest.raises(ValueError, match="repeat threshold"):
-        repeat_factors(frames, 4, thresh=-1)
+    for bad in (-1, float("nan")):
+        with pytest.raises(ValueError, match="repeat_factors: thresh must be a finite number >= 0"):
+            repeat_factors(frames, 4, thresh=bad)
     assert epoch_frames(np.array([1.5, 1.0, 1.5, 1.0, 1.0])) == 6  # 5 whole draws, halves add to one more
 
 
@@ -55,21 +55,49 @@ def test_an_epoch_under_repeat_factors_has_a_fixed_length_and_repeats_the_rare_f
     assert counts[2] / 200 == pytest.approx(2 + 5 / 7, abs=0.08) and counts[4] / 200 == pytest.approx(1 + 2 / 7, abs=0.08)
     assert sampler.order(7) == EpochBatches(5, 2, seed=3, repeat=repeat).order(7)  # (seed, epoch) alone
     assert sampler.order(7) != sampler.order(8)
-    with pytest.raises(ValueError, match="repeat factors"):
-        EpochBatches(5, 2, seed=3, repeat=np.array([1.0, 0.5, 1, 1, 1]))
+    for bad in ([1.0, 0.5, 1, 1, 1], [1.0, np.nan, 1, 1, 1], [1.0, np.inf, 1, 1, 1], [1.0, 1.0]):
+        with pytest.raises(ValueError, match="EpochBatches.repeat: expected 5 finite factors >= 1"):
+            EpochBatches(5, 2, seed=3, repeat=np.array(bad))
 
 
-def test_processes_split_one_repeated_order_between_them():
+def test_without_the_options_the_samples_and_the_order_are_those_of_before(fake):
+    # the draw order before class balance: a (seed, epoch) permutation, then per sample
+    # random_crop, random_affine, flip, hsv_jitter from one Generator seeded [seed, epoch, frame]
+    from omnigen.detector.data import clip_to_canvas, flip_horizontal, hsv_jitter, random_affine
+
+    sampler = EpochBatches(6, 4, seed=9)
+    gen = torch.Generator().manual_seed(9 * 100_003 + 2)
+    assert sampler.keys(2) == [(2, i) for i in torch.randperm(6, generator=gen).tolist()]
+    data = KeypointDataset(str(fake), load_taxonomy("fine"), 256, split_frames(str(fake), "train"), Augment(),
+                           seed=4, crop=64)
+    data.set_epoch(3)
+    for i in range(len(data)):
+        rng = np.random.default_rng([4, 3, int(data.indices[i])])
+        a = Augment()
+        want = random_affine(random_crop(data.sample(i), 64, rng), a.scale, a.translate, rng)
+        if rng.random() < a.flip:
+            want = flip_horizontal(want)
+        want.image = hsv_jitter(want.image, a.hsv, rng)
+        want = clip_to_canvas(want, "learn")
+        got = data[i]
+        assert np.array_equal(got.image, want.image) and np.array_equal(got.keypoints, want.keypoints), i
+
+
+def test_processes_split_one_repeated_order_between_them_and_never_draw_one_copy_twice():
     repeat = np.array([1.0, 3.0, 1.0, 1.6])
-    whole = EpochBatches(4, 2, seed=1, repeat=repeat).order(4)  # 6 whole + 1 drawn = 7 frames
+    whole = EpochBatches(4, 2, seed=1, repeat=repeat)
+    assert len(whole.order(4)) == 7  # 6 whole + 1 drawn
+    padded = whole.keys(4) + whole.keys(4)[:1]  # padded from the start to a multiple of the processes
     shards = []
     for rank in range(2):
         ddp = torch.utils.data.distributed.DistributedSampler(range(4), num_replicas=2, rank=rank, shuffle=True, seed=1)
         s = EpochBatches(4, 1, seed=1, shard=ddp, repeat=repeat)
-        shards.append(s.order(4))
-        assert s.frames_per_epoch() == 4 == len(shards[-1])
-    padded = whole + whole[:1]  # padded from the start to a multiple of the processes
+        shards.append(s.keys(4))
+        assert s.frames_per_epoch() == 4 == len(shards[-1]) and s.order(4) == [i for _, i, _ in shards[-1]]
     assert shards[0] == padded[0::2] and shards[1] == padded[1::2]
+    drawn = shards[0] + shards[1]
+    assert len(set(drawn)) == 7  # the three copies of frame 1 are three different draws across the processes
+    assert sorted(c for _, i, c in set(drawn) if i == 1) == [0, 1, 2]
 
 
 def test_a_frame_repeated_in_an_epoch_is_augmented_anew_and_copy_zero_is_the_plain_draw(fake):
@@ -157,8 +185,11 @@ def test_a_focus_share_needs_crop_windows_and_is_a_probability():
         check_sampling(TrainConfig(dataset="x", out="y", crop_focus=0.5))
     with pytest.raises(ValueError, match="crop_focus: 1.5"):
         check_sampling(TrainConfig(dataset="x", out="y", crop=320, crop_focus=1.5))
-    with pytest.raises(ValueError, match="repeat_thresh"):
-        check_sampling(TrainConfig(dataset="x", out="y", repeat_thresh=-0.1))
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="repeat_thresh: .* is not a finite number >= 0"):
+            check_sampling(TrainConfig(dataset="x", out="y", repeat_thresh=bad))
+    with pytest.raises(ValueError, match="crop_focus: nan"):
+        check_sampling(TrainConfig(dataset="x", out="y", crop=320, crop_focus=float("nan")))
     check_sampling(TrainConfig(dataset="x", out="y", crop=320, crop_focus=0.5, repeat_thresh=0.3))
 
 
@@ -171,4 +202,8 @@ def test_the_train_command_carries_the_sampling_flags(fake, tmp_path, monkeypatc
     assert main(["train", str(fake), "--out", str(tmp_path / "run"), "--crop", "320", "--crop-focus", "0.5",
                  "--repeat-thresh", "0.3"]) == 0
     assert (seen["cfg"].crop_focus, seen["cfg"].repeat_thresh) == (0.5, 0.3)
-    assert math.isclose(TrainConfig(dataset="x", out="y").crop_focus, 0.0)
+
+
+def test_a_dataset_refuses_a_focus_share_without_windows(fake):
+    with pytest.raises(ValueError, match="crop_focus centres crop windows, but crop is not set"):
+        KeypointDataset(str(fake), load_taxonomy("fine"), 64, None, crop_focus=0.5)
