@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
         taxonomy = load_taxonomy(TrainConfig.taxonomy)  # the taxonomy the runs below train with
         split = KeypointDataset(args.dataset, taxonomy, args.imgsz, split_frames(str(args.dataset), "train"))
         frames = epoch_frames(frame_repeats(TrainConfig(dataset=str(args.dataset), out="-", repeat_thresh=args.repeat_thresh),
-                                            split, len(taxonomy.classes)))
+                                            split))
     per_epoch = math.ceil(frames / args.batch)
     epochs = max(1, math.ceil(args.steps / per_epoch))
     name = args.name or (f"{args.model}-{args.kpt_mode}{'-turn' if args.kpt_turn else ''}{'-heading' if args.kpt_heading else ''}{f'-hg{args.heading_gain:g}' if args.heading_gain != 1.0 else ''}{f'-h{args.kpt_hidden}' if args.kpt_hidden else ''}{f'-crop{args.heading_crop}' if args.heading_crop else ''}"

@@ -51,49 +51,25 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def confusion(ds: Any, predictions: Sequence[dict[str, Any]], classes: list[str], class_of_fine: np.ndarray,
               frames: list[str], min_iou: float = 0.5, min_score: float = 0.2) -> dict[str, Counter]:
-    """For each true class (taxonomy name), a Counter of what its test objects were matched as: a
-    predicted class name, or None when no prediction matched. Objects of classes the taxonomy drops,
-    and objects behind the camera, are left out (they are not targets)."""
-    import torch
+    """For each true class (taxonomy name), a Counter of what its test objects were matched as
+    (corner_order.box_matches): a predicted class name, or None when no prediction matched. Objects
+    of classes the taxonomy drops, and objects behind the camera, are left out (not targets)."""
+    from omnigen.detector.corner_order import box_matches
 
-    from omnigen.detector.nms import box_iou
-
-    by_frame: dict[str, list[dict[str, Any]]] = {}
-    for p in predictions:
-        if p["score"] >= min_score:
-            by_frame.setdefault(str(p["frame_id"]), []).append(p)
-    o = ds.objects
+    category = ds.objects.category
     out: dict[str, Counter] = {name: Counter() for name in classes}
-    for fid in frames:
-        f = ds.index_of(fid)
-        rows = [r for r in range(int(ds.offsets[f]), int(ds.offsets[f + 1]))
-                if class_of_fine[o.category[r]] >= 0 and not o.behind_camera[r].any()]
-        if not rows:
-            continue
-        preds = by_frame.get(fid, [])
-        if preds:
-            scores = np.array([p["score"] for p in preds])
-            boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in (p["bbox"] for p in preds)], dtype=np.float64)
-            iou = box_iou(torch.from_numpy(o.bbox[rows].reshape(-1, 4)), torch.from_numpy(boxes)).numpy()
-        for n, r in enumerate(rows):
-            true = classes[int(class_of_fine[o.category[r]])]
-            ok = np.flatnonzero(iou[n] >= min_iou) if preds else np.array([], dtype=np.int64)
-            out[true][None if not len(ok) else classes[int(preds[ok[np.argmax(scores[ok])]]["category_id"]) - 1]] += 1
+    for r, p in box_matches(ds, predictions, frames, min_iou, min_score, keep=lambda r: class_of_fine[category[r]] >= 0):
+        out[classes[int(class_of_fine[category[r]])]][None if p is None else classes[int(p["category_id"]) - 1]] += 1
     return out
 
 
-def train_counts(ds: Any, class_of_fine: np.ndarray, classes: list[str]) -> dict[str, int]:
-    """Training instances of each class (the train split)."""
-    from omnigen.splits import read_split
+def train_counts(dataset: Path, taxonomy: Any) -> dict[str, int]:
+    """Training instances of each class (the train split), counted as class-balanced training counts them."""
+    from omnigen.detector.balance import instance_counts
+    from omnigen.detector.data import KeypointDataset, split_frames
 
-    counts = Counter()
-    o = ds.objects
-    for fid in read_split(ds.root, "train"):
-        f = ds.index_of(fid)
-        for c in class_of_fine[o.category[int(ds.offsets[f]):int(ds.offsets[f + 1])]]:
-            if c >= 0:
-                counts[classes[int(c)]] += 1
-    return {name: counts.get(name, 0) for name in classes}
+    data = KeypointDataset(dataset, taxonomy, 32, split_frames(str(dataset), "train"))
+    return dict(zip(taxonomy.classes, instance_counts(data.frame_classes(), len(taxonomy.classes)).tolist()))
 
 
 def rows_of(table: dict[str, Counter], train: dict[str, int]) -> list[dict[str, Any]]:
@@ -133,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
                             device=args.device)
     classes, fine = taxonomy.classes, taxonomy.fine_class_ids()
     table = confusion(ds, preds, classes, fine, list(read_split(ds.root, args.split)), args.min_iou, args.min_score)
-    rows = rows_of(table, train_counts(ds, fine, classes))
+    rows = rows_of(table, train_counts(args.dataset, taxonomy))
     print(f"| class | training instances | {args.split} objects | found as itself | as another class (most often) "
           f"| not found |")
     print("|---|---|---|---|---|---|")

@@ -13,7 +13,7 @@ always; one that guesses them splits between `as labelled` and `turned 180`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -43,40 +43,50 @@ class CornerOrderCounts:
         return self.best[name] / self.matched if self.matched else float("nan")
 
 
-def corner_order_counts(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | None = "test",
-                        min_iou: float = 0.5, min_score: float = 0.2) -> CornerOrderCounts:
-    """Count, over the split's objects, the corner order that fits each one's matched prediction.
-
-    `predictions` are COCO results with `frame_id`, `bbox` (x, y, w, h) and `keypoints`, as
-    `omnigen predict` and omnigen.detector.predict.predict_dataset write them.
-    """
-    frames = read_split(ds.root, split) if split else list(ds.table.frame_id)
+def box_matches(ds: Dataset, predictions: Sequence[dict[str, Any]], frames: Sequence[str],
+                min_iou: float = 0.5, min_score: float = 0.2,
+                keep: Callable[[int], bool] | None = None) -> Iterator[tuple[int, dict[str, Any] | None]]:
+    """Each object of the frames (none of its corners behind the camera, and `keep(row)` where given)
+    as (object-table row, matched prediction or None): the highest-scoring prediction of the same
+    frame with score >= `min_score` whose 2D box overlaps the object's by IoU >= `min_iou`, blind to
+    its class and corners. `predictions` are COCO results with `frame_id`, `bbox` (x, y, w, h) and
+    `score`, as `omnigen predict` and omnigen.detector.predict.predict_dataset write them."""
     by_frame: dict[str, list[dict[str, Any]]] = {}
     for p in predictions:
         if p["score"] >= min_score:
             by_frame.setdefault(str(p["frame_id"]), []).append(p)
     o = ds.objects
-    best = {name: 0 for name in ORDERS}
-    matched = unmatched = 0
     for fid in frames:
         f = ds.index_of(fid)
-        rows = [r for r in range(int(ds.offsets[f]), int(ds.offsets[f + 1])) if not o.behind_camera[r].any()]
+        rows = [r for r in range(int(ds.offsets[f]), int(ds.offsets[f + 1]))
+                if not o.behind_camera[r].any() and (keep is None or keep(r))]
         preds = by_frame.get(fid, [])
         if not preds:
-            unmatched += len(rows)
+            yield from ((r, None) for r in rows)
             continue
         scores = np.array([p["score"] for p in preds])
         boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in (p["bbox"] for p in preds)], dtype=np.float64)
-        corners = np.array([p["keypoints"] for p in preds], dtype=np.float64).reshape(len(preds), 8, 3)[..., :2]
         iou = box_iou(torch.from_numpy(o.bbox[rows].reshape(-1, 4)), torch.from_numpy(boxes)).numpy()  # (objects, preds)
         for n, r in enumerate(rows):
             ok = np.flatnonzero(iou[n] >= min_iou)
-            if not len(ok):
-                unmatched += 1
-                continue
-            j = ok[np.argmax(scores[ok])]
-            err = {name: float(np.linalg.norm(corners[j][list(order)] - o.keypoints[r], axis=1).mean())
-                   for name, order in ORDERS.items()}
-            best[min(err, key=err.get)] += 1
-            matched += 1
+            yield r, (preds[int(ok[np.argmax(scores[ok])])] if len(ok) else None)
+
+
+def corner_order_counts(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | None = "test",
+                        min_iou: float = 0.5, min_score: float = 0.2) -> CornerOrderCounts:
+    """Count, over the split's objects, the corner order that fits each one's matched prediction
+    (box_matches)."""
+    frames = read_split(ds.root, split) if split else list(ds.table.frame_id)
+    o = ds.objects
+    best = {name: 0 for name in ORDERS}
+    matched = unmatched = 0
+    for r, p in box_matches(ds, predictions, frames, min_iou, min_score):
+        if p is None:
+            unmatched += 1
+            continue
+        corners = np.asarray(p["keypoints"], dtype=np.float64).reshape(8, 3)[:, :2]
+        err = {name: float(np.linalg.norm(corners[list(order)] - o.keypoints[r], axis=1).mean())
+               for name, order in ORDERS.items()}
+        best[min(err, key=err.get)] += 1
+        matched += 1
     return CornerOrderCounts(matched, unmatched, best)

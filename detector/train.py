@@ -228,10 +228,11 @@ def check_sampling(cfg: TrainConfig) -> None:
         raise ValueError(f"TrainConfig.repeat_thresh: {cfg.repeat_thresh} is not a finite number >= 0")
 
 
-def frame_repeats(cfg: TrainConfig, data: KeypointDataset, num_classes: int) -> np.ndarray | None:
+def frame_repeats(cfg: TrainConfig, data: KeypointDataset) -> np.ndarray | None:
     """Each training frame's repeat factor (balance.repeat_factors), None without --repeat-thresh;
     also what bench_learning counts an epoch's frames by."""
-    return repeat_factors(data.frame_classes(), num_classes, cfg.repeat_thresh) if cfg.repeat_thresh > 0 else None
+    return repeat_factors(data.frame_classes(), len(data.taxonomy.classes), cfg.repeat_thresh) \
+        if cfg.repeat_thresh > 0 else None
 
 
 def resolve_val_split(root: str, name: str | None) -> str | None:
@@ -338,7 +339,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     shard = torch.utils.data.distributed.DistributedSampler(data, world, rank, shuffle=True, seed=cfg.seed) \
         if world > 1 else None
     per_step = max(1, cfg.batch // world)
-    repeat = frame_repeats(cfg, data, len(taxonomy.classes))
+    repeat = frame_repeats(cfg, data)
     if repeat is not None and rank == 0:
         print(f"note: {describe_repeat(repeat)}", file=sys.stderr, flush=True)
     sampler = EpochBatches(len(data), per_step, cfg.seed, start_epoch, shard, repeat)
