@@ -73,6 +73,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--single-label", action="store_true",
+                    help="score one class an anchor (as `omnigen predict` gives and as rows before 2026-11-27 were scored); default: every class above the floor, as omnigen eval")
     return ap.parse_args(argv)
 
 
@@ -161,14 +163,15 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print(f"{run}: trained before with these arguments; scoring its last.pt")
     train_s = time.perf_counter() - t0 if last.get("time") is None else float(last["time"])
-    preds = predict_dataset(run / "last.pt", args.dataset, split="test", imgsz=args.imgsz, batch=8, device=args.device)
+    preds = predict_dataset(run / "last.pt", args.dataset, split="test", imgsz=args.imgsz, batch=8, device=args.device,
+                            multi_label=not args.single_label)
     ds = Dataset.open(args.dataset, show_progress=False)
     report, baseline = evaluate_with_baseline(ds, preds, split="test", taxonomy=cfg.taxonomy)
     model_rows, base_rows = rows_of(report), rows_of(baseline)
     orders = corner_order_counts(ds, preds, split="test")
     main_key = next(iter(model_rows))
     result = {"dataset": str(args.dataset), "name": name, "steps": epochs * per_epoch, "epochs": epochs,
-              "train_seconds": round(train_s, 1), "config": asdict(cfg),
+              "train_seconds": round(train_s, 1), "config": asdict(cfg), "multi_label": not args.single_label,
               "final_losses": {k: last.get(k) for k in PARTS},
               "model": model_rows, "baseline": base_rows,
               "corner_order": {"matched": orders.matched,

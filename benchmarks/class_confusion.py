@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     taxonomy = checkpoint_taxonomy(load_checkpoint(args.weights))
     ds = Dataset.open(args.dataset, show_progress=False)
     preds = predict_dataset(args.weights, args.dataset, split=args.split, imgsz=args.imgsz, batch=args.batch,
-                            device=args.device)
+                            device=args.device, multi_label=False)  # the one class each detection was given
     classes, fine = taxonomy.classes, taxonomy.fine_class_ids()
     table = confusion(ds, preds, classes, fine, list(read_split(ds.root, args.split)), args.min_iou, args.min_score)
     rows = rows_of(table, train_counts(args.dataset, taxonomy))

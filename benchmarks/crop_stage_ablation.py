@@ -41,6 +41,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--imgsz", type=int, default=None, help="input size (default: the training's)")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--device", default=None)
+    ap.add_argument("--single-label", action="store_true",
+                    help="score one class an anchor (as `omnigen predict` gives and as rows before 2026-11-27 were scored); default: every class above the floor, as omnigen eval")
     ap.add_argument("--out", type=Path, default=None, help="write every row as JSON here")
     return ap.parse_args(argv)
 
@@ -61,7 +63,8 @@ def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dic
         raise SystemExit(f"crop_stage_ablation: {args.weights} has no crop stage (trained without --heading-crop)")
     split = None if args.split == "all" else args.split
     staged, plain = (predict_dataset(args.weights, args.dataset, split=split, imgsz=args.imgsz, batch=args.batch,
-                                     device=args.device, crop_stage=stage) for stage in (True, False))
+                                     device=args.device, crop_stage=stage, multi_label=not args.single_label)
+                     for stage in (True, False))
     if [d["bbox"] for d in staged] != [d["bbox"] for d in plain]:  # the stage moves corners, never boxes
         raise SystemExit("crop_stage_ablation: the detections differ with and without the stage")
     ds = Dataset.open(args.dataset, show_progress=False)

@@ -43,7 +43,7 @@ import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -80,6 +80,11 @@ class Runner:
         """Wall time of the recorded commands that start with `prefix`, --cache or not (see train_stamp)."""
         prefix = train_stamp(prefix)
         return sum(c["seconds"] for c in self.log if train_stamp(c["command"]).startswith(prefix))
+
+    def drop(self, prefix: str) -> None:
+        """Drop the records of commands that start with `prefix` (redone in another form)."""
+        self.log = [c for c in self.log if not c["command"].startswith(prefix)]
+        atomic_write_json(self.path, self.log, indent=1)
 
     def forget(self, folder: Path) -> None:
         """Drop the records of commands that wrote into or read from `folder` (it is being redone)."""
@@ -124,6 +129,11 @@ def stale(marker: Path, stamp: str) -> bool:
     return marker.exists() and marker.read_text().strip() != stamp
 
 
+def stale_or_missing(marker: Path, stamp: str) -> bool:
+    """A stage's output made before its marker existed (an older validate) or with other arguments."""
+    return not marker.exists() or stale(marker, stamp)
+
+
 def trained_seconds(out: Path) -> float:
     """The seconds a run's saved epochs took, over all its invocations (results.csv's `time`)."""
     path = out / "results.csv"
@@ -160,6 +170,29 @@ def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
         run(train_cmd, done, resume_from=trained_seconds(out) if resumable else None)
         atomic_write_text(done, stamp + "\n")
     return run.seconds("omnigen " + shlex.join(train_cmd))
+
+
+def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
+                  predict: Callable[[], list[dict[str, Any]]]) -> Path:
+    """OUT/test-predictions.json, made by `predict` unless it was made the same way before.
+
+    OUT/predicted holds how (the checkpoint, the split, the labels an anchor). Predictions made
+    otherwise, or by a validate older than the marker, are made again, and their evaluation
+    (OUT/eval.json) with them: a changed evaluation protocol must not leave old figures standing.
+    """
+    preds, predicted = out / "test-predictions.json", out / "predicted"
+    call = f"predict_dataset({out / 'last.pt'}, {uov}, split='test', multi_label={multi_label})"
+    if preds.exists() and stale_or_missing(predicted, call):
+        print(f"[stale] {preds} was predicted otherwise: predicting and evaluating again", flush=True)
+        for path in (preds, out / "eval.json", predicted):
+            path.unlink(missing_ok=True)
+        run.drop(f"predict_dataset({out / 'last.pt'}, ")
+    if not preds.exists():
+        t0 = time.perf_counter()
+        atomic_write_text(preds, json.dumps(predict()))
+        atomic_write_text(predicted, call + "\n")
+        run.record(call, time.perf_counter() - t0)
+    return preds
 
 
 def machine() -> str:
@@ -420,17 +453,13 @@ def main(argv: list[str] | None = None) -> int:
         out = work / "runs" / name
         opts = common if imgsz is None else ["--imgsz", str(imgsz), *common[2:]]  # common starts with --imgsz
         t = train_stage(run, ["train", str(dataset), "--out", str(out), *opts, *crop, *extra], out)
-        from omnigen.detector.predict import predict_dataset
+        from omnigen.detector.predict import EVAL_MULTI_LABEL, predict_dataset
 
-        preds = out / "test-predictions.json"
-        if not preds.exists():
-            t0 = time.perf_counter()
-            # last.pt, not best.pt: without a val split, train validates on the test split, and
-            # choosing the checkpoint by its test score would flatter the number reported here
-            results = predict_dataset(out / "last.pt", uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch,
-                                      device=args.device)
-            atomic_write_text(preds, json.dumps(results))
-            run.record(f"predict_dataset({out / 'last.pt'}, {uov}, split='test')", time.perf_counter() - t0)
+        # last.pt, not best.pt: without a val split, train validates on the test split, and
+        # choosing the checkpoint by its test score would flatter the number reported here
+        preds = predict_stage(run, out, uov, EVAL_MULTI_LABEL, lambda: predict_dataset(
+            out / "last.pt", uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch, device=args.device,
+            multi_label=EVAL_MULTI_LABEL))
         report_path = out / "eval.json"
         run(["eval", str(preds), str(uov), "--split", "test", "--baseline", "--out", str(report_path)], report_path)
         report = json.loads(report_path.read_text())

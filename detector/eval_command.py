@@ -39,6 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="network input size, with a checkpoint (default: its training size)")
     p.add_argument("--batch", type=int, default=8, help="images per batch, with a checkpoint")
     p.add_argument("--device", default=None, help="where a checkpoint predicts: cpu, cuda, cuda:1 (default: cuda when present)")
+    p.add_argument("--single-label", action="store_true",
+                   help="with a checkpoint, one class an anchor as `omnigen predict` gives (default: every class above "
+                        "the 0.001 floor, as Ultralytics' validation scores)")
     p.add_argument("--no-adherence", action="store_true", help="skip the ground-plane adherence (no 3D lifting)")
     p.add_argument("--no-sizes", action="store_true",
                    help="skip the rows per object size (a second COCOeval pass, reusing the first one's OKS)")
@@ -75,6 +78,9 @@ def run(args: argparse.Namespace) -> int:
         ds = Dataset.open(args.dataset)
         suffix = args.predictions.suffix.lower()
         if suffix == ".json":
+            if args.single_label:
+                raise ValueError(f"{args.predictions}: --single-label chooses how a checkpoint predicts; these "
+                                 "predictions are made already")
             predictions = load_predictions(args.predictions)
         elif suffix == ".pt":
             if not args.predictions.exists():
@@ -86,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
                 taxonomy = checkpoint_taxonomy(load_checkpoint(args.predictions))
 
             predictions = predict_dataset(args.predictions, args.dataset, split=split, imgsz=args.imgsz,
-                                          batch=args.batch, device=args.device)
+                                          batch=args.batch, device=args.device, multi_label=not args.single_label)
         else:
             raise ValueError(f"{args.predictions}: expected weights (.pt) or predictions (.json)")
         options = dict(adherence=not args.no_adherence, source=str(args.predictions), sizes=not args.no_sizes,

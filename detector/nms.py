@@ -75,18 +75,25 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> torc
 
 
 def postprocess(pred: torch.Tensor, num_classes: int, conf: float = 0.25, iou: float = 0.7,
-                max_det: int = 300, max_candidates: int = 3000) -> list[Detections]:
+                max_det: int = 300, max_candidates: int = 3000, multi_label: bool = False) -> list[Detections]:
     """Decoded head output (B, 4 + nc + 24, A) -> per-image detections after NMS.
 
-    One class per anchor (its best), as single-label detectors do; candidates above `conf`, the
-    best `max_candidates` of them, class-aware NMS, then the top `max_det`.
+    One class per anchor (its best), as single-label detectors do; or, with `multi_label`, every
+    class of an anchor whose score passes `conf`, each a detection of its own, as Ultralytics'
+    validation scores a model (a van that the head rates 0.4 car and 0.3 van is then still a van
+    detection, ranked among the vans by 0.3). Candidates above `conf`, the best `max_candidates`
+    of them, class-aware NMS, then the top `max_det`.
     """
     out = []
     for p in pred.transpose(1, 2):  # (A, C)
         boxes, scores_all, kpt = p[:, :4], p[:, 4:4 + num_classes], p[:, 4 + num_classes:]
-        scores, classes = scores_all.max(1)
-        sel = scores > conf
-        boxes, scores, classes, kpt = boxes[sel], scores[sel], classes[sel], kpt[sel]
+        if multi_label:
+            anchor, classes = (scores_all > conf).nonzero(as_tuple=True)
+            boxes, scores, kpt = boxes[anchor], scores_all[anchor, classes], kpt[anchor]
+        else:
+            scores, classes = scores_all.max(1)
+            sel = scores > conf
+            boxes, scores, classes, kpt = boxes[sel], scores[sel], classes[sel], kpt[sel]
         if len(scores) > max_candidates:
             top = scores.topk(max_candidates).indices
             boxes, scores, classes, kpt = boxes[top], scores[top], classes[top], kpt[top]

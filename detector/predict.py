@@ -29,6 +29,12 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
 EVAL_CONF = 0.001
 """Confidence floor for evaluation: AP integrates over the whole score range, so keep low scores."""
 
+EVAL_MULTI_LABEL = True
+"""Evaluation scores every class of an anchor above EVAL_CONF, as Ultralytics' validation does
+(its DetectionValidator, which pose validation inherits, runs NMS with multi_label=True): a class's
+AP then ranks that class's scores, not only the anchors where it beat every other class. `omnigen
+predict` keeps one class an anchor, what an application acts on."""
+
 
 @dataclass
 class PredictOptions:
@@ -37,6 +43,7 @@ class PredictOptions:
     iou: float = 0.7
     max_det: int = 300
     batch: int = 8
+    multi_label: bool = False  # every class above conf per anchor (evaluation), not only the best
 
 
 def to_image_coords(det: Detections, lb: Letterbox) -> dict[str, np.ndarray]:
@@ -86,7 +93,8 @@ def infer_batch(model: KeypointDetector, images: list[np.ndarray], boxes: list[L
         x = x.pin_memory()
     x = x.to(device, non_blocking=True).permute(0, 3, 1, 2).float().div_(255)
     pred = model.infer(x)
-    dets = postprocess(pred.float(), model.cfg.num_classes, opts.conf, opts.iou, opts.max_det)
+    dets = postprocess(pred.float(), model.cfg.num_classes, opts.conf, opts.iou, opts.max_det,
+                       multi_label=opts.multi_label)
     if model.crop_net is not None:  # a crop-stage model places each detection's corners from its crop
         dets = refine_detections(model.crop_net, model.cfg.heading_crop, x, dets)
     return batch_to_image_coords(dets, boxes)
@@ -128,13 +136,15 @@ def trained_imgsz(state: dict[str, Any], default: int = 640) -> int:
 
 def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | None = "test",
                     imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
-                    device: str | None = None, crop_stage: bool = True) -> list[dict[str, Any]]:
+                    device: str | None = None, crop_stage: bool = True,
+                    multi_label: bool = EVAL_MULTI_LABEL) -> list[dict[str, Any]]:
     """Detections of a checkpoint on a dataset split, ready for `omnigen eval` (at the training
     input size unless `imgsz` says otherwise), on `device` (default: CUDA when there is one: a
     checkpoint loads onto the CPU, where a GPU machine's evaluation would otherwise run).
 
     `crop_stage=False` keeps the head's own corners for a model with a crop stage: the same
-    detections with and without the stage's corners (benchmarks/crop_stage_ablation.py)."""
+    detections with and without the stage's corners (benchmarks/crop_stage_ablation.py).
+    `multi_label=False` keeps one class an anchor, as `omnigen predict` does (EVAL_MULTI_LABEL)."""
     from omnigen.detector.checkpoint import checkpoint_taxonomy, load_model
 
     model, state = load_model(weights)
@@ -144,8 +154,8 @@ def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | 
     imgsz = imgsz or trained_imgsz(state)
     taxonomy = checkpoint_taxonomy(state)
     data = KeypointDataset(dataset_root, taxonomy, imgsz, split_frames(dataset_root, split))
-    return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=1000),
-                          show_progress=True)
+    return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=1000,
+                                                      multi_label=multi_label), show_progress=True)
 
 
 def image_files(paths: Iterable[str | Path]) -> list[Path]:

@@ -8,6 +8,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 
 import pytest  # noqa: E402
 
@@ -325,3 +326,26 @@ def test_sampling_flags_train_would_refuse_are_refused_first(argv, message, caps
     validate.check_recipe(ap, ap.parse_args(["--crop", "0", "--crop-focus", "0.5"]))  # whole images: no windows to centre
     assert validate.frame_sampling(ap.parse_args([])) == ["--repeat-thresh", "0.3"]
     assert validate.frame_sampling(ap.parse_args(["--repeat-thresh", "0"])) == []
+
+
+def test_predictions_made_another_way_are_made_again_with_their_evaluation(tmp_path):
+    # an older validate's single-label predictions (no marker) must not stand under a new protocol
+    out, calls = tmp_path / "runs" / "n-p2", []
+    out.mkdir(parents=True)
+    (out / "test-predictions.json").write_text("[]")
+    (out / "eval.json").write_text("{}")
+    run = Runner(tmp_path)
+    run.record(f"predict_dataset({out / 'last.pt'}, uov, split='test')", 90.0)
+
+    def predict():
+        calls.append(1)
+        return [{"image_id": 1, "score": 0.5}]
+
+    preds = validate.predict_stage(run, out, Path("uov"), True, predict)
+    assert calls == [1] and json.loads(preds.read_text()) == [{"image_id": 1, "score": 0.5}]
+    assert not (out / "eval.json").exists()  # evaluated again by the caller
+    assert [c["command"] for c in run.log] == [f"predict_dataset({out / 'last.pt'}, uov, split='test', multi_label=True)"]
+    validate.predict_stage(run, out, Path("uov"), True, predict)  # made this way: kept
+    assert calls == [1]
+    validate.predict_stage(run, out, Path("uov"), False, predict)  # the other way: made again
+    assert calls == [1, 1] and len(run.log) == 1

@@ -234,3 +234,20 @@ def test_postprocess_is_class_aware():
     # anchors 0 and 1 are the same box but different classes: both kept; anchor 2 overlaps 0, same class
     assert sorted(dets.classes.tolist()) == [0, 1]
     assert dets.keypoints.shape == (2, 8, 3)
+
+
+def test_postprocess_multi_label_scores_every_class_above_the_floor():
+    # one anchor rated 0.6 car and 0.4 van: single-label gives the car; multi-label both, each a
+    # detection of its class with its own score, as Ultralytics' validation scores a model
+    nc = 3
+    pred = torch.zeros(1, 4 + nc + 24, 2)
+    pred[0, :4, 0] = torch.tensor([10.0, 10.0, 50.0, 40.0])
+    pred[0, 4:4 + nc, 0] = torch.tensor([0.6, 0.4, 0.05])
+    pred[0, :4, 1] = torch.tensor([100.0, 100.0, 140.0, 130.0])
+    pred[0, 4:4 + nc, 1] = torch.tensor([0.01, 0.02, 0.3])
+    single = postprocess(pred, nc, conf=0.1, iou=0.5)[0]
+    assert single.classes.tolist() == [0, 2] and single.scores.tolist() == pytest.approx([0.6, 0.3])
+    multi = postprocess(pred, nc, conf=0.1, iou=0.5, multi_label=True)[0]
+    got = sorted(zip(multi.classes.tolist(), multi.scores.tolist()))
+    assert got == [(0, pytest.approx(0.6)), (1, pytest.approx(0.4)), (2, pytest.approx(0.3))]
+    assert multi.boxes[multi.classes == 1].tolist() == [[10.0, 10.0, 50.0, 40.0]]  # the anchor's own box

@@ -343,8 +343,9 @@ def test_command_runs_weights_through_predict(ds, tmp_path, monkeypatch):
 
     seen = {}
 
-    def fake_predict(weights, root, split, imgsz, batch, device):
-        seen.update(weights=Path(weights), split=split, imgsz=imgsz, batch=batch, device=device)
+    def fake_predict(weights, root, split, imgsz, batch, device, multi_label):
+        seen.update(weights=Path(weights), split=split, imgsz=imgsz, batch=batch, device=device,
+                    multi_label=multi_label)
         return perfect(ds)
 
     monkeypatch.setattr(predict, "predict_dataset", fake_predict)
@@ -352,7 +353,20 @@ def test_command_runs_weights_through_predict(ds, tmp_path, monkeypatch):
     weights.write_bytes(b"x")
     args = _args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True, taxonomy="fine", device="cpu")
     assert eval_command.run(args) == 0
-    assert seen == {"weights": weights, "split": "test", "imgsz": 320, "batch": 2, "device": "cpu"}
+    assert seen == {"weights": weights, "split": "test", "imgsz": 320, "batch": 2, "device": "cpu",
+                    "multi_label": True}  # every class above the floor, as Ultralytics' validation
+    assert eval_command.run(_args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True,
+                                  taxonomy="fine", device="cpu", single_label=True)) == 0
+    assert seen["multi_label"] is False
+
+
+def test_command_refuses_single_label_for_predictions_made_already(ds, tmp_path, capsys):
+    path = tmp_path / "preds.json"
+    path.write_text(json.dumps(perfect(ds)))
+    assert eval_command.run(_args(tmp_path, path, ds.root, single_label=True)) == 2
+    err = capsys.readouterr().err
+    assert "preds.json" in err and "--single-label" in err
+    assert not (tmp_path / "report.json").exists()
 
 
 def test_command_bad_input_exits_2_naming_file_and_field(ds, tmp_path, capsys):
