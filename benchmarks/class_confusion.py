@@ -99,14 +99,15 @@ def summary(rows: list[dict[str, Any]], rare: int = RARE) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     from omnigen.dataset import Dataset
-    from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint
-    from omnigen.detector.predict import predict_dataset
+    from omnigen.detector.checkpoint import checkpoint_taxonomy
+    from omnigen.detector.predict import load_for_prediction, predict_split
     from omnigen.splits import read_split
 
-    taxonomy = checkpoint_taxonomy(load_checkpoint(args.weights))
+    model, state = load_for_prediction(args.weights, args.device)
+    taxonomy = checkpoint_taxonomy(state)
     ds = Dataset.open(args.dataset, show_progress=False)
-    preds = predict_dataset(args.weights, args.dataset, split=args.split, imgsz=args.imgsz, batch=args.batch,
-                            device=args.device, multi_label=False)  # the one class each detection was given
+    preds = predict_split(model, state, args.dataset, split=args.split, imgsz=args.imgsz, batch=args.batch,
+                          multi_label=False)  # the one class each detection was given
     classes, fine = taxonomy.classes, taxonomy.fine_class_ids()
     table = confusion(ds, preds, classes, fine, list(read_split(ds.root, args.split)), args.min_iou, args.min_score)
     rows = rows_of(table, train_counts(args.dataset, taxonomy))

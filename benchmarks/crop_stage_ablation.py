@@ -3,8 +3,8 @@
 Why: a model trained with the crop stage (`train --heading-crop`) predicts each detection's corners
 twice, once by its head and once from the detection's own crop, and prediction keeps the crop's.
 Scored on its own, a run mixes what the stage does with everything else the recipe changed. Here
-the same weights predict the same split with and without the stage (predict_dataset's
-`crop_stage`), so boxes, scores and matches are the same and only the corners differ, and both
+the same weights predict the same split with and without the stage (the loaded model's
+`crop_net` set to None), so boxes, scores and matches are the same and only the corners differ, and both
 are set beside the box-template baseline (corners from each box and the class's mean layout).
 It answers, for instance, whether the stage is what moves the ground-plane adherence.
 
@@ -53,18 +53,17 @@ def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dic
     (they are the same both ways)."""
     from omnigen.dataset import Dataset
     from omnigen.detector.box_template import evaluate_with_baseline
-    from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint
-    from omnigen.detector.model import DetectorConfig
+    from omnigen.detector.checkpoint import checkpoint_taxonomy
     from omnigen.detector.oks_eval import evaluate
-    from omnigen.detector.predict import predict_dataset
+    from omnigen.detector.predict import load_for_prediction, predict_split
 
-    state = load_checkpoint(args.weights)
-    if not DetectorConfig.from_dict(state["config"]).heading_crop:
+    model, state = load_for_prediction(args.weights, args.device)
+    if model.crop_net is None:
         raise SystemExit(f"crop_stage_ablation: {args.weights} has no crop stage (trained without --heading-crop)")
     split = None if args.split == "all" else args.split
-    staged, plain = (predict_dataset(args.weights, args.dataset, split=split, imgsz=args.imgsz, batch=args.batch,
-                                     device=args.device, crop_stage=stage, multi_label=not args.single_label)
-                     for stage in (True, False))
+    staged = predict_split(model, state, args.dataset, split, args.imgsz, args.batch, multi_label=not args.single_label)
+    model.crop_net = None  # the head's own corners, the same detections
+    plain = predict_split(model, state, args.dataset, split, args.imgsz, args.batch, multi_label=not args.single_label)
     if [d["bbox"] for d in staged] != [d["bbox"] for d in plain]:  # the stage moves corners, never boxes
         raise SystemExit("crop_stage_ablation: the detections differ with and without the stage")
     ds = Dataset.open(args.dataset, show_progress=False)

@@ -177,8 +177,9 @@ def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
     """OUT/test-predictions.json, made by `predict` unless it was made the same way before.
 
     OUT/predicted holds how (the checkpoint, the split, the labels an anchor). Predictions made
-    otherwise, or by a validate older than the marker, are made again, and their evaluation
-    (OUT/eval.json) with them: a changed evaluation protocol must not leave old figures standing.
+    otherwise, or by a validate older than the marker, are made again. Whenever they are made, their
+    old evaluation (OUT/eval.json) goes: a changed evaluation protocol, or predictions deleted to
+    redo them, must not leave old figures standing.
     """
     preds, predicted = out / "test-predictions.json", out / "predicted"
     call = f"predict_dataset({out / 'last.pt'}, {uov}, split='test', multi_label={multi_label})"
@@ -188,6 +189,7 @@ def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
             path.unlink(missing_ok=True)
         run.drop(f"predict_dataset({out / 'last.pt'}, ")
     if not preds.exists():
+        (out / "eval.json").unlink(missing_ok=True)  # an evaluation of other predictions
         t0 = time.perf_counter()
         atomic_write_text(preds, json.dumps(predict()))
         atomic_write_text(predicted, call + "\n")
@@ -496,7 +498,12 @@ def main(argv: list[str] | None = None) -> int:
         train_eval("n-p2-no-synthetic", ["--model", "n", "--p2", "--val-split", "train"], dataset=merged_real)
 
     bev_dir = work / "bev"
-    predictions = work / "runs" / "n-p2" / "test-predictions.json"
+    # one detection a box: the evaluation's class copies would stand twice on the map
+    from omnigen.detector.predict import one_label_per_box
+
+    predictions = work / "runs" / "n-p2" / "bev-predictions.json"
+    atomic_write_text(predictions, json.dumps(one_label_per_box(json.loads(
+        (work / "runs" / "n-p2" / "test-predictions.json").read_text()))))
     bev_stamp = hashlib.sha256(predictions.read_bytes()).hexdigest()  # the BEV of these predictions
     if stale(bev_dir / "done", bev_stamp):
         shutil.rmtree(bev_dir)

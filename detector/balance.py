@@ -20,6 +20,22 @@ from __future__ import annotations
 import numpy as np
 
 
+def check_crop_focus(crop_focus: float, crop: int | None) -> None:
+    """A focus share is a probability and needs crop windows to place. One check for the dataset
+    that draws the windows and for train's refusal before anything is loaded (and validate's,
+    before anything is rendered)."""
+    if not 0.0 <= crop_focus <= 1.0:  # False for NaN too
+        raise ValueError(f"crop_focus: {crop_focus} is not a probability in [0, 1]")
+    if crop_focus > 0 and crop is None:
+        raise ValueError("crop_focus centres crop windows, but crop is not set (train --crop)")
+
+
+def check_repeat_thresh(thresh: float) -> None:
+    """A repeat-factor threshold is a finite number >= 0 (0: no frame repeated)."""
+    if not np.isfinite(thresh) or thresh < 0:
+        raise ValueError(f"repeat_thresh: {thresh} is not a finite number >= 0")
+
+
 def frame_fractions(frame_classes: list[np.ndarray], num_classes: int) -> np.ndarray:
     """(num_classes,) fraction of the frames that hold at least one object of each class."""
     held = np.zeros(num_classes, dtype=np.float64)
@@ -32,8 +48,7 @@ def repeat_factors(frame_classes: list[np.ndarray], num_classes: int, thresh: fl
     """(frames,) LVIS repeat factor of each frame: max over its classes of max(1, sqrt(thresh / f_c)).
 
     A frame without objects is drawn once. `thresh` 0 repeats nothing."""
-    if not np.isfinite(thresh) or thresh < 0:
-        raise ValueError(f"repeat_factors: thresh must be a finite number >= 0, got {thresh}")
+    check_repeat_thresh(thresh)
     f = frame_fractions(frame_classes, num_classes)
     with np.errstate(divide="ignore"):
         per_class = np.maximum(1.0, np.sqrt(thresh / np.where(f > 0, f, np.inf)))

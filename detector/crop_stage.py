@@ -208,19 +208,47 @@ def refine(net: CropNet, size: int, images: torch.Tensor, batch_index: torch.Ten
     return orient(kpts, box_area(boxes), h)
 
 
+def distinct_boxes(boxes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(first, rank) of detections (n, 4) in score order: `first` the index of each distinct box's
+    first detection, in order of it; `rank` (n,) which of them each detection's box is.
+
+    Multi-label prediction (nms.postprocess) makes one detection per class an anchor rates above
+    the floor: copies with one box and one set of corners, differing in class and score."""
+    if not len(boxes):
+        empty = torch.zeros(0, dtype=torch.long, device=boxes.device)
+        return empty, empty
+    _, inverse = torch.unique(boxes, dim=0, return_inverse=True)
+    n = len(boxes)
+    first = torch.full((int(inverse.max()) + 1,), n, dtype=torch.long, device=boxes.device).scatter_reduce(
+        0, inverse, torch.arange(n, device=boxes.device), "amin")
+    order = first.argsort()
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(len(order), device=boxes.device)
+    return first[order], rank[inverse]
+
+
 def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[Detections],
                       max_refine: int = MAX_REFINE) -> list[Detections]:
     """Per-image detections (in `images`' coordinates, best score first) with the corners of the
-    first `max_refine` placed by their crops (`refine`): what prediction does after NMS for a
-    crop-stage model."""
-    n = [min(len(d), max_refine) for d in dets]
+    first `max_refine` distinct boxes placed by their crops (`refine`): what prediction does after
+    NMS for a crop-stage model. A box that multi-label prediction gave several classes is cropped
+    once and all its detections take its corners; it takes one of the `max_refine` places, so the
+    class copies do not push other objects out of the crop stage."""
+    picked = [distinct_boxes(d.boxes) for d in dets]
+    n = [min(len(first), max_refine) for first, _ in picked]
     if not sum(n):
         return dets
+    chosen = [first[:k] for (first, _), k in zip(picked, n)]
     batch_index = torch.cat([torch.full((k,), i, dtype=torch.long, device=images.device) for i, k in enumerate(n)])
-    boxes = torch.cat([d.boxes[:k] for d, k in zip(dets, n)]).to(images.dtype)
-    kpts = refine(net, size, images, batch_index, boxes, torch.cat([d.keypoints[:k] for d, k in zip(dets, n)])).split(n)
-    return [replace(d, keypoints=torch.cat([k.to(d.keypoints.dtype), d.keypoints[len(k):]]))
-            for d, k in zip(dets, kpts)]
+    boxes = torch.cat([d.boxes[c] for d, c in zip(dets, chosen)]).to(images.dtype)
+    kpts = refine(net, size, images, batch_index, boxes, torch.cat([d.keypoints[c] for d, c in zip(dets, chosen)])).split(n)
+    out = []
+    for d, (_, rank), k in zip(dets, picked, kpts):
+        refined = rank < len(k)
+        keypoints = d.keypoints.clone()
+        keypoints[refined] = k.to(d.keypoints.dtype)[rank[refined]]
+        out.append(replace(d, keypoints=keypoints))
+    return out
 
 
 class RefineWrapper(nn.Module):

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
-from omnigen.detector.balance import focus_weights, focused_range, instance_counts, pick_focus
+from omnigen.detector.balance import check_crop_focus, focus_weights, focused_range, instance_counts, pick_focus
 from omnigen.dataset import Dataset
 from omnigen.splits import TRAIN, read_split, split_names
 from omnigen.taxonomy import Taxonomy
@@ -228,10 +228,7 @@ class KeypointDataset(torch.utils.data.Dataset):
         if crop is not None and not 0 < crop <= size:
             raise ValueError(f"crop must be between 1 and the input size {size}, got {crop}")
         self.crop = crop  # training window (random_crop); None: the whole letterboxed image
-        if not 0.0 <= crop_focus <= 1.0:
-            raise ValueError(f"crop_focus must be a probability in [0, 1], got {crop_focus}")
-        if crop_focus > 0 and crop is None:
-            raise ValueError("crop_focus centres crop windows, but crop is not set")
+        check_crop_focus(crop_focus, crop)
         self.crop_focus = crop_focus
         self.ds = Dataset.open(root, show_progress=False)
         self.taxonomy = taxonomy

@@ -85,14 +85,14 @@ def run(args: argparse.Namespace) -> int:
         elif suffix == ".pt":
             if not args.predictions.exists():
                 raise ValueError(f"{args.predictions}: no such checkpoint")
-            from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint
-            from omnigen.detector.predict import predict_dataset
+            from omnigen.detector.checkpoint import checkpoint_taxonomy
+            from omnigen.detector.predict import load_for_prediction, predict_split
 
+            model, state = load_for_prediction(args.predictions, args.device)
             if args.taxonomy is None:  # the classes the model was trained on
-                taxonomy = checkpoint_taxonomy(load_checkpoint(args.predictions))
-
-            predictions = predict_dataset(args.predictions, args.dataset, split=split, imgsz=args.imgsz,
-                                          batch=args.batch, device=args.device, multi_label=not args.single_label)
+                taxonomy = checkpoint_taxonomy(state)
+            predictions = predict_split(model, state, args.dataset, split=split, imgsz=args.imgsz, batch=args.batch,
+                                        multi_label=not args.single_label)
         else:
             raise ValueError(f"{args.predictions}: expected weights (.pt) or predictions (.json)")
         options = dict(adherence=not args.no_adherence, source=str(args.predictions), sizes=not args.no_sizes,

@@ -100,6 +100,18 @@ def infer_batch(model: KeypointDetector, images: list[np.ndarray], boxes: list[L
     return batch_to_image_coords(dets, boxes)
 
 
+def one_label_per_box(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Multi-label results (EVAL_MULTI_LABEL) with each box's best-scoring detection alone: what an
+    application reading the objects, one each, is given (a BEV map would count a box rated car and
+    van twice). Class copies of a box share its image and its bbox exactly (one anchor's)."""
+    best: dict[tuple[Any, ...], dict[str, Any]] = {}
+    for r in results:
+        key = (r.get("frame_id", r["image_id"]), *r["bbox"])
+        if key not in best or r["score"] > best[key]["score"]:
+            best[key] = r
+    return list(best.values())
+
+
 def batches(items: list[Any], size: int) -> Iterator[list[Any]]:
     for i in range(0, len(items), size):
         yield items[i:i + size]
@@ -134,28 +146,39 @@ def trained_imgsz(state: dict[str, Any], default: int = 640) -> int:
     return int(state.get("train_config", {}).get("imgsz", default))
 
 
-def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | None = "test",
-                    imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
-                    device: str | None = None, crop_stage: bool = True,
-                    multi_label: bool = EVAL_MULTI_LABEL) -> list[dict[str, Any]]:
-    """Detections of a checkpoint on a dataset split, ready for `omnigen eval` (at the training
-    input size unless `imgsz` says otherwise), on `device` (default: CUDA when there is one: a
-    checkpoint loads onto the CPU, where a GPU machine's evaluation would otherwise run).
-
-    `crop_stage=False` keeps the head's own corners for a model with a crop stage: the same
-    detections with and without the stage's corners (benchmarks/crop_stage_ablation.py).
-    `multi_label=False` keeps one class an anchor, as `omnigen predict` does (EVAL_MULTI_LABEL)."""
-    from omnigen.detector.checkpoint import checkpoint_taxonomy, load_model
+def load_for_prediction(weights: str | Path, device: str | None = None) -> tuple[KeypointDetector, dict[str, Any]]:
+    """A checkpoint's model, in eval mode on `device` (default: CUDA when there is one: a
+    checkpoint loads onto the CPU, where a GPU machine's evaluation would otherwise run), and the
+    checkpoint, whose taxonomy and training size the prediction needs."""
+    from omnigen.detector.checkpoint import load_model
 
     model, state = load_model(weights)
-    if not crop_stage:
-        model.crop_net = None
-    model.to(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    return model.to(device or ("cuda" if torch.cuda.is_available() else "cpu")), state
+
+
+def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: str | Path, split: str | None = "test",
+                  imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
+                  multi_label: bool = EVAL_MULTI_LABEL) -> list[dict[str, Any]]:
+    """Detections of a loaded model (load_for_prediction) on a dataset split, ready for `omnigen
+    eval`, at the training input size unless `imgsz` says otherwise. A caller that predicts twice
+    with one model (with and without its crop stage: `model.crop_net = None` keeps the head's own
+    corners, benchmarks/crop_stage_ablation.py), or reads the checkpoint's taxonomy first, loads it
+    once. `multi_label=False` keeps one class an anchor, as `omnigen predict` does
+    (EVAL_MULTI_LABEL)."""
+    from omnigen.detector.checkpoint import checkpoint_taxonomy
+
     imgsz = imgsz or trained_imgsz(state)
-    taxonomy = checkpoint_taxonomy(state)
-    data = KeypointDataset(dataset_root, taxonomy, imgsz, split_frames(dataset_root, split))
+    data = KeypointDataset(dataset_root, checkpoint_taxonomy(state), imgsz, split_frames(dataset_root, split))
     return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=1000,
                                                       multi_label=multi_label), show_progress=True)
+
+
+def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | None = "test",
+                    imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
+                    device: str | None = None, multi_label: bool = EVAL_MULTI_LABEL) -> list[dict[str, Any]]:
+    """predict_split of a checkpoint file, loaded onto `device` (load_for_prediction)."""
+    model, state = load_for_prediction(weights, device)
+    return predict_split(model, state, dataset_root, split, imgsz, batch, conf, multi_label)
 
 
 def image_files(paths: Iterable[str | Path]) -> list[Path]:

@@ -36,7 +36,7 @@ import torch
 import torch.distributed as dist
 
 from omnigen.detector.balance import describe as describe_repeat
-from omnigen.detector.balance import repeat_factors
+from omnigen.detector.balance import check_crop_focus, check_repeat_thresh, repeat_factors
 from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint, load_pretrained, save_checkpoint
 from omnigen.detector.data import Augment, KeypointDataset, split_frames
 from omnigen.detector.ema import ModelEMA
@@ -219,13 +219,12 @@ def check_sizes(cfg: TrainConfig) -> None:
 
 
 def check_sampling(cfg: TrainConfig) -> None:
-    """Class-balanced sampling's settings: a focus share needs crop windows to place."""
-    if not 0.0 <= cfg.crop_focus <= 1.0:  # False for NaN too
-        raise ValueError(f"TrainConfig.crop_focus: {cfg.crop_focus} is not a probability in [0, 1]")
-    if cfg.crop_focus > 0 and cfg.crop is None:
-        raise ValueError("TrainConfig.crop_focus: centres crop windows, but crop is not set (train --crop)")
-    if not math.isfinite(cfg.repeat_thresh) or cfg.repeat_thresh < 0:
-        raise ValueError(f"TrainConfig.repeat_thresh: {cfg.repeat_thresh} is not a finite number >= 0")
+    """Class-balanced sampling's settings (balance's checks), refused before any data is read."""
+    try:
+        check_crop_focus(cfg.crop_focus, cfg.crop)
+        check_repeat_thresh(cfg.repeat_thresh)
+    except ValueError as e:
+        raise ValueError(f"TrainConfig.{e}") from None
 
 
 def frame_repeats(cfg: TrainConfig, data: KeypointDataset) -> np.ndarray | None:

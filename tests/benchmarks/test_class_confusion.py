@@ -54,3 +54,17 @@ def test_rows_and_the_summary_line_separate_rare_classes():
                        "top_other": "pedestrian", "top_other_count": 2, "not_found": 3}
     assert class_confusion.summary(rows) == ("class confusion: found 11 of 15 objects, 3 of them as another class; "
                                              "rare classes (under 130 training instances) found 2 of 5, 2 as another class")
+
+
+def test_main_loads_once_and_asks_for_the_one_class_each_detection_was_given(fake, monkeypatch, capsys):
+    import omnigen.detector.predict as predict
+    import omnigen.splits as splits
+
+    state, seen = {"taxonomy": load_taxonomy("fine").to_dict()}, []
+    monkeypatch.setattr(predict, "load_for_prediction", lambda weights, device: seen.append("load") or ("m", state))
+    monkeypatch.setattr(predict, "predict_split", lambda model, st, root, **kw: seen.append(kw["multi_label"]) or [])
+    monkeypatch.setattr(splits, "read_split", lambda root, name: list(fake.table.frame_id))
+    monkeypatch.setattr(class_confusion, "train_counts", lambda dataset, taxonomy: {})
+    assert class_confusion.main(["w.pt", str(fake.root), "--device", "cpu"]) == 0
+    assert seen == ["load", False]  # single-label: the multi-label protocol would give a box every class
+    assert capsys.readouterr().out.strip().splitlines()[-1].startswith("class confusion: found 0 of ")

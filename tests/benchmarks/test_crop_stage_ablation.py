@@ -50,3 +50,23 @@ def test_a_checkpoint_without_a_crop_stage_is_refused(tmp_path):
     write_fake_dataset(root, n_frames=1, objects_per_frame=2)
     with pytest.raises(SystemExit, match="no crop stage"):
         crop_stage_ablation.main([str(checkpoint(tmp_path / "plain.pt", 0)), str(root), "--split", "all"])
+
+
+def test_the_second_pass_drops_the_stage_and_both_keep_the_protocol_asked(tmp_path, monkeypatch):
+    import omnigen.detector.predict as predict
+
+    root = tmp_path / "ds"
+    write_fake_dataset(root, n_frames=2, objects_per_frame=2)
+    calls, real = [], predict.predict_split
+
+    def spy(model, state, *a, **kw):
+        calls.append((model.crop_net is not None, kw["multi_label"]))
+        return real(model, state, *a, **kw)
+
+    monkeypatch.setattr(predict, "predict_split", spy)
+    argv = [str(checkpoint(tmp_path / "crop.pt", 16)), str(root), "--split", "all", "--imgsz", "64", "--device", "cpu"]
+    assert crop_stage_ablation.main(argv) == 0
+    assert calls == [(True, True), (False, True)]  # with the stage, then the head's corners
+    calls.clear()
+    assert crop_stage_ablation.main([*argv, "--single-label"]) == 0
+    assert calls == [(True, False), (False, False)]

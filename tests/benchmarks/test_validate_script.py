@@ -349,3 +349,11 @@ def test_predictions_made_another_way_are_made_again_with_their_evaluation(tmp_p
     assert calls == [1]
     validate.predict_stage(run, out, Path("uov"), False, predict)  # the other way: made again
     assert calls == [1, 1] and len(run.log) == 1
+
+
+def test_predictions_deleted_to_redo_them_take_their_evaluation_with_them(tmp_path):
+    out = tmp_path / "n-p2"
+    out.mkdir()
+    (out / "eval.json").write_text("{}")  # evaluated before test-predictions.json was deleted
+    validate.predict_stage(Runner(tmp_path), out, Path("uov"), True, lambda: [])
+    assert (out / "test-predictions.json").exists() and not (out / "eval.json").exists()

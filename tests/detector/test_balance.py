@@ -35,7 +35,7 @@ def test_repeat_factors_follow_lvis_by_the_rarest_class_of_a_frame():
     assert repeat_factors(frames, 4, thresh=0.0) == pytest.approx([1.0] * 5)
     assert repeat_factors(frames, 4, thresh=0.45) == pytest.approx([1.5, 1.0, 1.5, 1.0, 1.0])
     for bad in (-1, float("nan")):
-        with pytest.raises(ValueError, match="repeat_factors: thresh must be a finite number >= 0"):
+        with pytest.raises(ValueError, match="repeat_thresh: .* is not a finite number >= 0"):
             repeat_factors(frames, 4, thresh=bad)
     assert epoch_frames(np.array([1.5, 1.0, 1.5, 1.0, 1.0])) == 6  # 5 whole draws, halves add to one more
 

@@ -11,8 +11,8 @@ import torch
 from omnigen.conventions import FLIP_IDX, TURN_IDX
 from omnigen.detector.boxes import box_area
 from omnigen.detector.heading import image_heading, orient
-from omnigen.detector.crop_stage import (CropNet, crop_boxes, crop_outputs, from_crop_units, jitter_boxes,
-                                         mirror_corners, refine_detections, to_crop_units, training_rois)
+from omnigen.detector.crop_stage import (CropNet, crop_boxes, crop_outputs, distinct_boxes, from_crop_units, jitter_boxes,
+                                         mirror_corners, refine, refine_detections, to_crop_units, training_rois)
 from omnigen.detector.loss import DetectionLoss
 from omnigen.detector.model import DetectorConfig, KeypointDetector
 from omnigen.detector.nms import Detections
@@ -190,7 +190,8 @@ def test_refine_detections_stops_at_max_refine():
     # seen from the front: the front face (0, 1, 5, 4) the big square, the rear one small behind it
     facing = torch.tensor([[10, 10], [50, 10], [40, 20], [20, 20], [10, 50], [50, 50], [40, 40], [20, 40]],
                           dtype=torch.float32)
-    boxes = torch.tensor([[10.0, 10.0, 50.0, 50.0]] * 5)
+    shift = torch.arange(5.0)[:, None]  # five objects, one size: the crop places each one's corners alike
+    boxes = torch.tensor([[10.0, 10.0, 50.0, 50.0]]) + shift
     kp = torch.cat([torch.rand(5, 8, 2) * 60, torch.rand(5, 8, 1)], -1)
     assert image_heading(facing[None], box_area(boxes[:1]))[0, 2] > 0
     # a constant output, its own mirror image: "the rear faces the camera", and the facing layout
@@ -200,9 +201,30 @@ def test_refine_detections_stops_at_max_refine():
         net.out.bias.copy_(const)
         dets = [Detections(boxes, torch.linspace(1, 0.5, 5), torch.zeros(5, dtype=torch.long), kp)]
         out = refine_detections(net, 16, torch.rand(1, 3, 64, 64), dets, max_refine=3)[0]
-    want = torch.cat([facing.expand(3, 8, 2), kp[:3, :, 2:]], -1)[:, list(TURN_IDX)]
+    want = torch.cat([facing + shift[:3, :, None], kp[:3, :, 2:]], -1)[:, list(TURN_IDX)]
     assert torch.allclose(out.keypoints[:3], want, atol=1e-4) and torch.equal(out.keypoints[3:], kp[3:])
     assert torch.equal(out.boxes, boxes) and torch.equal(out.scores, dets[0].scores)
+
+
+def test_class_copies_of_a_box_are_cropped_once_and_take_one_place():
+    # multi-label prediction: box A rated car (0.9) and van (0.5), B and C once each; with room for
+    # two boxes, A's two detections and B take the crop's corners, C keeps the head's
+    torch.manual_seed(0)
+    net = CropNet(16, width=8).eval()
+    a, b, c = [10.0, 10.0, 50.0, 30.0], [60.0, 5.0, 90.0, 40.0], [5.0, 40.0, 30.0, 60.0]
+    boxes = torch.tensor([a, b, a, c])
+    kp = torch.cat([torch.rand(4, 8, 2) * 60, torch.rand(4, 8, 1)], -1)
+    kp[2] = kp[0]  # copies share the anchor's corners
+    dets = [Detections(boxes, torch.tensor([0.9, 0.7, 0.5, 0.4]), torch.tensor([0, 0, 1, 0]), kp)]
+    images = torch.rand(1, 3, 64, 96)
+    with torch.no_grad():
+        out = refine_detections(net, 16, images, dets, max_refine=2)[0]
+        alone = refine(net, 16, images, torch.zeros(2, dtype=torch.long), boxes[:2], kp[:2])
+    assert torch.allclose(out.keypoints[[0, 1]], alone, atol=1e-5)
+    assert torch.equal(out.keypoints[2], out.keypoints[0])  # the van copy: A's crop, once
+    assert torch.equal(out.keypoints[3], kp[3])  # C is past the two boxes refined
+    first, rank = distinct_boxes(boxes)
+    assert first.tolist() == [0, 1, 3] and rank.tolist() == [0, 1, 0, 2]
 
 
 def _labelled_batch() -> dict[str, torch.Tensor]:
@@ -282,11 +304,11 @@ def test_weights_without_a_crop_stage_fine_tune_with_one(tmp_path):
         load_pretrained(other, path, load_taxonomy("fine"))
 
 
-def test_predict_dataset_without_the_crop_stage_keeps_the_detections_and_the_heads_corners(tmp_path):
-    """crop_stage=False (benchmarks/crop_stage_ablation.py): the same boxes and scores, the head's
+def test_predicting_without_the_crop_stage_keeps_the_detections_and_the_heads_corners(tmp_path):
+    """crop_net = None (benchmarks/crop_stage_ablation.py): the same boxes and scores, the head's
     corners; with the stage (a constant crop net) the corners are the crop's."""
     from omnigen.detector.checkpoint import save_checkpoint
-    from omnigen.detector.predict import predict_dataset
+    from omnigen.detector.predict import load_for_prediction, predict_split
     from omnigen.fakes import write_fake_dataset
     from omnigen.taxonomy import load_taxonomy
 
@@ -301,8 +323,10 @@ def test_predict_dataset_without_the_crop_stage_keeps_the_detections_and_the_hea
     save_checkpoint(path, {"config": cfg.to_dict(), "model": model.state_dict(), "classes": classes})
     root = tmp_path / "ds"
     write_fake_dataset(root, n_frames=2, objects_per_frame=3)
-    staged = predict_dataset(path, root, split=None, imgsz=64, device="cpu")
-    plain = predict_dataset(path, root, split=None, imgsz=64, device="cpu", crop_stage=False)
+    loaded, state = load_for_prediction(path, "cpu")
+    staged = predict_split(loaded, state, root, split=None, imgsz=64)
+    loaded.crop_net = None
+    plain = predict_split(loaded, state, root, split=None, imgsz=64)
     assert len(staged) == len(plain) > 0
     assert [(d["image_id"], d["bbox"], d["score"]) for d in staged] == [(d["image_id"], d["bbox"], d["score"]) for d in plain]
     kp_s = np.array([d["keypoints"] for d in staged]).reshape(len(staged), 8, 3)

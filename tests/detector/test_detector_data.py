@@ -251,3 +251,18 @@ def test_postprocess_multi_label_scores_every_class_above_the_floor():
     got = sorted(zip(multi.classes.tolist(), multi.scores.tolist()))
     assert got == [(0, pytest.approx(0.6)), (1, pytest.approx(0.4)), (2, pytest.approx(0.3))]
     assert multi.boxes[multi.classes == 1].tolist() == [[10.0, 10.0, 50.0, 40.0]]  # the anchor's own box
+
+
+def test_one_label_per_box_keeps_each_boxs_best_class():
+    from omnigen.detector.predict import one_label_per_box
+
+    def det(frame, box, cls, score):
+        return {"image_id": 1, "frame_id": frame, "category_id": cls, "bbox": box, "keypoints": [0.0] * 24,
+                "score": score}
+
+    a, b = [10.0, 10.0, 40.0, 30.0], [50.0, 5.0, 20.0, 20.0]
+    results = [det("f1", a, 1, 0.6), det("f1", b, 3, 0.5), det("f1", a, 2, 0.4), det("f2", a, 2, 0.7),
+               det("f2", a, 1, 0.8)]
+    kept = one_label_per_box(results)
+    assert [(r["frame_id"], r["category_id"], r["score"]) for r in kept] == [("f1", 1, 0.6), ("f1", 3, 0.5),
+                                                                             ("f2", 1, 0.8)]

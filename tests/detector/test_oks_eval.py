@@ -21,6 +21,7 @@ from omnigen.dataset import Dataset
 from omnigen.fakes import write_fake_dataset
 from omnigen.merge import merge
 from omnigen.splits import read_split
+from omnigen.taxonomy import load_taxonomy
 
 
 @pytest.fixture(scope="module")
@@ -341,22 +342,27 @@ def test_command_writes_json_and_prints_a_table(ds, tmp_path, capsys, monkeypatc
 def test_command_runs_weights_through_predict(ds, tmp_path, monkeypatch):
     import omnigen.detector.predict as predict
 
-    seen = {}
+    seen, state = {}, {"taxonomy": load_taxonomy("fine").to_dict()}
 
-    def fake_predict(weights, root, split, imgsz, batch, device, multi_label):
-        seen.update(weights=Path(weights), split=split, imgsz=imgsz, batch=batch, device=device,
-                    multi_label=multi_label)
+    def fake_load(weights, device):
+        seen.update(weights=Path(weights), device=device, loads=seen.get("loads", 0) + 1)
+        return "model", state
+
+    def fake_predict(model, got_state, root, split, imgsz, batch, multi_label):
+        assert (model, got_state) == ("model", state)
+        seen.update(split=split, imgsz=imgsz, batch=batch, multi_label=multi_label)
         return perfect(ds)
 
-    monkeypatch.setattr(predict, "predict_dataset", fake_predict)
+    monkeypatch.setattr(predict, "load_for_prediction", fake_load)
+    monkeypatch.setattr(predict, "predict_split", fake_predict)
     weights = tmp_path / "best.pt"
     weights.write_bytes(b"x")
-    args = _args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True, taxonomy="fine", device="cpu")
+    args = _args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True, device="cpu")
     assert eval_command.run(args) == 0
-    assert seen == {"weights": weights, "split": "test", "imgsz": 320, "batch": 2, "device": "cpu",
+    assert seen == {"weights": weights, "split": "test", "imgsz": 320, "batch": 2, "device": "cpu", "loads": 1,
                     "multi_label": True}  # every class above the floor, as Ultralytics' validation
     assert eval_command.run(_args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True,
-                                  taxonomy="fine", device="cpu", single_label=True)) == 0
+                                  device="cpu", single_label=True)) == 0
     assert seen["multi_label"] is False
 
 
