@@ -478,6 +478,7 @@ def main(argv: list[str] | None = None) -> int:
                  "synthetic_test": row, "overall_test": report["report"]["rows"][0], "epochs_logged": len(hist),
                  "baseline_synthetic_test": baseline,
                  "curve": curve, "validated_on": validated_on(dataset, extra, uov),
+                 "predicted": (out / "predicted").read_text().strip(),
                  "report_rows": report["report"]["rows"], "corner_order": orders}
         runs.append(entry)
         return entry
@@ -736,6 +737,17 @@ def with_section(text: str, name: str, body: str) -> str:
     return text + gap + block
 
 
+def protocol_line(r: dict[str, Any]) -> list[str]:
+    """How the main run's test predictions were made (predict_stage's marker); none for a
+    results.json older than the marker."""
+    made = (r.get("runs") or [{}])[0].get("predicted")
+    if not made:
+        return []
+    how = ("every class an anchor rates above the 0.001 floor is a detection (multi-label, as Ultralytics' "
+           "validation scores)" if "multi_label=True" in made else "one class an anchor, its best (single-label)")
+    return [f"- test predictions: {how}; last.pt, not best.pt"]
+
+
 def results_markdown(r: dict[str, Any]) -> str:
     """RESULTS.md: every number below is read from results.json, written by this script."""
     a = r["arguments"]
@@ -759,6 +771,7 @@ def results_markdown(r: dict[str, Any]) -> str:
         f"- frames: {r['frames']['total']} ({', '.join(f'{k} {v}' for k, v in (r['frames']['by_source'] or {}).items())}); "
         f"{r['frames']['objects']} objects; split frames "
         f"{ {k: v['frames'] for k, v in (r['frames']['splits'] or {}).items()} }",
+        *protocol_line(r),
         "",
         "## Nano with P2 on the synthetic test split",
         "",

@@ -357,3 +357,11 @@ def test_predictions_deleted_to_redo_them_take_their_evaluation_with_them(tmp_pa
     (out / "eval.json").write_text("{}")  # evaluated before test-predictions.json was deleted
     validate.predict_stage(Runner(tmp_path), out, Path("uov"), True, lambda: [])
     assert (out / "test-predictions.json").exists() and not (out / "eval.json").exists()
+
+
+def test_results_markdown_says_how_the_test_predictions_were_made():
+    made = {"runs": [{"predicted": "predict_dataset(w/last.pt, uov, split='test', multi_label=True)"}]}
+    assert "multi-label, as Ultralytics' validation scores" in validate.protocol_line(made)[0]
+    made["runs"][0]["predicted"] = "predict_dataset(w/last.pt, uov, split='test', multi_label=False)"
+    assert "single-label" in validate.protocol_line(made)[0]
+    assert validate.protocol_line({"runs": [{}]}) == []  # a results.json from before the marker
