@@ -176,13 +176,18 @@ def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
                   predict: Callable[[], list[dict[str, Any]]]) -> Path:
     """OUT/test-predictions.json, made by `predict` unless it was made the same way before.
 
-    OUT/predicted holds how (the checkpoint, the split, the labels an anchor). Predictions made
+    OUT/predicted holds how (the checkpoint, the split, the labels an anchor, the score floor, the
+    detections kept an image, the crop stage's refinements). Predictions made
     otherwise, or by a validate older than the marker, are made again. Whenever they are made, their
     old evaluation (OUT/eval.json) goes: a changed evaluation protocol, or predictions deleted to
     redo them, must not leave old figures standing.
     """
+    from omnigen.detector.crop_stage import MAX_REFINE
+    from omnigen.detector.predict import EVAL_CONF, EVAL_MAX_DET
+
     preds, predicted = out / "test-predictions.json", out / "predicted"
-    call = f"predict_dataset({out / 'last.pt'}, {uov}, split='test', multi_label={multi_label})"
+    call = (f"predict_dataset({out / 'last.pt'}, {uov}, split='test', multi_label={multi_label}, conf={EVAL_CONF}, "
+            f"max_det={EVAL_MAX_DET}, max_refine={MAX_REFINE})")
     if preds.exists() and stale_or_missing(predicted, call):
         print(f"[stale] {preds} was predicted otherwise: predicting and evaluating again", flush=True)
         for path in (preds, out / "eval.json", predicted):

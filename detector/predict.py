@@ -29,6 +29,9 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
 EVAL_CONF = 0.001
 """Confidence floor for evaluation: AP integrates over the whole score range, so keep low scores."""
 
+EVAL_MAX_DET = 1000
+"""Detections kept an image for evaluation (oks_eval.MAX_DETS, its maxDets, counts as many)."""
+
 EVAL_MULTI_LABEL = True
 """Evaluation scores every class of an anchor above EVAL_CONF, as Ultralytics' validation does
 (its DetectionValidator, which pose validation inherits, runs NMS with multi_label=True): a class's
@@ -169,7 +172,7 @@ def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: 
 
     imgsz = imgsz or trained_imgsz(state)
     data = KeypointDataset(dataset_root, checkpoint_taxonomy(state), imgsz, split_frames(dataset_root, split))
-    return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=1000,
+    return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=EVAL_MAX_DET,
                                                       multi_label=multi_label), show_progress=True)
 
 

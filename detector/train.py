@@ -43,7 +43,7 @@ from omnigen.detector.ema import ModelEMA
 from omnigen.detector.loss import OKS_SIGMA as KPT_SIGMA
 from omnigen.detector.loss import DetectionLoss, LossGains
 from omnigen.detector.model import DetectorConfig, KeypointDetector
-from omnigen.detector.predict import EVAL_CONF, EVAL_MULTI_LABEL, PredictOptions, predict_frames
+from omnigen.detector.predict import EVAL_CONF, EVAL_MAX_DET, EVAL_MULTI_LABEL, PredictOptions, predict_frames
 from omnigen.detector import time_budget
 from omnigen.detector.time_budget import TimeBudget
 from omnigen.detector.train_loader import EpochBatches, collate_uint8, make_loader
@@ -256,7 +256,7 @@ def validate(model: KeypointDetector, data: KeypointDataset, split: str | None, 
     """OKS mAP of the model on a split (omnigen eval's numbers, overall row; adherence left to eval)."""
     from omnigen.detector.oks_eval import evaluate
 
-    preds = predict_frames(model, data, PredictOptions(imgsz=data.size, conf=EVAL_CONF, batch=batch, max_det=1000,
+    preds = predict_frames(model, data, PredictOptions(imgsz=data.size, conf=EVAL_CONF, batch=batch, max_det=EVAL_MAX_DET,
                                                        multi_label=EVAL_MULTI_LABEL))
     row = evaluate(data.ds, preds, split=split, taxonomy=data.taxonomy, adherence=False, sizes=False).row("overall")
     return {"oks_map50_95": row.oks_map50_95, "ap_oks50": row.ap_oks50, "precision": row.precision,

@@ -344,7 +344,8 @@ def test_predictions_made_another_way_are_made_again_with_their_evaluation(tmp_p
     preds = validate.predict_stage(run, out, Path("uov"), True, predict)
     assert calls == [1] and json.loads(preds.read_text()) == [{"image_id": 1, "score": 0.5}]
     assert not (out / "eval.json").exists()  # evaluated again by the caller
-    assert [c["command"] for c in run.log] == [f"predict_dataset({out / 'last.pt'}, uov, split='test', multi_label=True)"]
+    assert [c["command"] for c in run.log] == [f"predict_dataset({out / 'last.pt'}, uov, split='test', multi_label=True, "
+                                               "conf=0.001, max_det=1000, max_refine=300)"]
     validate.predict_stage(run, out, Path("uov"), True, predict)  # made this way: kept
     assert calls == [1]
     validate.predict_stage(run, out, Path("uov"), False, predict)  # the other way: made again
