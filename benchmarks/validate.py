@@ -173,8 +173,8 @@ def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
 
 
 def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
-                  predict: Callable[[], list[dict[str, Any]]]) -> Path:
-    """OUT/test-predictions.json, made by `predict` unless it was made the same way before.
+                  predict: Callable[[bool], list[dict[str, Any]]]) -> Path:
+    """OUT/test-predictions.json, made by `predict(multi_label)` unless it was made the same way before.
 
     OUT/predicted holds how (the checkpoint, the split, the labels an anchor, the score floor, the
     detections kept an image, the crop stage's refinements). Predictions made
@@ -190,13 +190,12 @@ def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
             f"max_det={EVAL_MAX_DET}, max_refine={MAX_REFINE})")
     if preds.exists() and stale_or_missing(predicted, call):
         print(f"[stale] {preds} was predicted otherwise: predicting and evaluating again", flush=True)
-        for path in (preds, out / "eval.json", predicted):
-            path.unlink(missing_ok=True)
+        preds.unlink()
         run.drop(f"predict_dataset({out / 'last.pt'}, ")
     if not preds.exists():
         (out / "eval.json").unlink(missing_ok=True)  # an evaluation of other predictions
         t0 = time.perf_counter()
-        atomic_write_text(preds, json.dumps(predict()))
+        atomic_write_text(preds, json.dumps(predict(multi_label)))
         atomic_write_text(predicted, call + "\n")
         run.record(call, time.perf_counter() - t0)
     return preds
@@ -464,9 +463,9 @@ def main(argv: list[str] | None = None) -> int:
 
         # last.pt, not best.pt: without a val split, train validates on the test split, and
         # choosing the checkpoint by its test score would flatter the number reported here
-        preds = predict_stage(run, out, uov, EVAL_MULTI_LABEL, lambda: predict_dataset(
+        preds = predict_stage(run, out, uov, EVAL_MULTI_LABEL, lambda multi_label: predict_dataset(
             out / "last.pt", uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch, device=args.device,
-            multi_label=EVAL_MULTI_LABEL))
+            multi_label=multi_label))
         report_path = out / "eval.json"
         run(["eval", str(preds), str(uov), "--split", "test", "--baseline", "--out", str(report_path)], report_path)
         report = json.loads(report_path.read_text())

@@ -337,26 +337,26 @@ def test_predictions_made_another_way_are_made_again_with_their_evaluation(tmp_p
     run = Runner(tmp_path)
     run.record(f"predict_dataset({out / 'last.pt'}, uov, split='test')", 90.0)
 
-    def predict():
-        calls.append(1)
+    def predict(multi_label):
+        calls.append(multi_label)
         return [{"image_id": 1, "score": 0.5}]
 
     preds = validate.predict_stage(run, out, Path("uov"), True, predict)
-    assert calls == [1] and json.loads(preds.read_text()) == [{"image_id": 1, "score": 0.5}]
+    assert calls == [True] and json.loads(preds.read_text()) == [{"image_id": 1, "score": 0.5}]
     assert not (out / "eval.json").exists()  # evaluated again by the caller
     assert [c["command"] for c in run.log] == [f"predict_dataset({out / 'last.pt'}, uov, split='test', multi_label=True, "
                                                "conf=0.001, max_det=1000, max_refine=300)"]
     validate.predict_stage(run, out, Path("uov"), True, predict)  # made this way: kept
-    assert calls == [1]
+    assert calls == [True]
     validate.predict_stage(run, out, Path("uov"), False, predict)  # the other way: made again
-    assert calls == [1, 1] and len(run.log) == 1
+    assert calls == [True, False] and len(run.log) == 1
 
 
 def test_predictions_deleted_to_redo_them_take_their_evaluation_with_them(tmp_path):
     out = tmp_path / "n-p2"
     out.mkdir()
     (out / "eval.json").write_text("{}")  # evaluated before test-predictions.json was deleted
-    validate.predict_stage(Runner(tmp_path), out, Path("uov"), True, lambda: [])
+    validate.predict_stage(Runner(tmp_path), out, Path("uov"), True, lambda multi_label: [])
     assert (out / "test-predictions.json").exists() and not (out / "eval.json").exists()
 
 
