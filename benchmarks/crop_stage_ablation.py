@@ -8,12 +8,17 @@ the same weights predict the same split with and without the stage (the loaded m
 are set beside the box-template baseline (corners from each box and the class's mean layout).
 It answers, for instance, whether the stage is what moves the ground-plane adherence.
 
+A stage that names classes (`train --crop-classes`) also rescores the detections it refines; a
+third pass keeps its corners and the head's scores (`crop_classes=False`), so that what the
+rescoring does to each class's AP is measured on the same weights too.
+
     .venv/bin/python benchmarks/crop_stage_ablation.py WEIGHTS DATASET [--split test] [--imgsz 640]
         [--batch 16] [--device cpu] [--out ablation.json]
 
 Prints a table per row (the synthetic rows, then each view) and, last,
 `crop stage: mAP50:95 X (head's corners Y), corner error rel A (head B, box template C),
-adherence D deg (head E)`.
+adherence D deg (head E)`, and for a stage that names classes `; rescored by the crop's classes:
+mAP50:95 X (the head's scores Z)`.
 """
 
 from __future__ import annotations
@@ -47,10 +52,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
-def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any], int]:
-    """(crop-stage rows, head rows, box-template rows, detections): the checkpoint's predictions with
-    and without its crop stage, scored on one opened dataset; the template scores the boxes once
-    (they are the same both ways)."""
+def same_boxes(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> bool:
+    """Whether two prediction lists hold the same detections' boxes and classes (in any order: a
+    stage that rescores sorts again)."""
+    def key(d: dict[str, Any]) -> tuple[Any, ...]:
+        return (d["image_id"], d["category_id"], *d["bbox"])
+    return sorted(map(key, a)) == sorted(map(key, b))
+
+
+def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any], int,
+                                             dict[str, Any] | None]:
+    """(crop-stage rows, head rows, box-template rows, detections, rows of the crop's corners with
+    the head's scores or None): the checkpoint's predictions with and without its crop stage (and,
+    for a stage that names classes, without its rescoring), scored on one opened dataset; the
+    template scores the boxes once (they are the same every way)."""
     from omnigen.dataset import Dataset
     from omnigen.detector.box_template import evaluate_with_baseline
     from omnigen.detector.checkpoint import checkpoint_taxonomy
@@ -62,15 +77,20 @@ def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dic
         raise SystemExit(f"crop_stage_ablation: {args.weights} has no crop stage (trained without --heading-crop)")
     split = None if args.split == "all" else args.split
     staged = predict_split(model, state, args.dataset, split, args.imgsz, args.batch, multi_label=not args.single_label)
+    unscored = None
+    if model.crop_net.num_classes:  # the crop's corners, the head's scores
+        unscored = predict_split(model, state, args.dataset, split, args.imgsz, args.batch,
+                                 multi_label=not args.single_label, crop_classes=False)
     model.crop_net = None  # the head's own corners, the same detections
     plain = predict_split(model, state, args.dataset, split, args.imgsz, args.batch, multi_label=not args.single_label)
-    if [d["bbox"] for d in staged] != [d["bbox"] for d in plain]:  # the stage moves corners, never boxes
+    if not same_boxes(staged, plain):  # the stage moves corners and scores, never boxes
         raise SystemExit("crop_stage_ablation: the detections differ with and without the stage")
     ds = Dataset.open(args.dataset, show_progress=False)
     taxonomy = checkpoint_taxonomy(state)
     report, baseline = evaluate_with_baseline(ds, staged, split=split, taxonomy=taxonomy)
     head = evaluate(ds, plain, split=split, taxonomy=taxonomy)
-    return rows_of(report), rows_of(head), rows_of(baseline), len(staged)
+    head_scores = None if unscored is None else rows_of(evaluate(ds, unscored, split=split, taxonomy=taxonomy))
+    return rows_of(report), rows_of(head), rows_of(baseline), len(staged), head_scores
 
 
 def cell(v: Any, digits: int) -> str:
@@ -79,25 +99,32 @@ def cell(v: Any, digits: int) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    stage, head, template, n_stage = score(args)
+    stage, head, template, n_stage, head_scores = score(args)
     print(f"{args.weights} on {args.dataset} ({args.split} split, {n_stage} detections): corners from the crop "
-          "stage, from the head, and the box template's (the same detections each time)")
+          "stage, from the head, and the box template's (the same detections each time)"
+          + ("; the crop stage's corners with the head's scores (not rescored by the crop's classes)"
+             if head_scores else ""))
     print("| rows | corners | " + " | ".join(title for _, title, _ in COLUMNS) + " |")
     print("|---|---|" + "---|" * len(COLUMNS))
     for key in stage:
-        for name, rows in (("crop stage", stage), ("head", head), ("box template", template)):
+        passes = [("crop stage", stage)] + ([("crop stage, head's scores", head_scores)] if head_scores else []) \
+            + [("head", head), ("box template", template)]
+        for name, rows in passes:
             r = rows[key]
             print(f"| {key} | {name} | " + " | ".join(cell(r[f], d) for f, _, d in COLUMNS) + " |")
     main_key = next(iter(stage))
     s, h, t = stage[main_key], head[main_key], template[main_key]
     if args.out:
         atomic_write_json(args.out, {"weights": str(args.weights), "dataset": str(args.dataset), "split": args.split,
-                                     "detections": n_stage, "crop_stage": stage, "head": head, "box_template": template},
+                                     "detections": n_stage, "crop_stage": stage, "head": head, "box_template": template,
+                                     **({"crop_stage_head_scores": head_scores} if head_scores else {})},
                           indent=1)
     print(f"crop stage: mAP50:95 {cell(s['oks_map50_95'], 3)} (head's corners {cell(h['oks_map50_95'], 3)}), "
           f"corner error rel {cell(s['corner_error_rel'], 3)} (head {cell(h['corner_error_rel'], 3)}, box template "
           f"{cell(t['corner_error_rel'], 3)}), adherence {cell(s['ground_adherence_deg'], 2)} deg "
-          f"(head {cell(h['ground_adherence_deg'], 2)})")
+          f"(head {cell(h['ground_adherence_deg'], 2)})"
+          + (f"; rescored by the crop's classes: mAP50:95 {cell(s['oks_map50_95'], 3)} (the head's scores "
+             f"{cell(head_scores[main_key]['oks_map50_95'], 3)})" if head_scores else ""))
     return 0
 
 

@@ -157,6 +157,16 @@ def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
         run.forget(out)
     if done.exists():
         run(train_cmd, done)  # says it skips
+        cmd = "omnigen " + shlex.join(train_cmd)
+        # the log must name this training, not another one that once wrote into `out` (a folder
+        # moved back by hand from an earlier run): other trainings into it are dropped, and a run
+        # the log lost is recorded with its epochs' own seconds
+        run.log = [c for c in run.log if not (c["command"].startswith("omnigen train ") and mentions(c["command"], out)
+                                              and train_stamp(c["command"]) != train_stamp(cmd))]
+        if run.seconds(cmd):
+            atomic_write_json(run.path, run.log, indent=1)
+        else:
+            run.record(cmd, trained_seconds(out))
     else:
         resumable = (out / "last.pt").exists() and started.exists() and not stale(started, stamp)
         if resumable:
@@ -314,7 +324,8 @@ def keypoint_recipe(args: argparse.Namespace) -> list[str]:
             + (["--kpt-heading"] if heading else [])
             + (["--heading-gain", str(args.heading_gain)] if args.heading_gain is not None else [])
             + (["--kpt-hidden", str(args.kpt_hidden)] if args.kpt_hidden else [])
-            + (["--heading-crop", str(args.heading_crop)] if args.heading_crop else []))
+            + (["--heading-crop", str(args.heading_crop)] if args.heading_crop else [])
+            + (["--crop-classes"] if args.heading_crop and args.crop_classes else []))
 
 
 def frame_sampling(args: argparse.Namespace) -> list[str]:
@@ -377,6 +388,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--heading-gain", type=float, default=None, help="omnigen train --heading-gain")
     ap.add_argument("--kpt-hidden", type=int, default=None, help="keypoint-branch width (omnigen train --kpt-hidden)")
     ap.add_argument("--heading-crop", type=int, default=64, help="crop side of the second stage that places corners and reads the front (omnigen train --heading-crop); 0: none")
+    ap.add_argument("--crop-classes", action=argparse.BooleanOptionalAction, default=True,
+                    help="the crop stage names each crop's class and rescores the detections it refines "
+                         "(omnigen train --crop-classes; docs/detector-training.md); ignored without --heading-crop")
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
                          "natively, a step in about 0.65 of the time by benchmarks/bench_train_step.py; else auto)")

@@ -22,6 +22,16 @@ the heading with the head's target and loss (heading.image_heading of the labell
 bounded (benchmarks/bench_crop_stage.py prints it). Inference crops the predicted boxes and
 averages each crop's outputs with its mirror image's (a horizontal flip negates x and renumbers
 the corners by FLIP_IDX; it negates the heading's x component and keeps the rest).
+
+With classes (DetectorConfig.crop_classes) the stage also names each crop's class, and prediction
+rescores each refined detection by it. Why: the head finds the vehicles and then calls them cars
+(make validate's class-balanced run: of the 115 vans it found, 93 were named car; trucks 27 of 96,
+buses 16 of 61; benchmarks/class_confusion.py), deciding between look-alike classes from one
+anchor's feature at a stride of 4-32 pixels, where the crop net sees the object alone at 64 x 64.
+Training adds a cross-entropy of the crops' class logits against the labelled classes
+(`crop_cls`); prediction gives a detection of class c with score s the score sqrt(s * p_c), p the
+crop's softmax (mirror-averaged logits): the geometric mean keeps the head's evidence that there
+is an object there and lets the crop move the classes against each other (`rescore`).
 """
 
 from __future__ import annotations
@@ -63,16 +73,20 @@ _MIRROR = (-1.0, 1.0, 1.0)  # the image heading of the horizontally mirrored cro
 
 
 class CropNet(nn.Module):
-    """Crops (N, 3, S, S) in 0..1 -> (N, 3 + 16): the image heading's direction (unnormalised) and
-    the eight corners (x, y) in the crop's units (`to_crop_units`).
+    """Crops (N, 3, S, S) in 0..1 -> (N, 3 + 16 + num_classes): the image heading's direction
+    (unnormalised), the eight corners (x, y) in the crop's units (`to_crop_units`) and, where
+    num_classes > 0, the class logits.
 
     Four blocks of two 3x3 convolutions, batch norm, SiLU and a 2x2 max-pool (the classifier that
     benchmarks/heading_visibility.py showed can see the front at 64x64), then the last feature map
     flattened, not averaged: where a corner lies is what a global average would throw away
     (benchmarks/crop_layout.py's model)."""
 
-    def __init__(self, size: int, width: int = 16):
+    def __init__(self, size: int, width: int = 16, num_classes: int = 0):
         super().__init__()
+        if num_classes < 0:
+            raise ValueError(f"CropNet: num_classes must be >= 0, got {num_classes}")
+        self.num_classes = num_classes
         if size <= 0 or size % 16:
             raise ValueError(f"CropNet: crop side must be a positive multiple of 16, got {size}")
 
@@ -84,15 +98,18 @@ class CropNet(nn.Module):
         self.features = nn.Sequential(block(3, width), block(width, 2 * width), block(2 * width, 4 * width),
                                       block(4 * width, 4 * width), nn.Flatten())
         self.hidden = nn.Sequential(nn.Linear(4 * width * (size // 16) ** 2, HIDDEN), nn.SiLU())
-        self.out = nn.Linear(HIDDEN, HEADING_CHANNELS + 2 * NUM_KEYPOINTS)
+        self.out = nn.Linear(HIDDEN, HEADING_CHANNELS + 2 * NUM_KEYPOINTS + num_classes)
 
     def forward(self, crops: torch.Tensor) -> torch.Tensor:
         return self.out(self.hidden(self.features(crops)))
 
 
-def split_outputs(y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """CropNet's (N, 19) -> headings (N, 3), corners (N, 8, 2) in crop units."""
-    return y[:, :HEADING_CHANNELS], y[:, HEADING_CHANNELS:].reshape(-1, NUM_KEYPOINTS, 2)
+def split_outputs(y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """CropNet's (N, 19 + nc) -> headings (N, 3), corners (N, 8, 2) in crop units, class logits
+    (N, nc; None without classes)."""
+    end = HEADING_CHANNELS + 2 * NUM_KEYPOINTS
+    logits = y[:, end:] if y.shape[1] > end else None
+    return y[:, :HEADING_CHANNELS], y[:, HEADING_CHANNELS:end].reshape(-1, NUM_KEYPOINTS, 2), logits
 
 
 def half_side(boxes: torch.Tensor, margin: float = MARGIN) -> torch.Tensor:
@@ -180,32 +197,47 @@ def training_rois(targets: dict[str, torch.Tensor], max_crops: int = MAX_CROPS, 
 
 
 def crop_outputs(net: CropNet, images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Tensor,
-                 size: int, mirror: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-    """Headings (N, 3) and corners (N, 8, 2, crop units) of the boxes' crops; with `mirror`, each
-    averaged with the mirrored crop's."""
+                 size: int, mirror: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Headings (N, 3), corners (N, 8, 2, crop units) and class logits (N, nc, or None) of the
+    boxes' crops; with `mirror`, each averaged with the mirrored crop's (a class is the same
+    mirrored)."""
     crops = crop_boxes(images, batch_index, boxes, size)
-    h, t = split_outputs(net(crops))
+    h, t, c = split_outputs(net(crops))
     if mirror:
-        hm, tm = split_outputs(net(crops.flip(-1)))
+        hm, tm, cm = split_outputs(net(crops.flip(-1)))
         h = (h + hm * h.new_tensor(_MIRROR)) / 2
         t = (t + mirror_corners(tm)) / 2
-    return h, t
+        c = None if c is None else (c + cm) / 2
+    return h, t, c
 
 
 def refine(net: CropNet, size: int, images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Tensor,
-           keypoints: torch.Tensor, chunk: int = 128) -> torch.Tensor:
+           keypoints: torch.Tensor, chunk: int = 128) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Keypoints (N, 8, C) of detections `boxes` (N, 4) of `images`: x, y replaced by their crops'
     corners (mirror-averaged), the layout turned where the crop's heading says the other face is the
-    front; the other channels (visibility) kept. At most `chunk` crops at a time: bounded memory
-    whatever the number of detections."""
+    front; the other channels (visibility) kept. With them the crops' class probabilities (N, nc;
+    None for a net without classes). At most `chunk` crops at a time: bounded memory whatever the
+    number of detections."""
     parts = [crop_outputs(net, images, batch_index[i:i + chunk], boxes[i:i + chunk], size, mirror=True)
              for i in range(0, boxes.shape[0], chunk)]
+    probs = None
+    if net.num_classes:
+        probs = (torch.cat([p[2] for p in parts]) if parts else boxes.new_zeros((0, net.num_classes))
+                 ).float().softmax(-1).to(boxes.dtype)
     if not parts:
-        return keypoints
+        return keypoints, probs
     h = torch.cat([p[0] for p in parts]).to(boxes.dtype)
     xy = from_crop_units(torch.cat([p[1] for p in parts]).to(boxes.dtype), boxes)
     kpts = torch.cat([xy.to(keypoints.dtype), keypoints[..., 2:]], -1)
-    return orient(kpts, box_area(boxes), h)
+    return orient(kpts, box_area(boxes), h), probs
+
+
+def rescore(scores: torch.Tensor, classes: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+    """Scores (n,) of detections of `classes` (n,) with the crop's class probabilities (n, nc):
+    sqrt(score * p[class]), the geometric mean of the head's score and the crop's belief in the
+    detection's class (see the module docstring)."""
+    p = probs.gather(1, classes.long()[:, None])[:, 0].to(scores.dtype)
+    return (scores * p).clamp(min=0).sqrt()
 
 
 def distinct_boxes(boxes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -228,12 +260,14 @@ def distinct_boxes(boxes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[Detections],
-                      max_refine: int = MAX_REFINE) -> list[Detections]:
+                      max_refine: int = MAX_REFINE, rescore_classes: bool = True) -> list[Detections]:
     """Per-image detections (in `images`' coordinates, best score first) with the corners of the
     first `max_refine` distinct boxes placed by their crops (`refine`): what prediction does after
     NMS for a crop-stage model. A box that multi-label prediction gave several classes is cropped
     once and all its detections take its corners; it takes one of the `max_refine` places, so the
-    class copies do not push other objects out of the crop stage."""
+    class copies do not push other objects out of the crop stage. With a net that names classes
+    (and `rescore_classes`), each refined detection's score is rescored by its crop (`rescore`) and
+    the detections sorted again, best first."""
     picked = [distinct_boxes(d.boxes) for d in dets]
     n = [min(len(first), max_refine) for first, _ in picked]
     if not sum(n):
@@ -241,25 +275,39 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
     chosen = [first[:k] for (first, _), k in zip(picked, n)]
     batch_index = torch.cat([torch.full((k,), i, dtype=torch.long, device=images.device) for i, k in enumerate(n)])
     boxes = torch.cat([d.boxes[c] for d, c in zip(dets, chosen)]).to(images.dtype)
-    kpts = refine(net, size, images, batch_index, boxes, torch.cat([d.keypoints[c] for d, c in zip(dets, chosen)])).split(n)
+    kpts, probs = refine(net, size, images, batch_index, boxes,
+                         torch.cat([d.keypoints[c] for d, c in zip(dets, chosen)]))
+    kpts = kpts.split(n)
+    probs = probs.split(n) if probs is not None and rescore_classes else [None] * len(dets)
     out = []
-    for d, (_, rank), k in zip(dets, picked, kpts):
+    for d, (_, rank), k, p in zip(dets, picked, kpts, probs):
         refined = rank < len(k)
         keypoints = d.keypoints.clone()
         keypoints[refined] = k.to(d.keypoints.dtype)[rank[refined]]
-        out.append(replace(d, keypoints=keypoints))
+        d = replace(d, keypoints=keypoints)
+        if p is not None and refined.any():
+            scores = d.scores.clone()
+            scores[refined] = rescore(d.scores[refined], d.classes[refined], p[rank[refined]])
+            order = scores.argsort(descending=True, stable=True)
+            d = Detections(boxes=d.boxes[order], scores=scores[order], classes=d.classes[order],
+                           keypoints=d.keypoints[order])
+        out.append(d)
     return out
 
 
 class RefineWrapper(nn.Module):
     """The crop stage as a graph of its own for ONNX (detector/export_onnx.py), run after NMS:
     (images (1, 3, H, W) as the detector saw them, boxes (N, 4), keypoints (N, 8, 3) of the
-    detections) -> the keypoints with each detection's corners and front from its crop (`refine`)."""
+    detections) -> the keypoints with each detection's corners and front from its crop (`refine`),
+    and for a net that names classes their probabilities (N, nc) too, which a caller rescores its
+    detections by (`rescore`)."""
 
     def __init__(self, net: CropNet, size: int):
         super().__init__()
         self.net, self.size = net, size
 
-    def forward(self, images: torch.Tensor, boxes: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
+    def forward(self, images: torch.Tensor, boxes: torch.Tensor, keypoints: torch.Tensor
+                ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         batch_index = torch.zeros_like(boxes[:, 0], dtype=torch.long)
-        return refine(self.net, self.size, images, batch_index, boxes, keypoints, chunk=1 << 30)
+        kpts, probs = refine(self.net, self.size, images, batch_index, boxes, keypoints, chunk=1 << 30)
+        return kpts if probs is None else (kpts, probs)

@@ -3,7 +3,9 @@
 A crop-stage model (DetectorConfig.heading_crop, detector/crop_stage.py) places each detection's
 corners and front from its crop after NMS, so it exports a second graph beside the first,
 FILE-crops.onnx (`crop_stage_path`): the input image, the kept boxes and keypoints in, the
-keypoints with the crops' corners out."""
+keypoints with the crops' corners out, and for a stage that names classes (crop_classes) their
+probabilities (`class_probs`), by which a caller rescores each detection as
+crop_stage.rescore does: sqrt(score * p[class])."""
 
 from __future__ import annotations
 
@@ -56,7 +58,8 @@ def crop_stage_path(path: Path) -> Path:
     return path.with_name(f"{path.stem}-crops{path.suffix or '.onnx'}")
 
 
-CROP_STAGE_AXES = {"boxes": {0: "detections"}, "keypoints": {0: "detections"}, "refined": {0: "detections"}}
+CROP_STAGE_AXES = {"boxes": {0: "detections"}, "keypoints": {0: "detections"}, "refined": {0: "detections"},
+                   "class_probs": {0: "detections"}}
 
 
 def export_crop_stage(model, path: Path, imgsz: int, dynamic: bool = False) -> None:
@@ -70,11 +73,13 @@ def export_crop_stage(model, path: Path, imgsz: int, dynamic: bool = False) -> N
     from omnigen.files import atomic_write_bytes
 
     boxes = torch.tensor([[8.0, 8.0, 40.0, 30.0], [20.0, 4.0, 30.0, 44.0], [0.0, 0.0, 16.0, 16.0]])
-    axes = dict(CROP_STAGE_AXES, **({"images": {2: "height", 3: "width"}} if dynamic else {}))
+    outputs = ["refined"] + (["class_probs"] if model.crop_net.num_classes else [])
+    axes = {k: v for k, v in CROP_STAGE_AXES.items() if k not in ("refined", "class_probs") or k in outputs}
+    axes.update({"images": {2: "height", 3: "width"}} if dynamic else {})
     buf = io.BytesIO()
     torch.onnx.export(RefineWrapper(model.crop_net.eval(), model.cfg.heading_crop),
                       (torch.zeros(1, 3, imgsz, imgsz), boxes, torch.zeros(3, 8, 3)), buf, opset_version=OPSET,
-                      input_names=["images", "boxes", "keypoints"], output_names=["refined"], dynamo=False,
+                      input_names=["images", "boxes", "keypoints"], output_names=outputs, dynamo=False,
                       dynamic_axes=axes)
     atomic_write_bytes(path, buf.getvalue())
 
@@ -97,10 +102,13 @@ def crop_stage_max_difference(model, path: Path, imgsz: int | tuple[int, int], s
     kpts = np.concatenate([rng.random((5, 8, 2), dtype=np.float32) * size, rng.random((5, 8, 1), dtype=np.float32)], 2)
     with torch.inference_mode():
         ref = RefineWrapper(model.crop_net.eval(), model.cfg.heading_crop)(
-            torch.from_numpy(x), torch.from_numpy(boxes), torch.from_numpy(kpts)).numpy()
+            torch.from_numpy(x), torch.from_numpy(boxes), torch.from_numpy(kpts))
+    refs = [r.numpy() for r in (ref if isinstance(ref, tuple) else (ref,))]
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    got = sess.run(None, {"images": x, "boxes": boxes, "keypoints": kpts})[0]
-    return float(np.abs(got - ref).max())
+    got = sess.run(None, {"images": x, "boxes": boxes, "keypoints": kpts})
+    if len(got) != len(refs):
+        raise ValueError(f"{path}: {len(got)} outputs, the crop stage gives {len(refs)}")
+    return max(float(np.abs(g - r).max()) for g, r in zip(got, refs))
 
 
 def max_difference(model, path: Path, imgsz: int | tuple[int, int], seed: int = 0) -> float:

@@ -54,9 +54,13 @@ class LossGains:
     heading: float = 1.0  # 1 - cosine of a heading-aware head's image heading (heading.py); no term without one
     heading_crop: float = 1.0  # 1 - cosine of a crop-stage model's crop headings (crop_stage.py); no term without one
     crop_corners: float = 1.0  # L1 of a crop-stage model's crop corners, in crop units (crop_stage.py); no term without one
+    # cross-entropy of a class-naming crop stage's class logits (crop_stage.py); no term without one.
+    # 0.5 as the head's own class term: a starting point, not a sweep
+    crop_cls: float = 0.5
 
 
-PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn", "kpt_labelled", "heading", "heading_crop", "crop_corners")
+PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn", "kpt_labelled", "heading", "heading_crop", "crop_corners",
+         "crop_cls")
 
 _TURN = list(TURN_IDX)
 
@@ -222,6 +226,7 @@ class DetectionLoss:
                          heading=None if out.heading is None else out.heading.float(),
                          crop_heading=None if out.crop_heading is None else out.crop_heading.float(),
                          crop_corners=None if out.crop_corners is None else out.crop_corners.float(),
+                         crop_logits=None if out.crop_logits is None else out.crop_logits.float(),
                          crop_rows=out.crop_rows,
                          crop_boxes=None if out.crop_boxes is None else out.crop_boxes.float())
         gt = pad_targets(targets, b)
@@ -266,7 +271,10 @@ class DetectionLoss:
                 # mean over the positive anchor-object pairs (their count is a shape, known on the host)
                 turn_loss = F.binary_cross_entropy_with_logits(out.turn[bi, ai], turned.to(kpts.dtype),
                                                                reduction="sum") / max(len(obj), 1)
-        crop_loss = corner_loss = kpts.new_zeros(())
+        crop_loss = corner_loss = crop_cls = kpts.new_zeros(())
+        if out.crop_logits is not None and len(out.crop_rows):
+            # each crop is one labelled object: a softmax over the classes, not the head's per-class BCE
+            crop_cls = F.cross_entropy(out.crop_logits, targets["cls"].long()[out.crop_rows])
         if out.crop_corners is not None:
             # the corners in front of the camera, in the units of the crop each was cut from (the
             # targets' box, moved), as the stage predicts them
@@ -288,7 +296,7 @@ class DetectionLoss:
 
         parts_t = {"box": box_loss, "dfl": dfl_loss, "cls": cls_loss, "kpt": kpt_loss, "kvis": kvis_loss, "kpt_l1": kpt_l1,
                    "turn": turn_loss, "kpt_labelled": kpt_labelled, "heading": heading_loss_, "heading_crop": crop_loss,
-                   "crop_corners": corner_loss}
+                   "crop_corners": corner_loss, "crop_cls": crop_cls}
         gains = asdict(self.gains)
         total = sum(gains[k] * parts_t[k] for k in PARTS)
         # detached 0-dim tensors, not floats: a float() per part would wait for the device six

@@ -58,6 +58,7 @@ class DetectorConfig:
     kpt_hidden: int | None = None  # keypoint-branch width; None: max(stride-8 width / 4, 24) as Ultralytics' pose head
     kpt_heading: bool = False  # corners up to the turn, the front read from a regressed image heading (heading.py)
     heading_crop: int = 0  # side of the crops a second stage places each object's corners and front from (crop_stage.py); 0: none
+    crop_classes: bool = False  # the crop stage names each crop's class too, and prediction rescores by it (crop_stage.py)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -85,6 +86,8 @@ class DetectorConfig:
         if not isinstance(self.heading_crop, int) or self.heading_crop < 0 or self.heading_crop % 16:
             raise ValueError(f"DetectorConfig.heading_crop: must be 0 (none) or a positive multiple of 16 "
                              f"(the crop net halves it four times), got {self.heading_crop!r}")
+        if self.crop_classes and not self.heading_crop:
+            raise ValueError("DetectorConfig.crop_classes: needs the crop stage (heading_crop > 0)")
         if self.reg_max != REG_MAX:
             raise ValueError(f"DetectorConfig.reg_max: decoding is built for {REG_MAX} bins, got {self.reg_max}")
 
@@ -127,7 +130,8 @@ class KeypointDetector(nn.Module):
         chans = [self.neck.out_channels[s] for s in self.strides]
         self.head = KeypointHead(chans, self.strides, cfg.num_classes, self.neck.out_channels[8], cfg.reg_max,
                                  cfg.kpt_mode, cfg.kpt_turn, cfg.kpt_hidden, cfg.kpt_heading)
-        self.crop_net = CropNet(cfg.heading_crop) if cfg.heading_crop else None
+        self.crop_net = CropNet(cfg.heading_crop, num_classes=cfg.num_classes if cfg.crop_classes else 0) \
+            if cfg.heading_crop else None
 
     def forward(self, images: torch.Tensor, crops: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
                 ) -> HeadOutput:
@@ -145,8 +149,8 @@ class KeypointDetector(nn.Module):
                 raise ValueError("KeypointDetector: crops given to a model without a crop stage "
                                  "(DetectorConfig.heading_crop is 0)")
             rows, batch_index, boxes = crops
-            out.crop_heading, out.crop_corners = crop_outputs(self.crop_net, images, batch_index, boxes,
-                                                              self.cfg.heading_crop)
+            out.crop_heading, out.crop_corners, out.crop_logits = crop_outputs(
+                self.crop_net, images, batch_index, boxes, self.cfg.heading_crop)
             out.crop_rows, out.crop_boxes = rows, boxes
         return out
 

@@ -42,6 +42,7 @@ class HeadOutput:
     # they were cut about (N, 4: the targets' boxes, moved at random)
     crop_heading: torch.Tensor | None = None
     crop_corners: torch.Tensor | None = None
+    crop_logits: torch.Tensor | None = None  # (N, nc) class logits of a stage with crop_classes
     crop_rows: torch.Tensor | None = None
     crop_boxes: torch.Tensor | None = None
 

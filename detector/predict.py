@@ -47,6 +47,9 @@ class PredictOptions:
     max_det: int = 300
     batch: int = 8
     multi_label: bool = False  # every class above conf per anchor (evaluation), not only the best
+    # a crop stage that names classes rescores the detections it refines (crop_stage.rescore);
+    # False keeps the head's scores (benchmarks/crop_stage_ablation.py measures the difference)
+    crop_classes: bool = True
 
 
 def to_image_coords(det: Detections, lb: Letterbox) -> dict[str, np.ndarray]:
@@ -99,7 +102,7 @@ def infer_batch(model: KeypointDetector, images: list[np.ndarray], boxes: list[L
     dets = postprocess(pred.float(), model.cfg.num_classes, opts.conf, opts.iou, opts.max_det,
                        multi_label=opts.multi_label)
     if model.crop_net is not None:  # a crop-stage model places each detection's corners from its crop
-        dets = refine_detections(model.crop_net, model.cfg.heading_crop, x, dets)
+        dets = refine_detections(model.crop_net, model.cfg.heading_crop, x, dets, rescore_classes=opts.crop_classes)
     return batch_to_image_coords(dets, boxes)
 
 
@@ -161,19 +164,21 @@ def load_for_prediction(weights: str | Path, device: str | None = None) -> tuple
 
 def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: str | Path, split: str | None = "test",
                   imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
-                  multi_label: bool = EVAL_MULTI_LABEL) -> list[dict[str, Any]]:
+                  multi_label: bool = EVAL_MULTI_LABEL, crop_classes: bool = True) -> list[dict[str, Any]]:
     """Detections of a loaded model (load_for_prediction) on a dataset split, ready for `omnigen
     eval`, at the training input size unless `imgsz` says otherwise. A caller that predicts twice
     with one model (with and without its crop stage: `model.crop_net = None` keeps the head's own
     corners, benchmarks/crop_stage_ablation.py), or reads the checkpoint's taxonomy first, loads it
     once. `multi_label=False` keeps one class an anchor, as `omnigen predict` does
-    (EVAL_MULTI_LABEL)."""
+    (EVAL_MULTI_LABEL). `crop_classes=False` keeps the head's scores where the crop stage names classes.
+    """
     from omnigen.detector.checkpoint import checkpoint_taxonomy
 
     imgsz = imgsz or trained_imgsz(state)
     data = KeypointDataset(dataset_root, checkpoint_taxonomy(state), imgsz, split_frames(dataset_root, split))
     return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=EVAL_MAX_DET,
-                                                      multi_label=multi_label), show_progress=True)
+                                                      multi_label=multi_label, crop_classes=crop_classes),
+                          show_progress=True)
 
 
 def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | None = "test",

@@ -92,6 +92,27 @@ def test_a_training_cut_off_midway_goes_on_from_its_checkpoint_and_counts_its_ti
     assert train_stage(run, cmd, out) == seconds and len(fake.calls) == 2  # done: skipped, same seconds
 
 
+def test_a_trained_folder_moved_back_is_reported_as_its_own_training(tmp_path, monkeypatch):
+    """A run folder put back by hand after another training wrote into it (and was recorded): the
+    log drops that other training and records this one with its epochs' seconds, so RESULTS.md
+    neither lists a training that is not there nor a train time of 0."""
+    fake = FakeTrain()
+    monkeypatch.setattr(validate, "omnigen", fake)
+    run, out = Runner(tmp_path), tmp_path / "runs" / "n-p2"
+    cmd = ["train", "uov", "--out", str(out), "--imgsz", "640"]
+    train_stage(run, cmd, out)
+    kept = out.with_name("kept")
+    out.rename(kept)
+    train_stage(run, ["train", "uov", "--out", str(out), "--imgsz", "960"], out)
+    import shutil
+    shutil.rmtree(out)
+    kept.rename(out)  # the 640 run back
+    run.record("omnigen render --out elsewhere", 3.0)
+    assert train_stage(run, cmd, out) == 40.0 and len(fake.calls) == 2  # skipped: done
+    assert [c["command"] for c in Runner(tmp_path).log] == ["omnigen render --out elsewhere",
+                                                             "omnigen " + " ".join(cmd)]
+
+
 def test_a_training_cut_off_with_other_arguments_starts_over(tmp_path, monkeypatch):
     fake = FakeTrain()
     monkeypatch.setattr(validate, "omnigen", fake)
@@ -290,7 +311,8 @@ def test_default_recipe_is_the_crop_heading_one():
     --kpt-turn the heading head is left out (train refuses both), and each part can be turned off."""
     recipe = validate.keypoint_recipe(validate.build_parser().parse_args([]))
     assert recipe == ["--kpt-mode", "box", "--kpt-l1", "2.0", "--kpt-labelled", "1.0", "--kpt-turn-start", "0.3",
-                      "--kpt-heading", "--heading-crop", "64"]
+                      "--kpt-heading", "--heading-crop", "64", "--crop-classes"]
+    assert "--crop-classes" not in validate.keypoint_recipe(validate.build_parser().parse_args(["--no-crop-classes"]))
     turn = validate.keypoint_recipe(validate.build_parser().parse_args(["--kpt-turn"]))
     assert "--kpt-turn" in turn and "--kpt-heading" not in turn
     plain = validate.keypoint_recipe(validate.build_parser().parse_args(

@@ -4,6 +4,8 @@ prediction's use of it."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -12,6 +14,7 @@ from omnigen.conventions import FLIP_IDX, TURN_IDX
 from omnigen.detector.boxes import box_area
 from omnigen.detector.heading import image_heading, orient
 from omnigen.detector.crop_stage import (CropNet, crop_boxes, crop_outputs, distinct_boxes, from_crop_units, jitter_boxes,
+                                         rescore, split_outputs,
                                          mirror_corners, refine, refine_detections, to_crop_units, training_rois)
 from omnigen.detector.loss import DetectionLoss
 from omnigen.detector.model import DetectorConfig, KeypointDetector
@@ -163,7 +166,7 @@ def test_the_crop_net_learns_corners_and_a_front_it_can_see():
     for _ in range(150):
         images, boxes, corners, _ = arrow_images(rng, 32)
         moved = jitter_boxes(boxes)
-        h, t = crop_outputs(net, images, torch.arange(32), moved, 32)
+        h, t, _ = crop_outputs(net, images, torch.arange(32), moved, 32)
         loss = ((1 - torch.cosine_similarity(h, image_heading(corners, box_area(boxes)), dim=-1)).mean()
                 + (t - to_crop_units(corners, moved)).abs().sum(-1).mean())
         opt.zero_grad()
@@ -219,7 +222,7 @@ def test_class_copies_of_a_box_are_cropped_once_and_take_one_place():
     images = torch.rand(1, 3, 64, 96)
     with torch.no_grad():
         out = refine_detections(net, 16, images, dets, max_refine=2)[0]
-        alone = refine(net, 16, images, torch.zeros(2, dtype=torch.long), boxes[:2], kp[:2])
+        alone, _ = refine(net, 16, images, torch.zeros(2, dtype=torch.long), boxes[:2], kp[:2])
     assert torch.allclose(out.keypoints[[0, 1]], alone, atol=1e-5)
     assert torch.equal(out.keypoints[2], out.keypoints[0])  # the van copy: A's crop, once
     assert torch.equal(out.keypoints[3], kp[3])  # C is past the two boxes refined
@@ -333,3 +336,124 @@ def test_predicting_without_the_crop_stage_keeps_the_detections_and_the_heads_co
     kp_p = np.array([d["keypoints"] for d in plain]).reshape(len(plain), 8, 3)
     assert not np.allclose(kp_s[..., :2], kp_p[..., :2], atol=1.0)  # the crop's corners, not the head's
     np.testing.assert_array_equal(kp_s[..., 2], kp_p[..., 2])  # visibility stays the head's either way
+
+
+# ---- a crop stage that names classes (DetectorConfig.crop_classes) ----
+
+def test_crop_classes_need_the_stage_and_widen_only_its_last_layer():
+    with pytest.raises(ValueError, match="crop_classes"):
+        DetectorConfig(num_classes=3, crop_classes=True, **TINY)
+    model = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=16, crop_classes=True, **TINY))
+    assert model.crop_net.num_classes == 3 and model.crop_net.out.out_features == 3 + 16 + 3
+    h, t, c = split_outputs(torch.arange(22.0)[None])
+    assert h.tolist() == [[0.0, 1.0, 2.0]] and t.shape == (1, 8, 2) and c.tolist() == [[19.0, 20.0, 21.0]]
+    assert split_outputs(torch.zeros(1, 19))[2] is None  # a stage without classes
+
+
+def test_the_crop_class_loss_is_the_cross_entropy_of_the_labelled_classes():
+    torch.manual_seed(0)
+    model = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=32, crop_classes=True, **TINY))
+    targets = _labelled_batch()
+    rows = training_rois(targets)
+    out = model(torch.rand(2, 3, 64, 64), (rows, targets["batch_idx"][rows], targets["bboxes"][rows]))
+    assert out.crop_logits.shape == (2, 3)
+    total, parts = DetectionLoss(3)(out, targets)
+    want = torch.nn.functional.cross_entropy(out.crop_logits.float(), targets["cls"].long()[rows])
+    assert torch.isclose(parts["crop_cls"], want.detach(), rtol=1e-5) and float(want) > 0
+    total.backward()
+    assert model.crop_net.out.weight.grad[-3:].abs().sum() > 0  # the class rows learn
+    plain = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=32, **TINY))
+    out = plain(torch.rand(2, 3, 64, 64), (rows, targets["batch_idx"][rows], targets["bboxes"][rows]))
+    assert out.crop_logits is None and float(DetectionLoss(3)(out, targets)[1]["crop_cls"]) == 0
+
+
+def test_the_crop_net_learns_classes_it_can_see():
+    """Bright boxes are class 1, dark ones class 0, the same shapes: the crop stage learns to tell."""
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    net = CropNet(32, width=8, num_classes=2)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+
+    def batch(n):
+        images, boxes, _, _ = arrow_images(rng, n)
+        labels = torch.from_numpy(rng.integers(0, 2, n))
+        return images * torch.where(labels == 1, 1.0, 0.5)[:, None, None, None], boxes, labels
+
+    for _ in range(60):
+        images, boxes, labels = batch(32)
+        loss = torch.nn.functional.cross_entropy(crop_outputs(net, images, torch.arange(32), jitter_boxes(boxes), 32)[2],
+                                                 labels)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    images, boxes, labels = batch(64)
+    with torch.no_grad():
+        _, probs = refine(net.eval(), 32, images, torch.arange(64), boxes, torch.zeros(64, 8, 3))
+    assert probs.shape == (64, 2) and torch.allclose(probs.sum(-1), torch.ones(64))
+    assert float((probs.argmax(-1) == labels).float().mean()) > 0.9
+
+
+def test_refined_detections_are_rescored_by_their_crops_class_and_sorted_again():
+    # box A rated car 0.9 and van 0.5, B car 0.7, C car 0.4; room for two boxes. The crop says A
+    # is a van (0.8 van, 0.2 car) and B a van too (same constant net): sqrt(score * p)
+    net = CropNet(16, width=8, num_classes=2).eval()
+    with torch.no_grad():
+        net.out.weight.zero_()
+        net.out.bias.zero_()
+        net.out.bias[-2:] = torch.tensor([0.0, float(np.log(4.0))])  # softmax: 0.2 car, 0.8 van
+    a, b, c = [10.0, 10.0, 50.0, 30.0], [60.0, 5.0, 90.0, 40.0], [5.0, 40.0, 30.0, 60.0]
+    boxes = torch.tensor([a, b, a, c])
+    dets = [Detections(boxes, torch.tensor([0.9, 0.7, 0.5, 0.4]), torch.tensor([0, 0, 1, 0]), torch.rand(4, 8, 3))]
+    images = torch.rand(1, 3, 64, 96)
+    with torch.no_grad():
+        out = refine_detections(net, 16, images, dets, max_refine=2)[0]
+        kept = refine_detections(net, 16, images, dets, max_refine=2, rescore_classes=False)[0]
+    want = {(0, 1): (0.5 * 0.8) ** 0.5, (0, 0): (0.9 * 0.2) ** 0.5, (1, 0): (0.7 * 0.2) ** 0.5, (2, 0): 0.4}
+    got = {}
+    for box, cls, score in zip(out.boxes.tolist(), out.classes.tolist(), out.scores.tolist()):
+        got[([a, b, c].index(box), cls)] = score
+    assert got.keys() == want.keys() and all(abs(got[k] - want[k]) < 1e-5 for k in want)
+    assert out.scores.tolist() == sorted(out.scores.tolist(), reverse=True)  # best first again
+    assert (out.classes[0], out.boxes[0].tolist()) == (1, a)  # A's van copy now leads
+    by_key = {(tuple(bx), int(cl)): kp for bx, cl, kp in zip(out.boxes.tolist(), out.classes, out.keypoints)}
+    for bx, cl, kp in zip(kept.boxes.tolist(), kept.classes, kept.keypoints):  # rows move with their boxes
+        assert torch.equal(by_key[(tuple(bx), int(cl))], kp)
+    assert torch.equal(kept.scores, dets[0].scores)  # rescore_classes=False: the head's scores
+    assert rescore(torch.tensor([0.25]), torch.tensor([1]), torch.tensor([[0.0, 1.0]])).item() == 0.5
+
+
+def test_prediction_can_keep_the_heads_scores_of_a_class_naming_stage():
+    from omnigen.detector.data import letterbox
+    from omnigen.detector.predict import PredictOptions, infer_batch
+
+    torch.manual_seed(0)
+    model = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=16, crop_classes=True,
+                                            **TINY)).eval()
+    image = (np.random.default_rng(0).random((64, 64, 3)) * 255).astype(np.uint8)
+    boxed, lb = letterbox(image, 64)
+    opts = PredictOptions(imgsz=64, conf=0.0, max_det=50)
+    rescored = infer_batch(model, [boxed], [lb], opts)[0]
+    head = infer_batch(model, [boxed], [lb], replace(opts, crop_classes=False))[0]
+    net, model.crop_net = model.crop_net, None
+    plain = infer_batch(model, [boxed], [lb], opts)[0]
+    model.crop_net = net
+    assert np.array_equal(head["scores"], plain["scores"]) and len(plain["scores"]) > 10
+    assert not np.allclose(np.sort(rescored["scores"]), np.sort(plain["scores"]))
+
+
+def test_fine_tuning_a_class_naming_stage_across_taxonomies_starts_its_class_rows_fresh(tmp_path):
+    from omnigen.detector.checkpoint import load_pretrained, save_checkpoint
+    from omnigen.taxonomy import load_taxonomy
+
+    torch.manual_seed(0)
+    fine = load_taxonomy("fine")
+    cfg = DetectorConfig(num_classes=len(fine.classes), kpt_heading=True, heading_crop=16, **TINY)
+    path = tmp_path / "crop.pt"
+    src = KeypointDetector(cfg)
+    save_checkpoint(path, {"config": cfg.to_dict(), "model": src.state_dict(), "classes": list(fine.classes)})
+    # the same classes, now named by the stage: only its last layer (wider) starts fresh
+    model = KeypointDetector(DetectorConfig(num_classes=len(fine.classes), kpt_heading=True, heading_crop=16,
+                                            crop_classes=True, **TINY))
+    notes = load_pretrained(model, path, fine)
+    assert len(notes) == 1 and "crop_net.out.weight" in notes[0] and "crop_net.out.bias" in notes[0]
+    assert torch.equal(model.crop_net.hidden[0].weight, src.crop_net.hidden[0].weight)
