@@ -13,9 +13,10 @@ third pass keeps its corners and the head's scores (`crop_classes=False`), so th
 rescoring does to each class's AP is measured on the same weights too.
 
     .venv/bin/python benchmarks/crop_stage_ablation.py WEIGHTS DATASET [--split test] [--imgsz 640]
-        [--batch 16] [--device cpu] [--out ablation.json]
+        [--batch 16] [--device cpu] [--by-class] [--out ablation.json]
 
-Prints a table per row (the synthetic rows, then each view) and, last,
+Prints a table per row (the synthetic rows, then each view, then with --by-class each class over
+the whole split) and, last,
 `crop stage: mAP50:95 X (head's corners Y), corner error rel A (head B, box template C),
 adherence D deg (head E)`, and for a stage that names classes `; rescored by the crop's classes:
 mAP50:95 X (the head's scores Z)`.
@@ -48,8 +49,22 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--device", default=None)
     ap.add_argument("--single-label", action="store_true",
                     help="score one class an anchor (as `omnigen predict` gives and as rows before 2026-11-27 were scored); default: every class above the floor, as omnigen eval")
+    ap.add_argument("--by-class", action="store_true",
+                    help="add a row per class (over the whole split, as omnigen eval's class rows): where a stage "
+                         "that names classes moves AP")
     ap.add_argument("--out", type=Path, default=None, help="write every row as JSON here")
     return ap.parse_args(argv)
+
+
+def rows_by(report: Any, by_class: bool) -> dict[str, dict[str, Any]]:
+    """rows_of's rows (synthetic, views) and, with by_class, one per class (keyed 'class=car')."""
+    out = rows_of(report)
+    if by_class:
+        from benchmarks.bench_learning import FIELDS
+
+        out.update({r.group: {f: getattr(r, f) for f in FIELDS} for r in report.rows if r.group.startswith("class=")})
+        out = {k: {f: (None if isinstance(v, float) and v != v else v) for f, v in r.items()} for k, r in out.items()}
+    return out
 
 
 def same_boxes(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> bool:
@@ -89,8 +104,10 @@ def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dic
     taxonomy = checkpoint_taxonomy(state)
     report, baseline = evaluate_with_baseline(ds, staged, split=split, taxonomy=taxonomy)
     head = evaluate(ds, plain, split=split, taxonomy=taxonomy)
-    head_scores = None if unscored is None else rows_of(evaluate(ds, unscored, split=split, taxonomy=taxonomy))
-    return rows_of(report), rows_of(head), rows_of(baseline), len(staged), head_scores
+    head_scores = None if unscored is None else rows_by(evaluate(ds, unscored, split=split, taxonomy=taxonomy),
+                                                        args.by_class)
+    return (rows_by(report, args.by_class), rows_by(head, args.by_class), rows_by(baseline, args.by_class),
+            len(staged), head_scores)
 
 
 def cell(v: Any, digits: int) -> str:

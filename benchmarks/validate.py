@@ -473,7 +473,8 @@ def main(argv: list[str] | None = None) -> int:
         out = work / "runs" / name
         opts = common if imgsz is None else ["--imgsz", str(imgsz), *common[2:]]  # common starts with --imgsz
         t = train_stage(run, ["train", str(dataset), "--out", str(out), *opts, *crop, *extra], out)
-        from omnigen.detector.predict import EVAL_MULTI_LABEL, predict_dataset
+        from omnigen.detector.data import split_frames
+        from omnigen.detector.predict import EVAL_MAX_DET, EVAL_MULTI_LABEL, predict_dataset
 
         # last.pt, not best.pt: without a val split, train validates on the test split, and
         # choosing the checkpoint by its test score would flatter the number reported here
@@ -497,6 +498,8 @@ def main(argv: list[str] | None = None) -> int:
                  "baseline_synthetic_test": baseline,
                  "curve": curve, "validated_on": validated_on(dataset, extra, uov),
                  "predicted": (out / "predicted").read_text().strip(),
+                 **detection_cap_counts(json.loads(preds.read_text()), len(split_frames(uov, "test") or []),
+                                        EVAL_MAX_DET),
                  "report_rows": report["report"]["rows"], "corner_order": orders}
         runs.append(entry)
         return entry
@@ -755,6 +758,35 @@ def with_section(text: str, name: str, body: str) -> str:
     return text + gap + block
 
 
+NEGATABLE = ("crop_classes", "kpt_heading")
+"""Arguments on by default (or by another one), asked off with --no-X: the printed command must say so."""
+
+
+def command_line(a: dict[str, Any]) -> str:
+    """The validate command that `a` (results.json's arguments) stand for; a switch that is on
+    unless asked off (NEGATABLE) is written --no-X when it was."""
+    def opt(k: str, v: Any) -> str:
+        flag = f"--{k.replace('_', '-')}"
+        if v is False:
+            return f"--no-{k.replace('_', '-')}"
+        return flag if v is True else f"{flag} {' '.join(map(str, v))}" if isinstance(v, list) else f"{flag} {v}"
+
+    return "python benchmarks/validate.py " + " ".join(
+        opt(k, v) for k, v in a.items() if k != "fresh" and (v not in (None, [], False) or k in NEGATABLE and v is False))
+
+
+def detection_cap_counts(preds: list[dict[str, Any]], frames: int, cap: int) -> dict[str, int]:
+    """How many of the `frames` predicted reached `cap` detections (predict's EVAL_MAX_DET): where
+    they do, lower-scoring detections were cut, objects among them (multi-label copies take places
+    too)."""
+    from collections import Counter
+
+    per_frame = Counter(p.get("frame_id", p["image_id"]) for p in preds)
+    n = frames
+    return {"detection_cap": cap, "test_frames_predicted": n,
+            "frames_at_detection_cap": sum(1 for c in per_frame.values() if c >= cap)}
+
+
 def protocol_line(r: dict[str, Any]) -> list[str]:
     """How the main run's test predictions were made (predict_stage's marker); none for a
     results.json older than the marker."""
@@ -763,18 +795,17 @@ def protocol_line(r: dict[str, Any]) -> list[str]:
         return []
     how = ("every class an anchor rates above the 0.001 floor is a detection (multi-label, as Ultralytics' "
            "validation scores)" if "multi_label=True" in made else "one class an anchor, its best (single-label)")
-    return [f"- test predictions: {how}; last.pt, not best.pt"]
+    run = r["runs"][0]
+    capped = "" if "frames_at_detection_cap" not in run else (
+        f"; {run['frames_at_detection_cap']} of {run['test_frames_predicted']} frames reached the cap of "
+        f"{run['detection_cap']} detections")
+    return [f"- test predictions: {how}; last.pt, not best.pt{capped}"]
 
 
 def results_markdown(r: dict[str, Any]) -> str:
     """RESULTS.md: every number below is read from results.json, written by this script."""
     a = r["arguments"]
-    def opt(k: str, v: Any) -> str:
-        flag = f"--{k.replace('_', '-')}"
-        return flag if v is True else f"{flag} {' '.join(map(str, v))}" if isinstance(v, list) else f"{flag} {v}"
-
-    cmd = "python benchmarks/validate.py " + " ".join(
-        opt(k, v) for k, v in a.items() if v not in (None, False, []) and k != "fresh")
+    cmd = command_line(a)
     made = f"Made by `{cmd}` on {r['machine']}, {r['date']}."  # under every table: the issue asks each to say
     lines = [
         "# Results: the data, validated end to end",

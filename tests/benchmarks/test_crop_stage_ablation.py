@@ -21,10 +21,11 @@ from omnigen.taxonomy import load_taxonomy  # noqa: E402
 TINY = dict(width=0.0625, depth=0.33, max_channels=64)
 
 
-def checkpoint(path: Path, heading_crop: int) -> Path:
+def checkpoint(path: Path, heading_crop: int, crop_classes: bool = False) -> Path:
     torch.manual_seed(0)
     classes = list(load_taxonomy("fine").classes)
-    cfg = DetectorConfig(num_classes=len(classes), kpt_heading=True, heading_crop=heading_crop, **TINY)
+    cfg = DetectorConfig(num_classes=len(classes), kpt_heading=True, heading_crop=heading_crop,
+                         crop_classes=crop_classes, **TINY)
     save_checkpoint(path, {"config": cfg.to_dict(), "model": KeypointDetector(cfg).state_dict(), "classes": classes})
     return path
 
@@ -70,3 +71,39 @@ def test_the_second_pass_drops_the_stage_and_both_keep_the_protocol_asked(tmp_pa
     calls.clear()
     assert crop_stage_ablation.main([*argv, "--single-label"]) == 0
     assert calls == [(True, False), (False, False)]
+
+
+def test_a_class_naming_stage_is_also_scored_with_the_heads_scores(tmp_path, capsys, monkeypatch):
+    """Three passes for a stage that names classes: rescored, the crop's corners with the head's
+    scores, and the head alone; the boxes are the same each time, whatever order the rescoring sorts them in."""
+    import omnigen.detector.predict as predict
+
+    root = tmp_path / "ds"
+    write_fake_dataset(root, n_frames=2, objects_per_frame=3)
+    calls, real = [], predict.predict_split
+
+    def spy(model, state, *a, **kw):
+        calls.append((model.crop_net is not None, kw.get("crop_classes", True)))
+        return real(model, state, *a, **kw)
+
+    monkeypatch.setattr(predict, "predict_split", spy)
+    out = tmp_path / "ablation.json"
+    argv = [str(checkpoint(tmp_path / "crop.pt", 16, crop_classes=True)), str(root), "--split", "all", "--imgsz", "64",
+            "--device", "cpu", "--out", str(out), "--by-class"]
+    assert crop_stage_ablation.main(argv) == 0
+    assert calls == [(True, True), (True, False), (False, True)]
+    printed = capsys.readouterr().out.strip().splitlines()
+    assert "rescored by the crop's classes: mAP50:95 " in printed[-1]
+    assert any(line.startswith("| synthetic | crop stage, head's scores |") for line in printed)
+    result = json.loads(out.read_text())
+    assert result["crop_stage_head_scores"].keys() == result["crop_stage"].keys()
+    assert any(k.startswith("class=") for k in result["crop_stage"])  # --by-class
+    assert any(line.startswith("| class=") for line in printed)
+
+
+def test_same_boxes_ignores_order_and_scores_but_not_boxes():
+    a = [{"image_id": 1, "category_id": 1, "bbox": [0, 0, 2, 2], "score": 0.9},
+         {"image_id": 1, "category_id": 2, "bbox": [0, 0, 2, 2], "score": 0.5}]
+    b = [dict(a[1], score=0.7), dict(a[0], score=0.1)]
+    assert crop_stage_ablation.same_boxes(a, b)
+    assert not crop_stage_ablation.same_boxes(a, [a[0], dict(a[1], bbox=[0, 0, 2, 3])])

@@ -388,3 +388,19 @@ def test_results_markdown_says_how_the_test_predictions_were_made():
     made["runs"][0]["predicted"] = "predict_dataset(w/last.pt, uov, split='test', multi_label=False)"
     assert "single-label" in validate.protocol_line(made)[0]
     assert validate.protocol_line({"runs": [{}]}) == []  # a results.json from before the marker
+
+
+def test_the_results_say_how_many_frames_reached_the_detection_cap():
+    preds = [{"image_id": 1, "frame_id": "a"}] * 3 + [{"image_id": 2, "frame_id": "b"}] * 2
+    counts = validate.detection_cap_counts(preds, 4, 3)
+    assert counts == {"detection_cap": 3, "test_frames_predicted": 4, "frames_at_detection_cap": 1}
+    made = {"runs": [{"predicted": "predict_dataset(w/last.pt, uov, split='test', multi_label=True)", **counts}]}
+    assert validate.protocol_line(made)[0].endswith("; 1 of 4 frames reached the cap of 3 detections")
+
+
+def test_the_printed_command_says_which_default_switches_were_turned_off():
+    line = validate.command_line(vars(validate.build_parser().parse_args(["--no-crop-classes", "--no-kpt-heading"])))
+    assert "--no-crop-classes" in line and "--crop-classes" not in line.replace("--no-crop-classes", "")
+    assert "--no-kpt-heading" in line
+    assert "--crop-classes" in validate.command_line(vars(validate.build_parser().parse_args([])))
+    assert "--kpt-heading" not in validate.command_line(vars(validate.build_parser().parse_args([])))  # None: unsaid

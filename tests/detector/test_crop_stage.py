@@ -14,8 +14,8 @@ from omnigen.conventions import FLIP_IDX, TURN_IDX
 from omnigen.detector.boxes import box_area
 from omnigen.detector.heading import image_heading, orient
 from omnigen.detector.crop_stage import (CropNet, crop_boxes, crop_outputs, distinct_boxes, from_crop_units, jitter_boxes,
-                                         rescore, split_outputs,
-                                         mirror_corners, refine, refine_detections, to_crop_units, training_rois)
+                                         mirror_corners, refine, refine_detections, rescore, split_outputs,
+                                         to_crop_units, training_rois)
 from omnigen.detector.loss import DetectionLoss
 from omnigen.detector.model import DetectorConfig, KeypointDetector
 from omnigen.detector.nms import Detections
@@ -359,7 +359,7 @@ def test_the_crop_class_loss_is_the_cross_entropy_of_the_labelled_classes():
     assert out.crop_logits.shape == (2, 3)
     total, parts = DetectionLoss(3)(out, targets)
     want = torch.nn.functional.cross_entropy(out.crop_logits.float(), targets["cls"].long()[rows])
-    assert torch.isclose(parts["crop_cls"], want.detach(), rtol=1e-5) and float(want) > 0
+    assert torch.isclose(parts["crop_cls"], want.detach(), rtol=1e-5) and float(want.detach()) > 0
     total.backward()
     assert model.crop_net.out.weight.grad[-3:].abs().sum() > 0  # the class rows learn
     plain = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=32, **TINY))

@@ -582,3 +582,5 @@ def test_one_answer_to_which_face_is_the_front_and_no_gain_without_a_heading(fak
     assert exc.value.code == 2 and "not allowed with argument" in capsys.readouterr().err
     assert main(["train", str(fake), "--out", str(tmp_path / "b"), "--heading-gain", "3"]) == 1
     assert "--heading-gain" in capsys.readouterr().err
+    assert main(["train", str(fake), "--out", str(tmp_path / "c"), "--crop-classes"]) == 1
+    assert "--crop-classes" in capsys.readouterr().err and not (tmp_path / "c").exists()
