@@ -31,7 +31,9 @@ anchor's feature at a stride of 4-32 pixels, where the crop net sees the object 
 Training adds a cross-entropy of the crops' class logits against the labelled classes
 (`crop_cls`); prediction gives a detection of class c with score s the score sqrt(s * p_c), p the
 crop's softmax (mirror-averaged logits): the geometric mean keeps the head's evidence that there
-is an object there and lets the crop move the classes against each other (`rescore`).
+is an object there and lets the crop move the classes against each other (`rescore`). A
+single-label prediction (omnigen predict) takes every class an anchor rates above conf^2, rescores
+them and keeps each box's best (`best_label_per_box`), so the crop can change a box's class too.
 """
 
 from __future__ import annotations
@@ -293,6 +295,27 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
                            keypoints=d.keypoints[order])
         out.append(d)
     return out
+
+
+def best_label_per_box(det: Detections, conf: float, max_det: int) -> Detections:
+    """Each distinct box's best-scoring detection among its class copies, those scoring above
+    `conf`, best first, at most `max_det`: one label a box again after the crop stage rescored a
+    multi-label prediction, so that a single-label caller (omnigen predict) gets the class the
+    head and the crop agree on best, which may not be the head's own best (predict.infer_batch)."""
+    if not len(det):
+        return det
+    _, rank = distinct_boxes(det.boxes)
+    order = det.scores.argsort(descending=True, stable=True)
+    seen = torch.zeros(int(rank.max()) + 1, dtype=torch.bool, device=rank.device)
+    keep = []
+    for i in order.tolist():  # best first: the first detection of each box is its best
+        if not seen[rank[i]]:
+            seen[rank[i]] = True
+            keep.append(i)
+    idx = torch.tensor(keep, dtype=torch.long, device=det.scores.device)
+    idx = idx[det.scores[idx] > conf][:max_det]
+    return Detections(boxes=det.boxes[idx], scores=det.scores[idx], classes=det.classes[idx],
+                      keypoints=det.keypoints[idx])
 
 
 class RefineWrapper(nn.Module):

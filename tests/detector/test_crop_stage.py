@@ -431,7 +431,7 @@ def test_prediction_can_keep_the_heads_scores_of_a_class_naming_stage():
                                             **TINY)).eval()
     image = (np.random.default_rng(0).random((64, 64, 3)) * 255).astype(np.uint8)
     boxed, lb = letterbox(image, 64)
-    opts = PredictOptions(imgsz=64, conf=0.0, max_det=50)
+    opts = PredictOptions(imgsz=64, conf=0.0, max_det=50, multi_label=True)  # as evaluation predicts
     rescored = infer_batch(model, [boxed], [lb], opts)[0]
     head = infer_batch(model, [boxed], [lb], replace(opts, crop_classes=False))[0]
     net, model.crop_net = model.crop_net, None
@@ -457,3 +457,42 @@ def test_fine_tuning_a_class_naming_stage_across_taxonomies_starts_its_class_row
     notes = load_pretrained(model, path, fine)
     assert len(notes) == 1 and "crop_net.out.weight" in notes[0] and "crop_net.out.bias" in notes[0]
     assert torch.equal(model.crop_net.hidden[0].weight, src.crop_net.hidden[0].weight)
+
+
+def test_single_label_prediction_takes_the_class_the_head_and_the_crop_agree_on():
+    """omnigen predict (one label a box) with a stage that names classes: box A, rated car 0.5 and
+    van 0.3 by the head, is a van once its crop says van (0.9): sqrt(0.3 * 0.9) = 0.52 against
+    sqrt(0.5 * 0.1) = 0.22; box B, car 0.6 alone, falls under the 0.25 floor (sqrt(0.6 * 0.1))."""
+    from omnigen.detector.data import letterbox
+    from omnigen.detector.predict import PredictOptions, infer_batch
+
+    model = KeypointDetector(DetectorConfig(num_classes=2, kpt_heading=True, heading_crop=16, crop_classes=True,
+                                            **TINY)).eval()
+    with torch.no_grad():
+        model.crop_net.out.weight.zero_()
+        model.crop_net.out.bias.zero_()
+        model.crop_net.out.bias[-2:] = torch.tensor([0.0, float(np.log(9.0))])  # softmax 0.1 car, 0.9 van
+    pred = torch.zeros(1, 4 + 2 + 24, 2)
+    pred[0, :4, 0] = torch.tensor([10.0, 10.0, 40.0, 30.0])
+    pred[0, :4, 1] = torch.tensor([50.0, 10.0, 60.0, 40.0])
+    pred[0, 4:6, 0] = torch.tensor([0.5, 0.3])
+    pred[0, 4:6, 1] = torch.tensor([0.6, 0.01])
+    model.infer = lambda x: pred
+    boxed, lb = letterbox(np.zeros((64, 64, 3), dtype=np.uint8), 64)
+    opts = PredictOptions(imgsz=64, conf=0.25, max_det=10)
+    got = infer_batch(model, [boxed], [lb], opts)[0]
+    assert got["classes"].tolist() == [1] and abs(float(got["scores"][0]) - (0.3 * 0.9) ** 0.5) < 1e-5
+    head = infer_batch(model, [boxed], [lb], replace(opts, crop_classes=False))[0]
+    assert head["classes"].tolist() == [0, 0] and np.allclose(sorted(head["scores"]), [0.5, 0.6])
+
+
+def test_best_label_per_box_keeps_each_boxs_best_copy_above_the_floor():
+    from omnigen.detector.crop_stage import best_label_per_box
+
+    a, b = [0.0, 0.0, 2.0, 2.0], [5.0, 5.0, 9.0, 9.0]
+    det = Detections(torch.tensor([a, b, a, b]), torch.tensor([0.4, 0.2, 0.7, 0.1]), torch.tensor([0, 0, 1, 1]),
+                     torch.arange(4.0)[:, None, None].expand(4, 8, 3))
+    out = best_label_per_box(det, 0.15, 10)
+    assert out.classes.tolist() == [1, 0] and out.scores.tolist() == pytest.approx([0.7, 0.2])
+    assert out.keypoints[:, 0, 0].tolist() == [2.0, 1.0]  # rows move together
+    assert len(best_label_per_box(det, 0.15, 1)) == 1 and len(best_label_per_box(det, 0.8, 10)) == 0
