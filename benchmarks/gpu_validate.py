@@ -273,7 +273,8 @@ def data_stage(run, work: Path, base: list[Path], extra: list[Path], args: argpa
     return uov, ran > 0
 
 
-RECIPE = "--kpt-mode box --kpt-l1 2.0 --kpt-labelled 1.0 --kpt-turn-start 0.3 --kpt-heading --heading-crop 64 --repeat-thresh 0.3"
+RECIPE = ("--kpt-mode box --kpt-l1 2.0 --kpt-labelled 1.0 --kpt-turn-start 0.3 --kpt-heading --heading-crop 64 --crop-classes "
+          "--repeat-thresh 0.3")
 """The keypoint recipe trained by default: make validate's (benchmarks/validate.py keypoint_recipe),
 the first the learning benchmark showed ahead of the box template (docs/detector-training.md)."""
 

@@ -261,3 +261,12 @@ def test_training_takes_more_arguments_and_renders_make_validates_mix():
 
     assert gpu_validate.parse_args(["--work", "w"]).train_args == shlex.join(keypoint_recipe(build_parser().parse_args([]))
                                                                                     + frame_sampling(build_parser().parse_args([])))
+
+
+def test_the_gpu_recipe_is_make_validates():
+    """The GPU run trains the recipe make validate keeps (validate.py's keypoint recipe and its
+    class balance): one kept change must not reach one of them only."""
+    from benchmarks import validate
+
+    defaults = validate.build_parser().parse_args([])
+    assert gpu_validate.RECIPE.split() == [*validate.keypoint_recipe(defaults), "--repeat-thresh", str(defaults.repeat_thresh)]
