@@ -98,7 +98,9 @@ def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dic
                                  multi_label=not args.single_label, crop_classes=False)
     model.crop_net = None  # the head's own corners, the same detections
     plain = predict_split(model, state, args.dataset, split, args.imgsz, args.batch, multi_label=not args.single_label)
-    if not same_boxes(staged, plain):  # the stage moves corners and scores, never boxes
+    # the stage's corners never move a box; its classes may rescore and (single-label) relabel and
+    # drop detections, so for a stage that names classes the pass with the head's scores is compared
+    if not same_boxes(staged if unscored is None else unscored, plain):
         raise SystemExit("crop_stage_ablation: the detections differ with and without the stage")
     ds = Dataset.open(args.dataset, show_progress=False)
     taxonomy = checkpoint_taxonomy(state)

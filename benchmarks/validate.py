@@ -141,6 +141,13 @@ def trained_seconds(out: Path) -> float:
     return float(rows[-1].get("time") or 0.0) if rows else 0.0
 
 
+def trains_into(command: str, out: Path) -> bool:
+    """Whether a recorded command is an `omnigen train` whose --out is `out` (not one that only
+    reads from it, e.g. --weights OUT/last.pt)."""
+    argv = shlex.split(command)
+    return argv[:2] == ["omnigen", "train"] and "--out" in argv[:-1] and Path(argv[argv.index("--out") + 1]) == out
+
+
 def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
     """Train into `out` unless its done-marker says it was trained with these arguments; returns
     the training's seconds, over all the invocations it took.
@@ -161,12 +168,12 @@ def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
         # the log must name this training, not another one that once wrote into `out` (a folder
         # moved back by hand from an earlier run): other trainings into it are dropped, and a run
         # the log lost is recorded with its epochs' own seconds
-        run.log = [c for c in run.log if not (c["command"].startswith("omnigen train ") and mentions(c["command"], out)
-                                              and train_stamp(c["command"]) != train_stamp(cmd))]
-        if run.seconds(cmd):
+        run.log = [c for c in run.log if not (trains_into(c["command"], out) and train_stamp(c["command"]) != train_stamp(cmd))]
+        seconds = trained_seconds(out)
+        if run.seconds(cmd) or not seconds:  # no results.csv: nothing to record, rather than a 0 that reads as a figure
             atomic_write_json(run.path, run.log, indent=1)
         else:
-            run.record(cmd, trained_seconds(out))
+            run.record(cmd, seconds)
     else:
         resumable = (out / "last.pt").exists() and started.exists() and not stale(started, stamp)
         if resumable:
@@ -175,6 +182,10 @@ def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
             if out.exists():
                 shutil.rmtree(out)
                 run.forget(out)
+            # a training from the start: no earlier training into `out` counts towards its seconds
+            # (one whose folder was moved away left its record, perhaps with --cache and so not replaced)
+            run.log = [c for c in run.log if not trains_into(c["command"], out)]
+            atomic_write_json(run.path, run.log, indent=1)
             out.mkdir(parents=True)
             atomic_write_text(started, stamp + "\n")
         run(train_cmd, done, resume_from=trained_seconds(out) if resumable else None)
@@ -771,8 +782,10 @@ def command_line(a: dict[str, Any]) -> str:
             return f"--no-{k.replace('_', '-')}"
         return flag if v is True else f"{flag} {' '.join(map(str, v))}" if isinstance(v, list) else f"{flag} {v}"
 
-    return "python benchmarks/validate.py " + " ".join(
-        opt(k, v) for k, v in a.items() if k != "fresh" and (v not in (None, [], False) or k in NEGATABLE and v is False))
+    def said(k: str, v: Any) -> bool:  # identity, not equality: 0 and 0.0 are values to print (0 == False)
+        return k != "fresh" and v is not None and not (isinstance(v, list) and not v) and (v is not False or k in NEGATABLE)
+
+    return "python benchmarks/validate.py " + " ".join(opt(k, v) for k, v in a.items() if said(k, v))
 
 
 def detection_cap_counts(preds: list[dict[str, Any]], frames: int, cap: int) -> dict[str, int]:

@@ -32,8 +32,11 @@ Training adds a cross-entropy of the crops' class logits against the labelled cl
 (`crop_cls`); prediction gives a detection of class c with score s the score sqrt(s * p_c), p the
 crop's softmax (mirror-averaged logits): the geometric mean keeps the head's evidence that there
 is an object there and lets the crop move the classes against each other (`rescore`). A
-single-label prediction (omnigen predict) takes every class an anchor rates above conf^2, rescores
-them and keeps each box's best (`best_label_per_box`), so the crop can change a box's class too.
+single-label prediction (omnigen predict) keeps each anchor's every class score through NMS
+(postprocess(class_scores=True)), floored at conf^2, the least a rescored score above conf needs;
+each refined detection then takes the class whose rescored score is best, so the crop can change
+a box's class too, and the caller drops what falls under conf (predict.infer_batch). Detections
+past MAX_REFINE keep the head's scores, on the head's scale.
 """
 
 from __future__ import annotations
@@ -269,7 +272,8 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
     once and all its detections take its corners; it takes one of the `max_refine` places, so the
     class copies do not push other objects out of the crop stage. With a net that names classes
     (and `rescore_classes`), each refined detection's score is rescored by its crop (`rescore`) and
-    the detections sorted again, best first."""
+    the detections sorted again, best first; a single-label detection that carries its anchor's
+    every class score (Detections.class_scores) takes the class whose rescored score is best."""
     picked = [distinct_boxes(d.boxes) for d in dets]
     n = [min(len(first), max_refine) for first, _ in picked]
     if not sum(n):
@@ -288,34 +292,15 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
         keypoints[refined] = k.to(d.keypoints.dtype)[rank[refined]]
         d = replace(d, keypoints=keypoints)
         if p is not None and refined.any():
-            scores = d.scores.clone()
-            scores[refined] = rescore(d.scores[refined], d.classes[refined], p[rank[refined]])
-            order = scores.argsort(descending=True, stable=True)
-            d = Detections(boxes=d.boxes[order], scores=scores[order], classes=d.classes[order],
-                           keypoints=d.keypoints[order])
+            scores, classes = d.scores.clone(), d.classes.clone()
+            if d.class_scores is not None:  # single-label: each detection takes its best class, rescored
+                best = (d.class_scores[refined] * p[rank[refined]].to(d.class_scores.dtype)).clamp(min=0).sqrt().max(1)
+                scores[refined], classes[refined] = best.values.to(scores.dtype), best.indices.to(classes.dtype)
+            else:
+                scores[refined] = rescore(d.scores[refined], d.classes[refined], p[rank[refined]])
+            d = replace(d, scores=scores, classes=classes).take(scores.argsort(descending=True, stable=True))
         out.append(d)
     return out
-
-
-def best_label_per_box(det: Detections, conf: float, max_det: int) -> Detections:
-    """Each distinct box's best-scoring detection among its class copies, those scoring above
-    `conf`, best first, at most `max_det`: one label a box again after the crop stage rescored a
-    multi-label prediction, so that a single-label caller (omnigen predict) gets the class the
-    head and the crop agree on best, which may not be the head's own best (predict.infer_batch)."""
-    if not len(det):
-        return det
-    _, rank = distinct_boxes(det.boxes)
-    order = det.scores.argsort(descending=True, stable=True)
-    seen = torch.zeros(int(rank.max()) + 1, dtype=torch.bool, device=rank.device)
-    keep = []
-    for i in order.tolist():  # best first: the first detection of each box is its best
-        if not seen[rank[i]]:
-            seen[rank[i]] = True
-            keep.append(i)
-    idx = torch.tensor(keep, dtype=torch.long, device=det.scores.device)
-    idx = idx[det.scores[idx] > conf][:max_det]
-    return Detections(boxes=det.boxes[idx], scores=det.scores[idx], classes=det.classes[idx],
-                      keypoints=det.keypoints[idx])
 
 
 class RefineWrapper(nn.Module):

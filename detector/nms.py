@@ -25,9 +25,17 @@ class Detections:
     scores: torch.Tensor  # (n,)
     classes: torch.Tensor  # (n,) long
     keypoints: torch.Tensor  # (n, 8, 3) x, y, visibility score
+    # (n, nc) every class's score at each detection's anchor (postprocess(class_scores=True)): what
+    # a crop stage that names classes needs to relabel a single-label detection (crop_stage.py)
+    class_scores: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.scores)
+
+    def take(self, index: torch.Tensor) -> "Detections":
+        """The detections at `index` (indices or a boolean mask), every field alike."""
+        return Detections(self.boxes[index], self.scores[index], self.classes[index], self.keypoints[index],
+                          None if self.class_scores is None else self.class_scores[index])
 
 
 def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -75,29 +83,32 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> torc
 
 
 def postprocess(pred: torch.Tensor, num_classes: int, conf: float = 0.25, iou: float = 0.7,
-                max_det: int = 300, max_candidates: int = 3000, multi_label: bool = False) -> list[Detections]:
+                max_det: int = 300, max_candidates: int = 3000, multi_label: bool = False,
+                class_scores: bool = False) -> list[Detections]:
     """Decoded head output (B, 4 + nc + 24, A) -> per-image detections after NMS.
 
     One class per anchor (its best), as single-label detectors do; or, with `multi_label`, every
     class of an anchor whose score passes `conf`, each a detection of its own, as Ultralytics'
     validation scores a model (a van that the head rates 0.4 car and 0.3 van is then still a van
     detection, ranked among the vans by 0.3). Candidates above `conf`, the best `max_candidates`
-    of them, class-aware NMS, then the top `max_det`.
+    of them, class-aware NMS, then the top `max_det`. With `class_scores` each detection also
+    carries its anchor's score for every class (Detections.class_scores).
     """
     out = []
     for p in pred.transpose(1, 2):  # (A, C)
         boxes, scores_all, kpt = p[:, :4], p[:, 4:4 + num_classes], p[:, 4 + num_classes:]
         if multi_label:
             anchor, classes = (scores_all > conf).nonzero(as_tuple=True)
-            boxes, scores, kpt = boxes[anchor], scores_all[anchor, classes], kpt[anchor]
+            boxes, scores, kpt, all_scores = boxes[anchor], scores_all[anchor, classes], kpt[anchor], scores_all[anchor]
         else:
             scores, classes = scores_all.max(1)
             sel = scores > conf
-            boxes, scores, classes, kpt = boxes[sel], scores[sel], classes[sel], kpt[sel]
+            boxes, scores, classes, kpt, all_scores = boxes[sel], scores[sel], classes[sel], kpt[sel], scores_all[sel]
         if len(scores) > max_candidates:
             top = scores.topk(max_candidates).indices
-            boxes, scores, classes, kpt = boxes[top], scores[top], classes[top], kpt[top]
+            boxes, scores, classes, kpt, all_scores = boxes[top], scores[top], classes[top], kpt[top], all_scores[top]
         offset = classes[:, None].to(boxes.dtype) * (boxes.abs().max() * 2 + 1 if len(boxes) else 1)
         keep = nms(boxes + offset, scores, iou)[:max_det] if len(scores) else classes[:0]
-        out.append(Detections(boxes[keep], scores[keep], classes[keep], kpt[keep].view(-1, NUM_KEYPOINTS, 3)))
+        out.append(Detections(boxes[keep], scores[keep], classes[keep], kpt[keep].view(-1, NUM_KEYPOINTS, 3),
+                              all_scores[keep] if class_scores else None))
     return out

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from omnigen.detector.data import KeypointDataset, Letterbox, letterbox, read_image, split_frames
-from omnigen.detector.crop_stage import best_label_per_box, refine_detections
+from omnigen.detector.crop_stage import refine_detections
 from omnigen.detector.model import KeypointDetector
 from omnigen.detector.nms import Detections, postprocess
 from omnigen.conventions import NUM_KEYPOINTS
@@ -100,16 +100,16 @@ def infer_batch(model: KeypointDetector, images: list[np.ndarray], boxes: list[L
     x = x.to(device, non_blocking=True).permute(0, 3, 1, 2).float().div_(255)
     pred = model.infer(x)
     # a crop stage that names classes may name a box's class otherwise than the head's best: a
-    # single-label prediction then takes every class of an anchor down to the floor its rescored
-    # score could pass (sqrt(s * p) > conf needs s > conf^2), and keeps each box's best afterwards
+    # single-label prediction then keeps every class score of each anchor through NMS, floored at
+    # conf^2 (sqrt(s * p) > conf needs s > conf^2), and drops what the rescoring leaves under conf
     relabel = (model.crop_net is not None and model.crop_net.num_classes > 0 and opts.crop_classes
                and not opts.multi_label)
     dets = postprocess(pred.float(), model.cfg.num_classes, opts.conf ** 2 if relabel else opts.conf, opts.iou,
-                       opts.max_det, multi_label=opts.multi_label or relabel)
+                       opts.max_det, multi_label=opts.multi_label, class_scores=relabel)
     if model.crop_net is not None:  # a crop-stage model places each detection's corners from its crop
         dets = refine_detections(model.crop_net, model.cfg.heading_crop, x, dets, rescore_classes=opts.crop_classes)
     if relabel:
-        dets = [best_label_per_box(d, opts.conf, opts.max_det) for d in dets]
+        dets = [d.take(d.scores > opts.conf) for d in dets]
     return batch_to_image_coords(dets, boxes)
 
 

@@ -99,6 +99,7 @@ def test_a_class_naming_stage_is_also_scored_with_the_heads_scores(tmp_path, cap
     assert result["crop_stage_head_scores"].keys() == result["crop_stage"].keys()
     assert any(k.startswith("class=") for k in result["crop_stage"])  # --by-class
     assert any(line.startswith("| class=") for line in printed)
+    assert crop_stage_ablation.main([*argv, "--single-label"]) == 0  # relabelling passes are not refused
 
 
 def test_same_boxes_ignores_order_and_scores_but_not_boxes():

@@ -404,3 +404,11 @@ def test_the_printed_command_says_which_default_switches_were_turned_off():
     assert "--no-kpt-heading" in line
     assert "--crop-classes" in validate.command_line(vars(validate.build_parser().parse_args([])))
     assert "--kpt-heading" not in validate.command_line(vars(validate.build_parser().parse_args([])))  # None: unsaid
+    assert "--heading-crop 0" in validate.command_line(vars(validate.build_parser().parse_args(["--heading-crop", "0"])))
+
+
+def test_trains_into_reads_the_out_folder_not_a_mention():
+    out = Path("runs/n-p2")
+    assert validate.trains_into("omnigen train uov --out runs/n-p2 --epochs 3", out)
+    assert not validate.trains_into("omnigen train uov --out runs/other --weights runs/n-p2/last.pt", out)
+    assert not validate.trains_into("omnigen eval runs/n-p2/last.pt uov --out runs/n-p2/eval.json", out)

@@ -486,13 +486,42 @@ def test_single_label_prediction_takes_the_class_the_head_and_the_crop_agree_on(
     assert head["classes"].tolist() == [0, 0] and np.allclose(sorted(head["scores"]), [0.5, 0.6])
 
 
-def test_best_label_per_box_keeps_each_boxs_best_copy_above_the_floor():
-    from omnigen.detector.crop_stage import best_label_per_box
+def test_single_label_prediction_relabels_after_nms_so_one_object_stays_one_detection():
+    """Two anchors on one object (IoU > 0.7): the head rates A car 0.8 / van 0.3 and B car 0.7 /
+    van 0.35, the crop says car 0.7. One detection comes out, A as car (sqrt(0.8 * 0.7)), not
+    a car and a van that per-class NMS of class copies would each keep."""
+    from omnigen.detector.data import letterbox
+    from omnigen.detector.predict import PredictOptions, infer_batch
 
-    a, b = [0.0, 0.0, 2.0, 2.0], [5.0, 5.0, 9.0, 9.0]
-    det = Detections(torch.tensor([a, b, a, b]), torch.tensor([0.4, 0.2, 0.7, 0.1]), torch.tensor([0, 0, 1, 1]),
-                     torch.arange(4.0)[:, None, None].expand(4, 8, 3))
-    out = best_label_per_box(det, 0.15, 10)
-    assert out.classes.tolist() == [1, 0] and out.scores.tolist() == pytest.approx([0.7, 0.2])
-    assert out.keypoints[:, 0, 0].tolist() == [2.0, 1.0]  # rows move together
-    assert len(best_label_per_box(det, 0.15, 1)) == 1 and len(best_label_per_box(det, 0.8, 10)) == 0
+    model = KeypointDetector(DetectorConfig(num_classes=2, kpt_heading=True, heading_crop=16, crop_classes=True,
+                                            **TINY)).eval()
+    with torch.no_grad():
+        model.crop_net.out.weight.zero_()
+        model.crop_net.out.bias.zero_()
+        model.crop_net.out.bias[-2:] = torch.tensor([float(np.log(0.7)), float(np.log(0.3))])
+    pred = torch.zeros(1, 4 + 2 + 24, 2)
+    pred[0, :4, 0] = torch.tensor([10.0, 10.0, 40.0, 30.0])
+    pred[0, :4, 1] = torch.tensor([11.0, 10.0, 41.0, 30.0])
+    pred[0, 4:6, 0] = torch.tensor([0.8, 0.3])
+    pred[0, 4:6, 1] = torch.tensor([0.7, 0.35])
+    model.infer = lambda x: pred
+    boxed, lb = letterbox(np.zeros((64, 64, 3), dtype=np.uint8), 64)
+    got = infer_batch(model, [boxed], [lb], PredictOptions(imgsz=64, conf=0.25, max_det=10))[0]
+    assert got["classes"].tolist() == [0] and abs(float(got["scores"][0]) - (0.8 * 0.7) ** 0.5) < 1e-5
+
+
+def test_postprocess_can_carry_every_class_score_and_take_keeps_fields_together():
+    from omnigen.detector.nms import postprocess
+
+    pred = torch.zeros(1, 4 + 3 + 24, 2)
+    pred[0, :4, 0] = torch.tensor([0.0, 0.0, 10.0, 10.0])
+    pred[0, :4, 1] = torch.tensor([20.0, 0.0, 30.0, 10.0])
+    pred[0, 4:7, 0] = torch.tensor([0.2, 0.9, 0.1])
+    pred[0, 4:7, 1] = torch.tensor([0.5, 0.05, 0.3])
+    det = postprocess(pred, 3, conf=0.25, class_scores=True)[0]
+    assert det.classes.tolist() == [1, 0]
+    assert torch.allclose(det.class_scores, torch.tensor([[0.2, 0.9, 0.1], [0.5, 0.05, 0.3]]))
+    assert postprocess(pred, 3, conf=0.25)[0].class_scores is None
+    one = det.take(torch.tensor([1]))
+    assert one.classes.tolist() == [0] and torch.allclose(one.class_scores, torch.tensor([[0.5, 0.05, 0.3]]))
+    assert len(det.take(det.scores > 0.6)) == 1
