@@ -459,54 +459,48 @@ def test_fine_tuning_a_class_naming_stage_across_taxonomies_starts_its_class_row
     assert torch.equal(model.crop_net.hidden[0].weight, src.crop_net.hidden[0].weight)
 
 
-def test_single_label_prediction_takes_the_class_the_head_and_the_crop_agree_on():
-    """omnigen predict (one label a box) with a stage that names classes: box A, rated car 0.5 and
-    van 0.3 by the head, is a van once its crop says van (0.9): sqrt(0.3 * 0.9) = 0.52 against
-    sqrt(0.5 * 0.1) = 0.22; box B, car 0.6 alone, falls under the 0.25 floor (sqrt(0.6 * 0.1))."""
+def two_anchor_prediction(boxes: list[list[float]], head: list[list[float]], crop: list[float], opts):
+    """infer_batch of a two-class crop-stage model whose head gives two anchors `boxes` with class
+    scores `head`, and whose crop stage says `crop` (class probabilities) of every crop."""
     from omnigen.detector.data import letterbox
-    from omnigen.detector.predict import PredictOptions, infer_batch
+    from omnigen.detector.predict import infer_batch
 
     model = KeypointDetector(DetectorConfig(num_classes=2, kpt_heading=True, heading_crop=16, crop_classes=True,
                                             **TINY)).eval()
     with torch.no_grad():
         model.crop_net.out.weight.zero_()
         model.crop_net.out.bias.zero_()
-        model.crop_net.out.bias[-2:] = torch.tensor([0.0, float(np.log(9.0))])  # softmax 0.1 car, 0.9 van
+        model.crop_net.out.bias[-2:] = torch.tensor(crop).log()
     pred = torch.zeros(1, 4 + 2 + 24, 2)
-    pred[0, :4, 0] = torch.tensor([10.0, 10.0, 40.0, 30.0])
-    pred[0, :4, 1] = torch.tensor([50.0, 10.0, 60.0, 40.0])
-    pred[0, 4:6, 0] = torch.tensor([0.5, 0.3])
-    pred[0, 4:6, 1] = torch.tensor([0.6, 0.01])
+    pred[0, :4] = torch.tensor(boxes).T
+    pred[0, 4:6] = torch.tensor(head).T
     model.infer = lambda x: pred
     boxed, lb = letterbox(np.zeros((64, 64, 3), dtype=np.uint8), 64)
+    return infer_batch(model, [boxed], [lb], opts)[0]
+
+
+def test_single_label_prediction_takes_the_class_the_head_and_the_crop_agree_on():
+    """omnigen predict (one label a box) with a stage that names classes: box A, rated car 0.5 and
+    van 0.3 by the head, is a van once its crop says van (0.9): sqrt(0.3 * 0.9) = 0.52 against
+    sqrt(0.5 * 0.1) = 0.22; box B, car 0.6 alone, falls under the 0.25 floor (sqrt(0.6 * 0.1))."""
+    from omnigen.detector.predict import PredictOptions
+
+    boxes, head = [[10.0, 10.0, 40.0, 30.0], [50.0, 10.0, 60.0, 40.0]], [[0.5, 0.3], [0.6, 0.01]]
     opts = PredictOptions(imgsz=64, conf=0.25, max_det=10)
-    got = infer_batch(model, [boxed], [lb], opts)[0]
+    got = two_anchor_prediction(boxes, head, [0.1, 0.9], opts)
     assert got["classes"].tolist() == [1] and abs(float(got["scores"][0]) - (0.3 * 0.9) ** 0.5) < 1e-5
-    head = infer_batch(model, [boxed], [lb], replace(opts, crop_classes=False))[0]
-    assert head["classes"].tolist() == [0, 0] and np.allclose(sorted(head["scores"]), [0.5, 0.6])
+    kept = two_anchor_prediction(boxes, head, [0.1, 0.9], replace(opts, crop_classes=False))
+    assert kept["classes"].tolist() == [0, 0] and np.allclose(sorted(kept["scores"]), [0.5, 0.6])
 
 
 def test_single_label_prediction_relabels_after_nms_so_one_object_stays_one_detection():
     """Two anchors on one object (IoU > 0.7): the head rates A car 0.8 / van 0.3 and B car 0.7 /
     van 0.35, the crop says car 0.7. One detection comes out, A as car (sqrt(0.8 * 0.7)), not
     a car and a van that per-class NMS of class copies would each keep."""
-    from omnigen.detector.data import letterbox
-    from omnigen.detector.predict import PredictOptions, infer_batch
+    from omnigen.detector.predict import PredictOptions
 
-    model = KeypointDetector(DetectorConfig(num_classes=2, kpt_heading=True, heading_crop=16, crop_classes=True,
-                                            **TINY)).eval()
-    with torch.no_grad():
-        model.crop_net.out.weight.zero_()
-        model.crop_net.out.bias.zero_()
-        model.crop_net.out.bias[-2:] = torch.tensor([float(np.log(0.7)), float(np.log(0.3))])
-    pred = torch.zeros(1, 4 + 2 + 24, 2)
-    pred[0, :4, 0] = torch.tensor([10.0, 10.0, 40.0, 30.0])
-    pred[0, :4, 1] = torch.tensor([11.0, 10.0, 41.0, 30.0])
-    pred[0, 4:6, 0] = torch.tensor([0.8, 0.3])
-    pred[0, 4:6, 1] = torch.tensor([0.7, 0.35])
-    model.infer = lambda x: pred
-    boxed, lb = letterbox(np.zeros((64, 64, 3), dtype=np.uint8), 64)
-    got = infer_batch(model, [boxed], [lb], PredictOptions(imgsz=64, conf=0.25, max_det=10))[0]
+    got = two_anchor_prediction([[10.0, 10.0, 40.0, 30.0], [11.0, 10.0, 41.0, 30.0]], [[0.8, 0.3], [0.7, 0.35]],
+                                [0.7, 0.3], PredictOptions(imgsz=64, conf=0.25, max_det=10))
     assert got["classes"].tolist() == [0] and abs(float(got["scores"][0]) - (0.8 * 0.7) ** 0.5) < 1e-5
 
 
