@@ -78,12 +78,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
-def rows_of(report: Any) -> dict[str, dict[str, float]]:
-    """The synthetic row (else overall) and the per-view rows of an EvalReport, FIELDS only."""
+def rows_of(report: Any, by_class: bool = False) -> dict[str, dict[str, float]]:
+    """The synthetic row (else overall) and the per-view rows of an EvalReport, FIELDS only; with
+    `by_class` also each class's row, keyed as the report names it ('class=car')."""
     rows = {r.group: r for r in report.rows}
     main = rows.get("source=synthetic") or rows["overall"]
     out = {"synthetic" if main.group == "source=synthetic" else "overall": main}
     out.update({g.split("=", 1)[1]: r for g, r in rows.items() if g.startswith("view=")})
+    if by_class:
+        out.update({g: r for g, r in rows.items() if g.startswith("class=")})
     def value(v: float) -> float | None:  # JSON has no NaN: a figure nothing was matched for is null
         return None if isinstance(v, float) and math.isnan(v) else v
 

@@ -56,17 +56,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
-def rows_by(report: Any, by_class: bool) -> dict[str, dict[str, Any]]:
-    """rows_of's rows (synthetic, views) and, with by_class, one per class (keyed 'class=car')."""
-    out = rows_of(report)
-    if by_class:
-        from benchmarks.bench_learning import FIELDS
-
-        out.update({r.group: {f: getattr(r, f) for f in FIELDS} for r in report.rows if r.group.startswith("class=")})
-        out = {k: {f: (None if isinstance(v, float) and v != v else v) for f, v in r.items()} for k, r in out.items()}
-    return out
-
-
 def same_boxes(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> bool:
     """Whether two prediction lists hold the same detections' boxes and classes (in any order: a
     stage that rescores sorts again)."""
@@ -106,9 +95,9 @@ def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dic
     taxonomy = checkpoint_taxonomy(state)
     report, baseline = evaluate_with_baseline(ds, staged, split=split, taxonomy=taxonomy)
     head = evaluate(ds, plain, split=split, taxonomy=taxonomy)
-    head_scores = None if unscored is None else rows_by(evaluate(ds, unscored, split=split, taxonomy=taxonomy),
+    head_scores = None if unscored is None else rows_of(evaluate(ds, unscored, split=split, taxonomy=taxonomy),
                                                         args.by_class)
-    return (rows_by(report, args.by_class), rows_by(head, args.by_class), rows_by(baseline, args.by_class),
+    return (rows_of(report, args.by_class), rows_of(head, args.by_class), rows_of(baseline, args.by_class),
             len(staged), head_scores)
 
 

@@ -86,6 +86,13 @@ class Runner:
         self.log = [c for c in self.log if not c["command"].startswith(prefix)]
         atomic_write_json(self.path, self.log, indent=1)
 
+    def forget_trainings(self, out: Path, but: str | None = None) -> None:
+        """Drop the records of trainings into `out` (trains_into), but those of the training `but`
+        (--cache or not, train_stamp): a folder trained again, or moved back from another run."""
+        keep = None if but is None else train_stamp(but)
+        self.log = [c for c in self.log if not trains_into(c["command"], out) or train_stamp(c["command"]) == keep]
+        atomic_write_json(self.path, self.log, indent=1)
+
     def forget(self, folder: Path) -> None:
         """Drop the records of commands that wrote into or read from `folder` (it is being redone)."""
         self.log = [c for c in self.log if not mentions(c["command"], folder)]
@@ -167,12 +174,11 @@ def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
         cmd = "omnigen " + shlex.join(train_cmd)
         # the log must name this training, not another one that once wrote into `out` (a folder
         # moved back by hand from an earlier run): other trainings into it are dropped, and a run
-        # the log lost is recorded with its epochs' own seconds
-        run.log = [c for c in run.log if not (trains_into(c["command"], out) and train_stamp(c["command"]) != train_stamp(cmd))]
+        # the log lost is recorded with its epochs' own seconds (none without a results.csv, rather
+        # than a 0 that reads as a figure)
+        run.forget_trainings(out, but=cmd)
         seconds = trained_seconds(out)
-        if run.seconds(cmd) or not seconds:  # no results.csv: nothing to record, rather than a 0 that reads as a figure
-            atomic_write_json(run.path, run.log, indent=1)
-        else:
+        if seconds and not run.seconds(cmd):
             run.record(cmd, seconds)
     else:
         resumable = (out / "last.pt").exists() and started.exists() and not stale(started, stamp)
@@ -184,8 +190,7 @@ def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
                 run.forget(out)
             # a training from the start: no earlier training into `out` counts towards its seconds
             # (one whose folder was moved away left its record, perhaps with --cache and so not replaced)
-            run.log = [c for c in run.log if not trains_into(c["command"], out)]
-            atomic_write_json(run.path, run.log, indent=1)
+            run.forget_trainings(out)
             out.mkdir(parents=True)
             atomic_write_text(started, stamp + "\n")
         run(train_cmd, done, resume_from=trained_seconds(out) if resumable else None)
@@ -497,7 +502,8 @@ def main(argv: list[str] | None = None) -> int:
         report = json.loads(report_path.read_text())
         row = synthetic_row(report)
         baseline = synthetic_row({"report": report["baseline"]}) if "baseline" in report else None
-        orders = asdict(corner_order_counts(uov_ds, json.loads(preds.read_text())))
+        predictions = json.loads(preds.read_text())  # tens of MB: read once
+        orders = asdict(corner_order_counts(uov_ds, predictions))
         hist = list(csv.DictReader((out / "results.csv").read_text().splitlines()))
         curve = [{"epoch": int(float(h["epoch"])), "oks_map50_95": float(h["oks_map50_95"]), "ap_oks50": float(h["ap_oks50"])}
                  for h in hist if h.get("oks_map50_95") not in (None, "", "nan")]
@@ -509,8 +515,7 @@ def main(argv: list[str] | None = None) -> int:
                  "baseline_synthetic_test": baseline,
                  "curve": curve, "validated_on": validated_on(dataset, extra, uov),
                  "predicted": (out / "predicted").read_text().strip(),
-                 **detection_cap_counts(json.loads(preds.read_text()), len(split_frames(uov, "test") or []),
-                                        EVAL_MAX_DET),
+                 **detection_cap_counts(predictions, len(split_frames(uov, "test") or []), EVAL_MAX_DET),
                  "report_rows": report["report"]["rows"], "corner_order": orders}
         runs.append(entry)
         return entry
@@ -795,20 +800,19 @@ def detection_cap_counts(preds: list[dict[str, Any]], frames: int, cap: int) -> 
     from collections import Counter
 
     per_frame = Counter(p.get("frame_id", p["image_id"]) for p in preds)
-    n = frames
-    return {"detection_cap": cap, "test_frames_predicted": n,
+    return {"detection_cap": cap, "test_frames_predicted": frames,
             "frames_at_detection_cap": sum(1 for c in per_frame.values() if c >= cap)}
 
 
 def protocol_line(r: dict[str, Any]) -> list[str]:
     """How the main run's test predictions were made (predict_stage's marker); none for a
     results.json older than the marker."""
-    made = (r.get("runs") or [{}])[0].get("predicted")
+    run = (r.get("runs") or [{}])[0]
+    made = run.get("predicted")
     if not made:
         return []
     how = ("every class an anchor rates above the 0.001 floor is a detection (multi-label, as Ultralytics' "
            "validation scores)" if "multi_label=True" in made else "one class an anchor, its best (single-label)")
-    run = r["runs"][0]
     capped = "" if "frames_at_detection_cap" not in run else (
         f"; {run['frames_at_detection_cap']} of {run['test_frames_predicted']} frames reached the cap of "
         f"{run['detection_cap']} detections")

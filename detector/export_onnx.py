@@ -74,7 +74,7 @@ def export_crop_stage(model, path: Path, imgsz: int, dynamic: bool = False) -> N
 
     boxes = torch.tensor([[8.0, 8.0, 40.0, 30.0], [20.0, 4.0, 30.0, 44.0], [0.0, 0.0, 16.0, 16.0]])
     outputs = ["refined"] + (["class_probs"] if model.crop_net.num_classes else [])
-    axes = {k: v for k, v in CROP_STAGE_AXES.items() if k not in ("refined", "class_probs") or k in outputs}
+    axes = {k: v for k, v in CROP_STAGE_AXES.items() if k != "class_probs" or k in outputs}
     axes.update({"images": {2: "height", 3: "width"}} if dynamic else {})
     buf = io.BytesIO()
     torch.onnx.export(RefineWrapper(model.crop_net.eval(), model.cfg.heading_crop),

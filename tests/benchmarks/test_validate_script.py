@@ -9,6 +9,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import shutil  # noqa: E402
 
 import pytest  # noqa: E402
 
@@ -104,7 +105,6 @@ def test_a_trained_folder_moved_back_is_reported_as_its_own_training(tmp_path, m
     kept = out.with_name("kept")
     out.rename(kept)
     train_stage(run, ["train", "uov", "--out", str(out), "--imgsz", "960"], out)
-    import shutil
     shutil.rmtree(out)
     kept.rename(out)  # the 640 run back
     run.record("omnigen render --out elsewhere", 3.0)
