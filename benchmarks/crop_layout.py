@@ -62,6 +62,7 @@ class LayoutCrops:
     labelled: np.ndarray  # (N, 8) bool: in the image and in front of the camera (what OKS scores)
     views: np.ndarray  # (N,) index into VIEWS
     classes: np.ndarray  # (N,) category names
+    frames: np.ndarray  # (N,) the dataset index of the object's frame
 
 
 def move_boxes(boxes: np.ndarray, rng: np.random.Generator, jitter: float) -> np.ndarray:
@@ -83,7 +84,7 @@ def collect(ds, frame_ids: list[str], crop: int, min_side: float, copies: int, j
     from PIL import Image
 
 
-    out: dict[str, list] = {k: [] for k in ("images", "boxes", "true_boxes", "keypoints", "labelled", "views", "classes")}
+    out: dict[str, list] = {k: [] for k in ("images", "boxes", "true_boxes", "keypoints", "labelled", "views", "classes", "frames")}
     n = 0
     for i in sorted(ds.index_of(f) for f in frame_ids):
         rec = ds[i]
@@ -91,7 +92,7 @@ def collect(ds, frame_ids: list[str], crop: int, min_side: float, copies: int, j
                 if max(o.bbox[2] - o.bbox[0], o.bbox[3] - o.bbox[1]) >= min_side and np.isfinite(o.keypoints).any()]
         if not objs:
             continue
-        image = torch.from_numpy(np.asarray(Image.open(ds.root / rec.image).convert("RGB"))).permute(2, 0, 1)
+        image = torch.from_numpy(np.array(Image.open(ds.root / rec.image).convert("RGB"))).permute(2, 0, 1)
         true = np.repeat(np.stack([o.bbox for o in objs]).astype(np.float64), copies, axis=0)
         boxes = move_boxes(true, rng, jitter)
         crops = crop_boxes(image[None].float(), torch.zeros(len(boxes), dtype=torch.long),
@@ -103,6 +104,7 @@ def collect(ds, frame_ids: list[str], crop: int, min_side: float, copies: int, j
         out["labelled"].append(np.repeat(np.stack([o.in_image & ~o.behind_camera for o in objs]), copies, axis=0))
         out["views"].append(np.full(len(boxes), VIEWS.index(rec.view)))
         out["classes"].append(np.repeat(np.array([o.category for o in objs], dtype=object), copies))
+        out["frames"].append(np.full(len(boxes), i))
         n += len(boxes)
         if limit and n >= limit:
             break
@@ -212,6 +214,19 @@ def score(pred: np.ndarray, crops: LayoutCrops, mask: np.ndarray | None = None) 
                  float(np.mean(oks >= 0.75)), int(len(gt)))
 
 
+def open_splits(dataset: Path, script: str):
+    """(the opened dataset, its train frame ids, its test frame ids); a clear exit naming the
+    dataset where either split is missing."""
+    from omnigen.dataset import Dataset
+    from omnigen.splits import read_split
+
+    try:
+        train_ids, test_ids = read_split(dataset, "train"), read_split(dataset, "test")
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"{script}: {dataset}: needs splits/train.txt and splits/test.txt ({exc})")
+    return Dataset.open(dataset), train_ids, test_ids
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("dataset", type=Path, help="a merged UrbanOmniView dataset with train and test splits")
@@ -230,19 +245,13 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from omnigen.dataset import Dataset
     from omnigen.detector.box_template import fit_box_template
     from omnigen.progress import print_table
-    from omnigen.splits import read_split
 
     if a.threads:
         torch.set_num_threads(a.threads)
     t0 = time.perf_counter()
-    try:
-        train_ids, test_ids = read_split(a.dataset, "train"), read_split(a.dataset, "test")
-    except (OSError, ValueError) as exc:
-        raise SystemExit(f"crop_layout: {a.dataset}: needs splits/train.txt and splits/test.txt ({exc})")
-    ds = Dataset.open(a.dataset)
+    ds, train_ids, test_ids = open_splits(a.dataset, "crop_layout")
     rng = np.random.default_rng(a.seed)
     tr = collect(ds, train_ids, a.crop, a.min_side, a.copies, a.jitter, rng, a.limit)
     te_true = collect(ds, test_ids, a.crop, a.min_side, 1, 0.0, rng)

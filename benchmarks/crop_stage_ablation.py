@@ -10,7 +10,10 @@ It answers, for instance, whether the stage is what moves the ground-plane adher
 
 A stage that names classes (`train --crop-classes`) also rescores the detections it refines; a
 third pass keeps its corners and the head's scores (`crop_classes=False`), so that what the
-rescoring does to each class's AP is measured on the same weights too.
+rescoring does to each class's AP is measured on the same weights too; and two more rescore by the
+anchor's best class score instead of the detection's class's own, the second with every class of
+each refined box (`crop_score_by` "object" and "every", crop_stage.SCORE_BY): whether the crop
+should name the class alone.
 
     .venv/bin/python benchmarks/crop_stage_ablation.py WEIGHTS DATASET [--split test] [--imgsz 640]
         [--batch 16] [--device cpu] [--by-class] [--out ablation.json]
@@ -19,7 +22,7 @@ Prints a table per row (the synthetic rows, then each view, then with --by-class
 the whole split) and, last,
 `crop stage: mAP50:95 X (head's corners Y), corner error rel A (head B, box template C),
 adherence D deg (head E)`, and for a stage that names classes `; rescored by the crop's classes:
-mAP50:95 X (the head's scores Z)`.
+mAP50:95 X (the head's scores Z; by the anchor's best score W, every class V)`.
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.bench_learning import rows_of  # noqa: E402
 from omnigen.files import atomic_write_json  # noqa: E402
 
+OTHER_SCORE_BY = ("object", "every")
+"""The crop_score_by modes scored beside prediction's default (crop_stage.SCORE_BY)."""
 COLUMNS = (("oks_map50_95", "mAP50:95", 3), ("ap_oks50", "AP50", 3), ("ground_adherence_deg", "adherence (deg)", 2),
            ("corner_error_px", "corner error px", 2), ("corner_error_rel", "rel", 3))
 
@@ -65,10 +70,11 @@ def same_boxes(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> bool:
 
 
 def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any], int,
-                                             dict[str, Any] | None]:
+                                             dict[str, Any] | None, dict[str, dict[str, Any]]]:
     """(crop-stage rows, head rows, box-template rows, detections, rows of the crop's corners with
-    the head's scores or None): the checkpoint's predictions with and without its crop stage (and,
-    for a stage that names classes, without its rescoring), scored on one opened dataset; the
+    the head's scores or None, rows of each other `crop_score_by`, by it): the checkpoint's
+    predictions with and without its crop stage (and, for a stage that names classes, without its
+    rescoring and rescoring otherwise), scored on one opened dataset; the
     template scores the boxes once (they are the same every way)."""
     from omnigen.dataset import Dataset
     from omnigen.detector.box_template import evaluate_with_baseline
@@ -81,10 +87,12 @@ def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dic
         raise SystemExit(f"crop_stage_ablation: {args.weights} has no crop stage (trained without --heading-crop)")
     split = None if args.split == "all" else args.split
     staged = predict_split(model, state, args.dataset, split, args.imgsz, args.batch, multi_label=not args.single_label)
-    unscored = None
-    if model.crop_net.num_classes:  # the crop's corners, the head's scores
+    unscored, others = None, {}
+    if model.crop_net.num_classes:  # the crop's corners, the head's scores; and rescored otherwise
         unscored = predict_split(model, state, args.dataset, split, args.imgsz, args.batch,
                                  multi_label=not args.single_label, crop_classes=False)
+        others = {by: predict_split(model, state, args.dataset, split, args.imgsz, args.batch,
+                                    multi_label=not args.single_label, crop_score_by=by) for by in OTHER_SCORE_BY}
     model.crop_net = None  # the head's own corners, the same detections
     plain = predict_split(model, state, args.dataset, split, args.imgsz, args.batch, multi_label=not args.single_label)
     # the stage's corners never move a box; its classes may rescore and (single-label) relabel and
@@ -97,8 +105,10 @@ def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dic
     head = evaluate(ds, plain, split=split, taxonomy=taxonomy)
     head_scores = None if unscored is None else rows_of(evaluate(ds, unscored, split=split, taxonomy=taxonomy),
                                                         args.by_class)
+    other_rows = {by: rows_of(evaluate(ds, preds, split=split, taxonomy=taxonomy), args.by_class)
+                  for by, preds in others.items()}
     return (rows_of(report, args.by_class), rows_of(head, args.by_class), rows_of(baseline, args.by_class),
-            len(staged), head_scores)
+            len(staged), head_scores, other_rows)
 
 
 def cell(v: Any, digits: int) -> str:
@@ -107,7 +117,7 @@ def cell(v: Any, digits: int) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    stage, head, template, n_stage, head_scores = score(args)
+    stage, head, template, n_stage, head_scores, other_rows = score(args)
     print(f"{args.weights} on {args.dataset} ({args.split} split, {n_stage} detections): corners from the crop "
           "stage, from the head, and the box template's (the same detections each time)"
           + ("; the crop stage's corners with the head's scores (not rescored by the crop's classes)"
@@ -116,6 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|" + "---|" * len(COLUMNS))
     for key in stage:
         passes = [("crop stage", stage)] + ([("crop stage, head's scores", head_scores)] if head_scores else []) \
+            + [(f"crop stage, scored by {by}", rows) for by, rows in other_rows.items()] \
             + [("head", head), ("box template", template)]
         for name, rows in passes:
             r = rows[key]
@@ -125,14 +136,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         atomic_write_json(args.out, {"weights": str(args.weights), "dataset": str(args.dataset), "split": args.split,
                                      "detections": n_stage, "crop_stage": stage, "head": head, "box_template": template,
-                                     **({"crop_stage_head_scores": head_scores} if head_scores else {})},
+                                     **({"crop_stage_head_scores": head_scores} if head_scores else {}),
+                                     **{f"crop_stage_scored_by_{by}": rows for by, rows in other_rows.items()}},
                           indent=1)
     print(f"crop stage: mAP50:95 {cell(s['oks_map50_95'], 3)} (head's corners {cell(h['oks_map50_95'], 3)}), "
           f"corner error rel {cell(s['corner_error_rel'], 3)} (head {cell(h['corner_error_rel'], 3)}, box template "
           f"{cell(t['corner_error_rel'], 3)}), adherence {cell(s['ground_adherence_deg'], 2)} deg "
           f"(head {cell(h['ground_adherence_deg'], 2)})"
           + (f"; rescored by the crop's classes: mAP50:95 {cell(s['oks_map50_95'], 3)} (the head's scores "
-             f"{cell(head_scores[main_key]['oks_map50_95'], 3)})" if head_scores else ""))
+             f"{cell(head_scores[main_key]['oks_map50_95'], 3)}; by the anchor's best score "
+             f"{cell(other_rows['object'][main_key]['oks_map50_95'], 3)}, every class "
+             f"{cell(other_rows['every'][main_key]['oks_map50_95'], 3)})" if head_scores else ""))
     return 0
 
 

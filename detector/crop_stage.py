@@ -51,7 +51,7 @@ import torch.onnx.operators
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
 from omnigen.detector.boxes import box_area
 from omnigen.detector.heading import HEADING_CHANNELS, image_heading, orient
-from omnigen.detector.nms import Detections
+from omnigen.detector.nms import Detections, concat
 
 MARGIN = 0.1
 """Context around the box on each side, as a share of its longer side (heading_visibility's)."""
@@ -187,18 +187,30 @@ def crop_boxes(images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Ten
     return crops
 
 
-def training_rois(targets: dict[str, torch.Tensor], max_crops: int = MAX_CROPS, min_side: float = MIN_SIDE
-                  ) -> torch.Tensor:
+def draw_rows(rows: torch.Tensor, max_crops: int, classes: torch.Tensor | None = None) -> torch.Tensor:
+    """At most max_crops of the candidate `rows`, drawn at random without replacement (torch's
+    generator, which the trainer seeds). Given the candidates' `classes` (len(rows),), class-balanced:
+    each row drawn with weight 1 / (candidates of its class), so that every class in the batch gets
+    about an equal share of the crops until its objects run out; a batch's rare objects are then
+    nearly always cropped and its cars subsampled (benchmarks/crop_classes.py measured why)."""
+    if len(rows) <= max_crops:
+        return rows
+    if classes is None:
+        return rows[torch.randperm(len(rows), device=rows.device)[:max_crops]]
+    _, inverse, counts = torch.unique(classes, return_inverse=True, return_counts=True)
+    return rows[torch.multinomial(1.0 / counts[inverse].float(), max_crops, replacement=False)]
+
+
+def training_rois(targets: dict[str, torch.Tensor], max_crops: int = MAX_CROPS, min_side: float = MIN_SIDE,
+                  balanced: bool = False) -> torch.Tensor:
     """Rows of the flat targets to crop this step: labelled objects whose image heading is defined
-    and whose box is at least min_side, at most max_crops of them drawn at random (torch's generator,
-    which the trainer seeds)."""
+    and whose box is at least min_side, at most max_crops of them (`draw_rows`, class-balanced by
+    targets["cls"] where `balanced`: a stage that names classes)."""
     boxes = targets["bboxes"].float()
     side = (boxes[:, 2:] - boxes[:, :2]).amax(1) if len(boxes) else boxes.new_zeros(0)
     h = image_heading(targets["keypoints"].float(), box_area(boxes), targets["kpt_mask"].bool())
     rows = ((h.norm(dim=-1) > 1e-3) & (side >= min_side)).nonzero(as_tuple=True)[0]
-    if len(rows) > max_crops:
-        rows = rows[torch.randperm(len(rows), device=rows.device)[:max_crops]]
-    return rows
+    return draw_rows(rows, max_crops, targets["cls"].reshape(-1)[rows] if balanced else None)
 
 
 def crop_outputs(net: CropNet, images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Tensor,
@@ -237,6 +249,17 @@ def refine(net: CropNet, size: int, images: torch.Tensor, batch_index: torch.Ten
     return orient(kpts, box_area(boxes), h), probs
 
 
+SCORE_BY = ("class", "object", "every")
+"""How a class-naming crop stage rescores a detection of class c: sqrt(s * p_c), s the head's score
+of that class at the detection's anchor (`class`) or the anchor's best score of any class, its
+evidence that an object is there at all (`object`: the head finds, the crop names, as a two-stage
+detector's proposal score and classifier). `every` scores as `object` and gives a multi-label
+prediction's refined box one detection of every class, also those the head rated under the
+floor or whose copies the candidate cap (nms.postprocess) cut: where the head calls a bus a car
+at 0.5 and a bus at 0.0005, the bus copy exists only so. A single-label prediction names one
+class a box either way, so there `every` is `object`."""
+
+
 def rescore(scores: torch.Tensor, classes: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
     """Scores (n,) of detections of `classes` (n,) with the crop's class probabilities (n, nc):
     sqrt(score * p[class]), the geometric mean of the head's score and the crop's belief in the
@@ -265,7 +288,8 @@ def distinct_boxes(boxes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[Detections],
-                      max_refine: int = MAX_REFINE, rescore_classes: bool = True) -> list[Detections]:
+                      max_refine: int = MAX_REFINE, rescore_classes: bool = True, score_by: str = "class"
+                      ) -> list[Detections]:
     """Per-image detections (in `images`' coordinates, best score first) with the corners of the
     first `max_refine` distinct boxes placed by their crops (`refine`): what prediction does after
     NMS for a crop-stage model. A box that multi-label prediction gave several classes is cropped
@@ -273,7 +297,12 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
     class copies do not push other objects out of the crop stage. With a net that names classes
     (and `rescore_classes`), each refined detection's score is rescored by its crop (`rescore`) and
     the detections sorted again, best first; a single-label detection that carries its anchor's
-    every class score (Detections.class_scores) takes the class whose rescored score is best."""
+    every class score (Detections.class_scores) takes the class whose rescored score is best.
+    `score_by` (SCORE_BY) says which head score the crop's probability is combined with, and
+    whether a refined box gets a detection of every class (then more than the detections given
+    may come back; the caller caps them)."""
+    if score_by not in SCORE_BY:
+        raise ValueError(f"refine_detections: score_by {score_by!r} is not one of {', '.join(SCORE_BY)}")
     picked = [distinct_boxes(d.boxes) for d in dets]
     n = [min(len(first), max_refine) for first, _ in picked]
     if not sum(n):
@@ -286,7 +315,7 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
     kpts = kpts.split(n)
     probs = probs.split(n) if probs is not None and rescore_classes else [None] * len(dets)
     out = []
-    for d, (_, rank), k, p in zip(dets, picked, kpts, probs):
+    for d, (first, rank), k, p in zip(dets, picked, kpts, probs):
         refined = rank < len(k)
         keypoints = d.keypoints.clone()
         keypoints[refined] = k.to(d.keypoints.dtype)[rank[refined]]
@@ -294,10 +323,23 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
         if p is not None and refined.any():
             scores, classes = d.scores.clone(), d.classes.clone()
             if d.class_scores is not None:  # single-label: each detection takes its best class, rescored
-                best = (d.class_scores[refined] * p[rank[refined]].to(d.class_scores.dtype)).clamp(min=0).sqrt().max(1)
+                head = d.class_scores[refined]
+                if score_by != "class":
+                    head = head.amax(1, keepdim=True)
+                best = (head * p[rank[refined]].to(head.dtype)).clamp(min=0).sqrt().max(1)
                 scores[refined], classes[refined] = best.values.to(scores.dtype), best.indices.to(classes.dtype)
-            else:
-                scores[refined] = rescore(d.scores[refined], d.classes[refined], p[rank[refined]])
+            elif score_by == "every":  # each refined box once per class, its copies replaced
+                boxes_at = first[:len(k)]  # each refined box's best-scoring detection (score order)
+                nc = p.shape[1]
+                every = d.take(boxes_at.repeat_interleave(nc))
+                cls = torch.arange(nc, device=d.classes.device).repeat(len(boxes_at)).to(d.classes.dtype)
+                every = replace(every, classes=cls,
+                                scores=(d.scores[boxes_at, None] * p.to(d.scores.dtype)).clamp(min=0).sqrt().flatten())
+                d = concat([every, d.take(~refined)])
+                scores, classes = d.scores, d.classes
+            else:  # a box's first detection is its best-scoring class (the detections are in score order)
+                head = d.scores[first][rank[refined]] if score_by == "object" else d.scores[refined]
+                scores[refined] = rescore(head, d.classes[refined], p[rank[refined]])
             d = replace(d, scores=scores, classes=classes).take(scores.argsort(descending=True, stable=True))
         out.append(d)
     return out

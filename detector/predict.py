@@ -50,6 +50,7 @@ class PredictOptions:
     # a crop stage that names classes rescores the detections it refines (crop_stage.rescore);
     # False keeps the head's scores (benchmarks/crop_stage_ablation.py measures the difference)
     crop_classes: bool = True
+    crop_score_by: str = "class"  # which head score the crop's class probability rescores (crop_stage.SCORE_BY)
 
 
 def to_image_coords(det: Detections, lb: Letterbox) -> dict[str, np.ndarray]:
@@ -107,7 +108,9 @@ def infer_batch(model: KeypointDetector, images: list[np.ndarray], boxes: list[L
     dets = postprocess(pred.float(), model.cfg.num_classes, opts.conf ** 2 if relabel else opts.conf, opts.iou,
                        opts.max_det, multi_label=opts.multi_label, class_scores=relabel)
     if model.crop_net is not None:  # a crop-stage model places each detection's corners from its crop
-        dets = refine_detections(model.crop_net, model.cfg.heading_crop, x, dets, rescore_classes=opts.crop_classes)
+        dets = refine_detections(model.crop_net, model.cfg.heading_crop, x, dets, rescore_classes=opts.crop_classes,
+                                 score_by=opts.crop_score_by)
+        dets = [d.take(slice(0, opts.max_det)) for d in dets]  # `every` may give a box more classes
     if relabel:
         dets = [d.take(d.scores > opts.conf) for d in dets]
     return batch_to_image_coords(dets, boxes)
@@ -171,20 +174,23 @@ def load_for_prediction(weights: str | Path, device: str | None = None) -> tuple
 
 def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: str | Path, split: str | None = "test",
                   imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
-                  multi_label: bool = EVAL_MULTI_LABEL, crop_classes: bool = True) -> list[dict[str, Any]]:
+                  multi_label: bool = EVAL_MULTI_LABEL, crop_classes: bool = True, crop_score_by: str = "class"
+                  ) -> list[dict[str, Any]]:
     """Detections of a loaded model (load_for_prediction) on a dataset split, ready for `omnigen
     eval`, at the training input size unless `imgsz` says otherwise. A caller that predicts twice
     with one model (with and without its crop stage: `model.crop_net = None` keeps the head's own
     corners, benchmarks/crop_stage_ablation.py), or reads the checkpoint's taxonomy first, loads it
     once. `multi_label=False` keeps one class an anchor, as `omnigen predict` does
-    (EVAL_MULTI_LABEL). `crop_classes=False` keeps the head's scores where the crop stage names classes.
+    (EVAL_MULTI_LABEL). `crop_classes=False` keeps the head's scores where the crop stage names classes;
+    `crop_score_by` is PredictOptions'.
     """
     from omnigen.detector.checkpoint import checkpoint_taxonomy
 
     imgsz = imgsz or trained_imgsz(state)
     data = KeypointDataset(dataset_root, checkpoint_taxonomy(state), imgsz, split_frames(dataset_root, split))
     return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=EVAL_MAX_DET,
-                                                      multi_label=multi_label, crop_classes=crop_classes),
+                                                      multi_label=multi_label, crop_classes=crop_classes,
+                                                      crop_score_by=crop_score_by),
                           show_progress=True)
 
 

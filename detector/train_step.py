@@ -73,7 +73,8 @@ class TrainStep:
         dtype = self.amp_dtype
         crops = None
         if getattr(self.model, "crop_net", None) is not None:  # a crop-stage model crops labelled boxes, moved
-            rows = training_rois(targets)
+            # a stage that names classes draws its crops class-balanced (crop_stage.draw_rows)
+            rows = training_rois(targets, balanced=self.model.crop_net.num_classes > 0)
             crops = (rows, targets["batch_idx"][rows], jitter_boxes(targets["bboxes"][rows].float()))
         with torch.autocast(images.device.type, dtype=dtype or torch.float32, enabled=dtype is not None):
             out = self.net(images, crops) if crops is not None else self.net(images)

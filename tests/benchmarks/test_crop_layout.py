@@ -17,7 +17,7 @@ def _crops(keypoints: np.ndarray, boxes: np.ndarray) -> cl.LayoutCrops:
     n = len(boxes)
     return cl.LayoutCrops(images=np.zeros((n, 16, 16, 3), np.uint8), boxes=boxes, true_boxes=boxes,
                           keypoints=keypoints, labelled=np.ones((n, 8), bool), views=np.zeros(n, np.int64),
-                          classes=np.array(["car"] * n, dtype=object))
+                          classes=np.array(["car"] * n, dtype=object), frames=np.zeros(n, np.int64))
 
 
 def test_moved_boxes_carry_the_stated_noise_and_none_at_zero():

@@ -74,8 +74,8 @@ def test_the_second_pass_drops_the_stage_and_both_keep_the_protocol_asked(tmp_pa
 
 
 def test_a_class_naming_stage_is_also_scored_with_the_heads_scores(tmp_path, capsys, monkeypatch):
-    """Three passes for a stage that names classes: rescored, the crop's corners with the head's
-    scores, and the head alone; the boxes are the same each time, whatever order the rescoring sorts them in."""
+    """Five passes for a stage that names classes: rescored, the crop's corners with the head's
+    scores, rescored by the anchor's best score (alone and with every class), and the head alone; the boxes are the same each time, whatever order the rescoring sorts them in."""
     import omnigen.detector.predict as predict
 
     root = tmp_path / "ds"
@@ -83,7 +83,7 @@ def test_a_class_naming_stage_is_also_scored_with_the_heads_scores(tmp_path, cap
     calls, real = [], predict.predict_split
 
     def spy(model, state, *a, **kw):
-        calls.append((model.crop_net is not None, kw.get("crop_classes", True)))
+        calls.append((model.crop_net is not None, kw.get("crop_classes", True), kw.get("crop_score_by", "class")))
         return real(model, state, *a, **kw)
 
     monkeypatch.setattr(predict, "predict_split", spy)
@@ -91,12 +91,15 @@ def test_a_class_naming_stage_is_also_scored_with_the_heads_scores(tmp_path, cap
     argv = [str(checkpoint(tmp_path / "crop.pt", 16, crop_classes=True)), str(root), "--split", "all", "--imgsz", "64",
             "--device", "cpu", "--out", str(out), "--by-class"]
     assert crop_stage_ablation.main(argv) == 0
-    assert calls == [(True, True), (True, False), (False, True)]
+    assert calls == [(True, True, "class"), (True, False, "class"), (True, True, "object"), (True, True, "every"),
+                     (False, True, "class")]
     printed = capsys.readouterr().out.strip().splitlines()
-    assert "rescored by the crop's classes: mAP50:95 " in printed[-1]
+    assert "rescored by the crop's classes: mAP50:95 " in printed[-1] and "every class " in printed[-1]
     assert any(line.startswith("| synthetic | crop stage, head's scores |") for line in printed)
+    assert any(line.startswith("| synthetic | crop stage, scored by every |") for line in printed)
     result = json.loads(out.read_text())
-    assert result["crop_stage_head_scores"].keys() == result["crop_stage"].keys()
+    assert (result["crop_stage_head_scores"].keys() == result["crop_stage"].keys()
+            == result["crop_stage_scored_by_object"].keys() == result["crop_stage_scored_by_every"].keys())
     assert any(k.startswith("class=") for k in result["crop_stage"])  # --by-class
     assert any(line.startswith("| class=") for line in printed)
     assert crop_stage_ablation.main([*argv, "--single-label"]) == 0  # relabelling passes are not refused

@@ -15,7 +15,7 @@ from omnigen.detector.boxes import box_area
 from omnigen.detector.heading import image_heading, orient
 from omnigen.detector.crop_stage import (CropNet, crop_boxes, crop_outputs, distinct_boxes, from_crop_units, jitter_boxes,
                                          mirror_corners, refine, refine_detections, rescore, split_outputs,
-                                         to_crop_units, training_rois)
+                                         to_crop_units, training_rois, draw_rows)
 from omnigen.detector.loss import DetectionLoss
 from omnigen.detector.model import DetectorConfig, KeypointDetector
 from omnigen.detector.nms import Detections
@@ -100,6 +100,41 @@ def test_training_rois_keep_defined_headings_and_cap_the_count():
     torch.manual_seed(0)
     few = training_rois(targets, max_crops=3)
     assert len(few) == 3 and set(few.tolist()) <= set(rows.tolist())
+
+
+def test_balanced_draw_crops_every_rare_object_and_subsamples_the_common_class():
+    rows = torch.arange(100, 200)
+    classes = torch.zeros(100, dtype=torch.long)
+    classes[[3, 50, 97]] = 4  # three rare objects among 97 cars
+    classes[[10, 20]] = 7
+    torch.manual_seed(0)
+    uniform = [set(draw_rows(rows, 20).tolist()) for _ in range(50)]
+    torch.manual_seed(0)
+    balanced = [draw_rows(rows, 20, classes) for _ in range(50)]
+    rare = {103, 150, 197, 110, 120}
+    # weight 1/3 and 1/2 against 1/95: the rare rows are drawn nearly always, uniformly about a fifth of the time
+    assert np.mean([len(rare & set(b.tolist())) for b in balanced]) > 4.5
+    assert np.mean([len(rare & u) for u in uniform]) < 2
+    for b in balanced:  # without replacement, from the candidates
+        assert len(b) == 20 and len(set(b.tolist())) == 20 and set(b.tolist()) <= set(rows.tolist())
+    torch.manual_seed(0)
+    assert torch.equal(draw_rows(rows, 20, classes), balanced[0])  # the trainer's seed fixes the draw
+    assert torch.equal(draw_rows(rows[:5], 20, classes[:5]), rows[:5])  # fewer than the cap: all of them
+
+
+def test_a_class_naming_stage_draws_its_training_crops_balanced(monkeypatch):
+    from omnigen.detector import train_step
+
+    seen = []
+    monkeypatch.setattr(train_step, "training_rois", lambda targets, balanced=False: seen.append(balanced) or
+                        torch.zeros(0, dtype=torch.long))
+    for classes in (False, True):
+        model = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=32, crop_classes=classes,
+                                                **TINY))
+        step = train_step.TrainStep(model, model, lambda out, t: (out.crop_rows.sum() * 0.0, {}), None, None, None, None)
+        with pytest.raises(AttributeError):  # stops at the optimiser, which this test does not give
+            step(torch.rand(1, 3, 64, 64), {"batch_idx": torch.zeros(0), "cls": torch.zeros(0), "bboxes": torch.zeros(0, 4)})
+    assert seen == [False, True]
 
 
 def test_config_checks_the_crop_side():
@@ -420,6 +455,46 @@ def test_refined_detections_are_rescored_by_their_crops_class_and_sorted_again()
         assert torch.equal(by_key[(tuple(bx), int(cl))], kp)
     assert torch.equal(kept.scores, dets[0].scores)  # rescore_classes=False: the head's scores
     assert rescore(torch.tensor([0.25]), torch.tensor([1]), torch.tensor([[0.0, 1.0]])).item() == 0.5
+
+
+def test_rescoring_by_the_anchors_best_score_lets_the_crop_name_the_class():
+    # the same boxes as above: A car 0.9 / van 0.5, B car 0.7, C car 0.4; the crop says 0.8 van.
+    # score_by="object": every class copy of a box combines the crop's p with the box's best head score
+    net = CropNet(16, width=8, num_classes=2).eval()
+    with torch.no_grad():
+        net.out.weight.zero_()
+        net.out.bias.zero_()
+        net.out.bias[-2:] = torch.tensor([0.0, float(np.log(4.0))])
+    a, b, c = [10.0, 10.0, 50.0, 30.0], [60.0, 5.0, 90.0, 40.0], [5.0, 40.0, 30.0, 60.0]
+    boxes = torch.tensor([a, b, a, c])
+    dets = [Detections(boxes, torch.tensor([0.9, 0.7, 0.5, 0.4]), torch.tensor([0, 0, 1, 0]), torch.rand(4, 8, 3))]
+    images = torch.rand(1, 3, 64, 96)
+    with torch.no_grad():
+        out = refine_detections(net, 16, images, dets, max_refine=2, score_by="object")[0]
+    want = {(0, 1): (0.9 * 0.8) ** 0.5, (0, 0): (0.9 * 0.2) ** 0.5, (1, 0): (0.7 * 0.2) ** 0.5, (2, 0): 0.4}
+    got = {([a, b, c].index(bx), cl): sc for bx, cl, sc in zip(out.boxes.tolist(), out.classes.tolist(),
+                                                             out.scores.tolist())}
+    assert got.keys() == want.keys() and all(abs(got[k] - want[k]) < 1e-5 for k in want)
+    # single-label: the head's best score (car 0.6 here) and the crop's best class (van)
+    single = [Detections(torch.tensor([a]), torch.tensor([0.6]), torch.tensor([0]), torch.rand(1, 8, 3),
+                         class_scores=torch.tensor([[0.6, 0.05]]))]
+    with torch.no_grad():
+        by_class = refine_detections(net, 16, images, single, score_by="class")[0]
+        by_object = refine_detections(net, 16, images, single, score_by="object")[0]
+    assert by_class.classes.tolist() == [0] and abs(by_class.scores.item() - (0.6 * 0.2) ** 0.5) < 1e-5
+    assert by_object.classes.tolist() == [1] and abs(by_object.scores.item() - (0.6 * 0.8) ** 0.5) < 1e-5
+    with pytest.raises(ValueError, match="score_by"):
+        refine_detections(net, 16, images, dets, score_by="box")
+    # score_by="every": each refined box (A, B) once per class, by its best head score; C untouched
+    with torch.no_grad():
+        every = refine_detections(net, 16, images, dets, max_refine=2, score_by="every")[0]
+    want[(1, 1)] = (0.7 * 0.8) ** 0.5  # B's van copy, which the head never gave
+    got = {([a, b, c].index(bx), cl): sc for bx, cl, sc in zip(every.boxes.tolist(), every.classes.tolist(),
+                                                             every.scores.tolist())}
+    assert got.keys() == want.keys() and all(abs(got[k] - want[k]) < 1e-5 for k in want)
+    assert len(every) == 5 and every.scores.tolist() == sorted(every.scores.tolist(), reverse=True)
+    kp = {([a, b, c].index(bx), cl): k for bx, cl, k in zip(every.boxes.tolist(), every.classes.tolist(), every.keypoints)}
+    assert torch.equal(kp[(1, 1)], kp[(1, 0)]) and torch.equal(kp[(2, 0)], dets[0].keypoints[3])
 
 
 def test_prediction_can_keep_the_heads_scores_of_a_class_naming_stage():
