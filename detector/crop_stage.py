@@ -19,7 +19,8 @@ Training crops the labelled boxes of the augmented batch, each moved at random a
 boxes miss the truth (`jitter_boxes`), and learns the corners with an L1 term (`crop_corners`) and
 the heading with the head's target and loss (heading.image_heading of the labelled corners,
 1 - cosine; `heading_crop`). At most MAX_CROPS objects a step, drawn at random, keep its cost
-bounded (benchmarks/bench_crop_stage.py prints it). Inference crops the predicted boxes and
+bounded (benchmarks/bench_crop_stage.py prints it); a stage that names classes draws them
+class-balanced (`draw_rows`). Inference crops the predicted boxes and
 averages each crop's outputs with its mirror image's (a horizontal flip negates x and renumbers
 the corners by FLIP_IDX; it negates the heading's x component and keeps the rest).
 
@@ -36,7 +37,9 @@ single-label prediction (omnigen predict) keeps each anchor's every class score 
 (postprocess(class_scores=True)), floored at conf^2, the least a rescored score above conf needs;
 each refined detection then takes the class whose rescored score is best, so the crop can change
 a box's class too, and the caller drops what falls under conf (predict.infer_batch). Detections
-past MAX_REFINE keep the head's scores, on the head's scale.
+past MAX_REFINE keep the head's scores, on the head's scale. SCORE_BY names the other rescorings
+benchmarks/crop_stage_ablation.py compares: by the anchor's best score of any class (the head
+finds, the crop names), and that with a detection of every class for each refined box.
 """
 
 from __future__ import annotations
