@@ -85,9 +85,7 @@ def train(crops: LayoutCrops, labels: np.ndarray, frames: np.ndarray, batches: l
     net.train()
     losses = []
     for step_frames in batches:
-        cand = np.concatenate([by_frame.get(int(frames[f]), np.zeros(0, np.int64)) for f in step_frames])
-        if not len(cand):
-            continue
+        cand = np.concatenate([by_frame[int(frames[f])] for f in step_frames])  # a frame here has crops
         cand_t = torch.from_numpy(cand)
         idx = draw_rows(cand_t, MAX_CROPS, y_all[cand_t] if draw == "balanced" else None)
         x, y = x_all[idx].clone(), y_all[idx]

@@ -22,7 +22,7 @@ Prints a table per row (the synthetic rows, then each view, then with --by-class
 the whole split) and, last,
 `crop stage: mAP50:95 X (head's corners Y), corner error rel A (head B, box template C),
 adherence D deg (head E)`, and for a stage that names classes `; rescored by the crop's classes:
-mAP50:95 X (the head's scores Z; by the anchor's best score W, every class V)`.
+mAP50:95 X (the head's scores Z; scored by object W, scored by every V)`.
 """
 
 from __future__ import annotations
@@ -144,9 +144,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{cell(t['corner_error_rel'], 3)}), adherence {cell(s['ground_adherence_deg'], 2)} deg "
           f"(head {cell(h['ground_adherence_deg'], 2)})"
           + (f"; rescored by the crop's classes: mAP50:95 {cell(s['oks_map50_95'], 3)} (the head's scores "
-             f"{cell(head_scores[main_key]['oks_map50_95'], 3)}; by the anchor's best score "
-             f"{cell(other_rows['object'][main_key]['oks_map50_95'], 3)}, every class "
-             f"{cell(other_rows['every'][main_key]['oks_map50_95'], 3)})" if head_scores else ""))
+             f"{cell(head_scores[main_key]['oks_map50_95'], 3)}; "
+             + ", ".join(f"scored by {by} {cell(rows[main_key]['oks_map50_95'], 3)}" for by, rows in other_rows.items())
+             + ")" if head_scores else ""))
     return 0
 
 

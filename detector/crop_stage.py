@@ -324,13 +324,14 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
         keypoints[refined] = k.to(d.keypoints.dtype)[rank[refined]]
         d = replace(d, keypoints=keypoints)
         if p is not None and refined.any():
-            scores, classes = d.scores.clone(), d.classes.clone()
             if d.class_scores is not None:  # single-label: each detection takes its best class, rescored
                 head = d.class_scores[refined]
                 if score_by != "class":
                     head = head.amax(1, keepdim=True)
                 best = (head * p[rank[refined]].to(head.dtype)).clamp(min=0).sqrt().max(1)
+                scores, classes = d.scores.clone(), d.classes.clone()
                 scores[refined], classes[refined] = best.values.to(scores.dtype), best.indices.to(classes.dtype)
+                d = replace(d, scores=scores, classes=classes)
             elif score_by == "every":  # each refined box once per class, its copies replaced
                 boxes_at = first[:len(k)]  # each refined box's best-scoring detection (score order)
                 nc = p.shape[1]
@@ -339,11 +340,12 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
                 every = replace(every, classes=cls,
                                 scores=(d.scores[boxes_at, None] * p.to(d.scores.dtype)).clamp(min=0).sqrt().flatten())
                 d = concat([every, d.take(~refined)])
-                scores, classes = d.scores, d.classes
             else:  # a box's first detection is its best-scoring class (the detections are in score order)
                 head = d.scores[first][rank[refined]] if score_by == "object" else d.scores[refined]
+                scores = d.scores.clone()
                 scores[refined] = rescore(head, d.classes[refined], p[rank[refined]])
-            d = replace(d, scores=scores, classes=classes).take(scores.argsort(descending=True, stable=True))
+                d = replace(d, scores=scores)
+            d = d.take(d.scores.argsort(descending=True, stable=True))
         out.append(d)
     return out
 

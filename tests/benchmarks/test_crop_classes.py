@@ -45,15 +45,9 @@ def test_frame_batches_are_distinct_frames_drawn_by_weight():
     assert share > 0.6  # a frame of weight 10 among nine of 1 is in most batches of 3; uniformly it would be 0.3
 
 
-def test_runs_end_to_end_on_a_small_dataset(tmp_path, capsys):
+def test_runs_end_to_end_on_a_small_dataset(split_fake_dataset, capsys):
     pytest.importorskip("torch")
-    from omnigen.fakes import write_fake_dataset
-    from omnigen.splits import write_split
-
-    ds = write_fake_dataset(tmp_path / "ds", 12, objects_per_frame=6, seed=4)
-    ids = [ds.frames[i]["frame_id"] for i in range(len(ds))]
-    write_split(ds.root, "train", ids[:9])
-    write_split(ds.root, "test", ids[9:])
+    ds = split_fake_dataset
     assert cc.main([str(ds.root), "--steps", "3", "--batch-frames", "4", "--crop", "16"]) == 0
     out = capsys.readouterr().out.strip().splitlines()
     assert re.fullmatch(r"crop_classes: mean AP uniform \d\.\d{3}, balanced \d\.\d{3}; rare-class named "

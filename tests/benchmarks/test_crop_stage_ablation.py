@@ -94,7 +94,7 @@ def test_a_class_naming_stage_is_also_scored_with_the_heads_scores(tmp_path, cap
     assert calls == [(True, True, "class"), (True, False, "class"), (True, True, "object"), (True, True, "every"),
                      (False, True, "class")]
     printed = capsys.readouterr().out.strip().splitlines()
-    assert "rescored by the crop's classes: mAP50:95 " in printed[-1] and "every class " in printed[-1]
+    assert "rescored by the crop's classes: mAP50:95 " in printed[-1] and "scored by every " in printed[-1]
     assert any(line.startswith("| synthetic | crop stage, head's scores |") for line in printed)
     assert any(line.startswith("| synthetic | crop stage, scored by every |") for line in printed)
     result = json.loads(out.read_text())

@@ -55,15 +55,9 @@ def test_balanced_accuracy_is_one_half_for_a_constant_guess():
     assert hv.accuracy(1.0 - labels, labels) == 0.0
 
 
-def test_runs_end_to_end_on_a_small_dataset(tmp_path, capsys):
+def test_runs_end_to_end_on_a_small_dataset(split_fake_dataset, capsys):
     pytest.importorskip("torch")
-    from omnigen.fakes import write_fake_dataset
-    from omnigen.splits import write_split
-
-    ds = write_fake_dataset(tmp_path / "ds", 12, objects_per_frame=6, seed=4)
-    ids = [ds.frames[i]["frame_id"] for i in range(len(ds))]
-    write_split(ds.root, "train", ids[:9])
-    write_split(ds.root, "test", ids[9:])
+    ds = split_fake_dataset
     assert hv.main([str(ds.root), "--steps", "3", "--batch", "4", "--crop", "16", "--min-side", "1",
                     "--min-offset", "0", "--max-occlusion", "3"]) == 0
     last = capsys.readouterr().out.strip().splitlines()[-1]
