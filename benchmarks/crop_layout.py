@@ -1,6 +1,7 @@
 """Can a small CNN place an object's eight corners from its own crop? A top-down yardstick for issue 25.
 
     .venv/bin/python benchmarks/crop_layout.py runs/validate/uov [--steps 1500] [--crop 64] [--jitter 1]
+        [--head regress|integral]
 
 The detector regresses every object's corners from the one feature vector at its anchor, at every
 scale at once; on the CPU budget its corners land 0.41 of sqrt(box area) from the truth (median,
@@ -29,8 +30,16 @@ objects and scored on the test split's.
   own OKS (sigma 0.125, COCO's formula) reaches that threshold, what OKS mAP at those thresholds
   counts when the box is found. The box template (detector/box_template.py, fitted on the train
   split) placed on the same boxes is the baseline.
+- `--head integral` swaps the regressor for a heatmap per corner read by its soft-argmax
+  (`IntegralCorners`): whether pose estimation's way places the corners more precisely, measured
+  before the crop stage changes.
+- `--weights CKPT` scores a detector's crop stage (trained with it, `omnigen train --heading-crop`)
+  on the same crops as a third row: whether the stage, trained on the detector's augmented
+  windows beside everything else, places corners as well as the net trained here alone.
 
-Last line: `crop_layout: rel X (template Y) on N test objects, jittered boxes rel A (template B); OKS>=.5 C`.
+Last line: `crop_layout (HEAD): rel X (template Y) on N test objects, jittered boxes rel A (template B);
+OKS>=.5 C`; before it, with --weights, `crop_layout: the detector's crop stage (CKPT): rel X,
+jittered boxes rel A; OKS>=.5 C`.
 """
 
 from __future__ import annotations
@@ -42,6 +51,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
+import torch.nn as nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -80,7 +91,6 @@ def collect(ds, frame_ids: list[str], crop: int, min_side: float, copies: int, j
             rng: np.random.Generator, limit: int | None = None) -> LayoutCrops:
     """Crops of every object of the named frames whose box's longer side is at least min_side,
     `copies` of each, cut about boxes moved by `jitter` (0: the true box)."""
-    import torch
     from PIL import Image
 
 
@@ -113,30 +123,76 @@ def collect(ds, frame_ids: list[str], crop: int, min_side: float, copies: int, j
     return LayoutCrops(**{k: np.concatenate(v) for k, v in out.items()})
 
 
-def build_model(width: int = 16, crop: int = 64):
-    """crop_stage.CropNet's four blocks; the last feature map flattened (where a corner is,
-    which a global average would throw away) into 16 outputs."""
-    import torch.nn as nn
+HEADS = ("regress", "integral")
+"""How the benchmark's CNN gives the corners: `regress` (crop_stage.CropNet's way: the last feature
+map flattened into 16 numbers) or `integral` (IntegralCorners: a heatmap per corner, read by its
+soft-argmax)."""
 
-    def block(cin, cout):
-        return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.SiLU(),
-                             nn.Conv2d(cout, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.SiLU(),
-                             nn.MaxPool2d(2))
 
+def _block(cin: int, cout: int, pool: bool = True, dilation: int = 1) -> nn.Sequential:
+    """Two 3x3 convolutions with batch norm and SiLU, then (where `pool`) a 2x2 max-pool."""
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=dilation, dilation=dilation, bias=False),
+                         nn.BatchNorm2d(cout), nn.SiLU(),
+                         nn.Conv2d(cout, cout, 3, padding=dilation, dilation=dilation, bias=False),
+                         nn.BatchNorm2d(cout), nn.SiLU(), *([nn.MaxPool2d(2)] if pool else []))
+
+
+def soft_argmax(heatmaps: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
+    """Heatmaps (N, K, s, s) -> (N, K, 2): each map's softmax-weighted mean of its cells' centres
+    `centres` (s,), x then y. Differentiable (integral regression, Sun et al. 2018), so the corners
+    are learned with the regressor's L1; the result stays within the centres' span."""
+    n, k, s, _ = heatmaps.shape
+    p = heatmaps.flatten(2).softmax(-1).view(n, k, s, s)
+    return torch.stack([(p.sum(2) * centres).sum(-1), (p.sum(3) * centres).sum(-1)], -1)
+
+
+class IntegralCorners(nn.Module):
+    """(N, 3, S, S) -> (N, 16): a heatmap per corner at a quarter of the crop's side, read by its
+    soft-argmax, in crop units (the crop's edges at +-1, cell centres at (j + 0.5) / s * 2 - 1).
+
+    Why try it: pose estimation places keypoints more precisely from heatmaps than by regressing
+    numbers from a flattened feature map, because each output cell keeps where it is in the
+    image. Two pooled blocks (64 -> 16), then two at 16 x 16, the last dilated for context (its
+    receptive field spans the crop: which corner is which depends on the whole object), and a 1x1
+    convolution to the eight maps. A corner outside the crop is out of its reach (clamped to the
+    edge); those lie beyond a moved box's crop and are rarely in the image."""
+
+    def __init__(self, width: int = 16, crop: int = 64):
+        super().__init__()
+        if crop % 16:
+            raise ValueError(f"IntegralCorners: crop side must be a multiple of 16, got {crop}")
+        self.features = nn.Sequential(_block(3, width), _block(width, 2 * width),
+                                      _block(2 * width, 4 * width, pool=False),
+                                      _block(4 * width, 4 * width, pool=False, dilation=2))
+        self.maps = nn.Conv2d(4 * width, NUM_KEYPOINTS, 1)
+        s = crop // 4
+        self.register_buffer("centres", (torch.arange(s, dtype=torch.float32) + 0.5) / s * 2 - 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return soft_argmax(self.maps(self.features(x)), self.centres).flatten(1)
+
+
+def build_model(width: int = 16, crop: int = 64, head: str = "regress") -> nn.Module:
+    """The benchmark's CNN: (N, 3, crop, crop) -> (N, 16), the corners in crop units. `regress`:
+    crop_stage.CropNet's four blocks, the last feature map flattened (where a corner is, which a
+    global average would throw away) into 16 outputs; `integral`: IntegralCorners."""
+    if head == "integral":
+        return IntegralCorners(width, crop)
+    if head != "regress":
+        raise ValueError(f"crop_layout: head {head!r} is not one of {', '.join(HEADS)}")
     side = crop // 16
-    return nn.Sequential(block(3, width), block(width, 2 * width), block(2 * width, 4 * width),
-                         block(4 * width, 4 * width), nn.Flatten(), nn.Linear(4 * width * side * side, 128), nn.SiLU(),
+    return nn.Sequential(_block(3, width), _block(width, 2 * width), _block(2 * width, 4 * width),
+                         _block(4 * width, 4 * width), nn.Flatten(), nn.Linear(4 * width * side * side, 128), nn.SiLU(),
                          nn.Linear(128, 2 * NUM_KEYPOINTS))
 
 
-def train(crops: LayoutCrops, steps: int, batch: int, seed: int, lr: float = 2e-3):
+def train(crops: LayoutCrops, steps: int, batch: int, seed: int, lr: float = 2e-3, head: str = "regress"):
     """A fixed-seed AdamW run with a one-cycle schedule; L1 on the corners in front of the camera;
     half of each batch mirrored."""
-    import torch
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    model = build_model(crop=crops.images.shape[1])
+    model = build_model(crop=crops.images.shape[1], head=head)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=0.1)
     x_all = to_tensor(crops.images)
@@ -164,7 +220,6 @@ def train(crops: LayoutCrops, steps: int, batch: int, seed: int, lr: float = 2e-
 
 def predict(model, crops: LayoutCrops, batch: int = 256) -> np.ndarray:
     """(N, 8, 2) corners in image pixels, averaged with the mirrored crop's prediction."""
-    import torch
 
     model.eval()
     out = []
@@ -175,6 +230,39 @@ def predict(model, crops: LayoutCrops, batch: int = 256) -> np.ndarray:
             q = mirror_corners(model(x.flip(-1)).view(-1, NUM_KEYPOINTS, 2))
             out.append(((p + q) / 2).numpy())
     return from_crop_units(torch.from_numpy(np.concatenate(out).astype(np.float64)), torch.from_numpy(crops.boxes)).numpy()
+
+
+def stage_corners(net, crops: LayoutCrops, batch: int = 256) -> np.ndarray:
+    """(N, 8, 2) corners in image pixels that a trained detector's crop stage (crop_stage.CropNet)
+    places on the same crops, as prediction does (crop_stage.refine): mirror-averaged, then turned
+    where the stage's heading says the other face is the front."""
+    from omnigen.detector.boxes import box_area
+    from omnigen.detector.crop_stage import outputs_of_crops
+    from omnigen.detector.heading import orient
+
+    net.eval()
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(crops.images), batch):
+            boxes = torch.from_numpy(crops.boxes[i:i + batch]).float()
+            h, t, _ = outputs_of_crops(net, to_tensor(crops.images[i:i + batch]), mirror=True)
+            out.append(orient(from_crop_units(t, boxes), box_area(boxes), h).numpy())
+    return np.concatenate(out).astype(np.float64)
+
+
+def load_stage(weights: Path, crop: int):
+    """The crop stage of a checkpoint trained with `--heading-crop` (its CropNet), on the CPU; a
+    clear exit where it has none or crops at another side than `crop`."""
+    from omnigen.detector.predict import load_for_prediction
+
+    model, _ = load_for_prediction(weights, "cpu")
+    net = model.crop_net
+    if net is None:
+        raise SystemExit(f"crop_layout: {weights}: has no crop stage (trained without --heading-crop)")
+    if model.cfg.heading_crop != crop:
+        raise SystemExit(f"crop_layout: {weights}: its crop stage cuts {model.cfg.heading_crop}-pixel crops; "
+                         f"pass --crop {model.cfg.heading_crop}")
+    return net.float()
 
 
 def template_corners(template, crops: LayoutCrops) -> np.ndarray:
@@ -237,13 +325,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jitter", type=float, default=1.0, help="scale of the box noise (0: crops about the true boxes)")
     ap.add_argument("--copies", type=int, default=2, help="crops per train object, each about its own moved box")
     ap.add_argument("--limit", type=int, default=None, help="at most this many train crops (a quick look)")
+    ap.add_argument("--head", default="regress", choices=HEADS,
+                    help="how the CNN gives the corners: regressed from its flattened features (the crop stage's) "
+                         "or read from a heatmap each (integral)")
+    ap.add_argument("--weights", type=Path, default=None,
+                    help="also score this checkpoint's crop stage (trained with the detector, --heading-crop) "
+                         "on the same crops")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     a = ap.parse_args(argv)
     if a.crop % 16:
         raise SystemExit(f"crop_layout: --crop {a.crop}: must be a multiple of 16 (four 2x2 pools)")
-
-    import torch
 
     from omnigen.detector.box_template import fit_box_template
     from omnigen.progress import print_table
@@ -259,14 +351,17 @@ def main(argv: list[str] | None = None) -> int:
     print(f"crops: train {len(tr.images)} ({a.copies} a object), test {len(te_true.images)} "
           f"({time.perf_counter() - t0:.1f} s)", flush=True)
     template = fit_box_template(ds, train_ids, fitted_from="train")
+    stage = load_stage(a.weights, a.crop) if a.weights else None
     t1 = time.perf_counter()
-    model, losses = train(tr, a.steps, a.batch, a.seed)
+    model, losses = train(tr, a.steps, a.batch, a.seed, head=a.head)
     print(f"trained {a.steps} steps in {time.perf_counter() - t1:.1f} s; L1 first 50 {np.mean(losses[:50]):.3f}, "
           f"last 50 {np.mean(losses[-50:]):.3f}", flush=True)
 
     rows, last = [], {}
     for boxes_name, te in (("true", te_true), ("moved", te_moved)):
         preds = {"crop net": predict(model, te), "box template": template_corners(template, te)}
+        if stage is not None:
+            preds["detector's stage"] = stage_corners(stage, te)
         for who, pred in preds.items():
             groups = [("all", None)] + [(f"view={v}", te.views == VIEWS.index(v)) for v in VIEWS
                                         if np.any(te.views == VIEWS.index(v))]
@@ -280,7 +375,11 @@ def main(argv: list[str] | None = None) -> int:
                 ["boxes", "corners by", "group", "objects", "rel", "layout", "OKS>=.5", "OKS>=.75"], rows)
     c, t = last[("true", "crop net")], last[("true", "box template")]
     cm, tm = last[("moved", "crop net")], last[("moved", "box template")]
-    print(f"crop_layout: rel {c.rel:.3f} (template {t.rel:.3f}) on {c.objects} test objects, jittered boxes rel "
+    if stage is not None:
+        d, dm = last[("true", "detector's stage")], last[("moved", "detector's stage")]
+        print(f"crop_layout: the detector's crop stage ({a.weights}): rel {d.rel:.3f}, jittered boxes rel "
+              f"{dm.rel:.3f}; OKS>=.5 {dm.oks50:.3f}")
+    print(f"crop_layout ({a.head}): rel {c.rel:.3f} (template {t.rel:.3f}) on {c.objects} test objects, jittered boxes rel "
           f"{cm.rel:.3f} (template {tm.rel:.3f}); OKS>=.5 {cm.oks50:.3f} (template {tm.oks50:.3f})")
     return 0
 

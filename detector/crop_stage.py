@@ -221,7 +221,13 @@ def crop_outputs(net: CropNet, images: torch.Tensor, batch_index: torch.Tensor, 
     """Headings (N, 3), corners (N, 8, 2, crop units) and class logits (N, nc, or None) of the
     boxes' crops; with `mirror`, each averaged with the mirrored crop's (a class is the same
     mirrored)."""
-    crops = crop_boxes(images, batch_index, boxes, size)
+    return outputs_of_crops(net, crop_boxes(images, batch_index, boxes, size), mirror)
+
+
+def outputs_of_crops(net: CropNet, crops: torch.Tensor, mirror: bool = False
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """crop_outputs of crops already cut (N, 3, S, S in 0..1): benchmarks/crop_layout.py scores a
+    trained stage on its own crops so."""
     h, t, c = split_outputs(net(crops))
     if mirror:
         hm, tm, cm = split_outputs(net(crops.flip(-1)))

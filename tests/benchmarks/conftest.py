@@ -2,7 +2,35 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
+
+TINY = dict(width=0.0625, depth=0.33, max_channels=64)
+"""A detector small enough to build in a test."""
+
+
+def _save_checkpoint(path: Path, heading_crop: int, crop_classes: bool = False) -> Path:
+    import torch
+
+    from omnigen.detector.checkpoint import save_checkpoint
+    from omnigen.detector.model import DetectorConfig, KeypointDetector
+    from omnigen.taxonomy import load_taxonomy
+
+    torch.manual_seed(0)
+    classes = list(load_taxonomy("fine").classes)
+    cfg = DetectorConfig(num_classes=len(classes), kpt_heading=True, heading_crop=heading_crop,
+                         crop_classes=crop_classes, **TINY)
+    save_checkpoint(path, {"config": cfg.to_dict(), "model": KeypointDetector(cfg).state_dict(), "classes": classes})
+    return path
+
+
+@pytest.fixture
+def detector_checkpoint():
+    """checkpoint(path, heading_crop, crop_classes=False) -> path: an untrained tiny detector saved
+    as `omnigen train` saves one (fine taxonomy, the heading head; a crop stage of that side where
+    heading_crop > 0), for the benchmarks that read a crop-stage checkpoint."""
+    return _save_checkpoint
 
 
 @pytest.fixture

@@ -8,33 +8,17 @@ import sys
 from pathlib import Path
 
 import pytest
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from benchmarks import crop_stage_ablation  # noqa: E402
-from omnigen.detector.checkpoint import save_checkpoint  # noqa: E402
-from omnigen.detector.model import DetectorConfig, KeypointDetector  # noqa: E402
 from omnigen.fakes import write_fake_dataset  # noqa: E402
-from omnigen.taxonomy import load_taxonomy  # noqa: E402
 
-TINY = dict(width=0.0625, depth=0.33, max_channels=64)
-
-
-def checkpoint(path: Path, heading_crop: int, crop_classes: bool = False) -> Path:
-    torch.manual_seed(0)
-    classes = list(load_taxonomy("fine").classes)
-    cfg = DetectorConfig(num_classes=len(classes), kpt_heading=True, heading_crop=heading_crop,
-                         crop_classes=crop_classes, **TINY)
-    save_checkpoint(path, {"config": cfg.to_dict(), "model": KeypointDetector(cfg).state_dict(), "classes": classes})
-    return path
-
-
-def test_scores_the_same_detections_three_ways_and_writes_them(tmp_path, capsys):
+def test_scores_the_same_detections_three_ways_and_writes_them(tmp_path, capsys, detector_checkpoint):
     root = tmp_path / "ds"
     write_fake_dataset(root, n_frames=3, objects_per_frame=3)
     out = tmp_path / "ablation.json"
-    argv = [str(checkpoint(tmp_path / "crop.pt", 16)), str(root), "--split", "all", "--imgsz", "64", "--device", "cpu",
+    argv = [str(detector_checkpoint(tmp_path / "crop.pt", 16)), str(root), "--split", "all", "--imgsz", "64", "--device", "cpu",
             "--out", str(out)]
     assert crop_stage_ablation.main(argv) == 0
     printed = capsys.readouterr().out.strip().splitlines()
@@ -46,14 +30,14 @@ def test_scores_the_same_detections_three_ways_and_writes_them(tmp_path, capsys)
     assert result["crop_stage"].keys() == result["head"].keys() == result["box_template"].keys()
 
 
-def test_a_checkpoint_without_a_crop_stage_is_refused(tmp_path):
+def test_a_checkpoint_without_a_crop_stage_is_refused(tmp_path, detector_checkpoint):
     root = tmp_path / "ds"
     write_fake_dataset(root, n_frames=1, objects_per_frame=2)
     with pytest.raises(SystemExit, match="no crop stage"):
-        crop_stage_ablation.main([str(checkpoint(tmp_path / "plain.pt", 0)), str(root), "--split", "all"])
+        crop_stage_ablation.main([str(detector_checkpoint(tmp_path / "plain.pt", 0)), str(root), "--split", "all"])
 
 
-def test_the_second_pass_drops_the_stage_and_both_keep_the_protocol_asked(tmp_path, monkeypatch):
+def test_the_second_pass_drops_the_stage_and_both_keep_the_protocol_asked(tmp_path, monkeypatch, detector_checkpoint):
     import omnigen.detector.predict as predict
 
     root = tmp_path / "ds"
@@ -65,7 +49,7 @@ def test_the_second_pass_drops_the_stage_and_both_keep_the_protocol_asked(tmp_pa
         return real(model, state, *a, **kw)
 
     monkeypatch.setattr(predict, "predict_split", spy)
-    argv = [str(checkpoint(tmp_path / "crop.pt", 16)), str(root), "--split", "all", "--imgsz", "64", "--device", "cpu"]
+    argv = [str(detector_checkpoint(tmp_path / "crop.pt", 16)), str(root), "--split", "all", "--imgsz", "64", "--device", "cpu"]
     assert crop_stage_ablation.main(argv) == 0
     assert calls == [(True, True), (False, True)]  # with the stage, then the head's corners
     calls.clear()
@@ -73,7 +57,7 @@ def test_the_second_pass_drops_the_stage_and_both_keep_the_protocol_asked(tmp_pa
     assert calls == [(True, False), (False, False)]
 
 
-def test_a_class_naming_stage_is_also_scored_with_the_heads_scores(tmp_path, capsys, monkeypatch):
+def test_a_class_naming_stage_is_also_scored_with_the_heads_scores(tmp_path, capsys, monkeypatch, detector_checkpoint):
     """Five passes for a stage that names classes: rescored, the crop's corners with the head's
     scores, rescored by the anchor's best score (alone and with every class), and the head alone; the boxes are the same each time, whatever order the rescoring sorts them in."""
     import omnigen.detector.predict as predict
@@ -88,7 +72,7 @@ def test_a_class_naming_stage_is_also_scored_with_the_heads_scores(tmp_path, cap
 
     monkeypatch.setattr(predict, "predict_split", spy)
     out = tmp_path / "ablation.json"
-    argv = [str(checkpoint(tmp_path / "crop.pt", 16, crop_classes=True)), str(root), "--split", "all", "--imgsz", "64",
+    argv = [str(detector_checkpoint(tmp_path / "crop.pt", 16, crop_classes=True)), str(root), "--split", "all", "--imgsz", "64",
             "--device", "cpu", "--out", str(out), "--by-class"]
     assert crop_stage_ablation.main(argv) == 0
     assert calls == [(True, True, "class"), (True, False, "class"), (True, True, "object"), (True, True, "every"),
