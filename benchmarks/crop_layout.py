@@ -58,8 +58,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.heading_visibility import to_tensor  # noqa: E402
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS, TURN_IDX, VIEWS  # noqa: E402
+from omnigen.detector.boxes import box_area  # noqa: E402
 from omnigen.detector.crop_stage import (CENTRE_JITTER, MARGIN, SIDE_JITTER, crop_boxes, from_crop_units,  # noqa: E402
-                                         mirror_corners, to_crop_units)
+                                         mirror_corners, outputs_of_crops, to_crop_units)
+from omnigen.detector.heading import orient  # noqa: E402
 
 OKS_K = 2 * 0.125  # COCO's kappa = 2 sigma, sigma the one omnigen.detector.oks_eval uses
 
@@ -236,10 +238,6 @@ def stage_corners(net, crops: LayoutCrops, batch: int = 256) -> np.ndarray:
     """(N, 8, 2) corners in image pixels that a trained detector's crop stage (crop_stage.CropNet)
     places on the same crops, as prediction does (crop_stage.refine): mirror-averaged, then turned
     where the stage's heading says the other face is the front."""
-    from omnigen.detector.boxes import box_area
-    from omnigen.detector.crop_stage import outputs_of_crops
-    from omnigen.detector.heading import orient
-
     net.eval()
     out = []
     with torch.no_grad():
