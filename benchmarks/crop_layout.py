@@ -35,7 +35,8 @@ objects and scored on the test split's.
   before the crop stage changes.
 - `--weights CKPT` scores a detector's crop stage (trained with it, `omnigen train --heading-crop`)
   on the same crops as a third row: whether the stage, trained on the detector's augmented
-  windows beside everything else, places corners as well as the net trained here alone.
+  windows beside everything else, places corners as well as the net trained here alone. A stage
+  trained apart (`omnigen train-crop`'s checkpoint) is scored the same way.
 
 Last line: `crop_layout (HEAD): rel X (template Y) on N test objects, jittered boxes rel A (template B);
 OKS>=.5 C`; before it, with --weights, `crop_layout: the detector's crop stage (CKPT): rel X,

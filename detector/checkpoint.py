@@ -58,8 +58,9 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     Why it is not a resume: fine-tuning (e.g. a model pretrained on a large synthetic set, then
     real data: the design's Table 8 setting) wants the weights and nothing else: a fresh optimiser,
     a new schedule from epoch 0, possibly other classes.
-    The architecture must be the same (every DetectorConfig field but num_classes, heading_crop and
-    crop_classes: the crop stage's tensors start fresh where the checkpoint has none of their shape): otherwise the
+    The architecture must be the same (every DetectorConfig field but num_classes and the crop
+    stage's, heading_crop, crop_classes and crop_split: the crop stage's tensors start fresh where
+    the checkpoint has none of their shape): otherwise the
     tensors mean other things, and the refusal names the file and the field. Where the classes
     differ, the class branches' last layers get the checkpoint's rows of the classes both
     taxonomies name, and keep the fresh initialisation for the others; any class-branch tensor
@@ -71,7 +72,7 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
         # the crop stage is a network of its own beside the detector: it may be added, dropped or
         # resized without changing any detector tensor (resized, its flattened head changes shape and
         # the whole stage starts fresh)
-        if key not in ("num_classes", "heading_crop", "crop_classes") and theirs.get(key) != mine[key]:
+        if key not in ("num_classes", "heading_crop", "crop_classes", "crop_split") and theirs.get(key) != mine[key]:
             raise ValueError(f"{path}: config field {key!r} is {theirs.get(key)!r}, this run builds {mine[key]!r}: "
                              "--weights needs the same architecture (only the classes may differ)")
     src = state["model"]
@@ -92,7 +93,8 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
                 partial.append(key)
             else:
                 fresh.append(key)
-        elif key.startswith("crop_net.out.") and model.cfg.crop_classes and old_classes != new_classes:
+        elif key.startswith(("crop_net.out.", "crop_net.classes.out.")) and model.cfg.crop_classes \
+                and old_classes != new_classes:
             fresh_crop.append(key)  # its last rows are classes, and other ones
         elif key in src and src[key].shape == value.shape:
             loaded[key] = src[key]

@@ -40,6 +40,12 @@ a box's class too, and the caller drops what falls under conf (predict.infer_bat
 past MAX_REFINE keep the head's scores, on the head's scale. SCORE_BY names the other rescorings
 benchmarks/crop_stage_ablation.py compares: by the anchor's best score of any class (the head
 finds, the crop names), and that with a detection of every class for each refined box.
+
+Trained apart. `omnigen train-crop` (detector/crop_train.py) trains the stage again after the
+detector, alone on clean crops of the labelled objects, and writes the detector's checkpoint with
+the new stage. There the classes come from a net of their own (SplitCropNet,
+DetectorConfig.crop_split): in one small net the class term costs the corners
+(benchmarks/crop_apart.py).
 """
 
 from __future__ import annotations
@@ -77,7 +83,8 @@ predicted boxes, not only about perfect ones."""
 SIDE_JITTER = 0.1
 """...and each side is scaled by a log-normal factor of this sigma."""
 HIDDEN = 128
-_MIRROR = (-1.0, 1.0, 1.0)  # the image heading of the horizontally mirrored crop, component by component
+MIRROR_HEADING = (-1.0, 1.0, 1.0)
+"""The image heading of the horizontally mirrored crop, component by component (x negated)."""
 
 
 class CropNet(nn.Module):
@@ -112,6 +119,27 @@ class CropNet(nn.Module):
         return self.out(self.hidden(self.features(crops)))
 
 
+class SplitCropNet(nn.Module):
+    """CropNet's outputs from two CropNets of their own: the heading and corners from `corners`
+    (no classes), the class logits from `classes` (its heading and corner outputs unused). Why:
+    in one small net the class term costs the corners. Trained apart on the same crops for 2000
+    steps, a net of corners alone placed them 0.191 of sqrt(box area) from the truth with the turn
+    forgiven, one that also named the classes 0.211 (benchmarks/crop_apart.py,
+    docs/detector-training.md). Twice the crop net's cost (benchmarks/bench_crop_stage.py)."""
+
+    def __init__(self, size: int, num_classes: int, width: int = 16):
+        super().__init__()
+        if num_classes < 1:
+            raise ValueError(f"SplitCropNet: names classes, so num_classes must be >= 1, got {num_classes}")
+        self.num_classes = num_classes
+        self.corners = CropNet(size, width)
+        self.classes = CropNet(size, width, num_classes)
+
+    def forward(self, crops: torch.Tensor) -> torch.Tensor:
+        end = HEADING_CHANNELS + 2 * NUM_KEYPOINTS
+        return torch.cat([self.corners(crops), self.classes(crops)[:, end:]], 1)
+
+
 def split_outputs(y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """CropNet's (N, 19 + nc) -> headings (N, 3), corners (N, 8, 2) in crop units, class logits
     (N, nc; None without classes)."""
@@ -142,12 +170,16 @@ def mirror_corners(t: torch.Tensor) -> torch.Tensor:
     return t[:, list(FLIP_IDX)] * t.new_tensor([-1.0, 1.0])
 
 
-def jitter_boxes(boxes: torch.Tensor) -> torch.Tensor:
-    """Boxes (N, 4) moved and resized at random (CENTRE_JITTER, SIDE_JITTER; torch's generator, which
-    the trainer seeds)."""
+def jitter_boxes(boxes: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Boxes (N, 4) moved and resized at random (CENTRE_JITTER, SIDE_JITTER), drawn from `generator`
+    (default: torch's, which the detector's trainer seeds)."""
     wh = boxes[:, 2:] - boxes[:, :2]
-    centre = (boxes[:, :2] + boxes[:, 2:]) / 2 + torch.randn_like(wh) * CENTRE_JITTER * wh
-    wh = wh * torch.exp(torch.randn_like(wh) * SIDE_JITTER)
+
+    def normal() -> torch.Tensor:
+        return torch.randn(wh.shape, generator=generator, dtype=wh.dtype, device=wh.device)
+
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2 + normal() * CENTRE_JITTER * wh
+    wh = wh * torch.exp(normal() * SIDE_JITTER)
     return torch.cat([centre - wh / 2, centre + wh / 2], 1)
 
 
@@ -231,7 +263,7 @@ def outputs_of_crops(net: CropNet, crops: torch.Tensor, mirror: bool = False
     h, t, c = split_outputs(net(crops))
     if mirror:
         hm, tm, cm = split_outputs(net(crops.flip(-1)))
-        h = (h + hm * h.new_tensor(_MIRROR)) / 2
+        h = (h + hm * h.new_tensor(MIRROR_HEADING)) / 2
         t = (t + mirror_corners(tm)) / 2
         c = None if c is None else (c + cm) / 2
     return h, t, c

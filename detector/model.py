@@ -19,7 +19,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from omnigen.detector.backbones import BACKBONES, build_backbone
 from omnigen.detector.blocks import fuse_batchnorm
 from omnigen.detector.head import KeypointHead
-from omnigen.detector.crop_stage import CropNet, crop_outputs
+from omnigen.detector.crop_stage import CropNet, SplitCropNet, crop_outputs
 from omnigen.detector.neck import PAN
 from omnigen.detector.outputs import KPT_MODES, REG_MAX, HeadOutput, decode
 from omnigen.conventions import FINE_CLASSES
@@ -59,6 +59,7 @@ class DetectorConfig:
     kpt_heading: bool = False  # corners up to the turn, the front read from a regressed image heading (heading.py)
     heading_crop: int = 0  # side of the crops a second stage places each object's corners and front from (crop_stage.py); 0: none
     crop_classes: bool = False  # the crop stage names each crop's class too, and prediction rescores by it (crop_stage.py)
+    crop_split: bool = False  # ...from a crop net of their own, not the corners' (crop_stage.SplitCropNet)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -88,6 +89,9 @@ class DetectorConfig:
                              f"(the crop net halves it four times), got {self.heading_crop!r}")
         if self.crop_classes and not self.heading_crop:
             raise ValueError("DetectorConfig.crop_classes: needs the crop stage (heading_crop > 0)")
+        if self.crop_split and not self.crop_classes:
+            raise ValueError("DetectorConfig.crop_split: gives the crop stage's classes a net of their own; "
+                             "needs crop_classes")
         if self.reg_max != REG_MAX:
             raise ValueError(f"DetectorConfig.reg_max: decoding is built for {REG_MAX} bins, got {self.reg_max}")
 
@@ -130,8 +134,11 @@ class KeypointDetector(nn.Module):
         chans = [self.neck.out_channels[s] for s in self.strides]
         self.head = KeypointHead(chans, self.strides, cfg.num_classes, self.neck.out_channels[8], cfg.reg_max,
                                  cfg.kpt_mode, cfg.kpt_turn, cfg.kpt_hidden, cfg.kpt_heading)
-        self.crop_net = CropNet(cfg.heading_crop, num_classes=cfg.num_classes if cfg.crop_classes else 0) \
-            if cfg.heading_crop else None
+        self.crop_net = None
+        if cfg.crop_split:
+            self.crop_net = SplitCropNet(cfg.heading_crop, cfg.num_classes)
+        elif cfg.heading_crop:
+            self.crop_net = CropNet(cfg.heading_crop, num_classes=cfg.num_classes if cfg.crop_classes else 0)
 
     def forward(self, images: torch.Tensor, crops: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
                 ) -> HeadOutput:

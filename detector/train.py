@@ -92,6 +92,7 @@ class TrainConfig:
     heading_gain: float = 1.0  # gain of a heading-aware head's heading term (LossGains.heading)
     heading_crop: int = 0  # crop side of a second stage that places each object's corners and front (DetectorConfig.heading_crop)
     crop_classes: bool = False  # that stage names each crop's class too, and prediction rescores by it (DetectorConfig.crop_classes)
+    crop_split: bool = False  # ...from a crop net of their own (DetectorConfig.crop_split)
     taxonomy: str = "fine"
     train_split: str = "train"
     val_split: str | None = None  # None: 'val' if the dataset has it, else 'test', else all frames
@@ -109,7 +110,7 @@ class TrainConfig:
 
     def model_config(self, num_classes: int) -> DetectorConfig:
         return DetectorConfig(scale=self.model, backbone=self.backbone, p2=self.p2, p6=self.p6, kpt_mode=self.kpt_mode,
-                              kpt_turn=self.kpt_turn, kpt_hidden=self.kpt_hidden, kpt_heading=self.kpt_heading, heading_crop=self.heading_crop, crop_classes=self.crop_classes, num_classes=num_classes, width=self.width, depth=self.depth)
+                              kpt_turn=self.kpt_turn, kpt_hidden=self.kpt_hidden, kpt_heading=self.kpt_heading, heading_crop=self.heading_crop, crop_classes=self.crop_classes, crop_split=self.crop_split, num_classes=num_classes, width=self.width, depth=self.depth)
 
 
 def param_groups(model: torch.nn.Module, weight_decay: float) -> list[dict[str, Any]]:

@@ -64,6 +64,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--crop-classes", action="store_true",
                    help="with --heading-crop: the crop stage names each crop's class too, and prediction rescores "
                         "each refined detection by it, sqrt(score * p[class]) (detector/crop_stage.py)")
+    p.add_argument("--crop-split", action="store_true",
+                   help="with --crop-classes: the classes from a crop net of their own, not the corners' "
+                        "(crop_stage.SplitCropNet; twice the stage's cost)")
     p.add_argument("--kpt-hidden", type=int, default=None,
                    help="keypoint-branch width (default: max(stride-8 width / 4, 24), as Ultralytics' pose head)")
     p.add_argument("--kpt-labelled", type=float, default=0.0,
@@ -97,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--heading-gain weighs the heading of --kpt-heading, which is not given")
     if args.crop_classes and not args.heading_crop:
         raise ValueError("--crop-classes names classes in the crop stage of --heading-crop, which is not given")
+    if args.crop_split and not args.crop_classes:
+        raise ValueError("--crop-split gives the classes of --crop-classes a net of their own; --crop-classes is not given")
     cfg = TrainConfig(
         dataset=str(args.dataset), out=str(args.out), model=args.model, backbone=args.backbone, p2=args.p2,
         p6=args.p6, imgsz=args.imgsz, crop=args.crop, crop_focus=args.crop_focus,
@@ -107,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers, seed=args.seed, device=args.device, val_every=args.val_every,
         kpt_sigma_start=args.kpt_sigma_start, kpt_sigma_end=args.kpt_sigma_end, kpt_sigma_anneal=args.kpt_sigma_anneal,
         kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1, kpt_turn=args.kpt_turn, kpt_hidden=args.kpt_hidden,
-        kpt_labelled=args.kpt_labelled, kpt_turn_start=args.kpt_turn_start, kpt_heading=args.kpt_heading, heading_crop=args.heading_crop, crop_classes=args.crop_classes, heading_gain=1.0 if args.heading_gain is None else args.heading_gain, amp=args.amp,
+        kpt_labelled=args.kpt_labelled, kpt_turn_start=args.kpt_turn_start, kpt_heading=args.kpt_heading, heading_crop=args.heading_crop, crop_classes=args.crop_classes, crop_split=args.crop_split, heading_gain=1.0 if args.heading_gain is None else args.heading_gain, amp=args.amp,
         time_minutes=args.time, weights=args.weights, channels_last=args.channels_last)
     start = time.perf_counter()
 

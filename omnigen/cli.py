@@ -31,6 +31,7 @@ COMMANDS: dict[str, str] = {
     "show": "omnigen.show_command",
     "validate": "omnigen.validate_command",
     "train": "omnigen.detector.train_command",
+    "train-crop": "omnigen.detector.crop_train_command",
     "predict": "omnigen.detector.predict_command",
     "eval": "omnigen.detector.eval_command",
     "bev": "omnigen.detector.bev_command",

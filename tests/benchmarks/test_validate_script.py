@@ -412,3 +412,74 @@ def test_trains_into_reads_the_out_folder_not_a_mention():
     assert validate.trains_into("omnigen train uov --out runs/n-p2 --epochs 3", out)
     assert not validate.trains_into("omnigen train uov --out runs/other --weights runs/n-p2/last.pt", out)
     assert not validate.trains_into("omnigen eval runs/n-p2/last.pt uov --out runs/n-p2/eval.json", out)
+
+
+def test_the_crop_stage_is_trained_once_and_again_when_its_arguments_change(tmp_path, monkeypatch):
+    calls = []
+
+    def fake(argv):  # stands in for `omnigen train-crop`: writes --out
+        calls.append(argv)
+        Path(argv[argv.index("--out") + 1]).write_bytes(b"stage")
+        return 0
+
+    monkeypatch.setattr(validate, "omnigen", fake)
+    run, out = Runner(tmp_path), tmp_path / "runs" / "n-p2"
+    out.mkdir(parents=True)
+    cmd = ["train-crop", "uov", "--weights", str(out / "last.pt"), "--out", str(out / "crop.pt"), "--steps", "60"]
+    assert validate.crop_stage(run, cmd, out) == out / "crop.pt" and len(calls) == 1
+    assert validate.crop_stage(run, cmd, out) == out / "crop.pt" and len(calls) == 1  # done: skipped
+    assert [c["command"] for c in run.log] == ["omnigen " + " ".join(cmd)]
+    (out / "crop.pt.partial").write_bytes(b"a partial run of 60 steps")
+    other = [*cmd[:-1], "90"]
+    validate.crop_stage(run, other, out)  # other arguments: trained again, its old record and partial state gone
+    assert len(calls) == 2 and not (out / "crop.pt.partial").exists()
+    assert [c["command"] for c in run.log] == ["omnigen " + " ".join(other)]
+    (out / "crop-done").unlink()  # a crop.pt from before the marker: trained again too
+    validate.crop_stage(run, other, out)
+    assert len(calls) == 3
+
+
+def test_predictions_name_the_checkpoint_they_were_made_with(tmp_path):
+    out, calls = tmp_path / "runs" / "n-p2", []
+    out.mkdir(parents=True)
+    run = Runner(tmp_path)
+
+    def predict(multi_label):
+        calls.append(multi_label)
+        return []
+
+    validate.predict_stage(run, out, Path("uov"), True, predict)
+    assert f"predict_dataset({out / 'last.pt'}, " in (out / "predicted").read_text()
+    validate.predict_stage(run, out, Path("uov"), True, predict, weights=out / "crop.pt")  # another checkpoint
+    assert calls == [True, True] and f"predict_dataset({out / 'crop.pt'}, " in (out / "predicted").read_text()
+    assert [c["command"].split(",")[0] for c in run.log] == [f"predict_dataset({out / 'crop.pt'}"]
+
+
+def test_the_results_say_when_the_crop_stage_was_trained_apart():
+    made = {"runs": [{"predicted": "predict_dataset(w/crop.pt, uov, split='test', multi_label=True)"}]}
+    assert len(validate.protocol_line(made)) == 1  # predicted with the detector's own stage
+    made["runs"][0]["crop_stage"] = {"steps_done": 4000, "seconds": 812.5, "score_split": "test",
+                                     "score": {"corner_rel": 0.17, "front": 0.85, "class_acc": 0.84}}
+    line = validate.protocol_line(made)[1]
+    assert "omnigen train-crop" in line and "4000 steps, 812.5 s" in line
+    assert "corner error rel 0.170, front right 0.850, class accuracy 0.840" in line
+
+
+def test_predictions_of_a_checkpoint_rewritten_in_place_are_made_again(tmp_path):
+    # train-crop writes each new stage into the same crop.pt: its path alone cannot say what predicted
+    out, calls = tmp_path / "runs" / "n-p2", []
+    out.mkdir(parents=True)
+    weights = out / "crop.pt"
+    weights.write_bytes(b"a stage of 8000 steps")
+    run = Runner(tmp_path)
+
+    def predict(multi_label):
+        calls.append(multi_label)
+        return []
+
+    validate.predict_stage(run, out, Path("uov"), True, predict, weights=weights)
+    validate.predict_stage(run, out, Path("uov"), True, predict, weights=weights)
+    assert calls == [True]
+    weights.write_bytes(b"a stage of 4000 steps")
+    validate.predict_stage(run, out, Path("uov"), True, predict, weights=weights)
+    assert calls == [True, True] and validate.file_digest(weights) in (out / "predicted").read_text()

@@ -14,7 +14,7 @@ from omnigen import __version__
 from omnigen import cli
 from omnigen.cli import COMMANDS, EXPORTERS, build_parser, main
 
-VERBS = ["render", "convert", "merge", "export", "stats", "show", "validate", "train", "predict", "eval", "bev",
+VERBS = ["render", "convert", "merge", "export", "stats", "show", "validate", "train", "train-crop", "predict", "eval", "bev",
          "eval-kitti", "calib-sensitivity"]
 
 

@@ -600,3 +600,40 @@ def test_postprocess_can_carry_every_class_score_and_take_keeps_fields_together(
     one = det.take(torch.tensor([1]))
     assert one.classes.tolist() == [0] and torch.allclose(one.class_scores, torch.tensor([[0.5, 0.05, 0.3]]))
     assert len(det.take(det.scores > 0.6)) == 1
+
+
+def test_a_split_stage_gives_the_corners_from_one_net_and_the_classes_from_another():
+    from omnigen.detector.crop_stage import SplitCropNet
+
+    torch.manual_seed(0)
+    net = SplitCropNet(32, 5).eval()
+    x = torch.rand(3, 3, 32, 32)
+    h, t, logits = split_outputs(net(x))
+    h1, t1, none = split_outputs(net.corners(x))
+    _, _, l2 = split_outputs(net.classes(x))
+    assert none is None and net.corners.num_classes == 0 and net.num_classes == 5
+    assert torch.equal(h, h1) and torch.equal(t, t1) and torch.equal(logits, l2)
+    # each net's loss reaches only its own parameters: the classes cannot cost the corners
+    net.train()
+    _, _, logits = split_outputs(net(x))
+    torch.nn.functional.cross_entropy(logits, torch.tensor([0, 1, 4])).backward()
+    assert all(p.grad is None or not p.grad.any() for p in net.corners.parameters())
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in net.classes.parameters())
+    with pytest.raises(ValueError, match="num_classes"):
+        SplitCropNet(32, 0)
+
+
+def test_the_detector_builds_a_split_stage_only_with_classes_and_predicts_with_it():
+    from omnigen.detector.crop_stage import SplitCropNet
+
+    with pytest.raises(ValueError, match="crop_split"):
+        DetectorConfig(num_classes=3, heading_crop=32, crop_split=True, **TINY)
+    cfg = DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=32, crop_classes=True, crop_split=True, **TINY)
+    assert DetectorConfig.from_dict(cfg.to_dict()).crop_split is True
+    model = KeypointDetector(cfg).eval()
+    assert isinstance(model.crop_net, SplitCropNet)
+    assert {k.split(".")[1] for k in model.state_dict() if k.startswith("crop_net.")} == {"corners", "classes"}
+    boxes = torch.tensor([[4.0, 4.0, 40.0, 30.0]])
+    kpts, probs = refine(model.crop_net, 32, torch.rand(1, 3, 64, 64), torch.zeros(1, dtype=torch.long), boxes,
+                         torch.zeros(1, 8, 3))
+    assert kpts.shape == (1, 8, 3) and probs.shape == (1, 3) and torch.allclose(probs.sum(-1), torch.ones(1))

@@ -1,4 +1,4 @@
-"""Fixtures the benchmark scripts' tests share."""
+"""Fixtures shared across the test folders: a tiny detector checkpoint and a fake dataset with splits."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ def _save_checkpoint(path: Path, heading_crop: int, crop_classes: bool = False) 
 def detector_checkpoint():
     """checkpoint(path, heading_crop, crop_classes=False) -> path: an untrained tiny detector saved
     as `omnigen train` saves one (fine taxonomy, the heading head; a crop stage of that side where
-    heading_crop > 0), for the benchmarks that read a crop-stage checkpoint."""
+    heading_crop > 0), for the tests that read a crop-stage checkpoint."""
     return _save_checkpoint
 
 
@@ -37,7 +37,7 @@ def detector_checkpoint():
 def split_fake_dataset(tmp_path):
     """A fake merged dataset of 12 frames, 6 objects each, its first 9 frames the train split and
     the last 3 the test split: what the crop benchmarks (crop_layout, heading_visibility,
-    crop_classes) read."""
+    crop_classes) and omnigen train-crop read."""
     from omnigen.fakes import write_fake_dataset
     from omnigen.splits import write_split
 

@@ -1,0 +1,268 @@
+"""The crop stage trained apart from the detector, on clean crops of the labelled objects.
+
+Why apart. Top-down pose estimation trains its keypoint network on crops of the labelled people,
+not inside the person detector. Trained with the detector (`omnigen train --heading-crop`), our
+stage sees crops of augmented 320-pixel windows (zoomed, shifted, colour-jittered), shares the
+detector's learning-rate schedule and EMA, and gets at most MAX_CROPS objects a step. At
+prediction it crops the clean letterboxed input instead. On the same test crops, the stage of make
+validate's 150-epoch detector placed corners 0.213 of sqrt(box area) from the truth about moved boxes,
+where the same network trained alone for under four minutes placed them 0.189, and 0.163 after 5000
+steps (benchmarks/crop_layout.py; docs/detector-training.md).
+
+What it trains. A fresh stage of the detector's crop side and classes, on the train split's
+objects as prediction sees them: each frame letterboxed to the detector's input size, unaugmented,
+and each object cropped (`crop_stage.crop_boxes`) about `copies` boxes moved as a detector's boxes
+miss the truth (`crop_stage.jitter_boxes`). The crops are cut once and kept as bytes (about 12 KiB
+each at 64 px). A step draws `batch` of them, each with weight (objects of its class)^-balance, and
+mirrors half of them (the corners renumbered by FLIP_IDX, the heading's x negated). The loss has
+the joint training's crop terms: L1 of the corners in crop units, 1 - cosine of the image heading
+(times heading_gain), cross-entropy of the classes (times class_gain). AdamW with a one-cycle
+schedule, as benchmarks/crop_layout.py trains.
+
+The defaults are what benchmarks/crop_apart.py measured on make validate's data: the joint
+training's class-balanced draws and heading gain cost the corners, so draws are uniform and the
+heading's gain is a tenth of the joint one; and in one small net the class term costs the corners
+too, so the stage that names classes is a SplitCropNet, its classes from a net of their own
+(docs/detector-training.md, "The crop stage trained apart").
+
+The result is the detector's checkpoint with its crop stage replaced (`attach_stage`): every other
+tensor is the detector's, so `omnigen predict`, `eval` and `bev` use it as they are. A run saves
+its state every `save_interval` seconds beside its output (OUT.partial) and a rerun with the same
+arguments continues from it, to the same weights as a run never stopped.
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from omnigen.conventions import FLIP_IDX, TURN_IDX
+from omnigen.detector.boxes import box_area
+from omnigen.detector.crop_stage import (MIRROR_HEADING, CropNet, SplitCropNet, crop_boxes, from_crop_units, jitter_boxes,
+                                         mirror_corners, outputs_of_crops, to_crop_units, training_rois)
+from omnigen.detector.heading import heading_loss, image_heading, orient
+from omnigen.detector.crop_train_config import CropTrainConfig
+
+
+@dataclass
+class CropSet:
+    """Crops of labelled objects and their targets, in the crop units of the box each was cut about."""
+
+    crops: torch.Tensor  # (N, 3, S, S) uint8
+    corners: torch.Tensor  # (N, 8, 2) the true corners in crop units (to_crop_units), 0 where unlabelled
+    mask: torch.Tensor  # (N, 8) bool: the corner is in front of the camera (a target)
+    heading: torch.Tensor  # (N, 3) the labelled corners' image heading (heading.image_heading)
+    cls: torch.Tensor  # (N,) long, the taxonomy's class ids
+    boxes: torch.Tensor  # (N, 4) the box each crop was cut about, input pixels
+    true_area: torch.Tensor  # (N,) the object's true 2D box area, input pixels^2
+
+    def __len__(self) -> int:
+        return len(self.cls)
+
+
+def cut_crops(data, size: int, copies: int, jitter: bool, generator: torch.Generator,
+              on_frame: Callable[[], None] | None = None) -> CropSet:
+    """The crops of every object of `data` (a KeypointDataset without augmentation) that the joint
+    training would crop (`training_rois`: a defined image heading, a side of MIN_SIDE px or more),
+    `copies` of each, about its box moved at random where `jitter` (else the true box)."""
+    parts: dict[str, list[torch.Tensor]] = {k: [] for k in ("crops", "corners", "mask", "heading", "cls", "boxes",
+                                                           "true_area")}
+    for i in range(len(data)):
+        s = data.sample(i)
+        if on_frame is not None:
+            on_frame()
+        targets = {"bboxes": torch.from_numpy(s.bboxes).float(), "keypoints": torch.from_numpy(s.keypoints).float(),
+                   "kpt_mask": torch.from_numpy(s.kpt_mask), "cls": torch.from_numpy(s.cls).long()}
+        rows = training_rois(targets, max_crops=len(s.cls))
+        if not len(rows):
+            continue
+        rows = rows.repeat_interleave(copies)
+        true = targets["bboxes"][rows]
+        boxes = jitter_boxes(true, generator) if jitter else true
+        image = torch.from_numpy(s.image).permute(2, 0, 1)[None].float().div_(255)
+        crops = crop_boxes(image, torch.zeros(len(rows), dtype=torch.long), boxes, size)
+        kpts, mask = targets["keypoints"][rows], targets["kpt_mask"][rows].bool()
+        parts["crops"].append(crops.mul_(255).round_().clamp_(0, 255).to(torch.uint8))
+        parts["corners"].append(to_crop_units(kpts, boxes).nan_to_num() * mask[..., None])
+        parts["mask"].append(mask)
+        parts["heading"].append(image_heading(kpts, box_area(true), mask))
+        parts["cls"].append(targets["cls"][rows])
+        parts["boxes"].append(boxes)
+        parts["true_area"].append(box_area(true))
+    if not parts["cls"]:
+        raise ValueError(f"{data.ds.root}: no labelled object to crop in {len(data)} frames")
+    return CropSet(**{k: torch.cat(v) for k, v in parts.items()})
+
+
+def new_stage(size: int, num_classes: int, seed: int, split: bool = False) -> CropNet | SplitCropNet:
+    """A freshly initialised crop stage: a CropNet, or with `split` a SplitCropNet (its classes from
+    a net of their own), drawn from a generator of its own seeded with `seed` (torch's global one
+    is left as it was)."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return SplitCropNet(size, num_classes) if split else CropNet(size, num_classes=num_classes)
+
+
+def draw_weights(cls: torch.Tensor, balance: float) -> np.ndarray:
+    """(N,) probabilities of drawing each crop: (crops of its class)^-balance, normalised."""
+    _, inverse, counts = torch.unique(cls, return_inverse=True, return_counts=True)
+    w = counts[inverse].double().pow(-balance).numpy()
+    return w / w.sum()
+
+
+def mirror_batch(x: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor, heading: torch.Tensor,
+                 flip: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The rows `flip` of a batch mirrored horizontally: crop, corners (mirror_corners), their mask
+    renumbered, the heading's x negated (heading.image_heading of the mirrored corners, exactly)."""
+    x, corners, mask, heading = x.clone(), corners.clone(), mask.clone(), heading.clone()
+    x[flip] = x[flip].flip(-1)
+    corners[flip] = mirror_corners(corners[flip])
+    mask[flip] = mask[flip][:, list(FLIP_IDX)]
+    heading[flip] = heading[flip] * heading.new_tensor(MIRROR_HEADING)
+    return x, corners, mask, heading
+
+
+def stage_loss(net: CropNet | SplitCropNet, x: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor, heading: torch.Tensor,
+               cls: torch.Tensor, cfg: CropTrainConfig) -> tuple[torch.Tensor, dict[str, float]]:
+    """The joint training's crop terms (detector/loss.py) on one batch, weighed by cfg's gains (the
+    corners' is 1), and each term's value."""
+    h, t, logits = outputs_of_crops(net, x)
+    corner = ((t - corners).abs().sum(-1) * mask).sum() / mask.sum().clamp(min=1)
+    head = heading_loss(h, heading)
+    parts = {"crop_corners": corner, "heading_crop": head}
+    total = corner + cfg.heading_gain * head
+    if logits is not None:
+        parts["crop_cls"] = F.cross_entropy(logits, cls)
+        total = total + cfg.class_gain * parts["crop_cls"]
+    return total, {k: float(v.detach()) for k, v in parts.items()}
+
+
+def _state_bytes(obj: Any) -> bytes:
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    return buf.getvalue()
+
+
+def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig, partial: Path | None = None,
+                save_interval: float = 60.0, on_step: Callable[[int, dict[str, float]], None] | None = None
+                ) -> list[dict[str, float]]:
+    """Train `net` on `data` for cfg.steps; the per-step loss terms. With `partial`, the state is
+    saved there every `save_interval` seconds and a run finding one (of the same config) goes on
+    from it; it is removed at the end."""
+    from omnigen.files import atomic_write_bytes
+
+    rng = np.random.default_rng(cfg.seed)
+    p = draw_weights(data.cls, cfg.balance)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=0.1)
+    history: list[dict[str, float]] = []
+    step = 0
+    if partial is not None and partial.exists():
+        state = torch.load(partial, map_location="cpu", weights_only=True)
+        if state.get("config") != asdict(cfg) or state.get("samples") != len(data):
+            raise ValueError(f"{partial}: a partial run of other arguments ({state.get('config')}, "
+                             f"{state.get('samples')} crops); delete it to start over")
+        net.load_state_dict(state["net"])
+        opt.load_state_dict(state["opt"])
+        sched.load_state_dict(state["sched"])
+        rng.bit_generator.state = state["rng"]
+        history, step = state["history"], state["step"]
+    net.train()
+    last_save = time.perf_counter()
+    while step < cfg.steps:
+        idx = torch.from_numpy(rng.choice(len(data), cfg.batch, p=p))
+        flip = torch.from_numpy(rng.random(cfg.batch) < 0.5)
+        x, corners, mask, heading = mirror_batch(data.crops[idx].float().div_(255), data.corners[idx],
+                                                 data.mask[idx], data.heading[idx], flip)
+        loss, parts = stage_loss(net, x, corners, mask, heading, data.cls[idx], cfg)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        step += 1
+        history.append(parts)
+        if on_step is not None:
+            on_step(step, parts)
+        if partial is not None and step < cfg.steps and time.perf_counter() - last_save >= save_interval:
+            atomic_write_bytes(partial, _state_bytes({
+                "config": asdict(cfg), "samples": len(data), "net": net.state_dict(), "opt": opt.state_dict(),
+                "sched": sched.state_dict(), "rng": rng.bit_generator.state, "history": history, "step": step}))
+            last_save = time.perf_counter()
+    if partial is not None:
+        partial.unlink(missing_ok=True)
+    return history
+
+
+@dataclass
+class StageScore:
+    """A stage's corners and classes on crops of held-out objects."""
+
+    corner_rel: float  # median distance of the labelled corners (front faced as the heading says) / sqrt(box area)
+    placed_rel: float  # the same for the corners as the net placed them, not turned by its heading
+    layout_rel: float  # the same with each object's 180-degree turn forgiven: the layout alone
+    front: float  # share of objects whose heading points the labelled corners' way (cosine > 0)
+    placed_front: float  # ... whose placed corners' own image heading does
+    class_acc: float  # share of crops named their labelled class (NaN for a stage without classes)
+    objects: int
+
+
+def score_stage(net: CropNet | SplitCropNet, data: CropSet, batch: int = 256) -> StageScore:
+    """Corners placed as prediction places them (crop_stage.refine: mirror-averaged, turned by the
+    heading) on crops cut about `data.boxes`, scored against the labelled corners."""
+    net.eval()
+    rel, placed, layout, front, placed_front, right = [], [], [], [], [], []
+    with torch.no_grad():
+        for i in range(0, len(data), batch):
+            sl = slice(i, i + batch)
+            boxes = data.boxes[sl]
+            h, t, logits = outputs_of_crops(net, data.crops[sl].float().div_(255), mirror=True)
+            true_xy = from_crop_units(data.corners[sl], boxes)
+            as_placed = from_crop_units(t, boxes)
+            xy = orient(as_placed, box_area(boxes), h)
+            scale = data.true_area[sl].clamp(min=1e-9).sqrt()[:, None]
+            m = data.mask[sl]
+            d = (xy - true_xy).norm(dim=-1) / scale
+            turned = (xy[:, list(TURN_IDX)] - true_xy).norm(dim=-1) / scale
+            better = ((turned * m).sum(1) < (d * m).sum(1))[:, None]
+            rel.append(d[m])
+            placed.append(((as_placed - true_xy).norm(dim=-1) / scale)[m])
+            layout.append(torch.where(better, turned, d)[m])
+            target = data.heading[sl]
+            keep = target.norm(dim=-1) > 1e-3
+            front.append(((h * target).sum(-1) > 0)[keep])
+            placed_front.append(((image_heading(as_placed, box_area(boxes)) * target).sum(-1) > 0)[keep])
+            if logits is not None:
+                right.append(logits.argmax(-1) == data.cls[sl])
+    acc = float(torch.cat(right).float().mean()) if right else float("nan")
+    return StageScore(float(torch.cat(rel).median()), float(torch.cat(placed).median()),
+                      float(torch.cat(layout).median()), float(torch.cat(front).float().mean()),
+                      float(torch.cat(placed_front).float().mean()), acc, len(data))
+
+
+def attach_stage(state: dict[str, Any], net: CropNet | SplitCropNet, size: int, record: dict[str, Any]
+                 ) -> dict[str, Any]:
+    """A detector checkpoint `state` with its crop stage replaced by `net`, of crops `size` px (added
+    where it has none):
+    the config's heading_crop, crop_classes and crop_split set to the net's, its crop_net tensors in the model
+    (the weights prediction uses) and, where the checkpoint keeps one, the raw model; `record`
+    (how the stage was trained) under "crop_stage". The detector's own tensors are untouched."""
+    config = dict(state["config"])
+    config["heading_crop"] = size
+    config["crop_classes"] = net.num_classes > 0
+    config["crop_split"] = isinstance(net, SplitCropNet)
+    tensors = {f"crop_net.{k}": v.detach().clone() for k, v in net.state_dict().items()}
+    out = dict(state)
+    out["config"] = config
+    for key in ("model", "raw_model"):
+        if key in state:
+            kept = {k: v for k, v in state[key].items() if not k.startswith("crop_net.")}
+            out[key] = {**kept, **tensors}
+    out["crop_stage"] = record
+    return out

@@ -1,0 +1,128 @@
+"""Train a detector's crop stage apart from it, on clean crops of the labelled objects (detector/crop_train.py).
+
+    omnigen train-crop runs/uov --weights runs/n-p2/last.pt --out runs/n-p2/crop.pt
+
+OUT is the detector's checkpoint with its crop stage (corners, front and, by default, classes)
+replaced by one trained here: `omnigen predict`, `eval` and `bev` take it as they take the
+detector's own. The input checkpoint is never written. A rerun of the same arguments whose OUT
+exists does nothing; one that was stopped goes on from OUT.partial.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from omnigen.detector.crop_train_config import CropTrainConfig  # plain data: no torch for --help
+
+    p.add_argument("dataset", help="UrbanOmniView dataset folder (splits from omnigen merge)")
+    p.add_argument("--weights", required=True, help="the detector's checkpoint (best.pt or last.pt of omnigen train)")
+    p.add_argument("--out", required=True, help="the checkpoint to write: the detector with the new crop stage")
+    p.add_argument("--steps", type=int, default=CropTrainConfig.steps)
+    p.add_argument("--batch", type=int, default=CropTrainConfig.batch, help="crops a step")
+    p.add_argument("--lr", type=float, default=CropTrainConfig.lr, help="peak learning rate of the one-cycle schedule")
+    p.add_argument("--copies", type=int, default=CropTrainConfig.copies,
+                   help="crops per training object, each about its own moved box")
+    p.add_argument("--balance", type=float, default=CropTrainConfig.balance,
+                   help="draw a crop with weight (crops of its class)^-BALANCE: 0 uniform, 1 every class equally")
+    p.add_argument("--crop", type=int, default=None, metavar="PX",
+                   help="crop side (default: the checkpoint's stage's, else 64)")
+    p.add_argument("--classes", action=argparse.BooleanOptionalAction, default=None,
+                   help="the stage names each crop's class, and prediction rescores by it "
+                        "(default: as the checkpoint's stage does; on for a checkpoint without one)")
+    p.add_argument("--split", action=argparse.BooleanOptionalAction, default=True,
+                   help="with classes: name them with a crop net of their own, not the corners' "
+                        "(crop_stage.SplitCropNet: in one small net the class term costs the corners)")
+    p.add_argument("--heading-gain", type=float, default=CropTrainConfig.heading_gain,
+                   help="gain of the heading term beside the corners' (benchmarks/crop_apart.py measured 1, 0.3, "
+                        "0.1 and 0.03)")
+    p.add_argument("--train-split", default="train")
+    p.add_argument("--val-split", default=None, help="scored at the end (default: val if present, else test)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    import torch
+
+    from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint, save_checkpoint
+    from omnigen.detector.crop_train import attach_stage, cut_crops, new_stage, score_stage, train_stage
+    from omnigen.detector.crop_train_config import CropTrainConfig
+    from omnigen.detector.data import KeypointDataset, split_frames
+    from omnigen.detector.model import DetectorConfig, KeypointDetector
+    from omnigen.detector.predict import trained_imgsz
+    from omnigen.detector.train import resolve_val_split
+    from omnigen.progress import print_table, progress
+
+    weights, out = Path(args.weights), Path(args.out)
+    if out.resolve() == weights.resolve():
+        raise ValueError(f"--out {out}: is the input checkpoint; the detector's own file is never written")
+    if out.suffix != ".pt":
+        raise ValueError(f"--out {out}: a checkpoint file name ending in .pt")
+    state = load_checkpoint(weights)
+    taxonomy = checkpoint_taxonomy(state)
+    det = DetectorConfig.from_dict(state["config"])
+    size = args.crop or det.heading_crop or 64
+    if size % 16:
+        raise ValueError(f"--crop {size}: must be a positive multiple of 16 (the crop net halves it four times)")
+    classes = args.classes if args.classes is not None else (det.crop_classes or not det.heading_crop)
+    split = bool(classes and args.split)
+    cfg = CropTrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, copies=args.copies, balance=args.balance,
+                          heading_gain=args.heading_gain, seed=args.seed)
+    imgsz = trained_imgsz(state)
+    call = {"trained": "apart", "weights": str(weights), "dataset": str(args.dataset), "train_split": args.train_split,
+            "crop": size, "classes": classes, "split": split, "imgsz": imgsz, "config": asdict(cfg)}
+    if out.exists():
+        done = load_checkpoint(out).get("crop_stage", {})
+        if {k: done.get(k) for k in call} == call:
+            print(f"{out}: already trained with these arguments; delete it to train again")
+            return 0
+        raise ValueError(f"{out}: exists and was not trained with these arguments (its crop_stage: "
+                         f"{ {k: done.get(k) for k in call} }); delete it or pick another --out")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    val_name = args.val_split or resolve_val_split(str(args.dataset), None)
+    start = time.perf_counter()
+    gen = torch.Generator().manual_seed(cfg.seed)
+    sets = {}
+    for name, frames, copies in (("train", args.train_split, cfg.copies), ("val", val_name, 1)):
+        data = KeypointDataset(args.dataset, taxonomy, imgsz, split_frames(args.dataset, frames))
+        bar = iter(progress(range(len(data)), f"crop {frames}", total=len(data), unit="frame"))
+        sets[name] = cut_crops(data, size, copies, jitter=True, generator=gen, on_frame=lambda: next(bar, None))
+    print(f"crops: train {len(sets['train'])} ({cfg.copies} an object, split {args.train_split}), "
+          f"{val_name} {len(sets['val'])} ({time.perf_counter() - start:.1f} s)", file=sys.stderr, flush=True)
+
+    net = new_stage(size, len(taxonomy.classes) if classes else 0, cfg.seed, split)
+    bar = iter(progress(range(cfg.steps), "train-crop", total=cfg.steps, unit="step"))
+    t0 = time.perf_counter()
+
+    def report(step: int, parts: dict[str, float]) -> None:
+        next(bar, None)
+        if step % 500 == 0 or step == cfg.steps:
+            terms = " ".join(f"{k}={v:.4f}" for k, v in parts.items())
+            print(f"step {step}/{cfg.steps}: {terms} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+
+    history = train_stage(sets["train"], net, cfg, partial=out.with_name(out.name + ".partial"), on_step=report)
+    seconds = time.perf_counter() - start
+    rows = []
+    if det.heading_crop == size:  # the detector's own stage, scored on the same crops
+        joint = KeypointDetector(det)
+        joint.load_state_dict(state["model"])
+        rows.append(("trained with the detector", score_stage(joint.crop_net, sets["val"])))
+    new = score_stage(net, sets["val"])
+    rows.append(("trained apart", new))
+    record = {**call, "steps_done": len(history), "seconds": round(seconds, 1), "score": asdict(new),
+              "score_split": val_name, "last_losses": history[-1] if history else {}}
+    save_checkpoint(out, attach_stage(state, net, size, record))
+    print_table(f"omnigen train-crop: {out} (crops about moved boxes of the {val_name} split)",
+                ["stage", "objects", "corner rel", "front right", "class acc"],
+                [(who, s.objects, s.corner_rel, s.front, s.class_acc) for who, s in rows])
+    print(f"train-crop: {len(history)} steps in {seconds:.0f} s; {val_name} corner rel {new.corner_rel:.3f}, "
+          f"front {new.front:.3f}, class acc {new.class_acc:.3f}; wrote {out}")
+    return 0
