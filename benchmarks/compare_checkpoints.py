@@ -68,9 +68,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{w}: {n} detections", flush=True)
     print("| rows | checkpoint | " + " | ".join(title for _, title, _ in COLUMNS) + " |")
     print("|---|---|" + "---|" * len(COLUMNS))
-    for key in scored[args.weights[0]]:
+    keys = list(dict.fromkeys(k for rows in scored.values() for k in rows))  # a row one checkpoint lacks: '-'
+    for key in keys:
         for w, rows in scored.items():
-            print(f"| {key} | {w} | " + " | ".join(cell(rows[key].get(f), d) for f, _, d in COLUMNS) + " |")
+            print(f"| {key} | {w} | " + " | ".join(cell(rows.get(key, {}).get(f), d) for f, _, d in COLUMNS) + " |")
     if args.out:
         atomic_write_json(args.out, {"dataset": str(args.dataset), "split": args.split,
                                      "rows": {str(w): rows for w, rows in scored.items()}}, indent=1)

@@ -54,7 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.bench_adherence_floor import floor_rows  # noqa: E402
 from omnigen.detector.oks_eval import SIZE_BINS  # noqa: E402
 from omnigen.cli import main as omnigen  # noqa: E402
-from omnigen.files import atomic_write_json, atomic_write_text  # noqa: E402
+from omnigen.files import atomic_write_json, atomic_write_text, file_digest  # noqa: E402
 
 if TYPE_CHECKING:
     from omnigen.dataset import Dataset
@@ -205,27 +205,22 @@ def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
 def crop_stage(run: Runner, cmd: list[str], out: Path) -> Path:
     """OUT/crop.pt, the run's last.pt with its crop stage trained apart (`omnigen train-crop`, the
     command `cmd`), unless OUT/crop-done says it was trained so; returns it. One trained with other
-    arguments, or left by a run before the marker, is trained again (its partial state too)."""
-    weights, marker = out / "crop.pt", out / "crop-done"
+    arguments, left by a run before the marker, or deleted since, is trained again; a partial state
+    (crop.pt.partial) goes on only where OUT/crop-started says it is of these arguments."""
+    weights, marker, started = out / "crop.pt", out / "crop-done", out / "crop-started"
+    partial = weights.with_name(weights.name + ".partial")
     stamp = shlex.join(cmd)
-    if stale(marker, stamp) or (weights.exists() and not marker.exists()):
-        print(f"[stale] {weights} was trained with other arguments: training it again", flush=True)
+    if stale(marker, stamp) or (weights.exists() != marker.exists()) or stale(started, stamp):
+        print(f"[stale] {weights} was trained with other arguments, or is missing: training it again", flush=True)
         if marker.exists():
             run.drop("omnigen " + marker.read_text().strip())  # the old training's record, its seconds
-        for path in (weights, weights.with_name(weights.name + ".partial"), marker):
+        for path in (weights, partial, marker, started):  # a partial run of other arguments too
             path.unlink(missing_ok=True)
+    if not marker.exists():
+        atomic_write_text(started, stamp + "\n")  # what a partial state left beside crop.pt belongs to
     run(cmd, marker)
     atomic_write_text(marker, stamp + "\n")
     return weights
-
-
-def file_digest(path: Path, chars: int = 16) -> str:
-    """The first `chars` hex digits of a file's SHA-256, read in pieces."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:chars]
 
 
 def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,

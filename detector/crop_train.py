@@ -14,7 +14,7 @@ objects as prediction sees them: each frame letterboxed to the detector's input 
 and each object cropped (`crop_stage.crop_boxes`) about `copies` boxes moved as a detector's boxes
 miss the truth (`crop_stage.jitter_boxes`). The crops are cut once and kept as bytes (about 12 KiB
 each at 64 px). A step draws `batch` of them, each with weight (objects of its class)^-balance, and
-mirrors half of them (the corners renumbered by FLIP_IDX, the heading's x negated). The loss has
+mirrors each with probability one half (the corners renumbered by FLIP_IDX, the heading's x negated). The loss has
 the joint training's crop terms: L1 of the corners in crop units, 1 - cosine of the image heading
 (times heading_gain), cross-entropy of the classes (times class_gain). AdamW with a one-cycle
 schedule, as benchmarks/crop_layout.py trains.
@@ -27,8 +27,9 @@ too, so the stage that names classes is a SplitCropNet, its classes from a net o
 
 The result is the detector's checkpoint with its crop stage replaced (`attach_stage`): every other
 tensor is the detector's, so `omnigen predict`, `eval` and `bev` use it as they are. A run saves
-its state every `save_interval` seconds beside its output (OUT.partial) and a rerun with the same
-arguments continues from it, to the same weights as a run never stopped.
+its state every `save_interval` seconds and at its end beside its output (OUT.partial, removed once
+OUT is written) and a rerun with the same arguments continues from it, to the same weights as a
+run never stopped.
 """
 
 from __future__ import annotations
@@ -151,11 +152,13 @@ def _state_bytes(obj: Any) -> bytes:
 
 
 def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig, partial: Path | None = None,
-                save_interval: float = 60.0, on_step: Callable[[int, dict[str, float]], None] | None = None
-                ) -> list[dict[str, float]]:
+                save_interval: float = 60.0, on_step: Callable[[int, dict[str, float]], None] | None = None,
+                identity: dict[str, Any] | None = None) -> list[dict[str, float]]:
     """Train `net` on `data` for cfg.steps; the per-step loss terms. With `partial`, the state is
-    saved there every `save_interval` seconds and a run finding one (of the same config) goes on
-    from it; it is removed at the end."""
+    saved there every `save_interval` seconds and once more at the end, and a run finding one goes
+    on from it (a finished one returns at once) when it is of the same config, crops and
+    `identity` (what else made the crops and the net: the caller's arguments); one of others is
+    refused, naming the file. The caller removes it once the result is safely written."""
     from omnigen.files import atomic_write_bytes
 
     rng = np.random.default_rng(cfg.seed)
@@ -166,16 +169,24 @@ def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig
     step = 0
     if partial is not None and partial.exists():
         state = torch.load(partial, map_location="cpu", weights_only=True)
-        if state.get("config") != asdict(cfg) or state.get("samples") != len(data):
+        if state.get("config") != asdict(cfg) or state.get("samples") != len(data) or \
+                state.get("identity") != identity:
             raise ValueError(f"{partial}: a partial run of other arguments ({state.get('config')}, "
-                             f"{state.get('samples')} crops); delete it to start over")
+                             f"{state.get('samples')} crops, {state.get('identity')}); delete it to start over")
         net.load_state_dict(state["net"])
         opt.load_state_dict(state["opt"])
         sched.load_state_dict(state["sched"])
         rng.bit_generator.state = state["rng"]
         history, step = state["history"], state["step"]
+    def save() -> None:
+        atomic_write_bytes(partial, _state_bytes({
+            "config": asdict(cfg), "samples": len(data), "identity": identity, "net": net.state_dict(),
+            "opt": opt.state_dict(), "sched": sched.state_dict(), "rng": rng.bit_generator.state,
+            "history": history, "step": step}))
+
     net.train()
     last_save = time.perf_counter()
+    finished_before = step >= cfg.steps
     while step < cfg.steps:
         idx = torch.from_numpy(rng.choice(len(data), cfg.batch, p=p))
         flip = torch.from_numpy(rng.random(cfg.batch) < 0.5)
@@ -191,12 +202,10 @@ def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig
         if on_step is not None:
             on_step(step, parts)
         if partial is not None and step < cfg.steps and time.perf_counter() - last_save >= save_interval:
-            atomic_write_bytes(partial, _state_bytes({
-                "config": asdict(cfg), "samples": len(data), "net": net.state_dict(), "opt": opt.state_dict(),
-                "sched": sched.state_dict(), "rng": rng.bit_generator.state, "history": history, "step": step}))
+            save()
             last_save = time.perf_counter()
-    if partial is not None:
-        partial.unlink(missing_ok=True)
+    if partial is not None and not finished_before:
+        save()  # the finished state: scoring and writing the result may still fail
     return history
 
 

@@ -58,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from omnigen.detector.model import DetectorConfig, KeypointDetector
     from omnigen.detector.predict import trained_imgsz
     from omnigen.detector.train import resolve_val_split
+    from omnigen.files import file_digest
     from omnigen.progress import print_table, progress
 
     weights, out = Path(args.weights), Path(args.out)
@@ -68,16 +69,18 @@ def run(args: argparse.Namespace) -> int:
     state = load_checkpoint(weights)
     taxonomy = checkpoint_taxonomy(state)
     det = DetectorConfig.from_dict(state["config"])
-    size = args.crop or det.heading_crop or 64
-    if size % 16:
+    size = det.heading_crop or 64 if args.crop is None else args.crop
+    if size <= 0 or size % 16:
         raise ValueError(f"--crop {size}: must be a positive multiple of 16 (the crop net halves it four times)")
     classes = args.classes if args.classes is not None else (det.crop_classes or not det.heading_crop)
     split = bool(classes and args.split)
     cfg = CropTrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, copies=args.copies, balance=args.balance,
                           heading_gain=args.heading_gain, seed=args.seed)
     imgsz = trained_imgsz(state)
-    call = {"trained": "apart", "weights": str(weights), "dataset": str(args.dataset), "train_split": args.train_split,
-            "crop": size, "classes": classes, "split": split, "imgsz": imgsz, "config": asdict(cfg)}
+    # the detector's bytes too: a detector trained again into the same last.pt is another input
+    call = {"trained": "apart", "weights": str(weights), "weights_sha256": file_digest(weights),
+            "dataset": str(args.dataset), "train_split": args.train_split, "crop": size, "classes": classes,
+            "split": split, "imgsz": imgsz, "config": asdict(cfg)}
     if out.exists():
         done = load_checkpoint(out).get("crop_stage", {})
         if {k: done.get(k) for k in call} == call:
@@ -88,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     val_name = args.val_split or resolve_val_split(str(args.dataset), None)
+    scored_on = f"the {val_name} split" if val_name else "all frames, the training ones too (no val or test split)"
     start = time.perf_counter()
     gen = torch.Generator().manual_seed(cfg.seed)
     sets = {}
@@ -108,7 +112,9 @@ def run(args: argparse.Namespace) -> int:
             terms = " ".join(f"{k}={v:.4f}" for k, v in parts.items())
             print(f"step {step}/{cfg.steps}: {terms} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
 
-    history = train_stage(sets["train"], net, cfg, partial=out.with_name(out.name + ".partial"), on_step=report)
+    partial = out.with_name(out.name + ".partial")
+    history = train_stage(sets["train"], net, cfg, partial=partial, on_step=report,
+                          identity={k: v for k, v in call.items() if k != "config"})
     seconds = time.perf_counter() - start
     rows = []
     if det.heading_crop == size:  # the detector's own stage, scored on the same crops
@@ -118,11 +124,12 @@ def run(args: argparse.Namespace) -> int:
     new = score_stage(net, sets["val"])
     rows.append(("trained apart", new))
     record = {**call, "steps_done": len(history), "seconds": round(seconds, 1), "score": asdict(new),
-              "score_split": val_name, "last_losses": history[-1] if history else {}}
+              "score_split": val_name or "all", "last_losses": history[-1] if history else {}}
     save_checkpoint(out, attach_stage(state, net, size, record))
-    print_table(f"omnigen train-crop: {out} (crops about moved boxes of the {val_name} split)",
+    partial.unlink(missing_ok=True)
+    print_table(f"omnigen train-crop: {out} (crops about moved boxes of {scored_on})",
                 ["stage", "objects", "corner rel", "front right", "class acc"],
                 [(who, s.objects, s.corner_rel, s.front, s.class_acc) for who, s in rows])
-    print(f"train-crop: {len(history)} steps in {seconds:.0f} s; {val_name} corner rel {new.corner_rel:.3f}, "
+    print(f"train-crop: {len(history)} steps in {seconds:.0f} s; {val_name or 'all'} corner rel {new.corner_rel:.3f}, "
           f"front {new.front:.3f}, class acc {new.class_acc:.3f}; wrote {out}")
     return 0

@@ -7,6 +7,7 @@ read accepts. Temporary names start with TMP_PREFIX and readers skip them.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -129,3 +130,13 @@ def _remove_if_present(path: str) -> None:
         os.unlink(path)
     except FileNotFoundError:
         pass
+
+
+def file_digest(path: str | os.PathLike, chars: int = 16) -> str:
+    """The first `chars` hex digits of a file's SHA-256, read in pieces: what says two files of one
+    name hold the same bytes (a checkpoint rewritten in place)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:chars]

@@ -437,6 +437,35 @@ def test_the_crop_stage_is_trained_once_and_again_when_its_arguments_change(tmp_
     (out / "crop-done").unlink()  # a crop.pt from before the marker: trained again too
     validate.crop_stage(run, other, out)
     assert len(calls) == 3
+    (out / "crop.pt").unlink()  # deleted since: trained again, not read missing
+    validate.crop_stage(run, other, out)
+    assert len(calls) == 4 and (out / "crop.pt").exists()
+
+
+def test_a_partial_crop_stage_of_other_arguments_is_dropped_and_one_of_these_is_kept(tmp_path, monkeypatch):
+    seen = []
+
+    def killed(argv):  # train-crop cut off midway: its partial state left, no crop.pt
+        seen.append((out / "crop.pt.partial").exists())
+        if len(seen) == 1:
+            (out / "crop.pt.partial").write_bytes(b"half a run")
+            raise KeyboardInterrupt
+        Path(argv[argv.index("--out") + 1]).write_bytes(b"stage")
+        return 0
+
+    monkeypatch.setattr(validate, "omnigen", killed)
+    run, out = Runner(tmp_path), tmp_path / "runs" / "n-p2"
+    out.mkdir(parents=True)
+    cmd = ["train-crop", "uov", "--out", str(out / "crop.pt"), "--steps", "60"]
+    with pytest.raises(KeyboardInterrupt):
+        validate.crop_stage(run, cmd, out)
+    validate.crop_stage(run, [*cmd[:-1], "90"], out)  # other arguments: the partial state is not theirs
+    assert seen == [False, False]
+    (out / "crop.pt").unlink()
+    (out / "crop-done").unlink()
+    (out / "crop.pt.partial").write_bytes(b"half a run of 90 steps")
+    validate.crop_stage(run, [*cmd[:-1], "90"], out)  # the same arguments: it goes on from it
+    assert seen == [False, False, True]
 
 
 def test_predictions_name_the_checkpoint_they_were_made_with(tmp_path):

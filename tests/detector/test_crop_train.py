@@ -114,14 +114,19 @@ def test_training_learns_and_a_stopped_run_resumes_to_the_same_weights(split_fak
     assert partial.exists()
     resumed = new_stage(32, 12, cfg.seed)
     rest = train_stage(data, resumed, cfg, partial=partial, save_interval=0.0)
-    assert not partial.exists() and len(rest) == cfg.steps
+    assert len(rest) == cfg.steps
     for (k, a), b in zip(net.state_dict().items(), resumed.state_dict().values()):
         assert torch.equal(a, b), k
-    # a partial run of other arguments is refused, naming the file
-    with pytest.raises(Stop):
-        train_stage(data, new_stage(32, 12, 1), cfg, partial=partial, save_interval=0.0, on_step=stop_at_17)
+    # the finished state stays until the caller has written its result: a rerun returns it at once
+    assert partial.exists()
+    again = new_stage(32, 12, cfg.seed)
+    assert train_stage(data, again, cfg, partial=partial, on_step=stop_at_17) == rest
+    assert all(torch.equal(a, b) for a, b in zip(again.state_dict().values(), resumed.state_dict().values()))
+    # a partial run of other arguments, or of other crops or identity, is refused, naming the file
     with pytest.raises(ValueError, match="stage.pt.partial"):
         train_stage(data, new_stage(32, 12, 1), CropTrainConfig(steps=40, batch=8, seed=1), partial=partial)
+    with pytest.raises(ValueError, match="stage.pt.partial"):
+        train_stage(data, new_stage(32, 12, 1), cfg, partial=partial, identity={"crop": 48})
 
 
 def test_new_stage_leaves_torchs_global_generator_alone():
@@ -196,6 +201,7 @@ def test_train_crop_command_writes_a_checkpoint_predict_reads_and_guards_its_fil
     text = capsys.readouterr().out
     assert "trained with the detector" in text and "trained apart" in text and "wrote" in text
     assert weights.read_bytes() == before  # the input is never written
+    assert not out.with_name("crop.pt.partial").exists()  # removed once crop.pt is written
     state = load_checkpoint(out)
     rec = state["crop_stage"]
     assert rec["trained"] == "apart" and rec["steps_done"] == 6 and rec["crop"] == 32 and rec["classes"] is True
@@ -271,3 +277,22 @@ def test_train_crop_trains_a_stage_without_classes_as_one_net(split_fake_dataset
     assert state["config"]["crop_classes"] is False and state["config"]["crop_split"] is False
     model, _ = load_model(out)
     assert type(model.crop_net) is CropNet and model.crop_net.num_classes == 0
+
+
+def test_train_crop_trains_again_for_a_detector_rewritten_in_place_and_refuses_bad_crop_sides(
+        split_fake_dataset, detector_checkpoint, tmp_path, capsys):
+    weights = detector_checkpoint(tmp_path / "det.pt", 32, crop_classes=True)
+    out = tmp_path / "crop.pt"
+    args = ["train-crop", str(split_fake_dataset.root), "--weights", str(weights), "--out", str(out),
+            "--steps", "2", "--batch", "4", "--copies", "1"]
+    assert omnigen(args) == 0
+    capsys.readouterr()
+    state = load_checkpoint(weights)
+    state["model"] = {k: v + 1 if v.is_floating_point() else v for k, v in state["model"].items()}
+    from omnigen.detector.checkpoint import save_checkpoint
+
+    save_checkpoint(weights, state)  # the detector trained again into the same file
+    assert omnigen(args) == 1 and "not trained with these arguments" in capsys.readouterr().err
+    for bad in ("-16", "0", "40"):
+        assert omnigen([*args[:4], "--out", str(tmp_path / f"c{bad}.pt"), *args[6:], "--crop", bad]) == 1
+        assert "positive multiple of 16" in capsys.readouterr().err
