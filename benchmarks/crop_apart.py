@@ -55,7 +55,8 @@ def parse_variant(text: str, steps: int, copies: int = 4):
         if not eq or key not in types:
             raise SystemExit(f"crop_apart: --variant {text!r}: {key!r} is not one of {', '.join(types)}")
         try:
-            values[key] = int(value) if types[key] in (int, "int") else float(value)
+            values[key] = value if types[key] in (str, "str") else int(value) if types[key] in (int, "int") \
+                else float(value)
         except ValueError:
             raise SystemExit(f"crop_apart: --variant {text!r}: {key}={value!r} is not a number") from None
     split = bool(values.pop("split", 1))

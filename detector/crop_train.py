@@ -192,7 +192,8 @@ def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig
         flip = torch.from_numpy(rng.random(cfg.batch) < 0.5)
         x, corners, mask, heading = mirror_batch(data.crops[idx].float().div_(255), data.corners[idx],
                                                  data.mask[idx], data.heading[idx], flip)
-        loss, parts = stage_loss(net, x, corners, mask, heading, data.cls[idx], cfg)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=cfg.amp == "bf16"):
+            loss, parts = stage_loss(net, x, corners, mask, heading, data.cls[idx], cfg)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

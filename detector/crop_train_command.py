@@ -40,6 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--heading-gain", type=float, default=CropTrainConfig.heading_gain,
                    help="gain of the heading term beside the corners' (benchmarks/crop_apart.py measured 1, 0.3, "
                         "0.1 and 0.03)")
+    p.add_argument("--amp", default=CropTrainConfig.amp, choices=["off", "bf16"],
+                   help="bf16: the forward pass under CPU bfloat16 autocast (docs/detector-training.md has its "
+                        "speed and its corners against float32)")
     p.add_argument("--train-split", default="train")
     p.add_argument("--val-split", default=None, help="scored at the end (default: val if present, else test)")
     p.add_argument("--seed", type=int, default=0)
@@ -75,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     classes = args.classes if args.classes is not None else (det.crop_classes or not det.heading_crop)
     split = bool(classes and args.split)
     cfg = CropTrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, copies=args.copies, balance=args.balance,
-                          heading_gain=args.heading_gain, seed=args.seed)
+                          heading_gain=args.heading_gain, seed=args.seed, amp=args.amp)
     imgsz = trained_imgsz(state)
     # the detector's bytes too: a detector trained again into the same last.pt is another input
     call = {"trained": "apart", "weights": str(weights), "weights_sha256": file_digest(weights),

@@ -23,6 +23,7 @@ class CropTrainConfig:
     heading_gain: float = 0.1
     class_gain: float = 0.5  # the joint training's (loss.LossGains.crop_cls)
     seed: int = 0
+    amp: str = "off"  # "bf16": the forward pass under CPU bfloat16 autocast (benchmarks/crop_apart.py measures it)
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch", "copies"):
@@ -33,5 +34,7 @@ class CropTrainConfig:
         for name in ("heading_gain", "class_gain"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"CropTrainConfig.{name}: must be >= 0, got {getattr(self, name)!r}")
+        if self.amp not in ("off", "bf16"):
+            raise ValueError(f"CropTrainConfig.amp: must be 'off' or 'bf16', got {self.amp!r}")
         if not self.lr > 0:
             raise ValueError(f"CropTrainConfig.lr: must be positive, got {self.lr!r}")

@@ -19,9 +19,10 @@ def test_variants_parse_into_configs_and_bad_ones_are_refused_by_name():
     assert name == "flat" and cfg == CropTrainConfig(steps=30, balance=0.5, class_gain=0.25, batch=8, copies=2)
     assert split is False
     assert crop_apart.parse_variant("default:", 7) == ("default", CropTrainConfig(steps=7), True)
+    assert crop_apart.parse_variant("half:amp=bf16", 7)[1].amp == "bf16"
     for bad, message in (("x:speed=2", "'speed' is not one of"), ("x:balance=much", "not a number"),
                          (":balance=0", "a name first"), ("x:balance=2", "balance"),
-                         ("x:copies=2", "'copies' is not one of")):
+                         ("x:copies=2", "'copies' is not one of"), ("x:amp=fp8", "amp")):
         with pytest.raises(SystemExit, match=message):
             crop_apart.parse_variant(bad, 10)
 

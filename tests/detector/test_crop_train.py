@@ -65,7 +65,7 @@ def test_draw_weights_balance_zero_is_uniform_and_one_gives_every_class_an_equal
 
 def test_config_refuses_bad_values_naming_the_field():
     for kw, field in (({"steps": 0}, "steps"), ({"batch": -1}, "batch"), ({"copies": 0}, "copies"),
-                      ({"balance": 1.5}, "balance"), ({"lr": 0.0}, "lr")):
+                      ({"balance": 1.5}, "balance"), ({"lr": 0.0}, "lr"), ({"amp": "fp16"}, "amp")):
         with pytest.raises(ValueError, match=field):
             CropTrainConfig(**kw)
 
@@ -296,3 +296,11 @@ def test_train_crop_trains_again_for_a_detector_rewritten_in_place_and_refuses_b
     for bad in ("-16", "0", "40"):
         assert omnigen([*args[:4], "--out", str(tmp_path / f"c{bad}.pt"), *args[6:], "--crop", bad]) == 1
         assert "positive multiple of 16" in capsys.readouterr().err
+
+
+def test_bf16_training_runs_and_learns(split_fake_dataset):
+    data = _crops(split_fake_dataset, "train", 2, jitter=True)
+    net = new_stage(32, 12, 1, split=True)
+    history = train_stage(data, net, CropTrainConfig(steps=40, batch=16, seed=1, amp="bf16"))
+    assert np.mean([h["crop_corners"] for h in history[-5:]]) < np.mean([h["crop_corners"] for h in history[:5]])
+    assert all(p.dtype == torch.float32 for p in net.parameters())  # autocast: the weights stay float32
