@@ -34,7 +34,6 @@ run never stopped.
 
 from __future__ import annotations
 
-import io
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -145,12 +144,6 @@ def stage_loss(net: CropNet | SplitCropNet, x: torch.Tensor, corners: torch.Tens
     return total, {k: float(v.detach()) for k, v in parts.items()}
 
 
-def _state_bytes(obj: Any) -> bytes:
-    buf = io.BytesIO()
-    torch.save(obj, buf)
-    return buf.getvalue()
-
-
 def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig, partial: Path | None = None,
                 save_interval: float = 60.0, on_step: Callable[[int, dict[str, float]], None] | None = None,
                 identity: dict[str, Any] | None = None) -> list[dict[str, float]]:
@@ -159,7 +152,7 @@ def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig
     on from it (a finished one returns at once) when it is of the same config, crops and
     `identity` (what else made the crops and the net: the caller's arguments); one of others is
     refused, naming the file. The caller removes it once the result is safely written."""
-    from omnigen.files import atomic_write_bytes
+    from omnigen.detector.checkpoint import save_checkpoint  # torch.save to memory, then an atomic write
 
     rng = np.random.default_rng(cfg.seed)
     p = draw_weights(data.cls, cfg.balance)
@@ -179,10 +172,10 @@ def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig
         rng.bit_generator.state = state["rng"]
         history, step = state["history"], state["step"]
     def save() -> None:
-        atomic_write_bytes(partial, _state_bytes({
+        save_checkpoint(partial, {
             "config": asdict(cfg), "samples": len(data), "identity": identity, "net": net.state_dict(),
             "opt": opt.state_dict(), "sched": sched.state_dict(), "rng": rng.bit_generator.state,
-            "history": history, "step": step}))
+            "history": history, "step": step})
 
     net.train()
     last_save = time.perf_counter()
