@@ -83,9 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint
-    from omnigen.detector.crop_train import cut_crops, new_stage, score_stage, train_stage
-    from omnigen.detector.data import KeypointDataset, split_frames
-    from omnigen.detector.model import DetectorConfig, KeypointDetector
+    from omnigen.detector.crop_train import detector_stage, new_stage, score_stage, split_crops, train_stage
+    from omnigen.detector.model import DetectorConfig
     from omnigen.detector.predict import trained_imgsz
     from omnigen.progress import print_table
 
@@ -99,12 +98,10 @@ def main(argv: list[str] | None = None) -> int:
     nc = len(taxonomy.classes) if det.crop_classes else 0
     gen = torch.Generator().manual_seed(0)
     t0 = time.perf_counter()
-    sets = {split: cut_crops(KeypointDataset(a.dataset, taxonomy, imgsz, split_frames(a.dataset, split)), size,
-                             a.copies if split == "train" else 1, True, gen) for split in ("train", "test")}
+    sets = {split: split_crops(a.dataset, taxonomy, imgsz, split, size, a.copies if split == "train" else 1, gen)
+            for split in ("train", "test")}
     print(f"crops: train {len(sets['train'])}, test {len(sets['test'])} ({time.perf_counter() - t0:.1f} s)", flush=True)
-    joint = KeypointDetector(det)
-    joint.load_state_dict(state["model"])
-    scores = {JOINT: (score_stage(joint.crop_net, sets["test"]), "-", "-")}
+    scores = {JOINT: (score_stage(detector_stage(state), sets["test"]), "-", "-")}
     for name, cfg, split in variants:
         net = new_stage(size, nc, cfg.seed, split and nc > 0)
         t = time.perf_counter()

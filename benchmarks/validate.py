@@ -15,12 +15,13 @@ windows of the 640-pixel input (`--crop 320`): a step costs what a 320-pixel inp
 every object keeps the scale it has when the model predicts on the whole 640-pixel image.
 Training is time-boxed (`--minutes 100`, train --time): the schedule is planned over the epochs
 that fit, at most `--epochs`. Then the detector's crop stage (each detection's corners, front
-and class from its own crop) is trained again apart from it on clean crops, `--crop-steps 4000`
-(`omnigen train-crop`, about 14 minutes on 2 cores), and the test split is predicted with that
-checkpoint; the whole run stays within 2 hours on 2 cores that run bfloat16 (RESULTS.md lists
-each stage's time; without bf16 the 100 minutes are used to the end, and it takes a few more). On a
-CPU that runs bfloat16 natively the steps run in bf16 (`--amp`, about 0.65 of a float32 step by
-benchmarks/bench_train_step.py). Training uses AdamW at 2e-3 (docs/detector-training.md says why).
+and class from its own crop) is trained again apart from it on clean crops, `--crop-steps 7000`
+(`omnigen train-crop`, about 16 minutes on 2 cores in bf16), and the test split is predicted with
+that checkpoint; the whole run stays within 2 hours on 2 cores that run bfloat16 (RESULTS.md lists
+each stage's time; without bf16 the 100 minutes are used to the end, and the crop stage takes half
+as long again, so the run takes longer). On a CPU that runs bfloat16 natively the steps run in bf16
+(`--amp`, about 0.65 of a float32 step by benchmarks/bench_train_step.py; train-crop's too,
+`--amp bf16`, 0.65 of its float32 time by benchmarks/crop_apart.py). Training uses AdamW at 2e-3 (docs/detector-training.md says why).
 `--cache` keeps the decoded images in memory (565 MiB here; a few seconds of CPU an epoch by
 benchmarks/bench_cache.py); it trains the same weights, so runs done without it are kept.
 Scaling up: more frames per rig (`--frames`), whole images (`--crop 0`), more epochs, Cycles
@@ -276,6 +277,13 @@ def default_amp(device: str | None) -> str:
     return "bf16" if on_cpu and fast_bf16(torch.device("cpu")) else "auto"
 
 
+def crop_amp(amp: str) -> list[str]:
+    """train-crop's precision flag for training's resolved `amp`: bf16 where the detector trains in
+    bf16 (train-crop runs on the CPU, where it takes about 0.65 of float32's time for the same
+    corners, benchmarks/crop_apart.py), else none (float32)."""
+    return ["--amp", "bf16"] if amp == "bf16" else []
+
+
 DATA_ARGUMENTS = ("frames", "cities", "size", "backend", "seed", "scene", "kitti", "dair")
 SCENE_MIX = "downtown,suburban,arterial,intersection"
 """The presets validate's cities are drawn from: city seed s gets the (s mod 4)-th (omnigen render
@@ -437,7 +445,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--crop-classes", action=argparse.BooleanOptionalAction, default=True,
                     help="the crop stage names each crop's class and rescores the detections it refines "
                          "(omnigen train --crop-classes; docs/detector-training.md); ignored without --heading-crop")
-    ap.add_argument("--crop-steps", type=int, default=4000,
+    ap.add_argument("--crop-steps", type=int, default=7000,
                     help="train the crop stage again apart from the detector for this many steps, on clean crops "
                          "(omnigen train-crop), and predict with it; 0: predict with the stage trained with the "
                          "detector. Ignored without --heading-crop")
@@ -533,7 +541,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.heading_crop and args.crop_steps:  # the crop stage trained again, apart (omnigen train-crop)
             weights = crop_stage(run, ["train-crop", str(dataset), "--weights", str(out / "last.pt"),
                                        "--out", str(out / "crop.pt"), "--steps", str(args.crop_steps),
-                                       "--seed", str(args.seed)], out)
+                                       "--seed", str(args.seed), *crop_amp(args.amp)], out)
             stage = load_checkpoint(weights).get("crop_stage")
         preds = predict_stage(run, out, uov, EVAL_MULTI_LABEL, lambda multi_label: predict_dataset(
             weights, uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch, device=args.device,

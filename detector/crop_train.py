@@ -101,6 +101,36 @@ def cut_crops(data, size: int, copies: int, jitter: bool, generator: torch.Gener
     return CropSet(**{k: torch.cat(v) for k, v in parts.items()})
 
 
+def split_crops(dataset: str | Path, taxonomy, imgsz: int, frames: str | None, size: int, copies: int,
+                generator: torch.Generator, label: str | None = None) -> CropSet:
+    """`cut_crops` of the frames of split `frames` of `dataset` (None: every frame), letterboxed to
+    `imgsz` and unaugmented as prediction sees them, each object cut `copies` times about moved
+    boxes: what train-crop trains and scores on, and benchmarks/crop_apart.py too. With `label`, a
+    progress bar of that name counts the frames."""
+    from omnigen.detector.data import KeypointDataset, split_frames
+    from omnigen.progress import progress
+
+    data = KeypointDataset(dataset, taxonomy, imgsz, split_frames(str(dataset), frames))
+    on_frame = None
+    if label is not None:
+        bar = iter(progress(range(len(data)), label, total=len(data), unit="frame"))
+
+        def on_frame() -> None:
+            next(bar, None)
+    return cut_crops(data, size, copies, jitter=True, generator=generator, on_frame=on_frame)
+
+
+def detector_stage(state: dict[str, Any]) -> CropNet | SplitCropNet:
+    """The crop stage a detector checkpoint's `state` was trained with (its model's weights)."""
+    from omnigen.detector.model import DetectorConfig, KeypointDetector
+
+    model = KeypointDetector(DetectorConfig.from_dict(state["config"]))
+    model.load_state_dict(state["model"])
+    if model.crop_net is None:
+        raise ValueError("detector_stage: the checkpoint has no crop stage (trained without --heading-crop)")
+    return model.crop_net
+
+
 def new_stage(size: int, num_classes: int, seed: int, split: bool = False) -> CropNet | SplitCropNet:
     """A freshly initialised crop stage: a CropNet, or with `split` a SplitCropNet (its classes from
     a net of their own), drawn from a generator of its own seeded with `seed` (torch's global one

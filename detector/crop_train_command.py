@@ -55,10 +55,10 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint, save_checkpoint
-    from omnigen.detector.crop_train import attach_stage, cut_crops, new_stage, score_stage, train_stage
+    from omnigen.detector.crop_train import (attach_stage, detector_stage, new_stage, score_stage, split_crops,
+                                             train_stage)
     from omnigen.detector.crop_train_config import CropTrainConfig
-    from omnigen.detector.data import KeypointDataset, split_frames
-    from omnigen.detector.model import DetectorConfig, KeypointDetector
+    from omnigen.detector.model import DetectorConfig
     from omnigen.detector.predict import trained_imgsz
     from omnigen.detector.train import resolve_val_split
     from omnigen.files import file_digest
@@ -99,9 +99,7 @@ def run(args: argparse.Namespace) -> int:
     gen = torch.Generator().manual_seed(cfg.seed)
     sets = {}
     for name, frames, copies in (("train", args.train_split, cfg.copies), ("val", val_name, 1)):
-        data = KeypointDataset(args.dataset, taxonomy, imgsz, split_frames(args.dataset, frames))
-        bar = iter(progress(range(len(data)), f"crop {frames}", total=len(data), unit="frame"))
-        sets[name] = cut_crops(data, size, copies, jitter=True, generator=gen, on_frame=lambda: next(bar, None))
+        sets[name] = split_crops(args.dataset, taxonomy, imgsz, frames, size, copies, gen, label=f"crop {frames}")
     print(f"crops: train {len(sets['train'])} ({cfg.copies} an object, split {args.train_split}), "
           f"{val_name} {len(sets['val'])} ({time.perf_counter() - start:.1f} s)", file=sys.stderr, flush=True)
 
@@ -121,9 +119,7 @@ def run(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - start
     rows = []
     if det.heading_crop == size:  # the detector's own stage, scored on the same crops
-        joint = KeypointDetector(det)
-        joint.load_state_dict(state["model"])
-        rows.append(("trained with the detector", score_stage(joint.crop_net, sets["val"])))
+        rows.append(("trained with the detector", score_stage(detector_stage(state), sets["val"])))
     new = score_stage(net, sets["val"])
     rows.append(("trained apart", new))
     record = {**call, "steps_done": len(history), "seconds": round(seconds, 1), "score": asdict(new),

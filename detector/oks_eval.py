@@ -486,11 +486,28 @@ def _row(name: str, images: int, sub_imgs: list, sub: COCOeval, group: Matches,
                    adherence_objects=len(group_angles))
 
 
-def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | None = None,
-             taxonomy: Taxonomy | str = "fine", adherence: bool = True,
-             source: str = "<predictions>", sizes: bool = True, per_corner: bool = False) -> EvalReport:
-    """Evaluate COCO-results predictions on `split` of `ds` (None: all frames): overall, per source,
-    view and class, and (`sizes`) per object size; `per_corner` adds each row's medians per corner."""
+@dataclass
+class Matched:
+    """Predictions matched to the ground truth as evaluate matches them: the split's COCO ground
+    truth (`gt_dict` and pycocotools' `gt`), the predictions normalised (`anns`, detection id i + 1
+    is anns[i]), how many fell on frames outside the split, and the evaluation `e` (evaluated)."""
+
+    gt_dict: dict[str, Any]
+    gt: COCO
+    dt: COCO
+    anns: list[dict[str, Any]]
+    outside: int
+    e: COCOeval
+
+    def matches(self) -> Matches:
+        """The matching at OKS 0.5 (ground-plane adherence and F1 are of these matches)."""
+        return Matches.from_eval_imgs(self.e.evalImgs)
+
+
+def match_predictions(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | None = None,
+                      taxonomy: Taxonomy | str = "fine", source: str = "<predictions>") -> Matched:
+    """COCO-results predictions normalised and matched to `split` of `ds` by OKS (evaluate's first
+    step; benchmarks/adherence_sources.py reads the matches to put the truth in their place)."""
     taxonomy = load_taxonomy(taxonomy) if isinstance(taxonomy, str) else taxonomy
     gt_dict = to_coco(ds, split, taxonomy)
     image_ids = {im["id"] for im in gt_dict["images"]}
@@ -499,6 +516,18 @@ def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | No
     dt = _results_coco(gt, anns)
     e = make_cocoeval(gt, dt)
     run_quietly(e.evaluate)
+    return Matched(gt_dict, gt, dt, anns, outside, e)
+
+
+def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | None = None,
+             taxonomy: Taxonomy | str = "fine", adherence: bool = True,
+             source: str = "<predictions>", sizes: bool = True, per_corner: bool = False) -> EvalReport:
+    """Evaluate COCO-results predictions on `split` of `ds` (None: all frames): overall, per source,
+    view and class, and (`sizes`) per object size; `per_corner` adds each row's medians per corner."""
+    taxonomy = load_taxonomy(taxonomy) if isinstance(taxonomy, str) else taxonomy
+    m = match_predictions(ds, predictions, split, taxonomy, source)
+    gt_dict, gt, dt, anns, outside, e = m.gt_dict, m.gt, m.dt, m.anns, m.outside, m.e
+    image_ids = {im["id"] for im in gt_dict["images"]}
 
     groups: dict[str, list[int]] = {"overall": sorted(image_ids)}
     for key in ("source", "view"):
@@ -510,7 +539,7 @@ def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | No
 
     report = EvalReport(rows=[], split=split, taxonomy=taxonomy.name, predictions=len(anns),
                         predictions_outside_split=outside)
-    matches = Matches.from_eval_imgs(e.evalImgs)  # at OKS 0.5
+    matches = m.matches()  # at OKS 0.5
     angles: dict[int, float] = {}
     if adherence and anns:
         try:

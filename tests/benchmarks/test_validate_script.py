@@ -512,3 +512,12 @@ def test_predictions_of_a_checkpoint_rewritten_in_place_are_made_again(tmp_path)
     weights.write_bytes(b"a stage of 4000 steps")
     validate.predict_stage(run, out, Path("uov"), True, predict, weights=weights)
     assert calls == [True, True] and validate.file_digest(weights) in (out / "predicted").read_text()
+
+
+def test_the_crop_stage_trains_in_bf16_where_the_detector_does():
+    """train-crop takes --amp bf16 where training's resolved precision is bf16 (a CPU that runs it
+    natively) and float32 otherwise: its --amp knows only off and bf16, a GPU's 'auto' among neither."""
+    assert validate.crop_amp("bf16") == ["--amp", "bf16"]
+    for other in ("auto", "off", "fp16"):
+        assert validate.crop_amp(other) == []
+    assert validate.build_parser().parse_args([]).crop_steps == 7000
