@@ -49,6 +49,7 @@ def parse_variant(text: str, steps: int, copies: int = 4):
         raise SystemExit(f"crop_apart: --variant {text!r}: NAME:key=value,... (a name first)")
     types = {f.name: f.type for f in fields(CropTrainConfig) if f.name != "copies"}
     types["split"] = "int"
+    types["position"] = "int"
     values: dict[str, object] = {"steps": steps, "copies": copies}
     for item in filter(None, spec.split(",")):
         key, eq, value = item.partition("=")
@@ -60,8 +61,9 @@ def parse_variant(text: str, steps: int, copies: int = 4):
         except ValueError:
             raise SystemExit(f"crop_apart: --variant {text!r}: {key}={value!r} is not a number") from None
     split = bool(values.pop("split", 1))
+    position = bool(values.pop("position", 0))
     try:
-        return name, CropTrainConfig(**values), split
+        return name, CropTrainConfig(**values), split, position
     except ValueError as exc:
         raise SystemExit(f"crop_apart: --variant {text!r}: {exc}") from None
 
@@ -102,8 +104,8 @@ def main(argv: list[str] | None = None) -> int:
             for split in ("train", "test")}
     print(f"crops: train {len(sets['train'])}, test {len(sets['test'])} ({time.perf_counter() - t0:.1f} s)", flush=True)
     scores = {JOINT: (score_stage(detector_stage(state), sets["test"]), "-", "-")}
-    for name, cfg, split in variants:
-        net = new_stage(size, nc, cfg.seed, split and nc > 0)
+    for name, cfg, split, position in variants:
+        net = new_stage(size, nc, cfg.seed, split and nc > 0, position)
         t = time.perf_counter()
         history = train_stage(sets["train"], net, cfg)
         seconds = time.perf_counter() - t
@@ -111,10 +113,10 @@ def main(argv: list[str] | None = None) -> int:
         scores[name] = (score_stage(net, sets["test"]), f"{seconds:.0f}", f"{last:.3f}")
         print(f"{name}: {asdict(cfg)}, split {split and nc > 0} trained in {seconds:.0f} s", flush=True)
     print_table(f"crop stage trained apart, {a.steps} steps a variant: test crops about moved boxes",
-                ["stage", "objects", "corner rel", "placed rel", "layout rel", "front right", "placed front",
-                 "class acc", "train s", "corner L1, last 100"],
-                [(n, s.objects, s.corner_rel, s.placed_rel, s.layout_rel, s.front, s.placed_front, s.class_acc,
-                  sec, l1)
+                ["stage", "objects", "corner rel", "placed rel", "layout rel", "vertical rel", "front right",
+                 "placed front", "class acc", "train s", "corner L1, last 100"],
+                [(n, s.objects, s.corner_rel, s.placed_rel, s.layout_rel, s.vertical_rel, s.front, s.placed_front,
+                  s.class_acc, sec, l1)
                  for n, (s, sec, l1) in scores.items()])
     trained = {n: s for n, (s, _, _) in scores.items() if n != JOINT}
     best = min(trained, key=lambda n: trained[n].layout_rel)

@@ -449,6 +449,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="train the crop stage again apart from the detector for this many steps, on clean crops "
                          "(omnigen train-crop), and predict with it; 0: predict with the stage trained with the "
                          "detector. Ignored without --heading-crop")
+    ap.add_argument("--crop-position", action=argparse.BooleanOptionalAction, default=True,
+                    help="the crop stage trained apart is told where each crop was cut (omnigen train-crop "
+                         "--position: the direction of an object's vertical edges depends on it)")
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
                          "natively, a step in about 0.65 of the time by benchmarks/bench_train_step.py; else auto)")
@@ -541,7 +544,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.heading_crop and args.crop_steps:  # the crop stage trained again, apart (omnigen train-crop)
             weights = crop_stage(run, ["train-crop", str(dataset), "--weights", str(out / "last.pt"),
                                        "--out", str(out / "crop.pt"), "--steps", str(args.crop_steps),
-                                       "--seed", str(args.seed), *crop_amp(args.amp)], out)
+                                       "--seed", str(args.seed), *crop_amp(args.amp),
+                                       *(["--position"] if args.crop_position else [])], out)
             stage = load_checkpoint(weights).get("crop_stage")
         preds = predict_stage(run, out, uov, EVAL_MULTI_LABEL, lambda multi_label: predict_dataset(
             weights, uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch, device=args.device,
@@ -869,8 +873,9 @@ def protocol_line(r: dict[str, Any]) -> list[str]:
     lines = [f"- test predictions: {how}; last.pt, not best.pt{capped}"]
     if stage:
         sc = stage.get("score", {})
+        told = ", told where each crop was cut (--position)" if stage.get("position") else ""
         lines.append(f"- crop stage: trained again apart from the detector (`omnigen train-crop`, "
-                     f"{stage['steps_done']} steps, {stage['seconds']} s) and predicted with (crop.pt: last.pt's "
+                     f"{stage['steps_done']} steps, {stage['seconds']} s{told}) and predicted with (crop.pt: last.pt's "
                      f"other tensors); on its {stage.get('score_split')} crops about moved boxes: corner error rel "
                      f"{fmt(sc.get('corner_rel'))}, front right {fmt(sc.get('front'))}, class accuracy "
                      f"{fmt(sc.get('class_acc'))}")

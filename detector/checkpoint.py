@@ -59,7 +59,7 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     real data: the design's Table 8 setting) wants the weights and nothing else: a fresh optimiser,
     a new schedule from epoch 0, possibly other classes.
     The architecture must be the same (every DetectorConfig field but num_classes and the crop
-    stage's, heading_crop, crop_classes and crop_split: the crop stage's tensors start fresh where
+    stage's, heading_crop, crop_classes, crop_split and crop_position: the crop stage's tensors start fresh where
     the checkpoint has none of their shape): otherwise the
     tensors mean other things, and the refusal names the file and the field. Where the classes
     differ, the class branches' last layers get the checkpoint's rows of the classes both
@@ -72,7 +72,7 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
         # the crop stage is a network of its own beside the detector: it may be added, dropped or
         # resized without changing any detector tensor (resized, its flattened head changes shape and
         # the whole stage starts fresh)
-        if key not in ("num_classes", "heading_crop", "crop_classes", "crop_split") and theirs.get(key) != mine[key]:
+        if key not in ("num_classes", "heading_crop", "crop_classes", "crop_split", "crop_position") and theirs.get(key) != mine[key]:
             raise ValueError(f"{path}: config field {key!r} is {theirs.get(key)!r}, this run builds {mine[key]!r}: "
                              "--weights needs the same architecture (only the classes may differ)")
     src = state["model"]

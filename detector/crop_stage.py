@@ -46,6 +46,15 @@ detector, alone on clean crops of the labelled objects, and writes the detector'
 the new stage. There the classes come from a net of their own (SplitCropNet,
 DetectorConfig.crop_split): in one small net the class term costs the corners
 (benchmarks/crop_apart.py).
+
+Where the crop was cut (DetectorConfig.crop_position, `train-crop --position`). A crop alone does
+not say where in the image it lay, and the direction of an object's vertical edges depends on
+it: they meet at the vertical vanishing point, far outside the crop (below a drone's image centre,
+above it for a camera looking up). That direction is what tilts a lifted box most
+(benchmarks/adherence_sources.py). So the corners' net can be given each crop's `crop_position`
+(the box centre about the input's centre and the log of the crop's side, in units of the input's
+longer side), appended to its flattened features before the hidden layer. A mirrored crop is
+told the mirrored position (`mirror_position`).
 """
 
 from __future__ import annotations
@@ -83,6 +92,9 @@ predicted boxes, not only about perfect ones."""
 SIDE_JITTER = 0.1
 """...and each side is scaled by a log-normal factor of this sigma."""
 HIDDEN = 128
+POSITION_CHANNELS = 3
+"""Where a crop was cut (`crop_position`): the box centre's x and y about the input's centre and
+the log of its crop side, each in units of the input's longer side."""
 MIRROR_HEADING = (-1.0, 1.0, 1.0)
 """The image heading of the horizontally mirrored crop, component by component (x negated)."""
 
@@ -95,13 +107,15 @@ class CropNet(nn.Module):
     Four blocks of two 3x3 convolutions, batch norm, SiLU and a 2x2 max-pool (the classifier that
     benchmarks/heading_visibility.py showed can see the front at 64x64), then the last feature map
     flattened, not averaged: where a corner lies is what a global average would throw away
-    (benchmarks/crop_layout.py's model)."""
+    (benchmarks/crop_layout.py's model). With `position`, each crop's `crop_position` is appended
+    to those features (forward's `where`)."""
 
-    def __init__(self, size: int, width: int = 16, num_classes: int = 0):
+    def __init__(self, size: int, width: int = 16, num_classes: int = 0, position: bool = False):
         super().__init__()
         if num_classes < 0:
             raise ValueError(f"CropNet: num_classes must be >= 0, got {num_classes}")
         self.num_classes = num_classes
+        self.position = position
         if size <= 0 or size % 16:
             raise ValueError(f"CropNet: crop side must be a positive multiple of 16, got {size}")
 
@@ -112,11 +126,19 @@ class CropNet(nn.Module):
 
         self.features = nn.Sequential(block(3, width), block(width, 2 * width), block(2 * width, 4 * width),
                                       block(4 * width, 4 * width), nn.Flatten())
-        self.hidden = nn.Sequential(nn.Linear(4 * width * (size // 16) ** 2, HIDDEN), nn.SiLU())
+        extra = POSITION_CHANNELS if position else 0
+        self.hidden = nn.Sequential(nn.Linear(4 * width * (size // 16) ** 2 + extra, HIDDEN), nn.SiLU())
         self.out = nn.Linear(HIDDEN, HEADING_CHANNELS + 2 * NUM_KEYPOINTS + num_classes)
 
-    def forward(self, crops: torch.Tensor) -> torch.Tensor:
-        return self.out(self.hidden(self.features(crops)))
+    def forward(self, crops: torch.Tensor, where: torch.Tensor | None = None) -> torch.Tensor:
+        """`where` (N, POSITION_CHANNELS), `crop_position` of each crop: needed by a net built with
+        `position`, ignored by one without."""
+        f = self.features(crops)
+        if self.position:
+            if where is None:
+                raise ValueError("CropNet: built with position, so each crop's crop_position is needed")
+            f = torch.cat([f, where.to(f.dtype)], 1)
+        return self.out(self.hidden(f))
 
 
 class SplitCropNet(nn.Module):
@@ -127,17 +149,18 @@ class SplitCropNet(nn.Module):
     forgiven, one that also named the classes 0.211 (benchmarks/crop_apart.py,
     docs/detector-training.md). Twice the crop net's cost (benchmarks/bench_crop_stage.py)."""
 
-    def __init__(self, size: int, num_classes: int, width: int = 16):
+    def __init__(self, size: int, num_classes: int, width: int = 16, position: bool = False):
         super().__init__()
         if num_classes < 1:
             raise ValueError(f"SplitCropNet: names classes, so num_classes must be >= 1, got {num_classes}")
         self.num_classes = num_classes
-        self.corners = CropNet(size, width)
+        self.position = position  # the corners' net's: where the crop was cut says nothing of its class
+        self.corners = CropNet(size, width, position=position)
         self.classes = CropNet(size, width, num_classes)
 
-    def forward(self, crops: torch.Tensor) -> torch.Tensor:
+    def forward(self, crops: torch.Tensor, where: torch.Tensor | None = None) -> torch.Tensor:
         end = HEADING_CHANNELS + 2 * NUM_KEYPOINTS
-        return torch.cat([self.corners(crops), self.classes(crops)[:, end:]], 1)
+        return torch.cat([self.corners(crops, where), self.classes(crops)[:, end:]], 1)
 
 
 def split_outputs(y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
@@ -163,6 +186,25 @@ def from_crop_units(t: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
     """The inverse of to_crop_units."""
     centre = (boxes[:, :2] + boxes[:, 2:]) / 2
     return t * half_side(boxes)[:, None, None] + centre[:, None]
+
+
+def crop_position(boxes: torch.Tensor, hw: torch.Tensor) -> torch.Tensor:
+    """(N, POSITION_CHANNELS) where each box's crop was cut from an input of size `hw` (H, W; a
+    tensor, so that an ONNX graph traced at one size is right at another): the box centre's x and
+    y about the input's centre, (x - (W - 1) / 2) / S, and the log of its crop side / S, S the
+    input's longer side. Why: a crop alone does not say where in the image it was, and the
+    direction its vertical edges point in does (they meet at a vanishing point far outside the
+    crop: benchmarks/adherence_sources.py). Mirroring the input negates the first channel."""
+    hw = hw.to(boxes.dtype)
+    s = hw.max()
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2
+    xy = (centre - (hw.flip(0) - 1) / 2) / s
+    return torch.cat([xy, (half_side(boxes) * 2 / s).log()[:, None]], 1)
+
+
+def mirror_position(where: torch.Tensor) -> torch.Tensor:
+    """crop_position of the horizontally mirrored input's crop: x negated."""
+    return where * where.new_tensor([-1.0, 1.0, 1.0])
 
 
 def mirror_corners(t: torch.Tensor) -> torch.Tensor:
@@ -252,17 +294,23 @@ def crop_outputs(net: CropNet, images: torch.Tensor, batch_index: torch.Tensor, 
                  size: int, mirror: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Headings (N, 3), corners (N, 8, 2, crop units) and class logits (N, nc, or None) of the
     boxes' crops; with `mirror`, each averaged with the mirrored crop's (a class is the same
-    mirrored)."""
-    return outputs_of_crops(net, crop_boxes(images, batch_index, boxes, size), mirror)
+    mirrored). A net built with `position` is told where each crop was cut (`crop_position`)."""
+    where = None
+    if getattr(net, "position", False):
+        where = crop_position(boxes, torch.onnx.operators.shape_as_tensor(images)[2:])
+    return outputs_of_crops(net, crop_boxes(images, batch_index, boxes, size), mirror, where)
 
 
-def outputs_of_crops(net: CropNet, crops: torch.Tensor, mirror: bool = False
+def outputs_of_crops(net: CropNet, crops: torch.Tensor, mirror: bool = False, where: torch.Tensor | None = None
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """crop_outputs of crops already cut (N, 3, S, S in 0..1): benchmarks/crop_layout.py scores a
-    trained stage on its own crops so."""
-    h, t, c = split_outputs(net(crops))
+    """crop_outputs of crops already cut (N, 3, S, S in 0..1), and for a net built with `position`
+    their `crop_position`: benchmarks/crop_layout.py scores a trained stage on its own crops so."""
+    def run(x: torch.Tensor, w: torch.Tensor | None) -> torch.Tensor:
+        return net(x) if w is None else net(x, w)
+
+    h, t, c = split_outputs(run(crops, where))
     if mirror:
-        hm, tm, cm = split_outputs(net(crops.flip(-1)))
+        hm, tm, cm = split_outputs(run(crops.flip(-1), None if where is None else mirror_position(where)))
         h = (h + hm * h.new_tensor(MIRROR_HEADING)) / 2
         t = (t + mirror_corners(tm)) / 2
         c = None if c is None else (c + cm) / 2

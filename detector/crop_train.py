@@ -45,8 +45,9 @@ import torch.nn.functional as F
 
 from omnigen.conventions import FLIP_IDX, TURN_IDX
 from omnigen.detector.boxes import box_area
-from omnigen.detector.crop_stage import (MIRROR_HEADING, CropNet, SplitCropNet, crop_boxes, from_crop_units, jitter_boxes,
-                                         mirror_corners, outputs_of_crops, to_crop_units, training_rois)
+from omnigen.detector.crop_stage import (MIRROR_HEADING, CropNet, SplitCropNet, crop_boxes, crop_position, from_crop_units,
+                                         jitter_boxes, mirror_corners, mirror_position, outputs_of_crops, to_crop_units,
+                                         training_rois)
 from omnigen.detector.heading import heading_loss, image_heading, orient
 from omnigen.detector.crop_train_config import CropTrainConfig
 
@@ -62,6 +63,7 @@ class CropSet:
     cls: torch.Tensor  # (N,) long, the taxonomy's class ids
     boxes: torch.Tensor  # (N, 4) the box each crop was cut about, input pixels
     true_area: torch.Tensor  # (N,) the object's true 2D box area, input pixels^2
+    where: torch.Tensor | None = None  # (N, 3) crop_stage.crop_position of each crop in its input
 
     def __len__(self) -> int:
         return len(self.cls)
@@ -73,7 +75,7 @@ def cut_crops(data, size: int, copies: int, jitter: bool, generator: torch.Gener
     training would crop (`training_rois`: a defined image heading, a side of MIN_SIDE px or more),
     `copies` of each, about its box moved at random where `jitter` (else the true box)."""
     parts: dict[str, list[torch.Tensor]] = {k: [] for k in ("crops", "corners", "mask", "heading", "cls", "boxes",
-                                                           "true_area")}
+                                                           "true_area", "where")}
     for i in range(len(data)):
         s = data.sample(i)
         if on_frame is not None:
@@ -96,6 +98,7 @@ def cut_crops(data, size: int, copies: int, jitter: bool, generator: torch.Gener
         parts["cls"].append(targets["cls"][rows])
         parts["boxes"].append(boxes)
         parts["true_area"].append(box_area(true))
+        parts["where"].append(crop_position(boxes, torch.tensor(image.shape[2:])))
     if not parts["cls"]:
         raise ValueError(f"{data.ds.root}: no labelled object to crop in {len(data)} frames")
     return CropSet(**{k: torch.cat(v) for k, v in parts.items()})
@@ -131,13 +134,17 @@ def detector_stage(state: dict[str, Any]) -> CropNet | SplitCropNet:
     return model.crop_net
 
 
-def new_stage(size: int, num_classes: int, seed: int, split: bool = False) -> CropNet | SplitCropNet:
+def new_stage(size: int, num_classes: int, seed: int, split: bool = False, position: bool = False
+              ) -> CropNet | SplitCropNet:
     """A freshly initialised crop stage: a CropNet, or with `split` a SplitCropNet (its classes from
-    a net of their own), drawn from a generator of its own seeded with `seed` (torch's global one
-    is left as it was)."""
+    a net of their own), its corners' net told where each crop was cut where `position`
+    (crop_stage.crop_position), drawn from a generator of its own seeded with `seed` (torch's
+    global one is left as it was)."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        return SplitCropNet(size, num_classes) if split else CropNet(size, num_classes=num_classes)
+        if split:
+            return SplitCropNet(size, num_classes, position=position)
+        return CropNet(size, num_classes=num_classes, position=position)
 
 
 def draw_weights(cls: torch.Tensor, balance: float) -> np.ndarray:
@@ -148,22 +155,28 @@ def draw_weights(cls: torch.Tensor, balance: float) -> np.ndarray:
 
 
 def mirror_batch(x: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor, heading: torch.Tensor,
-                 flip: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                 flip: torch.Tensor, where: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """The rows `flip` of a batch mirrored horizontally: crop, corners (mirror_corners), their mask
-    renumbered, the heading's x negated (heading.image_heading of the mirrored corners, exactly)."""
+    renumbered, the heading's x negated (heading.image_heading of the mirrored corners, exactly),
+    and where given, the crops' positions as in the mirrored input (mirror_position)."""
     x, corners, mask, heading = x.clone(), corners.clone(), mask.clone(), heading.clone()
     x[flip] = x[flip].flip(-1)
     corners[flip] = mirror_corners(corners[flip])
     mask[flip] = mask[flip][:, list(FLIP_IDX)]
     heading[flip] = heading[flip] * heading.new_tensor(MIRROR_HEADING)
-    return x, corners, mask, heading
+    if where is not None:
+        where = where.clone()
+        where[flip] = mirror_position(where[flip])
+    return x, corners, mask, heading, where
 
 
 def stage_loss(net: CropNet | SplitCropNet, x: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor, heading: torch.Tensor,
-               cls: torch.Tensor, cfg: CropTrainConfig) -> tuple[torch.Tensor, dict[str, float]]:
+               cls: torch.Tensor, cfg: CropTrainConfig, where: torch.Tensor | None = None
+               ) -> tuple[torch.Tensor, dict[str, float]]:
     """The joint training's crop terms (detector/loss.py) on one batch, weighed by cfg's gains (the
-    corners' is 1), and each term's value."""
-    h, t, logits = outputs_of_crops(net, x)
+    corners' is 1), and each term's value; `where`, the crops' positions, for a net that reads them."""
+    h, t, logits = outputs_of_crops(net, x, where=where if getattr(net, "position", False) else None)
     corner = ((t - corners).abs().sum(-1) * mask).sum() / mask.sum().clamp(min=1)
     head = heading_loss(h, heading)
     parts = {"crop_corners": corner, "heading_crop": head}
@@ -213,10 +226,11 @@ def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig
     while step < cfg.steps:
         idx = torch.from_numpy(rng.choice(len(data), cfg.batch, p=p))
         flip = torch.from_numpy(rng.random(cfg.batch) < 0.5)
-        x, corners, mask, heading = mirror_batch(data.crops[idx].float().div_(255), data.corners[idx],
-                                                 data.mask[idx], data.heading[idx], flip)
+        x, corners, mask, heading, where = mirror_batch(
+            data.crops[idx].float().div_(255), data.corners[idx], data.mask[idx], data.heading[idx], flip,
+            None if data.where is None else data.where[idx])
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=cfg.amp == "bf16"):
-            loss, parts = stage_loss(net, x, corners, mask, heading, data.cls[idx], cfg)
+            loss, parts = stage_loss(net, x, corners, mask, heading, data.cls[idx], cfg, where)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -244,18 +258,23 @@ class StageScore:
     placed_front: float  # ... whose placed corners' own image heading does
     class_acc: float  # share of crops named their labelled class (NaN for a stage without classes)
     objects: int
+    # median distance of the placed bottom face's centre from the top face's, against the labelled
+    # corners' (objects with all eight labelled), / sqrt(box area): what tilts a lifted box most
+    # (benchmarks/adherence_sources.py)
+    vertical_rel: float = float("nan")
 
 
 def score_stage(net: CropNet | SplitCropNet, data: CropSet, batch: int = 256) -> StageScore:
     """Corners placed as prediction places them (crop_stage.refine: mirror-averaged, turned by the
     heading) on crops cut about `data.boxes`, scored against the labelled corners."""
     net.eval()
-    rel, placed, layout, front, placed_front, right = [], [], [], [], [], []
+    rel, placed, layout, front, placed_front, right, vertical = [], [], [], [], [], [], []
     with torch.no_grad():
         for i in range(0, len(data), batch):
             sl = slice(i, i + batch)
             boxes = data.boxes[sl]
-            h, t, logits = outputs_of_crops(net, data.crops[sl].float().div_(255), mirror=True)
+            where = data.where[sl] if getattr(net, "position", False) else None
+            h, t, logits = outputs_of_crops(net, data.crops[sl].float().div_(255), mirror=True, where=where)
             true_xy = from_crop_units(data.corners[sl], boxes)
             as_placed = from_crop_units(t, boxes)
             xy = orient(as_placed, box_area(boxes), h)
@@ -265,6 +284,11 @@ def score_stage(net: CropNet | SplitCropNet, data: CropSet, batch: int = 256) ->
             turned = (xy[:, list(TURN_IDX)] - true_xy).norm(dim=-1) / scale
             better = ((turned * m).sum(1) < (d * m).sum(1))[:, None]
             rel.append(d[m])
+            full = m.all(1)
+
+            def offset(k: torch.Tensor) -> torch.Tensor:
+                return k[full, 4:].mean(1) - k[full, :4].mean(1)
+            vertical.append((offset(as_placed) - offset(true_xy)).norm(dim=-1) / scale[full, 0])
             placed.append(((as_placed - true_xy).norm(dim=-1) / scale)[m])
             layout.append(torch.where(better, turned, d)[m])
             target = data.heading[sl]
@@ -276,20 +300,22 @@ def score_stage(net: CropNet | SplitCropNet, data: CropSet, batch: int = 256) ->
     acc = float(torch.cat(right).float().mean()) if right else float("nan")
     return StageScore(float(torch.cat(rel).median()), float(torch.cat(placed).median()),
                       float(torch.cat(layout).median()), float(torch.cat(front).float().mean()),
-                      float(torch.cat(placed_front).float().mean()), acc, len(data))
+                      float(torch.cat(placed_front).float().mean()), acc, len(data),
+                      float(torch.cat(vertical).median()) if sum(len(v) for v in vertical) else float("nan"))
 
 
 def attach_stage(state: dict[str, Any], net: CropNet | SplitCropNet, size: int, record: dict[str, Any]
                  ) -> dict[str, Any]:
     """A detector checkpoint `state` with its crop stage replaced by `net`, of crops `size` px (added
     where it has none):
-    the config's heading_crop, crop_classes and crop_split set to the net's, its crop_net tensors in the model
+    the config's heading_crop, crop_classes, crop_split and crop_position set to the net's, its crop_net tensors in the model
     (the weights prediction uses) and, where the checkpoint keeps one, the raw model; `record`
     (how the stage was trained) under "crop_stage". The detector's own tensors are untouched."""
     config = dict(state["config"])
     config["heading_crop"] = size
     config["crop_classes"] = net.num_classes > 0
     config["crop_split"] = isinstance(net, SplitCropNet)
+    config["crop_position"] = bool(net.position)
     tensors = {f"crop_net.{k}": v.detach().clone() for k, v in net.state_dict().items()}
     out = dict(state)
     out["config"] = config

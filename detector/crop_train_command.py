@@ -16,6 +16,10 @@ import time
 from pathlib import Path
 
 
+ADDED_LATER = {"position": False}
+"""Record fields that a stage written before they existed lacks, with the value it was trained with."""
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from omnigen.detector.crop_train_config import CropTrainConfig  # plain data: no torch for --help
 
@@ -37,6 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", action=argparse.BooleanOptionalAction, default=True,
                    help="with classes: name them with a crop net of their own, not the corners' "
                         "(crop_stage.SplitCropNet: in one small net the class term costs the corners)")
+    p.add_argument("--position", action=argparse.BooleanOptionalAction, default=False,
+                   help="tell the corners' net where each crop was cut from its input (crop_stage.crop_position): "
+                        "the direction of an object's vertical edges depends on it")
     p.add_argument("--heading-gain", type=float, default=CropTrainConfig.heading_gain,
                    help="gain of the heading term beside the corners' (benchmarks/crop_apart.py measured 1, 0.3, "
                         "0.1 and 0.03)")
@@ -83,9 +90,9 @@ def run(args: argparse.Namespace) -> int:
     # the detector's bytes too: a detector trained again into the same last.pt is another input
     call = {"trained": "apart", "weights": str(weights), "weights_sha256": file_digest(weights),
             "dataset": str(args.dataset), "train_split": args.train_split, "crop": size, "classes": classes,
-            "split": split, "imgsz": imgsz, "config": asdict(cfg)}
+            "split": split, "position": args.position, "imgsz": imgsz, "config": asdict(cfg)}
     if out.exists():
-        done = load_checkpoint(out).get("crop_stage", {})
+        done = {**ADDED_LATER, **load_checkpoint(out).get("crop_stage", {})}
         if {k: done.get(k) for k in call} == call:
             print(f"{out}: already trained with these arguments; delete it to train again")
             return 0
@@ -103,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"crops: train {len(sets['train'])} ({cfg.copies} an object, split {args.train_split}), "
           f"{val_name} {len(sets['val'])} ({time.perf_counter() - start:.1f} s)", file=sys.stderr, flush=True)
 
-    net = new_stage(size, len(taxonomy.classes) if classes else 0, cfg.seed, split)
+    net = new_stage(size, len(taxonomy.classes) if classes else 0, cfg.seed, split, args.position)
     bar = iter(progress(range(cfg.steps), "train-crop", total=cfg.steps, unit="step"))
     t0 = time.perf_counter()
 

@@ -60,6 +60,7 @@ class DetectorConfig:
     heading_crop: int = 0  # side of the crops a second stage places each object's corners and front from (crop_stage.py); 0: none
     crop_classes: bool = False  # the crop stage names each crop's class too, and prediction rescores by it (crop_stage.py)
     crop_split: bool = False  # ...from a crop net of their own, not the corners' (crop_stage.SplitCropNet)
+    crop_position: bool = False  # the crop stage's corners' net is told where each crop was cut (crop_stage.crop_position)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -92,6 +93,8 @@ class DetectorConfig:
         if self.crop_split and not self.crop_classes:
             raise ValueError("DetectorConfig.crop_split: gives the crop stage's classes a net of their own; "
                              "needs crop_classes")
+        if self.crop_position and not self.heading_crop:
+            raise ValueError("DetectorConfig.crop_position: needs the crop stage (heading_crop > 0)")
         if self.reg_max != REG_MAX:
             raise ValueError(f"DetectorConfig.reg_max: decoding is built for {REG_MAX} bins, got {self.reg_max}")
 
@@ -136,9 +139,10 @@ class KeypointDetector(nn.Module):
                                  cfg.kpt_mode, cfg.kpt_turn, cfg.kpt_hidden, cfg.kpt_heading)
         self.crop_net = None
         if cfg.crop_split:
-            self.crop_net = SplitCropNet(cfg.heading_crop, cfg.num_classes)
+            self.crop_net = SplitCropNet(cfg.heading_crop, cfg.num_classes, position=cfg.crop_position)
         elif cfg.heading_crop:
-            self.crop_net = CropNet(cfg.heading_crop, num_classes=cfg.num_classes if cfg.crop_classes else 0)
+            self.crop_net = CropNet(cfg.heading_crop, num_classes=cfg.num_classes if cfg.crop_classes else 0,
+                                    position=cfg.crop_position)
 
     def forward(self, images: torch.Tensor, crops: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
                 ) -> HeadOutput:

@@ -15,10 +15,12 @@ from omnigen.detector.crop_train_config import CropTrainConfig  # noqa: E402
 
 
 def test_variants_parse_into_configs_and_bad_ones_are_refused_by_name():
-    name, cfg, split = crop_apart.parse_variant("flat:balance=0.5,class_gain=0.25,batch=8,split=0", 30, copies=2)
+    name, cfg, split, position = crop_apart.parse_variant("flat:balance=0.5,class_gain=0.25,batch=8,split=0", 30,
+                                                          copies=2)
     assert name == "flat" and cfg == CropTrainConfig(steps=30, balance=0.5, class_gain=0.25, batch=8, copies=2)
-    assert split is False
-    assert crop_apart.parse_variant("default:", 7) == ("default", CropTrainConfig(steps=7), True)
+    assert split is False and position is False
+    assert crop_apart.parse_variant("default:", 7) == ("default", CropTrainConfig(steps=7), True, False)
+    assert crop_apart.parse_variant("where:position=1", 7)[3] is True
     assert crop_apart.parse_variant("half:amp=bf16", 7)[1].amp == "bf16"
     for bad, message in (("x:speed=2", "'speed' is not one of"), ("x:balance=much", "not a number"),
                          (":balance=0", "a name first"), ("x:balance=2", "balance"),
@@ -31,7 +33,7 @@ def test_trains_each_variant_and_scores_it_beside_the_detectors_stage(split_fake
                                                                        tmp_path, capsys):
     weights = detector_checkpoint(tmp_path / "det.pt", 32, crop_classes=True)
     argv = [str(split_fake_dataset.root), str(weights), "--steps", "3", "--copies", "1",
-            "--variant", "a:batch=8", "--variant", "b:batch=8,balance=0,heading_gain=0"]
+            "--variant", "a:batch=8", "--variant", "b:batch=8,balance=0,heading_gain=0,position=1"]
     assert crop_apart.main(argv) == 0
     out = capsys.readouterr().out
     assert "the detector's stage" in out and "a: " in out and "b: " in out

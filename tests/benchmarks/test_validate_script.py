@@ -490,8 +490,10 @@ def test_the_results_say_when_the_crop_stage_was_trained_apart():
     made["runs"][0]["crop_stage"] = {"steps_done": 4000, "seconds": 812.5, "score_split": "test",
                                      "score": {"corner_rel": 0.17, "front": 0.85, "class_acc": 0.84}}
     line = validate.protocol_line(made)[1]
-    assert "omnigen train-crop" in line and "4000 steps, 812.5 s" in line
+    assert "omnigen train-crop" in line and "4000 steps, 812.5 s)" in line
     assert "corner error rel 0.170, front right 0.850, class accuracy 0.840" in line
+    made["runs"][0]["crop_stage"]["position"] = True
+    assert "812.5 s, told where each crop was cut (--position))" in validate.protocol_line(made)[1]
 
 
 def test_predictions_of_a_checkpoint_rewritten_in_place_are_made_again(tmp_path):
@@ -514,10 +516,11 @@ def test_predictions_of_a_checkpoint_rewritten_in_place_are_made_again(tmp_path)
     assert calls == [True, True] and validate.file_digest(weights) in (out / "predicted").read_text()
 
 
-def test_the_crop_stage_trains_in_bf16_where_the_detector_does():
+def test_the_crop_stage_trains_7000_steps_told_where_its_crops_were_and_in_bf16_where_the_detector_does():
     """train-crop takes --amp bf16 where training's resolved precision is bf16 (a CPU that runs it
     natively) and float32 otherwise: its --amp knows only off and bf16, a GPU's 'auto' among neither."""
     assert validate.crop_amp("bf16") == ["--amp", "bf16"]
     for other in ("auto", "off", "fp16"):
         assert validate.crop_amp(other) == []
     assert validate.build_parser().parse_args([]).crop_steps == 7000
+    assert validate.build_parser().parse_args([]).crop_position is True  # train-crop --position

@@ -637,3 +637,62 @@ def test_the_detector_builds_a_split_stage_only_with_classes_and_predicts_with_i
     kpts, probs = refine(model.crop_net, 32, torch.rand(1, 3, 64, 64), torch.zeros(1, dtype=torch.long), boxes,
                          torch.zeros(1, 8, 3))
     assert kpts.shape == (1, 8, 3) and probs.shape == (1, 3) and torch.allclose(probs.sum(-1), torch.ones(1))
+
+
+def test_crop_position_says_where_the_crop_was_cut_and_mirrors_with_the_image():
+    from omnigen.detector.crop_stage import crop_position, mirror_position
+
+    hw = torch.tensor([480, 640])
+    boxes = torch.tensor([[309.5, 229.5, 329.5, 249.5], [0.0, 0.0, 64.0, 32.0]])
+    where = crop_position(boxes, hw)
+    assert torch.allclose(where[0, :2], torch.zeros(2), atol=1e-6)  # centred on the image's centre
+    assert torch.allclose(where[1, :2], torch.tensor([(32.0 - 319.5) / 640, (16.0 - 239.5) / 640]))
+    assert torch.allclose(where[:, 2], torch.log(torch.tensor([20.0, 64.0]) * 1.2 / 640))
+    mirrored = torch.stack([639.0 - boxes[:, 2], boxes[:, 1], 639.0 - boxes[:, 0], boxes[:, 3]], 1)
+    assert torch.allclose(crop_position(mirrored, hw), mirror_position(where), atol=1e-6)
+
+
+def test_a_stage_told_where_its_crops_were_learns_what_the_crop_alone_cannot_say():
+    """Identical crops whose corners lie one way left of the image's centre and the other way right
+    of it (as vertical edges point at a vanishing point): a net told the position learns them, one
+    without it cannot. It needs the position, and a split stage gives it to the corners' net only."""
+    from omnigen.detector.crop_stage import SplitCropNet, crop_position
+
+    def batch(n, gen):
+        boxes = torch.rand(n, 1, generator=gen) * 560 + torch.tensor([[0.0, 200.0, 40.0, 240.0]])
+        where = crop_position(boxes, torch.tensor([480, 640]))
+        target = torch.zeros(n, 8, 2)
+        target[:, 4:, 0] = where[:, :1] * 2  # the bottom face leans towards the image's sides
+        return torch.full((n, 3, 32, 32), 0.5), where, target
+
+    errors = {}
+    for position in (False, True):
+        torch.manual_seed(0)
+        gen = torch.Generator().manual_seed(0)
+        net = CropNet(32, width=8, position=position)
+        opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+        for _ in range(150):
+            x, where, target = batch(32, gen)
+            _, t, _ = split_outputs(net(x, where))
+            loss = (t - target).abs().mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        net.eval()
+        x, where, target = batch(64, gen)
+        with torch.no_grad():
+            errors[position] = float((split_outputs(net(x, where))[1] - target).abs().mean())
+    assert errors[True] < 0.3 * errors[False], errors
+    with pytest.raises(ValueError, match="crop_position is needed"):
+        CropNet(32, width=8, position=True)(torch.rand(2, 3, 32, 32))
+    split = SplitCropNet(32, 3, width=8, position=True)
+    assert split.corners.position and not split.classes.position
+    assert split(torch.rand(2, 3, 32, 32), torch.zeros(2, 3)).shape == (2, 3 + 16 + 3)
+    with pytest.raises(ValueError, match="crop_position"):
+        DetectorConfig(num_classes=3, crop_position=True, **TINY)
+    cfg = DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=32, crop_position=True, **TINY)
+    assert DetectorConfig.from_dict(cfg.to_dict()).crop_position is True
+    assert KeypointDetector(cfg).crop_net.position
+    old = cfg.to_dict()
+    del old["crop_position"]  # a checkpoint written before the field: a stage without it
+    assert DetectorConfig.from_dict(old).crop_position is False

@@ -43,7 +43,8 @@ def test_mirroring_a_batch_mirrors_the_heading_as_image_heading_of_the_mirrored_
     heading = image_heading(xy, area, mask)
     x = torch.rand(6, 3, 16, 16, generator=g)
     flip = torch.tensor([True, False, True, True, False, True])
-    mx, mc, mm, mh = mirror_batch(x, xy, mask, heading, flip)
+    mx, mc, mm, mh, none = mirror_batch(x, xy, mask, heading, flip)
+    assert none is None  # no positions given, none returned
     mirrored_xy = xy[:, list(FLIP_IDX)] * torch.tensor([-1.0, 1.0])
     assert torch.allclose(mh[flip], image_heading(mirrored_xy, area, mask[:, list(FLIP_IDX)])[flip], atol=1e-6)
     assert torch.equal(mh[~flip], heading[~flip]) and torch.equal(mc[flip], mirrored_xy[flip])
@@ -304,3 +305,41 @@ def test_bf16_training_runs_and_learns(split_fake_dataset):
     history = train_stage(data, net, CropTrainConfig(steps=40, batch=16, seed=1, amp="bf16"))
     assert np.mean([h["crop_corners"] for h in history[-5:]]) < np.mean([h["crop_corners"] for h in history[:5]])
     assert all(p.dtype == torch.float32 for p in net.parameters())  # autocast: the weights stay float32
+
+
+def test_train_crop_tells_the_stage_where_its_crops_were_and_keeps_stages_written_before_the_choice(
+        split_fake_dataset, detector_checkpoint, tmp_path, capsys):
+    """--position: every crop carries where it was cut (mirrored with it), the stage is trained and
+    written with crop_position, load_model builds it again and predict runs it; a stage written
+    before --position existed counts as one without, so its rerun is still 'already trained'."""
+    from omnigen.detector.checkpoint import save_checkpoint
+    from omnigen.detector.crop_stage import crop_position, mirror_position
+
+    data = _crops(split_fake_dataset, "train", 1, jitter=True)
+    assert data.where is not None and torch.allclose(data.where, crop_position(data.boxes, torch.tensor([128, 128])))  # letterboxed to 128
+    flip = torch.arange(len(data)) % 2 == 0
+    *_, where = mirror_batch(data.crops.float(), data.corners, data.mask, data.heading, flip, data.where)
+    assert torch.equal(where[flip], mirror_position(data.where[flip])) and torch.equal(where[~flip], data.where[~flip])
+    weights = detector_checkpoint(tmp_path / "det.pt", 32, crop_classes=True)
+    out = tmp_path / "where.pt"
+    args = ["train-crop", str(split_fake_dataset.root), "--weights", str(weights), "--out", str(out),
+            "--steps", "2", "--batch", "4", "--copies", "1", "--position"]
+    assert omnigen(args) == 0
+    state = load_checkpoint(out)
+    assert state["crop_stage"]["position"] is True and state["config"]["crop_position"] is True
+    model, _ = load_model(out)
+    assert model.crop_net.position and model.crop_net.corners.position
+    assert all(torch.equal(model.state_dict()[k], v) for k, v in state["model"].items())
+    pred_dir = tmp_path / "pred"
+    assert omnigen(["predict", str(out), str(split_fake_dataset.root / "images"), "--out", str(pred_dir),
+                    "--no-overlays"]) == 0
+    capsys.readouterr()
+    assert omnigen(args[:-1]) == 1 and "not trained with these arguments" in capsys.readouterr().err
+    plain = tmp_path / "plain.pt"
+    assert omnigen([*args[:4], "--out", str(plain), *args[6:-1]]) == 0
+    old = load_checkpoint(plain)
+    del old["crop_stage"]["position"]  # as train-crop wrote it before --position
+    del old["config"]["crop_position"]
+    save_checkpoint(plain, old)
+    capsys.readouterr()
+    assert omnigen([*args[:4], "--out", str(plain), *args[6:-1]]) == 0 and "already trained" in capsys.readouterr().out

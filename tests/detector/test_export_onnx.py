@@ -146,3 +146,20 @@ def test_a_split_crop_stage_exports_as_one_graph(tmp_path):
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     assert [o.name for o in sess.get_outputs()] == ["refined", "class_probs"]
     assert crop_stage_max_difference(model, path, 64, seed=1) < 1e-4
+
+
+def test_a_stage_told_where_its_crops_were_exports_and_places_as_pytorch_at_any_size(tmp_path):
+    """crop_position reads the input's size from the graph, so a --dynamic export traced at one
+    size tells the net the right positions at another."""
+    from omnigen.detector.export_onnx import crop_stage_max_difference, export_crop_stage
+
+    torch.manual_seed(6)
+    cfg = DetectorConfig("n", "c3k2", p2=False, num_classes=2, width=0.0625, depth=0.33, max_channels=64,
+                         kpt_heading=True, heading_crop=32, crop_classes=True, crop_split=True, crop_position=True)
+    model = KeypointDetector(cfg).eval()
+    with torch.no_grad():  # the position's weights large, so that a wrong position would show
+        model.crop_net.corners.hidden[0].weight[:, -3:] *= 50
+    path = tmp_path / "m-position.onnx"
+    export_crop_stage(model, path, 64, dynamic=True)
+    for size in (64, (96, 160)):
+        assert crop_stage_max_difference(model, path, size, seed=1) < 1e-4
