@@ -38,10 +38,13 @@ DEFAULT_VARIANTS = ("default:", "one-net:split=0", "joint-recipe:split=0,balance
 
 
 def parse_variant(text: str, steps: int, copies: int = 4):
-    """'NAME:key=value,...' -> (NAME, CropTrainConfig, split): the command's defaults, `steps`,
-    `copies` (the crops are cut once for every variant) and the keys given (CropTrainConfig's
-    fields but copies, and `split`: 1, the default, names the classes with a net of their own
-    (crop_stage.SplitCropNet), 0 with the corners' net); a clear exit naming a bad key or value."""
+    """'NAME:key=value,...' -> (NAME, CropTrainConfig, split, position): the command's defaults,
+    `steps`, `copies` (the crops are cut once for every variant) and the keys given (CropTrainConfig's
+    fields but copies; `split`: 1, the default, names the classes with a net of their own
+    (crop_stage.SplitCropNet), 0 with the corners' net; `position`: 1 tells the corners' net where
+    each crop was cut, crop_stage.crop_position. Unlike train-crop's, its default is 0, so that the
+    variants written down before it existed print what they printed); a clear exit naming a bad key
+    or value."""
     from omnigen.detector.crop_train_config import CropTrainConfig
 
     name, _, spec = text.partition(":")
@@ -111,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
         seconds = time.perf_counter() - t
         last = sum(h["crop_corners"] for h in history[-100:]) / min(len(history), 100)
         scores[name] = (score_stage(net, sets["test"]), f"{seconds:.0f}", f"{last:.3f}")
-        print(f"{name}: {asdict(cfg)}, split {split and nc > 0} trained in {seconds:.0f} s", flush=True)
+        print(f"{name}: {asdict(cfg)}, split {split and nc > 0}, position {position} trained in {seconds:.0f} s",
+              flush=True)
     print_table(f"crop stage trained apart, {a.steps} steps a variant: test crops about moved boxes",
                 ["stage", "objects", "corner rel", "placed rel", "layout rel", "vertical rel", "front right",
                  "placed front", "class acc", "train s", "corner L1, last 100"],

@@ -258,6 +258,10 @@ def load_stage(weights: Path, crop: int):
     net = model.crop_net
     if net is None:
         raise SystemExit(f"crop_layout: {weights}: has no crop stage (trained without --heading-crop)")
+    if model.cfg.crop_position:
+        raise SystemExit(f"crop_layout: {weights}: its crop stage is told where each crop was cut (train-crop "
+                         "--position), which these crops do not record; score it with benchmarks/crop_apart.py or "
+                         "compare_checkpoints.py")
     if model.cfg.heading_crop != crop:
         raise SystemExit(f"crop_layout: {weights}: its crop stage cuts {model.cfg.heading_crop}-pixel crops; "
                          f"pass --crop {model.cfg.heading_crop}")

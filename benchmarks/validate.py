@@ -451,7 +451,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "detector. Ignored without --heading-crop")
     ap.add_argument("--crop-position", action=argparse.BooleanOptionalAction, default=True,
                     help="the crop stage trained apart is told where each crop was cut (omnigen train-crop "
-                         "--position: the direction of an object's vertical edges depends on it)")
+                         "--position: the direction of an object's vertical edges depends on it); ignored without "
+                         "--heading-crop or with --crop-steps 0")
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
                          "natively, a step in about 0.65 of the time by benchmarks/bench_train_step.py; else auto)")
@@ -545,7 +546,7 @@ def main(argv: list[str] | None = None) -> int:
             weights = crop_stage(run, ["train-crop", str(dataset), "--weights", str(out / "last.pt"),
                                        "--out", str(out / "crop.pt"), "--steps", str(args.crop_steps),
                                        "--seed", str(args.seed), *crop_amp(args.amp),
-                                       *(["--position"] if args.crop_position else [])], out)
+                                       "--position" if args.crop_position else "--no-position"], out)
             stage = load_checkpoint(weights).get("crop_stage")
         preds = predict_stage(run, out, uov, EVAL_MULTI_LABEL, lambda multi_label: predict_dataset(
             weights, uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch, device=args.device,

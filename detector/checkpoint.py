@@ -69,9 +69,9 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     state = load_checkpoint(path)
     theirs, mine = DetectorConfig.from_dict(state["config"]).to_dict(), model.cfg.to_dict()
     for key in mine:
-        # the crop stage is a network of its own beside the detector: it may be added, dropped or
-        # resized without changing any detector tensor (resized, its flattened head changes shape and
-        # the whole stage starts fresh)
+        # the crop stage is a network of its own beside the detector: it may be added, dropped,
+        # resized or told where its crops were cut without changing any detector tensor (then the
+        # whole stage starts fresh: a hidden layer of new inputs under a trained one is neither)
         if key not in ("num_classes", "heading_crop", "crop_classes", "crop_split", "crop_position") and theirs.get(key) != mine[key]:
             raise ValueError(f"{path}: config field {key!r} is {theirs.get(key)!r}, this run builds {mine[key]!r}: "
                              "--weights needs the same architecture (only the classes may differ)")
@@ -79,6 +79,8 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     dst = model.state_dict()
     old_classes = list(state["classes"])
     new_classes = list(taxonomy.classes)
+    other_stage = (theirs.get("heading_crop") != mine["heading_crop"]
+                   or bool(theirs.get("crop_position")) != bool(mine["crop_position"]))
     last_layers = {f"head.cls.{i}.{len(branch) - 1}.{name}"
                    for i, branch in enumerate(model.head.cls) for name in ("weight", "bias")}
     fresh, partial, fresh_crop = [], [], []
@@ -93,6 +95,8 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
                 partial.append(key)
             else:
                 fresh.append(key)
+        elif key.startswith("crop_net.") and other_stage:
+            fresh_crop.append(key)
         elif key.startswith(("crop_net.out.", "crop_net.classes.out.")) and model.cfg.crop_classes \
                 and old_classes != new_classes:
             fresh_crop.append(key)  # its last rows are classes, and other ones
@@ -116,7 +120,8 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     if fresh:
         notes.append(f"{path}: re-initialised {len(fresh)} class-head tensor(s): {', '.join(fresh)}")
     if fresh_crop:
-        notes.append(f"{path}: has no crop stage of this shape (its crop side, or the classes it names); "
+        notes.append(f"{path}: has no crop stage of this shape (its crop side, whether it is told where its crops "
+                     f"were cut, or the classes it names); "
                      f"the stage starts fresh where it differs ({len(fresh_crop)} tensors: {', '.join(fresh_crop)})")
     if partial:
         notes.append(f"{path}: re-initialised the rows of new classes in {', '.join(partial)}")

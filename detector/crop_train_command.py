@@ -41,9 +41,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", action=argparse.BooleanOptionalAction, default=True,
                    help="with classes: name them with a crop net of their own, not the corners' "
                         "(crop_stage.SplitCropNet: in one small net the class term costs the corners)")
-    p.add_argument("--position", action=argparse.BooleanOptionalAction, default=False,
+    p.add_argument("--position", action=argparse.BooleanOptionalAction, default=True,
                    help="tell the corners' net where each crop was cut from its input (crop_stage.crop_position): "
-                        "the direction of an object's vertical edges depends on it")
+                        "the direction of an object's vertical edges depends on it (make validate: adherence "
+                        "7.26 -> 5.84 deg, docs/detector-training.md)")
     p.add_argument("--heading-gain", type=float, default=CropTrainConfig.heading_gain,
                    help="gain of the heading term beside the corners' (benchmarks/crop_apart.py measured 1, 0.3, "
                         "0.1 and 0.03)")

@@ -109,6 +109,8 @@ class TrainConfig:
     weights: str | None = None  # start from this checkpoint's (EMA) weights: a new run, not a resume
 
     def model_config(self, num_classes: int) -> DetectorConfig:
+        # never crop_position: joint training crops its augmented windows (--crop), where a crop's
+        # place in the window is not its place in the image; omnigen train-crop gives the position
         return DetectorConfig(scale=self.model, backbone=self.backbone, p2=self.p2, p6=self.p6, kpt_mode=self.kpt_mode,
                               kpt_turn=self.kpt_turn, kpt_hidden=self.kpt_hidden, kpt_heading=self.kpt_heading, heading_crop=self.heading_crop, crop_classes=self.crop_classes, crop_split=self.crop_split, num_classes=num_classes, width=self.width, depth=self.depth)
 

@@ -696,3 +696,52 @@ def test_a_stage_told_where_its_crops_were_learns_what_the_crop_alone_cannot_say
     old = cfg.to_dict()
     del old["crop_position"]  # a checkpoint written before the field: a stage without it
     assert DetectorConfig.from_dict(old).crop_position is False
+
+
+def test_weights_with_a_stage_told_its_positions_fine_tune_a_stage_without_as_a_fresh_one(tmp_path):
+    """A crop.pt whose stage reads crop positions into a model whose stage does not (or the other
+    way round, or at another crop side): the whole stage starts fresh, not its hidden layer alone
+    under a trained output layer; the detector's tensors are the checkpoint's; a note says why."""
+    from omnigen.detector.checkpoint import load_pretrained, save_checkpoint
+    from omnigen.taxonomy import load_taxonomy
+
+    torch.manual_seed(0)
+    fine = load_taxonomy("fine")
+    cfg = DetectorConfig(num_classes=12, kpt_heading=True, heading_crop=32, crop_position=True, **TINY)
+    src = KeypointDetector(cfg)
+    path = tmp_path / "where.pt"
+    save_checkpoint(path, {"config": cfg.to_dict(), "model": src.state_dict(), "classes": list(fine.classes)})
+    for mine in (dict(heading_crop=32), dict(heading_crop=48, crop_position=True)):
+        torch.manual_seed(1)
+        model = KeypointDetector(DetectorConfig(num_classes=12, kpt_heading=True, **mine, **TINY))
+        fresh = {k: v.clone() for k, v in model.state_dict().items()}
+        notes = load_pretrained(model, path, fine)
+        assert len(notes) == 1 and "told where its crops were cut" in notes[0]
+        for k, v in model.state_dict().items():
+            want = fresh[k] if k.startswith("crop_net.") else src.state_dict()[k]
+            assert torch.equal(v, want), k
+    same = KeypointDetector(cfg)
+    assert load_pretrained(same, path, fine) == []  # the same stage: every tensor loads
+    assert all(torch.equal(v, src.state_dict()[k]) for k, v in same.state_dict().items())
+
+
+def test_the_mirror_average_of_a_positioned_stage_is_that_of_the_mirrored_image():
+    """Prediction averages each crop's outputs with its mirror image's, told the mirrored position:
+    exactly what the net gives for the mirrored image's crop at the mirrored box, mapped back."""
+    from omnigen.detector.crop_stage import MIRROR_HEADING, crop_position
+
+    torch.manual_seed(0)
+    net = CropNet(32, width=8, position=True).eval()
+    with torch.no_grad():
+        net.hidden[0].weight[:, -3:] *= 50  # a wrong position would show
+    image = torch.rand(1, 3, 48, 80)
+    boxes = torch.tensor([[5.0, 6.0, 30.0, 40.0], [50.0, 10.0, 75.0, 30.0]])
+    index = torch.zeros(2, dtype=torch.long)
+    with torch.no_grad():
+        h, t, _ = crop_outputs(net, image, index, boxes, 32, mirror=True)
+        h1, t1, _ = crop_outputs(net, image, index, boxes, 32)
+        mirrored = torch.stack([79.0 - boxes[:, 2], boxes[:, 1], 79.0 - boxes[:, 0], boxes[:, 3]], 1)
+        flipped = image.flip(-1)
+        h2, t2, _ = split_outputs(net(crop_boxes(flipped, index, mirrored, 32), crop_position(mirrored, torch.tensor([48, 80]))))
+    assert torch.allclose(t, (t1 + mirror_corners(t2)) / 2, atol=1e-5)
+    assert torch.allclose(h, (h1 + h2 * torch.tensor(MIRROR_HEADING)) / 2, atol=1e-5)

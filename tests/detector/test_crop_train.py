@@ -160,13 +160,21 @@ def test_score_stage_scores_a_stage_that_knows_the_answers_as_exact_and_a_turned
 
     s = score_stage(Oracle(data.corners, data.heading), data, batch=len(data))
     assert s.objects == len(data) and s.corner_rel < 1e-5 and s.layout_rel < 1e-5 and s.placed_rel < 1e-5
+    assert s.vertical_rel < 1e-5  # the bottom face's offset from the top face: exact too
     assert s.front == 1.0 and s.placed_front == 1.0 and s.class_acc == 1.0
     # the heading turned: the corners are faced the other way, wrong by the turn and right as a layout
     t = score_stage(Oracle(data.corners, data.heading, turn=True), data, batch=len(data))
     assert t.front == 0.0 and t.corner_rel > 0.1 and t.layout_rel < 1e-5
     assert t.placed_rel < 1e-5 and t.placed_front == 1.0  # as placed, before the heading turned them
+    assert t.vertical_rel < 1e-5  # a turn keeps each face, so the offset between them
     net = score_stage(new_stage(32, 12, 0), data)  # an untrained net: a number, not a crash
-    assert 0 < net.layout_rel and 0 <= net.front <= 1 and 0 <= net.class_acc <= 1
+    assert 0 < net.layout_rel and 0 <= net.front <= 1 and 0 <= net.class_acc <= 1 and net.vertical_rel > 0
+    lifted = data.corners.clone()
+    lifted[:, 4:, 1] -= 0.1  # the bottom face moved up by 0.1 crop units: the offset is off by that
+    v = score_stage(Oracle(lifted, data.heading), data, batch=len(data)).vertical_rel
+    full = data.mask.all(1)
+    half = (data.boxes[:, 2:] - data.boxes[:, :2]).amax(1) * 0.6  # crop_stage.half_side
+    assert v == pytest.approx(float((0.1 * half / data.true_area.sqrt())[full].median()), rel=1e-4)
 
 
 def test_attach_stage_replaces_only_the_crop_stage_and_adds_one_where_there_is_none(detector_checkpoint, tmp_path):
@@ -316,7 +324,8 @@ def test_train_crop_tells_the_stage_where_its_crops_were_and_keeps_stages_writte
     from omnigen.detector.crop_stage import crop_position, mirror_position
 
     data = _crops(split_fake_dataset, "train", 1, jitter=True)
-    assert data.where is not None and torch.allclose(data.where, crop_position(data.boxes, torch.tensor([128, 128])))  # letterboxed to 128
+    letterboxed = torch.tensor([128, 128])  # _crops' input size
+    assert data.where is not None and torch.allclose(data.where, crop_position(data.boxes, letterboxed))
     flip = torch.arange(len(data)) % 2 == 0
     *_, where = mirror_batch(data.crops.float(), data.corners, data.mask, data.heading, flip, data.where)
     assert torch.equal(where[flip], mirror_position(data.where[flip])) and torch.equal(where[~flip], data.where[~flip])
@@ -334,12 +343,14 @@ def test_train_crop_tells_the_stage_where_its_crops_were_and_keeps_stages_writte
     assert omnigen(["predict", str(out), str(split_fake_dataset.root / "images"), "--out", str(pred_dir),
                     "--no-overlays"]) == 0
     capsys.readouterr()
-    assert omnigen(args[:-1]) == 1 and "not trained with these arguments" in capsys.readouterr().err
+    assert omnigen(args[:-1]) == 0 and "already trained" in capsys.readouterr().out  # --position is the default
+    assert omnigen([*args[:-1], "--no-position"]) == 1 and "not trained with these arguments" in capsys.readouterr().err
     plain = tmp_path / "plain.pt"
-    assert omnigen([*args[:4], "--out", str(plain), *args[6:-1]]) == 0
+    assert omnigen([*args[:4], "--out", str(plain), *args[6:-1], "--no-position"]) == 0
     old = load_checkpoint(plain)
     del old["crop_stage"]["position"]  # as train-crop wrote it before --position
     del old["config"]["crop_position"]
     save_checkpoint(plain, old)
     capsys.readouterr()
-    assert omnigen([*args[:4], "--out", str(plain), *args[6:-1]]) == 0 and "already trained" in capsys.readouterr().out
+    assert omnigen([*args[:4], "--out", str(plain), *args[6:-1], "--no-position"]) == 0
+    assert "already trained" in capsys.readouterr().out
