@@ -154,9 +154,13 @@ class SplitCropNet(nn.Module):
         if num_classes < 1:
             raise ValueError(f"SplitCropNet: names classes, so num_classes must be >= 1, got {num_classes}")
         self.num_classes = num_classes
-        self.position = position  # the corners' net's: where the crop was cut says nothing of its class
+        # only the corners' net is told the position: where the crop was cut says nothing of its class
         self.corners = CropNet(size, width, position=position)
         self.classes = CropNet(size, width, num_classes)
+
+    @property
+    def position(self) -> bool:
+        return self.corners.position
 
     def forward(self, crops: torch.Tensor, where: torch.Tensor | None = None) -> torch.Tensor:
         end = HEADING_CHANNELS + 2 * NUM_KEYPOINTS
@@ -295,16 +299,23 @@ def crop_outputs(net: CropNet, images: torch.Tensor, batch_index: torch.Tensor, 
     """Headings (N, 3), corners (N, 8, 2, crop units) and class logits (N, nc, or None) of the
     boxes' crops; with `mirror`, each averaged with the mirrored crop's (a class is the same
     mirrored). A net built with `position` is told where each crop was cut (`crop_position`)."""
-    where = None
-    if getattr(net, "position", False):
-        where = crop_position(boxes, torch.onnx.operators.shape_as_tensor(images)[2:])
+    where = crop_position(boxes, torch.onnx.operators.shape_as_tensor(images)[2:]) if reads_position(net) else None
     return outputs_of_crops(net, crop_boxes(images, batch_index, boxes, size), mirror, where)
+
+
+def reads_position(net: nn.Module) -> bool:
+    """Whether `net` was built to be told where its crops were cut (CropNet's `position`)."""
+    return bool(getattr(net, "position", False))
 
 
 def outputs_of_crops(net: CropNet, crops: torch.Tensor, mirror: bool = False, where: torch.Tensor | None = None
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """crop_outputs of crops already cut (N, 3, S, S in 0..1), and for a net built with `position`
-    their `crop_position`: benchmarks/crop_layout.py scores a trained stage on its own crops so."""
+    """crop_outputs of crops already cut (N, 3, S, S in 0..1) and their `crop_position` (`where`,
+    read only by a net built with `position`): benchmarks/crop_layout.py scores a trained stage on
+    its own crops so."""
+    if not reads_position(net):
+        where = None
+
     def run(x: torch.Tensor, w: torch.Tensor | None) -> torch.Tensor:
         return net(x) if w is None else net(x, w)
 

@@ -176,7 +176,7 @@ def stage_loss(net: CropNet | SplitCropNet, x: torch.Tensor, corners: torch.Tens
                ) -> tuple[torch.Tensor, dict[str, float]]:
     """The joint training's crop terms (detector/loss.py) on one batch, weighed by cfg's gains (the
     corners' is 1), and each term's value; `where`, the crops' positions, for a net that reads them."""
-    h, t, logits = outputs_of_crops(net, x, where=where if getattr(net, "position", False) else None)
+    h, t, logits = outputs_of_crops(net, x, where=where)
     corner = ((t - corners).abs().sum(-1) * mask).sum() / mask.sum().clamp(min=1)
     head = heading_loss(h, heading)
     parts = {"crop_corners": corner, "heading_crop": head}
@@ -273,7 +273,7 @@ def score_stage(net: CropNet | SplitCropNet, data: CropSet, batch: int = 256) ->
         for i in range(0, len(data), batch):
             sl = slice(i, i + batch)
             boxes = data.boxes[sl]
-            where = data.where[sl] if getattr(net, "position", False) else None
+            where = None if data.where is None else data.where[sl]
             h, t, logits = outputs_of_crops(net, data.crops[sl].float().div_(255), mirror=True, where=where)
             true_xy = from_crop_units(data.corners[sl], boxes)
             as_placed = from_crop_units(t, boxes)

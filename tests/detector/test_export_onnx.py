@@ -109,39 +109,22 @@ def test_crop_stage_model_exports_its_crop_stage_beside(tmp_path, capsys):
     assert float(layouts.std(0).max()) > 1e-3
 
 
-def test_a_class_naming_crop_stage_exports_its_class_probabilities(tmp_path):
-    """With crop_classes the stage's graph has a second output, class_probs (N, nc), as PyTorch gives it."""
+@pytest.mark.parametrize("split", [False, True])
+def test_a_class_naming_crop_stage_exports_its_class_probabilities(tmp_path, split):
+    """With crop_classes the stage's graph has a second output, class_probs (N, nc), as PyTorch gives
+    it; a stage whose classes come from a net of their own (crop_split, as omnigen train-crop writes
+    it) exports as one graph with the same two outputs."""
     import onnxruntime as ort
 
     from omnigen.detector.export_onnx import crop_stage_max_difference, export_crop_stage
 
     torch.manual_seed(3)
     cfg = DetectorConfig("n", "c3k2", p2=False, num_classes=2, width=0.0625, depth=0.33, max_channels=64,
-                         kpt_heading=True, heading_crop=32, crop_classes=True)
+                         kpt_heading=True, heading_crop=32, crop_classes=True, crop_split=split)
     model = KeypointDetector(cfg).eval()
     with torch.no_grad():
-        model.crop_net.out.bias[-2:] = torch.tensor([0.3, -0.4])
+        (model.crop_net.classes if split else model.crop_net).out.bias[-2:] = torch.tensor([0.3, -0.4])
     path = tmp_path / "m-crops.onnx"
-    export_crop_stage(model, path, 64)
-    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    assert [o.name for o in sess.get_outputs()] == ["refined", "class_probs"]
-    assert crop_stage_max_difference(model, path, 64, seed=1) < 1e-4
-
-
-def test_a_split_crop_stage_exports_as_one_graph(tmp_path):
-    """A stage whose classes come from a net of their own (crop_split, as omnigen train-crop writes
-    it) exports as one graph with the same two outputs, as PyTorch gives them."""
-    import onnxruntime as ort
-
-    from omnigen.detector.export_onnx import crop_stage_max_difference, export_crop_stage
-
-    torch.manual_seed(4)
-    cfg = DetectorConfig("n", "c3k2", p2=False, num_classes=2, width=0.0625, depth=0.33, max_channels=64,
-                         kpt_heading=True, heading_crop=32, crop_classes=True, crop_split=True)
-    model = KeypointDetector(cfg).eval()
-    with torch.no_grad():
-        model.crop_net.classes.out.bias[-2:] = torch.tensor([0.3, -0.4])
-    path = tmp_path / "m-split.onnx"
     export_crop_stage(model, path, 64)
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     assert [o.name for o in sess.get_outputs()] == ["refined", "class_probs"]
