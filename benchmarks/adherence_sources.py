@@ -45,70 +45,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from omnigen.conventions import NUM_KEYPOINTS  # noqa: E402
 
-TOP, BOTTOM = slice(0, 4), slice(4, 8)  # the contract's corners 0-3 and the ground-contact ones under them
-ROBUST_SCALE = 0.05
-"""IRLS's Cauchy scale, as the sine of the angle between an edge and the direction to the point:
-edges off by more than about 3 degrees weigh less and less."""
-
-
-def normalised(kp: np.ndarray, width: float, height: float) -> tuple[np.ndarray, float, np.ndarray]:
-    """Pixels -> coordinates about the image centre in units of its longer side (a vanishing point
-    far away stays well conditioned); the scale and offset to go back."""
-    scale, offset = float(max(width, height)), np.array([width / 2, height / 2])
-    return (kp - offset) / scale, scale, offset
-
-
-def fit_vertical_vanishing_point(kp: np.ndarray, weights: np.ndarray, width: float, height: float,
-                                 iterations: int = 5) -> np.ndarray:
-    """The unit homogeneous point (3,), in `normalised` coordinates, that the vertical edges of
-    boxes `kp` (N, 8, 2 pixels) point at: the least-squares point of their lines, each weighted
-    by its box's weight and its length (a short edge's direction is noise), reweighted by a
-    Cauchy function of each edge's angular miss (IRLS), so that a few wrong boxes do not pull it.
-    A point at infinity (an upright camera's vertical edges are parallel) has third component 0."""
-    x, _, _ = normalised(np.asarray(kp, dtype=np.float64), width, height)
-    top, bottom = x[:, TOP].reshape(-1, 2), x[:, BOTTOM].reshape(-1, 2)
-    ones = np.ones((len(top), 1))
-    lines = np.cross(np.hstack([top, ones]), np.hstack([bottom, ones]))
-    length = np.linalg.norm(lines[:, :2], axis=1)  # |bottom - top| for points at z = 1
-    ok = length > 1e-9
-    lines, top, bottom = lines[ok] / length[ok, None], top[ok], bottom[ok]
-    w = np.repeat(np.asarray(weights, dtype=np.float64), 4)[ok] * length[ok]
-    if not len(lines):
-        raise ValueError("fit_vertical_vanishing_point: no vertical edge of non-zero length")
-    edge = (bottom - top) / np.linalg.norm(bottom - top, axis=1, keepdims=True)
-    mid = (top + bottom) / 2
-    robust = np.ones(len(lines))
-    v = np.array([0.0, 1.0, 0.0])
-    for _ in range(iterations):
-        v = np.linalg.eigh((lines * (w * robust)[:, None]).T @ lines)[1][:, 0]
-        to_v = v[None, :2] - mid * v[2]
-        to_v /= np.maximum(np.linalg.norm(to_v, axis=1, keepdims=True), 1e-12)
-        sine = np.abs(edge[:, 0] * to_v[:, 1] - edge[:, 1] * to_v[:, 0])
-        robust = 1.0 / (1.0 + (sine / ROBUST_SCALE) ** 2)
-    return v
+from omnigen.detector.vanishing import (BOTTOM, TOP, distinct_rows, fit_vertical_vanishing_point,  # noqa: E402
+                                        turn_vertical_edges)
 
 
 def true_vanishing_point(K: np.ndarray, plane: np.ndarray, width: float, height: float) -> np.ndarray:
-    """The unit homogeneous point, in `normalised` coordinates, that the ground normal of `plane`
-    ([n, d], camera frame) projects to through K: where every upright edge of the frame points."""
+    """The unit homogeneous point, in vanishing.to_normalised coordinates, that the ground normal
+    of `plane` ([n, d], camera frame) projects to through K: where every upright edge of the frame
+    points."""
     v = np.asarray(K, dtype=np.float64) @ np.asarray(plane, dtype=np.float64)[:3]
-    scale, (cx, cy) = max(width, height), (width / 2, height / 2)
+    scale, (cx, cy) = max(width, height), ((width - 1) / 2, (height - 1) / 2)
     v = np.array([(v[0] - cx * v[2]) / scale, (v[1] - cy * v[2]) / scale, v[2]])
     return v / np.linalg.norm(v)
-
-
-def turn_vertical_edges(kp: np.ndarray, v: np.ndarray, width: float, height: float) -> np.ndarray:
-    """Boxes `kp` (N, 8, 2 pixels) with each vertical edge turned about its midpoint, its length
-    kept, to lie on the line through the vanishing point `v` (`normalised` coordinates)."""
-    x, scale, offset = normalised(np.asarray(kp, dtype=np.float64), width, height)
-    top, bottom = x[:, TOP], x[:, BOTTOM]
-    mid, edge = (top + bottom) / 2, bottom - top
-    half = np.linalg.norm(edge, axis=-1, keepdims=True) / 2
-    to_v = v[:2] - mid * v[2]
-    to_v /= np.maximum(np.linalg.norm(to_v, axis=-1, keepdims=True), 1e-12)
-    to_v *= np.where(np.sum(to_v * edge, axis=-1, keepdims=True) < 0, -1.0, 1.0)  # the edge's own sense
-    out = np.concatenate([mid - to_v * half, mid + to_v * half], axis=1)
-    return out * scale + offset
 
 
 def true_face_shapes(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -155,9 +103,7 @@ def variant_keypoints(ds, m, score_thr: float) -> dict[str, dict[int, np.ndarray
             continue
         score = np.asarray([anns[d - 1]["score"] for d in dets])
         # multi-label prediction repeats a box with its corners once per class: fit each box once
-        keep = np.flatnonzero(score >= score_thr)
-        _, first = np.unique(kp[keep].reshape(len(keep), -1), axis=0, return_index=True)
-        keep = keep[np.sort(first)]
+        keep = distinct_rows(kp, np.flatnonzero(score >= score_thr))
         plane = ds.table.ground_plane[f]
         points = {VANISHING[0]: fit_vertical_vanishing_point(kp[keep], score[keep], w, h) if len(keep) else None,
                   VANISHING[1]: true_vanishing_point(ds.table.K[f], plane, w, h)

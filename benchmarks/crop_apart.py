@@ -43,8 +43,8 @@ def parse_variant(text: str, steps: int, copies: int = 4):
     fields but copies; `split`: 1, the default, names the classes with a net of their own
     (crop_stage.SplitCropNet), 0 with the corners' net; `position`: 1 tells the corners' net where
     each crop was cut, crop_stage.crop_position. Unlike train-crop's, its default is 0, so that the
-    variants written down before it existed print what they printed); a clear exit naming a bad key
-    or value."""
+    variants written down before it existed print what they printed; `offset_gain` likewise
+    defaults to 0 here, 0.3 in train-crop); a clear exit naming a bad key or value."""
     from omnigen.detector.crop_train_config import CropTrainConfig
 
     name, _, spec = text.partition(":")
@@ -53,7 +53,8 @@ def parse_variant(text: str, steps: int, copies: int = 4):
     types = {f.name: f.type for f in fields(CropTrainConfig) if f.name != "copies"}
     types["split"] = "int"
     types["position"] = "int"
-    values: dict[str, object] = {"steps": steps, "copies": copies}
+    # offset_gain 0 unless given, unlike train-crop's 0.3: the variants written down before it print what they printed
+    values: dict[str, object] = {"steps": steps, "copies": copies, "offset_gain": 0.0}
     for item in filter(None, spec.split(",")):
         key, eq, value = item.partition("=")
         if not eq or key not in types:

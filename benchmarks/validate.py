@@ -225,13 +225,14 @@ def crop_stage(run: Runner, cmd: list[str], out: Path) -> Path:
 
 
 def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
-                  predict: Callable[[bool], list[dict[str, Any]]], weights: Path | None = None) -> Path:
+                  predict: Callable[[bool], list[dict[str, Any]]], weights: Path | None = None,
+                  vertical: str = "lines") -> Path:
     """OUT/test-predictions.json, made by `predict(multi_label)` unless it was made the same way before.
 
     OUT/predicted holds how (the checkpoint, OUT/last.pt unless `weights` names another, and a digest
     of its bytes, the split,
     the labels an anchor, the score floor, the detections kept an image, the crop stage's
-    refinements). Predictions made
+    refinements, whether vertical edges are snapped: PredictOptions.vertical). Predictions made
     otherwise, or by a validate older than the marker, are made again. Whenever they are made, their
     old evaluation (OUT/eval.json) goes: a changed evaluation protocol, or predictions deleted to
     redo them, must not leave old figures standing.
@@ -244,7 +245,7 @@ def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
     # the checkpoint's bytes too: train-crop writes another stage into the same crop.pt
     digest = f", weights_sha256={file_digest(weights)}" if weights.exists() else ""
     call = (f"predict_dataset({weights}, {uov}, split='test', multi_label={multi_label}, "
-            f"conf={EVAL_CONF}, max_det={EVAL_MAX_DET}, max_refine={MAX_REFINE}{digest})")
+            f"conf={EVAL_CONF}, max_det={EVAL_MAX_DET}, max_refine={MAX_REFINE}, vertical={vertical!r}{digest})")
     if preds.exists() and stale_or_missing(predicted, call):
         print(f"[stale] {preds} was predicted otherwise: predicting and evaluating again", flush=True)
         preds.unlink()
@@ -453,6 +454,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the crop stage trained apart is told where each crop was cut (omnigen train-crop "
                          "--position: the direction of an object's vertical edges depends on it); ignored without "
                          "--heading-crop or with --crop-steps 0")
+    ap.add_argument("--crop-offset-gain", type=float, default=0.3,
+                    help="gain of the crop stage's L1 term on the bottom face's offset from the top face "
+                         "(omnigen train-crop --offset-gain); ignored without --heading-crop or with --crop-steps 0")
+    ap.add_argument("--vertical", default="lines", choices=["lines", "off"],
+                    help="prediction turns each test image's detections' vertical edges to its vertical vanishing "
+                         "point, found from them and the image's line segments (omnigen predict --vertical; "
+                         "benchmarks/vertical_snap.py); off: the corners as the network placed them")
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
                          "natively, a step in about 0.65 of the time by benchmarks/bench_train_step.py; else auto)")
@@ -546,11 +554,12 @@ def main(argv: list[str] | None = None) -> int:
             weights = crop_stage(run, ["train-crop", str(dataset), "--weights", str(out / "last.pt"),
                                        "--out", str(out / "crop.pt"), "--steps", str(args.crop_steps),
                                        "--seed", str(args.seed), *crop_amp(args.amp),
-                                       "--position" if args.crop_position else "--no-position"], out)
+                                       "--position" if args.crop_position else "--no-position",
+                                       "--offset-gain", str(args.crop_offset_gain)], out)
             stage = load_checkpoint(weights).get("crop_stage")
         preds = predict_stage(run, out, uov, EVAL_MULTI_LABEL, lambda multi_label: predict_dataset(
             weights, uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch, device=args.device,
-            multi_label=multi_label), weights=weights)
+            multi_label=multi_label, vertical=args.vertical), weights=weights, vertical=args.vertical)
         report_path = out / "eval.json"
         run(["eval", str(preds), str(uov), "--split", "test", "--baseline", "--out", str(report_path)], report_path)
         report = json.loads(report_path.read_text())
@@ -871,10 +880,14 @@ def protocol_line(r: dict[str, Any]) -> list[str]:
         f"; {run['frames_at_detection_cap']} of {run['test_frames_predicted']} frames reached the cap of "
         f"{run['detection_cap']} detections")
     stage = run.get("crop_stage")
-    lines = [f"- test predictions: {how}; last.pt, not best.pt{capped}"]
+    snapped = ("; each image's vertical edges turned to its vertical vanishing point, found from the detections "
+               "and the image's line segments (--vertical lines)" if "vertical='lines'" in made else "")
+    lines = [f"- test predictions: {how}; last.pt, not best.pt{capped}{snapped}"]
     if stage:
         sc = stage.get("score", {})
         told = ", told where each crop was cut (--position)" if stage.get("position") else ""
+        gain = stage.get("config", {}).get("offset_gain")
+        told += f", an L1 term on the faces' offset (--offset-gain {gain:g})" if gain else ""
         lines.append(f"- crop stage: trained again apart from the detector (`omnigen train-crop`, "
                      f"{stage['steps_done']} steps, {stage['seconds']} s{told}) and predicted with (crop.pt: last.pt's "
                      f"other tensors); on its {stage.get('score_split')} crops about moved boxes: corner error rel "

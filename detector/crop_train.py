@@ -16,8 +16,9 @@ miss the truth (`crop_stage.jitter_boxes`). The crops are cut once and kept as b
 each at 64 px). A step draws `batch` of them, each with weight (objects of its class)^-balance, and
 mirrors each with probability one half (the corners renumbered by FLIP_IDX, the heading's x negated). The loss has
 the joint training's crop terms: L1 of the corners in crop units, 1 - cosine of the image heading
-(times heading_gain), cross-entropy of the classes (times class_gain). AdamW with a one-cycle
-schedule, as benchmarks/crop_layout.py trains.
+(times heading_gain), cross-entropy of the classes (times class_gain); and an L1 term of the
+bottom face's offset from the top face (times offset_gain, `offset_loss`), the part of the corners
+that tilts a lifted box most. AdamW with a one-cycle schedule, as benchmarks/crop_layout.py trains.
 
 The defaults are what benchmarks/crop_apart.py measured on make validate's data: the joint
 training's class-balanced draws and heading gain cost the corners, so draws are uniform and the
@@ -171,16 +172,34 @@ def mirror_batch(x: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor, hea
     return x, corners, mask, heading, where
 
 
+def offset_loss(t: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """L1 (x + y) of the placed bottom face's offset from the top face (the mean of corners 4-7
+    less that of 0-3, crop units) against the labelled one, averaged over the objects with all
+    eight corners labelled (0 where none is). Why: the corner term weighs the offset only through
+    the eight corners' own errors, and a lifted box tilts most by it (benchmarks/adherence_sources.py)."""
+    full = mask.all(1)
+    if not full.any():
+        return t.sum() * 0.0
+
+    def offset(k: torch.Tensor) -> torch.Tensor:
+        return k[full, 4:].mean(1) - k[full, :4].mean(1)
+    return (offset(t) - offset(corners)).abs().sum(-1).mean()
+
+
 def stage_loss(net: CropNet | SplitCropNet, x: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor, heading: torch.Tensor,
                cls: torch.Tensor, cfg: CropTrainConfig, where: torch.Tensor | None = None
                ) -> tuple[torch.Tensor, dict[str, float]]:
-    """The joint training's crop terms (detector/loss.py) on one batch, weighed by cfg's gains (the
-    corners' is 1), and each term's value; `where`, the crops' positions, for a net that reads them."""
+    """The joint training's crop terms (detector/loss.py) on one batch, and with cfg.offset_gain the
+    offset term (`offset_loss`), weighed by cfg's gains (the corners' is 1), and each term's value;
+    `where`, the crops' positions, for a net that reads them."""
     h, t, logits = outputs_of_crops(net, x, where=where)
     corner = ((t - corners).abs().sum(-1) * mask).sum() / mask.sum().clamp(min=1)
     head = heading_loss(h, heading)
     parts = {"crop_corners": corner, "heading_crop": head}
     total = corner + cfg.heading_gain * head
+    if cfg.offset_gain:
+        parts["crop_offset"] = offset_loss(t, corners, mask)
+        total = total + cfg.offset_gain * parts["crop_offset"]
     if logits is not None:
         parts["crop_cls"] = F.cross_entropy(logits, cls)
         total = total + cfg.class_gain * parts["crop_cls"]

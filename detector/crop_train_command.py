@@ -18,6 +18,8 @@ from pathlib import Path
 
 ADDED_LATER = {"position": False}
 """Record fields that a stage written before they existed lacks, with the value it was trained with."""
+CONFIG_ADDED_LATER = {"offset_gain": 0.0}
+"""The same for the fields of its record's CropTrainConfig."""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -48,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--heading-gain", type=float, default=CropTrainConfig.heading_gain,
                    help="gain of the heading term beside the corners' (benchmarks/crop_apart.py measured 1, 0.3, "
                         "0.1 and 0.03)")
+    p.add_argument("--offset-gain", type=float, default=CropTrainConfig.offset_gain,
+                   help="gain of an L1 term on the bottom face's offset from the top face (0: none; "
+                        "docs/detector-training.md measured 0.3, 1 and 4)")
     p.add_argument("--amp", default=CropTrainConfig.amp, choices=["off", "bf16"],
                    help="bf16: the forward pass under CPU bfloat16 autocast (docs/detector-training.md has its "
                         "speed and its corners against float32)")
@@ -86,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     classes = args.classes if args.classes is not None else (det.crop_classes or not det.heading_crop)
     split = bool(classes and args.split)
     cfg = CropTrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, copies=args.copies, balance=args.balance,
-                          heading_gain=args.heading_gain, seed=args.seed, amp=args.amp)
+                          heading_gain=args.heading_gain, offset_gain=args.offset_gain, seed=args.seed, amp=args.amp)
     imgsz = trained_imgsz(state)
     # the detector's bytes too: a detector trained again into the same last.pt is another input
     call = {"trained": "apart", "weights": str(weights), "weights_sha256": file_digest(weights),
@@ -94,6 +99,8 @@ def run(args: argparse.Namespace) -> int:
             "split": split, "position": args.position, "imgsz": imgsz, "config": asdict(cfg)}
     if out.exists():
         done = {**ADDED_LATER, **load_checkpoint(out).get("crop_stage", {})}
+        if isinstance(done.get("config"), dict):
+            done["config"] = {**CONFIG_ADDED_LATER, **done["config"]}
         if {k: done.get(k) for k in call} == call:
             print(f"{out}: already trained with these arguments; delete it to train again")
             return 0

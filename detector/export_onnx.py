@@ -5,7 +5,13 @@ corners and front from its crop after NMS, so it exports a second graph beside t
 FILE-crops.onnx (`crop_stage_path`): the input image, the kept boxes and keypoints in, the
 keypoints with the crops' corners out, and for a stage that names classes (crop_classes) their
 probabilities (`class_probs`), by which a caller rescores each detection as
-crop_stage.rescore does: sqrt(score * p[class])."""
+crop_stage.rescore does: sqrt(score * p[class]).
+
+Neither graph turns the vertical edges to the image's vertical vanishing point, as `omnigen
+predict` does by default (`--vertical lines`): that step reads the image's line segments with
+OpenCV's detector, outside any network. A caller of the graphs applies
+omnigen.detector.vanishing.snap_vertical to each image's refined corners (in the pixels of the
+image the graph saw), or leaves the corners as the network placed them (`--vertical off`)."""
 
 from __future__ import annotations
 

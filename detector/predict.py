@@ -51,6 +51,46 @@ class PredictOptions:
     # False keeps the head's scores (benchmarks/crop_stage_ablation.py measures the difference)
     crop_classes: bool = True
     crop_score_by: str = "class"  # which head score the crop's class probability rescores (crop_stage.SCORE_BY)
+    # "lines": each image's detections get their vertical edges turned to its vertical vanishing
+    # point, fitted from them and refined with the image's line segments (vanishing.snap_vertical);
+    # "off" keeps the corners as the network placed them
+    vertical: str = "lines"
+
+    def __post_init__(self) -> None:
+        if self.vertical not in VERTICAL_MODES:
+            raise ValueError(f"PredictOptions.vertical: one of {', '.join(VERTICAL_MODES)}, got {self.vertical!r}")
+
+
+VERTICAL_MODES = ("lines", "off")
+
+
+def snap_batch(images: list[np.ndarray], boxes: list[Letterbox], dets: list[Detections]) -> list[Detections]:
+    """vanishing.snap_vertical of each letterboxed image's detections, on the image's own pixels:
+    the padding and a margin of PAD_MARGIN pixels inside it are left out, or the letterbox's
+    border would count as a long straight edge."""
+    import cv2
+
+    from omnigen.detector.vanishing import snap_vertical
+
+    out = []
+    for image, lb, d in zip(images, boxes, dets):
+        if not len(d):
+            out.append(d)
+            continue
+        px, py = (int(p) for p in lb.pad)
+        x0, y0 = px + (PAD_MARGIN if px else 0), py + (PAD_MARGIN if py else 0)
+        h, w = image.shape[:2]
+        x1, y1 = w - px - (PAD_MARGIN if px else 0), h - py - (PAD_MARGIN if py else 0)
+        gray = cv2.cvtColor(np.ascontiguousarray(image[y0:y1, x0:x1]), cv2.COLOR_RGB2GRAY)
+        kp = d.keypoints[..., :2].detach().cpu().double().numpy() - np.array([x0, y0])
+        snapped = snap_vertical(gray, kp, d.scores.detach().cpu().double().numpy()) + np.array([x0, y0])
+        keypoints = d.keypoints.clone()
+        keypoints[..., :2] = torch.from_numpy(snapped).to(keypoints)
+        out.append(Detections(d.boxes, d.scores, d.classes, keypoints, d.class_scores))
+    return out
+
+
+PAD_MARGIN = 2
 
 
 def to_image_coords(det: Detections, lb: Letterbox) -> dict[str, np.ndarray]:
@@ -113,6 +153,8 @@ def infer_batch(model: KeypointDetector, images: list[np.ndarray], boxes: list[L
         dets = [d.take(slice(0, opts.max_det)) for d in dets]  # `every` may give a box more classes
     if relabel:
         dets = [d.take(d.scores > opts.conf) for d in dets]
+    if opts.vertical == "lines":
+        dets = snap_batch(images, boxes, dets)
     return batch_to_image_coords(dets, boxes)
 
 
@@ -174,15 +216,15 @@ def load_for_prediction(weights: str | Path, device: str | None = None) -> tuple
 
 def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: str | Path, split: str | None = "test",
                   imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
-                  multi_label: bool = EVAL_MULTI_LABEL, crop_classes: bool = True, crop_score_by: str = "class"
-                  ) -> list[dict[str, Any]]:
+                  multi_label: bool = EVAL_MULTI_LABEL, crop_classes: bool = True, crop_score_by: str = "class",
+                  vertical: str = "lines") -> list[dict[str, Any]]:
     """Detections of a loaded model (load_for_prediction) on a dataset split, ready for `omnigen
     eval`, at the training input size unless `imgsz` says otherwise. A caller that predicts twice
     with one model (with and without its crop stage: `model.crop_net = None` keeps the head's own
     corners, benchmarks/crop_stage_ablation.py), or reads the checkpoint's taxonomy first, loads it
     once. `multi_label=False` keeps one class an anchor, as `omnigen predict` does
     (EVAL_MULTI_LABEL). `crop_classes=False` keeps the head's scores where the crop stage names classes;
-    `crop_score_by` is PredictOptions'.
+    `crop_score_by` and `vertical` are PredictOptions'.
     """
     from omnigen.detector.checkpoint import checkpoint_taxonomy
 
@@ -190,16 +232,17 @@ def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: 
     data = KeypointDataset(dataset_root, checkpoint_taxonomy(state), imgsz, split_frames(dataset_root, split))
     return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=EVAL_MAX_DET,
                                                       multi_label=multi_label, crop_classes=crop_classes,
-                                                      crop_score_by=crop_score_by),
+                                                      crop_score_by=crop_score_by, vertical=vertical),
                           show_progress=True)
 
 
 def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | None = "test",
                     imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
-                    device: str | None = None, multi_label: bool = EVAL_MULTI_LABEL) -> list[dict[str, Any]]:
+                    device: str | None = None, multi_label: bool = EVAL_MULTI_LABEL, vertical: str = "lines"
+                    ) -> list[dict[str, Any]]:
     """predict_split of a checkpoint file, loaded onto `device` (load_for_prediction)."""
     model, state = load_for_prediction(weights, device)
-    return predict_split(model, state, dataset_root, split, imgsz, batch, conf, multi_label)
+    return predict_split(model, state, dataset_root, split, imgsz, batch, conf, multi_label, vertical=vertical)
 
 
 def image_files(paths: Iterable[str | Path]) -> list[Path]:

@@ -16,6 +16,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-det", type=int, default=300)
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--no-overlays", action="store_true", help="write predictions.json only")
+    p.add_argument("--vertical", choices=("lines", "off"), default="lines",
+                   help="lines (default): turn each image's detections' vertical edges to its vertical vanishing "
+                        "point, fitted from them and refined with the image's line segments; off: the corners as "
+                        "the network placed them")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -32,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     model, state = load_model(args.weights)
     args.out.mkdir(parents=True, exist_ok=True)
     opts = PredictOptions(imgsz=args.imgsz or trained_imgsz(state), conf=args.conf, iou=args.iou,
-                          max_det=args.max_det, batch=args.batch)
+                          max_det=args.max_det, batch=args.batch, vertical=args.vertical)
     results, images = [], []
     for i, (path, image, det) in enumerate(progress(predict_images(model, files, opts), "predict", total=len(files))):
         results.extend(r | {"file_name": str(path)} for r in coco_results(det, i + 1))

@@ -1,5 +1,6 @@
-"""benchmarks/adherence_sources.py: the vanishing point fit and the corner replacements do what
-they say, and the script's table holds the figures its last line prints."""
+"""benchmarks/adherence_sources.py: the true vanishing point and the corner replacements do what
+they say (the fit and the turn: tests/detector/test_vanishing.py), and the script's table holds
+the figures its last line prints."""
 
 from __future__ import annotations
 
@@ -18,48 +19,8 @@ from omnigen.fakes import write_fake_dataset  # noqa: E402
 from omnigen.taxonomy import recorded_taxonomy  # noqa: E402
 
 
-def boxes_towards(vp: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """n boxes (n, 8, 2) in a 640 x 480 image whose vertical edges lie on lines through the pixel `vp`."""
-    top = rng.uniform([100, 80], [540, 400], (n, 1, 2)) + rng.uniform(-20, 20, (n, 4, 2))
-    return np.concatenate([top, top + rng.uniform(0.1, 0.3, (n, 1, 1)) * (vp - top)], axis=1)
-
-
 def as_pixels(v: np.ndarray, width: float = 640.0, height: float = 480.0) -> np.ndarray:
-    return v[:2] / v[2] * max(width, height) + np.array([width / 2, height / 2])
-
-
-def test_the_fit_finds_the_point_the_vertical_edges_meet_at_despite_a_wrong_box():
-    rng = np.random.default_rng(0)
-    vp = np.array([300.0, 1500.0])
-    kp = boxes_towards(vp, 12, rng)
-    kp[0, 4:] = kp[0, :4] + [[40.0, 5.0]]  # one box whose edges point elsewhere
-    v = src.fit_vertical_vanishing_point(kp, np.ones(12), 640, 480)
-    assert np.allclose(as_pixels(v), vp, atol=15.0)
-    # parallel edges (an upright camera): a point at infinity, in their direction
-    flat = kp[1:].copy()
-    flat[:, 4:] = flat[:, :4] + [[0.0, 30.0]]
-    v = src.fit_vertical_vanishing_point(flat, np.ones(11), 640, 480)
-    assert abs(v[2]) < 1e-6 and abs(v[0]) < 1e-6
-    with pytest.raises(ValueError, match="no vertical edge"):
-        src.fit_vertical_vanishing_point(np.zeros((2, 8, 2)), np.ones(2), 640, 480)
-
-
-def test_turning_the_edges_keeps_their_midpoints_and_lengths_and_aims_them_at_the_point():
-    rng = np.random.default_rng(1)
-    vp = np.array([250.0, -900.0])
-    kp = boxes_towards(vp, 5, rng)
-    v = np.array([*(vp - [320.0, 240.0]) / 640.0, 1.0])
-    v /= np.linalg.norm(v)
-    assert np.allclose(src.turn_vertical_edges(kp, v, 640, 480), kp, atol=1e-9)  # already aimed: unchanged
-    bent = kp.copy()
-    bent[:, 4:] += rng.normal(0, 3, (5, 4, 2))
-    turned = src.turn_vertical_edges(bent, v, 640, 480)
-    mid = lambda k: (k[:, :4] + k[:, 4:]) / 2  # noqa: E731
-    length = lambda k: np.linalg.norm(k[:, 4:] - k[:, :4], axis=-1)  # noqa: E731
-    assert np.allclose(mid(turned), mid(bent)) and np.allclose(length(turned), length(bent))
-    e, to_vp = turned[:, 4:] - turned[:, :4], vp - turned[:, :4]
-    assert np.allclose(e[..., 0] * to_vp[..., 1] - e[..., 1] * to_vp[..., 0], 0.0, atol=1e-6)
-    assert (np.sum(e * (bent[:, 4:] - bent[:, :4]), axis=-1) > 0).all()  # each edge keeps its sense
+    return v[:2] / v[2] * max(width, height) + np.array([(width - 1) / 2, (height - 1) / 2])
 
 
 def test_the_true_vanishing_point_is_where_the_ground_normal_projects():

@@ -17,9 +17,12 @@ from omnigen.detector.crop_train_config import CropTrainConfig  # noqa: E402
 def test_variants_parse_into_configs_and_bad_ones_are_refused_by_name():
     name, cfg, split, position = crop_apart.parse_variant("flat:balance=0.5,class_gain=0.25,batch=8,split=0", 30,
                                                           copies=2)
-    assert name == "flat" and cfg == CropTrainConfig(steps=30, balance=0.5, class_gain=0.25, batch=8, copies=2)
+    assert name == "flat" and cfg == CropTrainConfig(steps=30, balance=0.5, class_gain=0.25, batch=8, copies=2,
+                                                     offset_gain=0.0)
     assert split is False and position is False
-    assert crop_apart.parse_variant("default:", 7) == ("default", CropTrainConfig(steps=7), True, False)
+    # without the offset term unless asked, unlike train-crop: the variants written down before it
+    assert crop_apart.parse_variant("default:", 7) == ("default", CropTrainConfig(steps=7, offset_gain=0.0), True, False)
+    assert crop_apart.parse_variant("offset:offset_gain=0.3", 7)[1].offset_gain == 0.3
     assert crop_apart.parse_variant("where:position=1", 7)[3] is True
     assert crop_apart.parse_variant("half:amp=bf16", 7)[1].amp == "bf16"
     for bad, message in (("x:speed=2", "'speed' is not one of"), ("x:balance=much", "not a number"),

@@ -367,11 +367,13 @@ def test_predictions_made_another_way_are_made_again_with_their_evaluation(tmp_p
     assert calls == [True] and json.loads(preds.read_text()) == [{"image_id": 1, "score": 0.5}]
     assert not (out / "eval.json").exists()  # evaluated again by the caller
     assert [c["command"] for c in run.log] == [f"predict_dataset({out / 'last.pt'}, uov, split='test', multi_label=True, "
-                                               "conf=0.001, max_det=1000, max_refine=300)"]
+                                               "conf=0.001, max_det=1000, max_refine=300, vertical='lines')"]
     validate.predict_stage(run, out, Path("uov"), True, predict)  # made this way: kept
     assert calls == [True]
     validate.predict_stage(run, out, Path("uov"), False, predict)  # the other way: made again
     assert calls == [True, False] and len(run.log) == 1
+    validate.predict_stage(run, out, Path("uov"), False, predict, vertical="off")  # corners not snapped: again
+    assert calls == [True, False, False]
 
 
 def test_predictions_deleted_to_redo_them_take_their_evaluation_with_them(tmp_path):
@@ -387,6 +389,9 @@ def test_results_markdown_says_how_the_test_predictions_were_made():
     assert "multi-label, as Ultralytics' validation scores" in validate.protocol_line(made)[0]
     made["runs"][0]["predicted"] = "predict_dataset(w/last.pt, uov, split='test', multi_label=False)"
     assert "single-label" in validate.protocol_line(made)[0]
+    assert "vanishing point" not in validate.protocol_line(made)[0]  # made before --vertical: not snapped
+    made["runs"][0]["predicted"] = "predict_dataset(w/crop.pt, uov, split='test', multi_label=True, vertical='lines')"
+    assert validate.protocol_line(made)[0].endswith("line segments (--vertical lines)")
     assert validate.protocol_line({"runs": [{}]}) == []  # a results.json from before the marker
 
 
@@ -494,6 +499,8 @@ def test_the_results_say_when_the_crop_stage_was_trained_apart():
     assert "corner error rel 0.170, front right 0.850, class accuracy 0.840" in line
     made["runs"][0]["crop_stage"]["position"] = True
     assert "812.5 s, told where each crop was cut (--position))" in validate.protocol_line(made)[1]
+    made["runs"][0]["crop_stage"]["config"] = {"offset_gain": 0.3}
+    assert "(--position), an L1 term on the faces' offset (--offset-gain 0.3))" in validate.protocol_line(made)[1]
 
 
 def test_predictions_of_a_checkpoint_rewritten_in_place_are_made_again(tmp_path):
@@ -524,3 +531,5 @@ def test_the_crop_stage_trains_7000_steps_told_where_its_crops_were_and_in_bf16_
         assert validate.crop_amp(other) == []
     assert validate.build_parser().parse_args([]).crop_steps == 7000
     assert validate.build_parser().parse_args([]).crop_position is True  # train-crop --position
+    assert validate.build_parser().parse_args([]).crop_offset_gain == 0.3  # train-crop --offset-gain
+    assert validate.build_parser().parse_args([]).vertical == "lines"  # predict --vertical

@@ -314,7 +314,7 @@ def test_prediction_refines_before_mapping_back_to_the_image():
         model.crop_net.out.bias.copy_(torch.cat([torch.tensor([0.0, 0.0, -1.0]), layout.reshape(-1)]))
     image = (np.random.default_rng(0).random((48, 80, 3)) * 255).astype(np.uint8)  # letterboxed: padded rows
     boxed, lb = letterbox(image, 64)
-    opts = PredictOptions(imgsz=64, conf=0.0, max_det=50)
+    opts = PredictOptions(imgsz=64, conf=0.0, max_det=50, vertical="off")  # the crop stage's corners alone
     refined = infer_batch(model, [boxed], [lb], opts)[0]
     net, model.crop_net = model.crop_net, None
     plain = infer_batch(model, [boxed], [lb], opts)[0]
@@ -745,3 +745,16 @@ def test_the_mirror_average_of_a_positioned_stage_is_that_of_the_mirrored_image(
         h2, t2, _ = split_outputs(net(crop_boxes(flipped, index, mirrored, 32), crop_position(mirrored, torch.tensor([48, 80]))))
     assert torch.allclose(t, (t1 + mirror_corners(t2)) / 2, atol=1e-5)
     assert torch.allclose(h, (h1 + h2 * torch.tensor(MIRROR_HEADING)) / 2, atol=1e-5)
+
+
+def test_the_crop_nets_pooling_is_max_pool2d_in_value_in_eval_and_is_it_in_training():
+    from omnigen.detector.crop_stage import MaxPool2
+
+    x = torch.randn(3, 5, 8, 12)
+    x[0, 0, :4, :4] = 1.0  # ties, as flat image regions give
+    pool = MaxPool2()
+    assert torch.equal(pool.eval()(x), torch.nn.functional.max_pool2d(x, 2))
+    a, b = x.clone().requires_grad_(), x.clone().requires_grad_()
+    pool.train()(a).sum().backward()
+    torch.nn.functional.max_pool2d(b, 2).sum().backward()
+    assert torch.equal(a.grad, b.grad)  # training's gradient is max_pool2d's, ties and all

@@ -98,7 +98,7 @@ def test_training_learns_and_a_stopped_run_resumes_to_the_same_weights(split_fak
     history = train_stage(data, net, cfg)
     first, last = np.mean([h["crop_corners"] for h in history[:5]]), np.mean([h["crop_corners"] for h in history[-5:]])
     assert last < first
-    assert set(history[0]) == {"crop_corners", "heading_crop", "crop_cls"}
+    assert set(history[0]) == {"crop_corners", "heading_crop", "crop_offset", "crop_cls"}
 
     partial = tmp_path / "stage.pt.partial"
 
@@ -354,3 +354,47 @@ def test_train_crop_tells_the_stage_where_its_crops_were_and_keeps_stages_writte
     capsys.readouterr()
     assert omnigen([*args[:4], "--out", str(plain), *args[6:-1], "--no-position"]) == 0
     assert "already trained" in capsys.readouterr().out
+
+
+def test_the_offset_term_is_the_l1_of_the_faces_offset_and_counts_only_fully_labelled_objects():
+    from omnigen.detector.crop_train import offset_loss
+
+    corners = torch.zeros(3, 8, 2)
+    corners[:, 4:, 1] = 0.5  # bottom face 0.5 crop units under the top one
+    mask = torch.ones(3, 8, dtype=torch.bool)
+    assert float(offset_loss(corners, corners, mask)) == 0.0
+    placed = corners.clone()
+    placed[0, 4:] += torch.tensor([0.1, -0.2])  # object 0's bottom face moved: offset off by (0.1, -0.2)
+    placed[1] += 0.3  # object 1 moved whole: its offset is right
+    assert float(offset_loss(placed, corners, mask)) == pytest.approx(0.3 / 3)
+    mask[0, 5] = False  # object 0 not fully labelled: it does not count
+    assert float(offset_loss(placed, corners, mask)) == pytest.approx(0.0)
+    assert float(offset_loss(placed, corners, torch.zeros(3, 8, dtype=torch.bool))) == 0.0
+
+
+def test_train_crop_records_the_offset_gain_and_keeps_stages_written_before_it(
+        split_fake_dataset, detector_checkpoint, tmp_path, capsys):
+    """--offset-gain (0.3 by default) adds the term to the stage's loss and its record; a stage
+    written before the term existed counts as one of gain 0, so its rerun is 'already trained'."""
+    from omnigen.detector.checkpoint import save_checkpoint
+
+    weights = detector_checkpoint(tmp_path / "det.pt", 32, crop_classes=True)
+    out = tmp_path / "offset.pt"
+    args = ["train-crop", str(split_fake_dataset.root), "--weights", str(weights), "--out", str(out),
+            "--steps", "2", "--batch", "4", "--copies", "1"]
+    assert omnigen(args) == 0
+    rec = load_checkpoint(out)["crop_stage"]
+    assert rec["config"]["offset_gain"] == 0.3 and "crop_offset" in rec["last_losses"]
+    capsys.readouterr()
+    assert omnigen([*args, "--offset-gain", "1"]) == 1 and "not trained with these arguments" in capsys.readouterr().err
+    plain = tmp_path / "plain.pt"
+    assert omnigen([*args[:4], "--out", str(plain), *args[6:], "--offset-gain", "0"]) == 0
+    assert "crop_offset" not in load_checkpoint(plain)["crop_stage"]["last_losses"]
+    old = load_checkpoint(plain)
+    del old["crop_stage"]["config"]["offset_gain"]  # as train-crop wrote it before --offset-gain
+    save_checkpoint(plain, old)
+    capsys.readouterr()
+    assert omnigen([*args[:4], "--out", str(plain), *args[6:], "--offset-gain", "0"]) == 0
+    assert "already trained" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="offset_gain"):
+        CropTrainConfig(offset_gain=-1.0)

@@ -1,0 +1,225 @@
+"""The image's vertical vanishing point, and predicted corners turned to it.
+
+Why. Every upright edge of a frame (a box's four vertical edges, corner i to i + 4) lies on a line
+through one point: the image of the ground's downward direction. Where that point lies depends
+on the camera's pitch and focal length, which the crop stage cannot see: a drone's is below the
+image centre or inside the image, an upright car camera's at infinity. Edges that miss it are
+what tilts a lifted box most (benchmarks/adherence_sources.py: make validate's vertical edges
+turned to the true point took its adherence from 5.84 to 4.76 deg). The detector is never given
+calibration, so the point is found in the image:
+
+- first from the detections themselves (`fit_vertical_vanishing_point`). That alone helps little:
+  the crop stage's errors lean the same way across an image (it guesses the camera from where
+  the crop lies), so their common point inherits the lean (7.2 deg off on 120 of make
+  validate's train frames from the drone, median; benchmarks/vertical_snap.py);
+- then from the image's own straight lines (`refine_with_segments`). A city is full of upright
+  edges far longer and straighter than a box's: buildings' corners, poles, window columns. The
+  detections' point picks which family of line segments is the vertical one, and those segments
+  place it (0.1 and 0.2 deg on the car and pole cameras' frames, 1.4 on the drone's, median).
+
+`snap_vertical` then turns each detection's four vertical edges about their midpoints to point
+at it, so that they agree with the image and with each other, as a box's do. `omnigen predict
+--vertical lines` (the default) does so after the crop stage.
+
+Coordinates are about the image's centre ((W - 1) / 2, (H - 1) / 2), in units of its longer side
+(crop_stage.crop_position's). A point is a unit homogeneous 3-vector v, signed so that its image
+motion v_xy - p v_z at a point p runs from an object's top face to its bottom face (a point at
+infinity, an upright camera's, has v_z = 0).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+TOP, BOTTOM = slice(0, 4), slice(4, 8)  # the contract's top corners 0-3 and the ground-contact ones under them
+ROBUST_SCALE = 0.05
+"""IRLS's Cauchy scale, as the sine of the angle between an edge and the direction to the point:
+edges off by more than about 3 degrees weigh less and less."""
+MIN_BOXES = 2
+"""Distinct detections needed to fit a point: one box's own four edges give its own tilt back."""
+
+
+def to_normalised(xy: np.ndarray, width: float, height: float) -> np.ndarray:
+    """Input pixels -> coordinates about the input's centre in units of its longer side (a point
+    far away stays well conditioned): crop_stage.crop_position's frame."""
+    return (np.asarray(xy, dtype=np.float64) - np.array([(width - 1) / 2, (height - 1) / 2])) / max(width, height)
+
+
+def fit_vertical_vanishing_point(kp: np.ndarray, weights: np.ndarray, width: float, height: float,
+                                 iterations: int = 5) -> np.ndarray:
+    """The unit homogeneous point (3,), in `to_normalised` coordinates and signed as the module
+    says, that the vertical edges of boxes `kp` (N, 8, 2 pixels) point at: the least-squares point
+    of their lines, each weighted by its box's weight and its length (a short edge's direction is
+    noise), reweighted by a Cauchy function of each edge's angular miss (IRLS), so that a few wrong
+    boxes do not pull it. A point at infinity (an upright camera's vertical edges are parallel) has
+    third component 0."""
+    x = to_normalised(kp, width, height)
+    top, bottom = x[:, TOP].reshape(-1, 2), x[:, BOTTOM].reshape(-1, 2)
+    ones = np.ones((len(top), 1))
+    lines = np.cross(np.hstack([top, ones]), np.hstack([bottom, ones]))
+    length = np.linalg.norm(lines[:, :2], axis=1)  # |bottom - top| for points at z = 1
+    ok = length > 1e-9
+    lines, top, bottom = lines[ok] / length[ok, None], top[ok], bottom[ok]
+    w = np.repeat(np.asarray(weights, dtype=np.float64), 4)[ok] * length[ok]
+    if not len(lines):
+        raise ValueError("fit_vertical_vanishing_point: no vertical edge of non-zero length")
+    edge = bottom - top
+    mid = (top + bottom) / 2
+    unit = edge / np.linalg.norm(edge, axis=1, keepdims=True)
+    robust = np.ones(len(lines))
+    v = np.array([0.0, 1.0, 0.0])
+    for _ in range(iterations):
+        v = np.linalg.eigh((lines * (w * robust)[:, None]).T @ lines)[1][:, 0]
+        to_v = v[None, :2] - mid * v[2]
+        to_v /= np.maximum(np.linalg.norm(to_v, axis=1, keepdims=True), 1e-12)
+        sine = np.abs(unit[:, 0] * to_v[:, 1] - unit[:, 1] * to_v[:, 0])
+        robust = 1.0 / (1.0 + (sine / ROBUST_SCALE) ** 2)
+    motion = v[None, :2] - mid * v[2]
+    if np.sum(w * robust * np.sum(motion * edge, axis=1)) < 0:
+        v = -v
+    return v
+
+
+@dataclass(frozen=True)
+class SnapOptions:
+    """How `snap_vertical` finds the image's vertical vanishing point; the defaults are
+    benchmarks/vertical_snap.py's, measured on make validate's train frames."""
+
+    score_thr: float = 0.3  # detections scored at least this fit the first guess
+    min_segment: float = 20.0  # line segments shorter than this (pixels) are not used
+    gate_deg: float = 30.0  # segments pointing further than this from the first guess are not vertical
+    candidates: int = 30  # the longest gated segments, whose pairwise crossings are the candidate points
+    inlier_deg: float = 2.0  # a segment within this of a candidate supports it (softly)
+    agree_deg: float = 8.0  # how far the detections' edges may disagree with a candidate before it loses weight
+
+
+def line_segments(gray: np.ndarray, min_length: float) -> np.ndarray:
+    """(M, 4) x1 y1 x2 y2 of the straight segments of a uint8 gray image at least `min_length`
+    pixels long (OpenCV's LSD line segment detector)."""
+    found = cv2.createLineSegmentDetector().detect(np.ascontiguousarray(gray))[0]
+    if found is None:
+        return np.zeros((0, 4))
+    seg = found.reshape(-1, 4).astype(np.float64)
+    return seg[np.linalg.norm(seg[:, 2:] - seg[:, :2], axis=1) >= min_length]
+
+
+def _sines(points: np.ndarray, mid: np.ndarray, unit: np.ndarray) -> np.ndarray:
+    """(C, S) the sine of the angle between each segment (midpoint `mid`, unit direction `unit`,
+    (S, 2)) and the direction from its midpoint to each point (C, 3)."""
+    to = points[:, None, :2] - mid[None] * points[:, None, 2:3]
+    to = to / np.maximum(np.linalg.norm(to, axis=-1, keepdims=True), 1e-12)
+    return np.abs(unit[None, :, 0] * to[..., 1] - unit[None, :, 1] * to[..., 0])
+
+
+def refine_with_segments(first: np.ndarray, kp: np.ndarray, weights: np.ndarray, segments: np.ndarray,
+                         width: float, height: float, opts: SnapOptions = SnapOptions()) -> np.ndarray:
+    """The point (3,) of the image's vertical line segments `segments` (M, 4 pixels) nearest to
+    what the boxes `kp` (N, 8, 2 pixels, weighted `weights`) say: `first`, their fitted point,
+    where too few segments point near it.
+
+    Segments pointing within gate_deg of `first` are kept. Each crossing of two of the longest
+    of them is a candidate, as is `first`. A candidate's score is the length of the segments that
+    point at it (each weighted 1 - (sine / sine(inlier_deg))^2 where positive). It is lowered by
+    exp(-(m / sine(agree_deg))^2), m the boxes' weighted mean sine of disagreement. The
+    disagreement matters because a city's horizontal edges (roofs, kerbs, road markings) meet at
+    points of their own with as much support. The best candidate is then refit by least squares
+    over the segments, reweighted by a Cauchy function of their miss (IRLS)."""
+    a, b = to_normalised(segments[:, :2], width, height), to_normalised(segments[:, 2:], width, height)
+    length = np.linalg.norm(b - a, axis=1)
+    ok = length > 1e-12
+    a, b, length = a[ok], b[ok], length[ok]
+    unit, mid = (b - a) / length[:, None], (a + b) / 2
+    keep = _sines(first[None], mid, unit)[0] < math.sin(math.radians(opts.gate_deg))
+    if keep.sum() < 3:
+        return first
+    a, b, unit, mid, length = a[keep], b[keep], unit[keep], mid[keep], length[keep]
+    ones = np.ones((len(a), 1))
+    lines = np.cross(np.hstack([a, ones]), np.hstack([b, ones]))
+    lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
+    longest = np.argsort(-length, kind="stable")[:opts.candidates]
+    i, j = np.triu_indices(len(longest), 1)
+    cross = np.cross(lines[longest[i]], lines[longest[j]])
+    norm = np.linalg.norm(cross, axis=1)
+    candidates = np.vstack([first, cross[norm > 1e-12] / norm[norm > 1e-12, None]])
+    inlier = math.sin(math.radians(opts.inlier_deg))
+    support = (length[None] * np.clip(1 - (_sines(candidates, mid, unit) / inlier) ** 2, 0, None)).sum(1)
+    x = to_normalised(kp, width, height)
+    top, bottom = x[:, TOP].reshape(-1, 2), x[:, BOTTOM].reshape(-1, 2)
+    edge_len = np.linalg.norm(bottom - top, axis=1)
+    e_ok = edge_len > 1e-12
+    w = (np.repeat(np.asarray(weights, dtype=np.float64), 4) * edge_len)[e_ok]
+    if w.sum() > 0:
+        miss = _sines(candidates, ((top + bottom) / 2)[e_ok], ((bottom - top)[e_ok] / edge_len[e_ok, None]))
+        disagree = (w[None] * np.minimum(miss, 0.5)).sum(1) / w.sum()
+        support = support * np.exp(-(disagree / math.sin(math.radians(opts.agree_deg))) ** 2)
+    v = candidates[int(np.argmax(support))]
+    for _ in range(5):
+        r = length / (1 + (_sines(v[None], mid, unit)[0] / inlier) ** 2)
+        v = np.linalg.eigh((lines * r[:, None]).T @ lines)[1][:, 0]
+    return v if np.dot(v, first) >= 0 else -v
+
+
+def turn_vertical_edges(kp: np.ndarray, v: np.ndarray, width: float, height: float) -> np.ndarray:
+    """Boxes `kp` (N, 8, 2 pixels) with each vertical edge turned about its midpoint, its length
+    and its sense kept, to lie on the line through the point `v` (`to_normalised` coordinates)."""
+    kp = np.asarray(kp, dtype=np.float64)
+    scale, offset = max(width, height), np.array([(width - 1) / 2, (height - 1) / 2])
+    x = (kp - offset) / scale
+    top, bottom = x[:, TOP], x[:, BOTTOM]
+    mid, edge = (top + bottom) / 2, bottom - top
+    half = np.linalg.norm(edge, axis=-1, keepdims=True) / 2
+    to_v = v[:2] - mid * v[2]
+    to_v /= np.maximum(np.linalg.norm(to_v, axis=-1, keepdims=True), 1e-12)
+    to_v *= np.where(np.sum(to_v * edge, axis=-1, keepdims=True) < 0, -1.0, 1.0)
+    out = np.concatenate([mid - to_v * half, mid + to_v * half], axis=1)
+    return out * scale + offset
+
+
+def distinct_rows(kp: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """`candidates` (indices into kp) with repeated corner sets dropped, first kept: multi-label
+    prediction repeats a box and its corners once per class, and each box should count once."""
+    if not len(candidates):
+        return candidates
+    _, first = np.unique(kp[candidates].reshape(len(candidates), -1), axis=0, return_index=True)
+    return candidates[np.sort(first)]
+
+
+def vertical_points(gray: np.ndarray, kp: np.ndarray, scores: np.ndarray, opts: SnapOptions = SnapOptions()
+                    ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The vertical vanishing point of image `gray` (H, W uint8), in `to_normalised` coordinates,
+    twice: fitted from the detections `kp` (N, 8, 2 pixels) scored `scores` at least
+    opts.score_thr (the first guess), and refined with the image's line segments (the point);
+    None where fewer than MIN_BOXES distinct detections qualify."""
+    height, width = gray.shape[:2]
+    use = distinct_rows(kp, np.flatnonzero(np.asarray(scores) >= opts.score_thr))
+    if len(use) < MIN_BOXES:
+        return None
+    try:
+        first = fit_vertical_vanishing_point(kp[use], scores[use], width, height)
+    except ValueError:
+        return None
+    return first, refine_with_segments(first, kp[use], scores[use], line_segments(gray, opts.min_segment),
+                                       width, height, opts)
+
+
+def image_vertical_point(gray: np.ndarray, kp: np.ndarray, scores: np.ndarray,
+                         opts: SnapOptions = SnapOptions()) -> np.ndarray | None:
+    """`vertical_points`' refined point, or None."""
+    found = vertical_points(gray, kp, scores, opts)
+    return None if found is None else found[1]
+
+
+def snap_vertical(gray: np.ndarray, kp: np.ndarray, scores: np.ndarray,
+                  opts: SnapOptions = SnapOptions()) -> np.ndarray:
+    """Detections' corners `kp` (N, 8, 2 pixels of `gray`) with their vertical edges turned to the
+    image's vertical vanishing point (`image_vertical_point`); unchanged where none is found."""
+    kp = np.asarray(kp, dtype=np.float64)
+    v = image_vertical_point(gray, kp, np.asarray(scores, dtype=np.float64), opts)
+    if v is None:
+        return kp
+    height, width = gray.shape[:2]
+    return turn_vertical_edges(kp, v, width, height)
