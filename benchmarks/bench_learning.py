@@ -166,8 +166,9 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print(f"{run}: trained before with these arguments; scoring its last.pt")
     train_s = time.perf_counter() - t0 if last.get("time") is None else float(last["time"])
+    # the network's own corners (vertical="off"), as the rows written down before the snap
     preds = predict_dataset(run / "last.pt", args.dataset, split="test", imgsz=args.imgsz, batch=8, device=args.device,
-                            multi_label=not args.single_label)
+                            multi_label=not args.single_label, vertical="off")
     ds = Dataset.open(args.dataset, show_progress=False)
     report, baseline = evaluate_with_baseline(ds, preds, split="test", taxonomy=cfg.taxonomy)
     model_rows, base_rows = rows_of(report), rows_of(baseline)

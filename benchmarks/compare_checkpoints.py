@@ -50,7 +50,8 @@ def score(weights: Path, dataset: Path, split: str | None, imgsz: int | None, ba
     from omnigen.detector.predict import EVAL_MULTI_LABEL, load_for_prediction, predict_split
 
     model, state = load_for_prediction(weights, device)
-    preds = predict_split(model, state, dataset, split, imgsz, batch, multi_label=EVAL_MULTI_LABEL)
+    preds = predict_split(model, state, dataset, split, imgsz, batch, multi_label=EVAL_MULTI_LABEL,
+                          vertical="off")  # the stages' own corners, as the rows written down before the snap
     return rows_of(evaluate(ds, preds, split=split, taxonomy=checkpoint_taxonomy(state)), by_class), len(preds)
 
 

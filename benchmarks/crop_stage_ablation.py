@@ -86,15 +86,16 @@ def score(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, Any], dic
     if model.crop_net is None:
         raise SystemExit(f"crop_stage_ablation: {args.weights} has no crop stage (trained without --heading-crop)")
     split = None if args.split == "all" else args.split
-    staged = predict_split(model, state, args.dataset, split, args.imgsz, args.batch, multi_label=not args.single_label)
+    # vertical="off" throughout: the network's own corners, as the rows written down before the snap
+    staged = predict_split(model, state, args.dataset, split, args.imgsz, args.batch, multi_label=not args.single_label, vertical="off")
     unscored, others = None, {}
     if model.crop_net.num_classes:  # the crop's corners, the head's scores; and rescored otherwise
         unscored = predict_split(model, state, args.dataset, split, args.imgsz, args.batch,
-                                 multi_label=not args.single_label, crop_classes=False)
+                                 multi_label=not args.single_label, vertical="off", crop_classes=False)
         others = {by: predict_split(model, state, args.dataset, split, args.imgsz, args.batch,
-                                    multi_label=not args.single_label, crop_score_by=by) for by in OTHER_SCORE_BY}
+                                    multi_label=not args.single_label, vertical="off", crop_score_by=by) for by in OTHER_SCORE_BY}
     model.crop_net = None  # the head's own corners, the same detections
-    plain = predict_split(model, state, args.dataset, split, args.imgsz, args.batch, multi_label=not args.single_label)
+    plain = predict_split(model, state, args.dataset, split, args.imgsz, args.batch, multi_label=not args.single_label, vertical="off")
     # the stage's corners never move a box; its classes may rescore and (single-label) relabel and
     # drop detections, so for a stage that names classes the pass with the head's scores is compared
     if not same_boxes(staged if unscored is None else unscored, plain):

@@ -9,7 +9,9 @@ box tilts most when its vertical edges miss the frame's vertical vanishing point
 (benchmarks/adherence_sources.py). `omnigen predict` finds that point from the detections and
 the image's line segments (detector/vanishing.py) and turns each detection's vertical edges to it.
 This script predicts `--frames` frames of `--split` (evenly spaced through it) once, with the
-corners as the network placed them, then applies each variant of vanishing.SnapOptions (the
+corners as the network placed them, then applies each variant, on the frames' own images as
+read from the dataset (prediction snaps on the letterboxed input less its padding: the same
+pixels where the frames are square at the model's input size, as make validate's are), of vanishing.SnapOptions (the
 default first: `default:`; others as NAME:key=value,... of its fields) and prints, per view:
 
 - the point's error: the mean angle, over a 5 x 5 grid of image points, between the direction to
@@ -52,11 +54,11 @@ def point_error_deg(v: np.ndarray, truth: np.ndarray) -> float:
 
 def true_point(K: np.ndarray, plane: np.ndarray, width: float, height: float) -> np.ndarray:
     """The point the ground's downward direction projects to, in vanishing.to_normalised
-    coordinates, signed as vanishing.py signs points."""
-    v = np.asarray(K, dtype=np.float64) @ -np.asarray(plane, dtype=np.float64)[:3]
-    scale = max(width, height)
-    v = np.array([(v[0] - (width - 1) / 2 * v[2]) / scale, (v[1] - (height - 1) / 2 * v[2]) / scale, v[2]])
-    return v / np.linalg.norm(v)
+    coordinates, signed as vanishing.py signs points (adherence_sources' point, whose sign is the
+    upward normal's)."""
+    from benchmarks.adherence_sources import true_vanishing_point
+
+    return -true_vanishing_point(K, plane, width, height)
 
 
 def parse_variant(text: str):

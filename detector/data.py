@@ -59,6 +59,9 @@ class Letterbox:
 
     gain: float
     pad: tuple[float, float]
+    # the resized image's (width, height) inside the input, from pad on: the far side's padding
+    # can be a pixel wider than the near side's (None where unknown: assume symmetric padding)
+    content: tuple[int, int] | None = None
 
     def to_input(self, xy: np.ndarray) -> np.ndarray:
         return (xy + 0.5) * self.gain - 0.5 + np.asarray(self.pad)
@@ -78,7 +81,7 @@ def letterbox(image: np.ndarray, size: int) -> tuple[np.ndarray, Letterbox]:
     out[py:py + nh, px:px + nw] = resized
     # The pixel grid is continuous-coordinate exact when gain is the per-axis ratio; the rounding of
     # nw, nh moves edges by under half a pixel, which is below annotation noise.
-    return out, Letterbox(gain, (float(px), float(py)))
+    return out, Letterbox(gain, (float(px), float(py)), (nw, nh))
 
 
 def read_image(path: Path) -> np.ndarray:

@@ -38,6 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--imgsz", type=int, default=None,
                    help="network input size, with a checkpoint (default: its training size)")
     p.add_argument("--batch", type=int, default=8, help="images per batch, with a checkpoint")
+    p.add_argument("--vertical", choices=("lines", "off"), default="lines",
+                   help="with a checkpoint: turn each image's vertical edges to its vertical vanishing point "
+                        "(lines, as omnigen predict does) or keep the network's corners (off)")
     p.add_argument("--device", default=None, help="where a checkpoint predicts: cpu, cuda, cuda:1 (default: cuda when present)")
     p.add_argument("--single-label", action="store_true",
                    help="with a checkpoint, one class an anchor as `omnigen predict` gives (default: every class above "
@@ -92,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
             if args.taxonomy is None:  # the classes the model was trained on
                 taxonomy = checkpoint_taxonomy(state)
             predictions = predict_split(model, state, args.dataset, split=split, imgsz=args.imgsz, batch=args.batch,
-                                        multi_label=not args.single_label)
+                                        multi_label=not args.single_label, vertical=args.vertical)
         else:
             raise ValueError(f"{args.predictions}: expected weights (.pt) or predictions (.json)")
         options = dict(adherence=not args.no_adherence, source=str(args.predictions), sizes=not args.no_sizes,

@@ -10,8 +10,9 @@ crop_stage.rescore does: sqrt(score * p[class]).
 Neither graph turns the vertical edges to the image's vertical vanishing point, as `omnigen
 predict` does by default (`--vertical lines`): that step reads the image's line segments with
 OpenCV's detector, outside any network. A caller of the graphs applies
-omnigen.detector.vanishing.snap_vertical to each image's refined corners (in the pixels of the
-image the graph saw), or leaves the corners as the network placed them (`--vertical off`)."""
+omnigen.detector.vanishing.snap_vertical to each image's refined corners, in the pixels of the
+image the graph saw less its letterbox padding (predict.snap_batch shows how), or leaves the
+corners as the network placed them (`--vertical off`)."""
 
 from __future__ import annotations
 

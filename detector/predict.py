@@ -66,8 +66,8 @@ VERTICAL_MODES = ("lines", "off")
 
 def snap_batch(images: list[np.ndarray], boxes: list[Letterbox], dets: list[Detections]) -> list[Detections]:
     """vanishing.snap_vertical of each letterboxed image's detections, on the image's own pixels:
-    the padding and a margin of PAD_MARGIN pixels inside it are left out, or the letterbox's
-    border would count as a long straight edge."""
+    the padding and a margin of PAD_MARGIN pixels inside it are left out on each padded side, or
+    the letterbox's border would count as a long straight edge."""
     import cv2
 
     from omnigen.detector.vanishing import snap_vertical
@@ -77,10 +77,12 @@ def snap_batch(images: list[np.ndarray], boxes: list[Letterbox], dets: list[Dete
         if not len(d):
             out.append(d)
             continue
-        px, py = (int(p) for p in lb.pad)
-        x0, y0 = px + (PAD_MARGIN if px else 0), py + (PAD_MARGIN if py else 0)
         h, w = image.shape[:2]
-        x1, y1 = w - px - (PAD_MARGIN if px else 0), h - py - (PAD_MARGIN if py else 0)
+        px, py = (int(p) for p in lb.pad)
+        cw, ch = lb.content or (w - 2 * px, h - 2 * py)
+        x0, y0 = px + (PAD_MARGIN if px else 0), py + (PAD_MARGIN if py else 0)
+        x1 = px + cw - (PAD_MARGIN if px + cw < w else 0)
+        y1 = py + ch - (PAD_MARGIN if py + ch < h else 0)
         gray = cv2.cvtColor(np.ascontiguousarray(image[y0:y1, x0:x1]), cv2.COLOR_RGB2GRAY)
         kp = d.keypoints[..., :2].detach().cpu().double().numpy() - np.array([x0, y0])
         snapped = snap_vertical(gray, kp, d.scores.detach().cpu().double().numpy()) + np.array([x0, y0])

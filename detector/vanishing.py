@@ -62,7 +62,7 @@ def fit_vertical_vanishing_point(kp: np.ndarray, weights: np.ndarray, width: flo
     ones = np.ones((len(top), 1))
     lines = np.cross(np.hstack([top, ones]), np.hstack([bottom, ones]))
     length = np.linalg.norm(lines[:, :2], axis=1)  # |bottom - top| for points at z = 1
-    ok = length > 1e-9
+    ok = (length > 1e-9) & np.isfinite(lines).all(1) & np.isfinite(length)  # a non-finite corner: no edge
     lines, top, bottom = lines[ok] / length[ok, None], top[ok], bottom[ok]
     w = np.repeat(np.asarray(weights, dtype=np.float64), 4)[ok] * length[ok]
     if not len(lines):
@@ -74,10 +74,7 @@ def fit_vertical_vanishing_point(kp: np.ndarray, weights: np.ndarray, width: flo
     v = np.array([0.0, 1.0, 0.0])
     for _ in range(iterations):
         v = np.linalg.eigh((lines * (w * robust)[:, None]).T @ lines)[1][:, 0]
-        to_v = v[None, :2] - mid * v[2]
-        to_v /= np.maximum(np.linalg.norm(to_v, axis=1, keepdims=True), 1e-12)
-        sine = np.abs(unit[:, 0] * to_v[:, 1] - unit[:, 1] * to_v[:, 0])
-        robust = 1.0 / (1.0 + (sine / ROBUST_SCALE) ** 2)
+        robust = 1.0 / (1.0 + (_sines(v[None], mid, unit)[0] / ROBUST_SCALE) ** 2)
     motion = v[None, :2] - mid * v[2]
     if np.sum(w * robust * np.sum(motion * edge, axis=1)) < 0:
         v = -v
@@ -124,7 +121,8 @@ def refine_with_segments(first: np.ndarray, kp: np.ndarray, weights: np.ndarray,
     Segments pointing within gate_deg of `first` are kept. Each crossing of two of the longest
     of them is a candidate, as is `first`. A candidate's score is the length of the segments that
     point at it (each weighted 1 - (sine / sine(inlier_deg))^2 where positive). It is lowered by
-    exp(-(m / sine(agree_deg))^2), m the boxes' weighted mean sine of disagreement. The
+    exp(-(m / sine(agree_deg))^2), m the boxes' weighted mean sine of disagreement (each edge's
+    capped at 0.5, 30 deg, so that a few wild boxes do not veto a candidate). The
     disagreement matters because a city's horizontal edges (roofs, kerbs, road markings) meet at
     points of their own with as much support. The best candidate is then refit by least squares
     over the segments, reweighted by a Cauchy function of their miss (IRLS)."""
@@ -150,7 +148,7 @@ def refine_with_segments(first: np.ndarray, kp: np.ndarray, weights: np.ndarray,
     x = to_normalised(kp, width, height)
     top, bottom = x[:, TOP].reshape(-1, 2), x[:, BOTTOM].reshape(-1, 2)
     edge_len = np.linalg.norm(bottom - top, axis=1)
-    e_ok = edge_len > 1e-12
+    e_ok = (edge_len > 1e-12) & np.isfinite(edge_len) & np.isfinite(top + bottom).all(1)
     w = (np.repeat(np.asarray(weights, dtype=np.float64), 4) * edge_len)[e_ok]
     if w.sum() > 0:
         miss = _sines(candidates, ((top + bottom) / 2)[e_ok], ((bottom - top)[e_ok] / edge_len[e_ok, None]))
@@ -167,16 +165,18 @@ def turn_vertical_edges(kp: np.ndarray, v: np.ndarray, width: float, height: flo
     """Boxes `kp` (N, 8, 2 pixels) with each vertical edge turned about its midpoint, its length
     and its sense kept, to lie on the line through the point `v` (`to_normalised` coordinates)."""
     kp = np.asarray(kp, dtype=np.float64)
-    scale, offset = max(width, height), np.array([(width - 1) / 2, (height - 1) / 2])
-    x = (kp - offset) / scale
+    x = to_normalised(kp, width, height)
     top, bottom = x[:, TOP], x[:, BOTTOM]
     mid, edge = (top + bottom) / 2, bottom - top
-    half = np.linalg.norm(edge, axis=-1, keepdims=True) / 2
-    to_v = v[:2] - mid * v[2]
-    to_v /= np.maximum(np.linalg.norm(to_v, axis=-1, keepdims=True), 1e-12)
-    to_v *= np.where(np.sum(to_v * edge, axis=-1, keepdims=True) < 0, -1.0, 1.0)
-    out = np.concatenate([mid - to_v * half, mid + to_v * half], axis=1)
-    return out * scale + offset
+    with np.errstate(invalid="ignore"):  # a box with a non-finite corner: left as it was below
+        half = np.linalg.norm(edge, axis=-1, keepdims=True) / 2
+        to_v = v[:2] - mid * v[2]
+        to_v /= np.maximum(np.linalg.norm(to_v, axis=-1, keepdims=True), 1e-12)
+        to_v *= np.where(np.sum(to_v * edge, axis=-1, keepdims=True) < 0, -1.0, 1.0)
+        out = np.concatenate([mid - to_v * half, mid + to_v * half], axis=1)
+    out = out * max(width, height) + np.array([(width - 1) / 2, (height - 1) / 2])  # back to pixels
+    finite = np.isfinite(out).all(axis=(1, 2))
+    return np.where(finite[:, None, None], out, kp)  # a box with a non-finite corner is left as it was
 
 
 def distinct_rows(kp: np.ndarray, candidates: np.ndarray) -> np.ndarray:

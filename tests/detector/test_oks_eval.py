@@ -348,9 +348,9 @@ def test_command_runs_weights_through_predict(ds, tmp_path, monkeypatch):
         seen.update(weights=Path(weights), device=device, loads=seen.get("loads", 0) + 1)
         return "model", state
 
-    def fake_predict(model, got_state, root, split, imgsz, batch, multi_label):
+    def fake_predict(model, got_state, root, split, imgsz, batch, multi_label, vertical):
         assert (model, got_state) == ("model", state)
-        seen.update(split=split, imgsz=imgsz, batch=batch, multi_label=multi_label)
+        seen.update(split=split, imgsz=imgsz, batch=batch, multi_label=multi_label, vertical=vertical)
         return perfect(ds)
 
     monkeypatch.setattr(predict, "load_for_prediction", fake_load)
@@ -360,10 +360,10 @@ def test_command_runs_weights_through_predict(ds, tmp_path, monkeypatch):
     args = _args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True, device="cpu")
     assert eval_command.run(args) == 0
     assert seen == {"weights": weights, "split": "test", "imgsz": 320, "batch": 2, "device": "cpu", "loads": 1,
-                    "multi_label": True}  # every class above the floor, as Ultralytics' validation
+                    "multi_label": True, "vertical": "lines"}  # every class above the floor, as Ultralytics' validation
     assert eval_command.run(_args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True,
-                                  device="cpu", single_label=True)) == 0
-    assert seen["multi_label"] is False
+                                  device="cpu", single_label=True, vertical="off")) == 0
+    assert seen["multi_label"] is False and seen["vertical"] == "off"
 
 
 def test_command_refuses_single_label_for_predictions_made_already(ds, tmp_path, capsys):

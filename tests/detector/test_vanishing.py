@@ -157,3 +157,43 @@ def test_prediction_snaps_in_the_letterboxed_input_without_the_padding_border():
     assert torch.equal(out.keypoints[..., 2], dets.keypoints[..., 2]) and out.scores is dets.scores
     with pytest.raises(ValueError, match="vertical"):
         PredictOptions(vertical="both")
+
+
+def test_a_box_with_a_non_finite_corner_neither_moves_the_point_nor_is_moved():
+    rng = np.random.default_rng(5)
+    vp = np.array([300.0, 1500.0])
+    kp = boxes_towards(vp, 6, rng)
+    clean = fit_vertical_vanishing_point(kp, np.ones(6), W, H)
+    bad = np.concatenate([kp, kp[:1]])
+    bad[-1, 0] = [np.nan, 10.0]
+    bad[-1, 5] = [np.inf, 3.0]
+    assert np.allclose(fit_vertical_vanishing_point(bad, np.ones(7), W, H), clean)
+    turned = turn_vertical_edges(bad, clean, W, H)
+    assert np.isfinite(turned[:6]).all()
+    assert np.array_equal(turned[-1], bad[-1], equal_nan=True)  # left as it was
+
+
+def test_prediction_leaves_out_a_far_side_padding_a_pixel_wider_than_the_near_one(monkeypatch):
+    """A 640 x 639 image letterboxed to 640: no padding above, one row below. The snap's region
+    is the image's own rows, so the padding's edge (a long straight segment) is not among them."""
+    import torch
+
+    import omnigen.detector.vanishing as vanishing
+    from omnigen.detector.data import letterbox
+    from omnigen.detector.nms import Detections
+    from omnigen.detector.predict import snap_batch
+
+    image = np.full((639, 640, 3), 30, np.uint8)
+    boxed, lb = letterbox(image, 640)
+    assert lb.pad == (0.0, 0.0) and lb.content == (640, 639) and (boxed[639] != 30).all()
+    seen = []
+    original = vanishing.snap_vertical
+
+    def spy(gray, kp, scores, opts=vanishing.SnapOptions()):
+        seen.append(gray.shape)
+        return original(gray, kp, scores, opts)
+
+    monkeypatch.setattr(vanishing, "snap_vertical", spy)
+    dets = Detections(torch.zeros(2, 4), torch.ones(2), torch.zeros(2, dtype=torch.long), torch.zeros(2, 8, 3))
+    snap_batch([boxed], [lb], [dets])
+    assert seen == [(637, 640)]  # rows 0..636: the image less a margin of 2 above the padded row
