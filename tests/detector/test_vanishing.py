@@ -197,3 +197,28 @@ def test_prediction_leaves_out_a_far_side_padding_a_pixel_wider_than_the_near_on
     dets = Detections(torch.zeros(2, 4), torch.ones(2), torch.zeros(2, dtype=torch.long), torch.zeros(2, 8, 3))
     snap_batch([boxed], [lb], [dets])
     assert seen == [(637, 640)]  # rows 0..636: the image less a margin of 2 above the padded row
+
+
+def test_omnigen_predict_passes_vertical_to_prediction(tmp_path, monkeypatch):
+    """`omnigen predict --vertical off` reaches PredictOptions; lines is the default."""
+    import argparse
+
+    import cv2 as _cv2
+
+    import omnigen.detector.checkpoint as checkpoint
+    import omnigen.detector.predict as predict
+    from omnigen.detector import predict_command
+
+    _cv2.imwrite(str(tmp_path / "a.png"), np.zeros((8, 8, 3), np.uint8))
+    seen = []
+    monkeypatch.setattr(checkpoint, "load_model", lambda w: ("model", {"classes": ["car"]}))
+    monkeypatch.setattr(predict, "predict_images", lambda model, files, opts: seen.append(opts.vertical) or iter(()))
+    for extra, want in (([], "lines"), (["--vertical", "off"], "off")):
+        p = argparse.ArgumentParser()
+        predict_command.add_arguments(p)
+        args = p.parse_args(["w.pt", str(tmp_path / "a.png"), "--out", str(tmp_path / "out"), "--imgsz", "64",
+                             "--no-overlays", *extra])
+        assert predict_command.run(args) == 0
+        assert seen[-1] == want
+    with pytest.raises(SystemExit):  # argparse refuses another mode, naming the choices
+        p.parse_args(["w.pt", "x.png", "--out", "o", "--vertical", "both"])
