@@ -330,13 +330,9 @@ def outputs_of_crops(net: CropNet, crops: torch.Tensor, mirror: bool = False, wh
     its own crops so."""
     if not reads_position(net):
         where = None
-
-    def run(x: torch.Tensor, w: torch.Tensor | None) -> torch.Tensor:
-        return net(x) if w is None else net(x, w)
-
-    h, t, c = split_outputs(run(crops, where))
+    h, t, c = split_outputs(net(crops, where))
     if mirror:
-        hm, tm, cm = split_outputs(run(crops.flip(-1), None if where is None else mirror_position(where)))
+        hm, tm, cm = split_outputs(net(crops.flip(-1), None if where is None else mirror_position(where)))
         h = (h + hm * h.new_tensor(MIRROR_HEADING)) / 2
         t = (t + mirror_corners(tm)) / 2
         c = None if c is None else (c + cm) / 2

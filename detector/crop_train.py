@@ -172,18 +172,20 @@ def mirror_batch(x: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor, hea
     return x, corners, mask, heading, where
 
 
+def face_offset(k: torch.Tensor) -> torch.Tensor:
+    """(N, 2) the bottom face's offset from the top face of corners (N, 8, 2): the mean of corners
+    4-7 less that of 0-3, what tilts a lifted box most (benchmarks/adherence_sources.py)."""
+    return k[:, 4:].mean(1) - k[:, :4].mean(1)
+
+
 def offset_loss(t: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """L1 (x + y) of the placed bottom face's offset from the top face (the mean of corners 4-7
-    less that of 0-3, crop units) against the labelled one, averaged over the objects with all
-    eight corners labelled (0 where none is). Why: the corner term weighs the offset only through
-    the eight corners' own errors, and a lifted box tilts most by it (benchmarks/adherence_sources.py)."""
+    """L1 (x + y) of the placed `face_offset` against the labelled one (crop units), averaged over
+    the objects with all eight corners labelled (0 where none is). Why: the corner term weighs the
+    offset only through the eight corners' own errors."""
     full = mask.all(1)
     if not full.any():
         return t.sum() * 0.0
-
-    def offset(k: torch.Tensor) -> torch.Tensor:
-        return k[full, 4:].mean(1) - k[full, :4].mean(1)
-    return (offset(t) - offset(corners)).abs().sum(-1).mean()
+    return (face_offset(t[full]) - face_offset(corners[full])).abs().sum(-1).mean()
 
 
 def stage_loss(net: CropNet | SplitCropNet, x: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor, heading: torch.Tensor,
@@ -304,10 +306,7 @@ def score_stage(net: CropNet | SplitCropNet, data: CropSet, batch: int = 256) ->
             better = ((turned * m).sum(1) < (d * m).sum(1))[:, None]
             rel.append(d[m])
             full = m.all(1)
-
-            def offset(k: torch.Tensor) -> torch.Tensor:
-                return k[full, 4:].mean(1) - k[full, :4].mean(1)
-            vertical.append((offset(as_placed) - offset(true_xy)).norm(dim=-1) / scale[full, 0])
+            vertical.append((face_offset(as_placed[full]) - face_offset(true_xy[full])).norm(dim=-1) / scale[full, 0])
             placed.append(((as_placed - true_xy).norm(dim=-1) / scale)[m])
             layout.append(torch.where(better, turned, d)[m])
             target = data.heading[sl]

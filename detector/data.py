@@ -63,6 +63,12 @@ class Letterbox:
     # can be a pixel wider than the near side's (None where unknown: assume symmetric padding)
     content: tuple[int, int] | None = None
 
+    def content_box(self, width: int, height: int) -> tuple[int, int, int, int]:
+        """x0, y0, x1, y1 (exclusive) of the image's own pixels in an input `width` x `height`."""
+        px, py = int(self.pad[0]), int(self.pad[1])
+        cw, ch = self.content or (width - 2 * px, height - 2 * py)
+        return px, py, px + cw, py + ch
+
     def to_input(self, xy: np.ndarray) -> np.ndarray:
         return (xy + 0.5) * self.gain - 0.5 + np.asarray(self.pad)
 

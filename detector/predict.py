@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
@@ -31,6 +31,11 @@ EVAL_CONF = 0.001
 
 EVAL_MAX_DET = 1000
 """Detections kept an image for evaluation (oks_eval.MAX_DETS, its maxDets, counts as many)."""
+
+VERTICAL_MODES = ("lines", "off")
+"""PredictOptions.vertical's: turn the vertical edges to the image's vanishing point, or not."""
+PAD_MARGIN = 2
+"""Pixels of the image left out next to the letterbox's padding when the snap looks for lines."""
 
 EVAL_MULTI_LABEL = True
 """Evaluation scores every class of an anchor above EVAL_CONF, as Ultralytics' validation does
@@ -61,13 +66,10 @@ class PredictOptions:
             raise ValueError(f"PredictOptions.vertical: one of {', '.join(VERTICAL_MODES)}, got {self.vertical!r}")
 
 
-VERTICAL_MODES = ("lines", "off")
-
-
 def snap_batch(images: list[np.ndarray], boxes: list[Letterbox], dets: list[Detections]) -> list[Detections]:
-    """vanishing.snap_vertical of each letterboxed image's detections, on the image's own pixels:
-    the padding and a margin of PAD_MARGIN pixels inside it are left out on each padded side, or
-    the letterbox's border would count as a long straight edge."""
+    """vanishing.snap_vertical of each letterboxed image's detections, on the image's own pixels
+    (Letterbox.content_box) less PAD_MARGIN pixels on each padded side, or the letterbox's border
+    would count as a long straight edge."""
     import cv2
 
     from omnigen.detector.vanishing import snap_vertical
@@ -78,21 +80,16 @@ def snap_batch(images: list[np.ndarray], boxes: list[Letterbox], dets: list[Dete
             out.append(d)
             continue
         h, w = image.shape[:2]
-        px, py = (int(p) for p in lb.pad)
-        cw, ch = lb.content or (w - 2 * px, h - 2 * py)
-        x0, y0 = px + (PAD_MARGIN if px else 0), py + (PAD_MARGIN if py else 0)
-        x1 = px + cw - (PAD_MARGIN if px + cw < w else 0)
-        y1 = py + ch - (PAD_MARGIN if py + ch < h else 0)
+        x0, y0, x1, y1 = lb.content_box(w, h)
+        x0, y0 = x0 + (PAD_MARGIN if x0 > 0 else 0), y0 + (PAD_MARGIN if y0 > 0 else 0)
+        x1, y1 = x1 - (PAD_MARGIN if x1 < w else 0), y1 - (PAD_MARGIN if y1 < h else 0)
         gray = cv2.cvtColor(np.ascontiguousarray(image[y0:y1, x0:x1]), cv2.COLOR_RGB2GRAY)
         kp = d.keypoints[..., :2].detach().cpu().double().numpy() - np.array([x0, y0])
         snapped = snap_vertical(gray, kp, d.scores.detach().cpu().double().numpy()) + np.array([x0, y0])
         keypoints = d.keypoints.clone()
         keypoints[..., :2] = torch.from_numpy(snapped).to(keypoints)
-        out.append(Detections(d.boxes, d.scores, d.classes, keypoints, d.class_scores))
+        out.append(replace(d, keypoints=keypoints))
     return out
-
-
-PAD_MARGIN = 2
 
 
 def to_image_coords(det: Detections, lb: Letterbox) -> dict[str, np.ndarray]:

@@ -49,6 +49,47 @@ def to_normalised(xy: np.ndarray, width: float, height: float) -> np.ndarray:
     return (np.asarray(xy, dtype=np.float64) - np.array([(width - 1) / 2, (height - 1) / 2])) / max(width, height)
 
 
+def from_normalised(x: np.ndarray, width: float, height: float) -> np.ndarray:
+    """The inverse of `to_normalised`: back to input pixels."""
+    return np.asarray(x, dtype=np.float64) * max(width, height) + np.array([(width - 1) / 2, (height - 1) / 2])
+
+
+@dataclass
+class Edges:
+    """Line segments from `a` to `b` (M, 2, normalised coordinates) with a length and finite ends:
+    their homogeneous lines (unit normals), midpoints, unit directions and lengths."""
+
+    lines: np.ndarray
+    mid: np.ndarray
+    unit: np.ndarray
+    length: np.ndarray
+    kept: np.ndarray  # (M_given,) bool: which of the segments given these are
+
+    @classmethod
+    def between(cls, a: np.ndarray, b: np.ndarray) -> "Edges":
+        with np.errstate(invalid="ignore"):
+            length = np.linalg.norm(b - a, axis=1)
+            kept = (length > 1e-9) & np.isfinite(length) & np.isfinite(a + b).all(1)  # a non-finite end: no edge
+        a, b, length = a[kept], b[kept], length[kept]
+        ones = np.ones((len(a), 1))
+        lines = np.cross(np.hstack([a, ones]), np.hstack([b, ones])) / length[:, None]
+        return cls(lines, (a + b) / 2, (b - a) / length[:, None], length, kept)
+
+    def sines(self, points: np.ndarray) -> np.ndarray:
+        """(C, M) `_sines` of these edges to each point (C, 3)."""
+        return _sines(points, self.mid, self.unit)
+
+    def refit(self, weight: np.ndarray, scale: float, v: np.ndarray | None = None, iterations: int = 5
+              ) -> np.ndarray:
+        """The least-squares point of the lines, each weighted `weight` times a Cauchy function
+        (scale `scale`, as a sine) of its miss of the previous point (IRLS; from equal weights
+        where `v` is None)."""
+        for _ in range(iterations):
+            r = weight if v is None else weight * (1.0 / (1.0 + (self.sines(v[None])[0] / scale) ** 2))
+            v = np.linalg.eigh((self.lines * r[:, None]).T @ self.lines)[1][:, 0]
+        return v
+
+
 def fit_vertical_vanishing_point(kp: np.ndarray, weights: np.ndarray, width: float, height: float,
                                  iterations: int = 5) -> np.ndarray:
     """The unit homogeneous point (3,), in `to_normalised` coordinates and signed as the module
@@ -57,28 +98,23 @@ def fit_vertical_vanishing_point(kp: np.ndarray, weights: np.ndarray, width: flo
     noise), reweighted by a Cauchy function of each edge's angular miss (IRLS), so that a few wrong
     boxes do not pull it. A point at infinity (an upright camera's vertical edges are parallel) has
     third component 0."""
-    x = to_normalised(kp, width, height)
-    top, bottom = x[:, TOP].reshape(-1, 2), x[:, BOTTOM].reshape(-1, 2)
-    ones = np.ones((len(top), 1))
-    lines = np.cross(np.hstack([top, ones]), np.hstack([bottom, ones]))
-    length = np.linalg.norm(lines[:, :2], axis=1)  # |bottom - top| for points at z = 1
-    ok = (length > 1e-9) & np.isfinite(lines).all(1) & np.isfinite(length)  # a non-finite corner: no edge
-    lines, top, bottom = lines[ok] / length[ok, None], top[ok], bottom[ok]
-    w = np.repeat(np.asarray(weights, dtype=np.float64), 4)[ok] * length[ok]
-    if not len(lines):
+    edges = vertical_edges(kp, width, height)
+    if not len(edges.length):
         raise ValueError("fit_vertical_vanishing_point: no vertical edge of non-zero length")
-    edge = bottom - top
-    mid = (top + bottom) / 2
-    unit = edge / np.linalg.norm(edge, axis=1, keepdims=True)
-    robust = np.ones(len(lines))
-    v = np.array([0.0, 1.0, 0.0])
-    for _ in range(iterations):
-        v = np.linalg.eigh((lines * (w * robust)[:, None]).T @ lines)[1][:, 0]
-        robust = 1.0 / (1.0 + (_sines(v[None], mid, unit)[0] / ROBUST_SCALE) ** 2)
-    motion = v[None, :2] - mid * v[2]
-    if np.sum(w * robust * np.sum(motion * edge, axis=1)) < 0:
+    w = np.repeat(np.asarray(weights, dtype=np.float64), 4)[edges.kept] * edges.length
+    v = edges.refit(w, ROBUST_SCALE, iterations=iterations)
+    robust = 1.0 / (1.0 + (edges.sines(v[None])[0] / ROBUST_SCALE) ** 2)
+    motion = v[None, :2] - edges.mid * v[2]
+    if np.sum(w * robust * edges.length * np.sum(motion * edges.unit, axis=1)) < 0:
         v = -v
     return v
+
+
+def vertical_edges(kp: np.ndarray, width: float, height: float) -> Edges:
+    """The four vertical edges (corner i to i + 4) of each box `kp` (N, 8, 2 pixels), top to bottom,
+    in `to_normalised` coordinates (`kept` indexes the 4 N edges, box by box)."""
+    x = to_normalised(kp, width, height)
+    return Edges.between(x[:, TOP].reshape(-1, 2), x[:, BOTTOM].reshape(-1, 2))
 
 
 @dataclass(frozen=True)
@@ -126,38 +162,24 @@ def refine_with_segments(first: np.ndarray, kp: np.ndarray, weights: np.ndarray,
     disagreement matters because a city's horizontal edges (roofs, kerbs, road markings) meet at
     points of their own with as much support. The best candidate is then refit by least squares
     over the segments, reweighted by a Cauchy function of their miss (IRLS)."""
-    a, b = to_normalised(segments[:, :2], width, height), to_normalised(segments[:, 2:], width, height)
-    length = np.linalg.norm(b - a, axis=1)
-    ok = length > 1e-12
-    a, b, length = a[ok], b[ok], length[ok]
-    unit, mid = (b - a) / length[:, None], (a + b) / 2
-    keep = _sines(first[None], mid, unit)[0] < math.sin(math.radians(opts.gate_deg))
+    seg = Edges.between(to_normalised(segments[:, :2], width, height), to_normalised(segments[:, 2:], width, height))
+    keep = seg.sines(first[None])[0] < math.sin(math.radians(opts.gate_deg))
     if keep.sum() < 3:
         return first
-    a, b, unit, mid, length = a[keep], b[keep], unit[keep], mid[keep], length[keep]
-    ones = np.ones((len(a), 1))
-    lines = np.cross(np.hstack([a, ones]), np.hstack([b, ones]))
-    lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
-    longest = np.argsort(-length, kind="stable")[:opts.candidates]
+    seg = Edges(seg.lines[keep], seg.mid[keep], seg.unit[keep], seg.length[keep], keep)
+    longest = np.argsort(-seg.length, kind="stable")[:opts.candidates]
     i, j = np.triu_indices(len(longest), 1)
-    cross = np.cross(lines[longest[i]], lines[longest[j]])
+    cross = np.cross(seg.lines[longest[i]], seg.lines[longest[j]])
     norm = np.linalg.norm(cross, axis=1)
     candidates = np.vstack([first, cross[norm > 1e-12] / norm[norm > 1e-12, None]])
     inlier = math.sin(math.radians(opts.inlier_deg))
-    support = (length[None] * np.clip(1 - (_sines(candidates, mid, unit) / inlier) ** 2, 0, None)).sum(1)
-    x = to_normalised(kp, width, height)
-    top, bottom = x[:, TOP].reshape(-1, 2), x[:, BOTTOM].reshape(-1, 2)
-    edge_len = np.linalg.norm(bottom - top, axis=1)
-    e_ok = (edge_len > 1e-12) & np.isfinite(edge_len) & np.isfinite(top + bottom).all(1)
-    w = (np.repeat(np.asarray(weights, dtype=np.float64), 4) * edge_len)[e_ok]
+    support = (seg.length[None] * np.clip(1 - (seg.sines(candidates) / inlier) ** 2, 0, None)).sum(1)
+    boxes = vertical_edges(kp, width, height)
+    w = np.repeat(np.asarray(weights, dtype=np.float64), 4)[boxes.kept] * boxes.length
     if w.sum() > 0:
-        miss = _sines(candidates, ((top + bottom) / 2)[e_ok], ((bottom - top)[e_ok] / edge_len[e_ok, None]))
-        disagree = (w[None] * np.minimum(miss, 0.5)).sum(1) / w.sum()
+        disagree = (w[None] * np.minimum(boxes.sines(candidates), 0.5)).sum(1) / w.sum()
         support = support * np.exp(-(disagree / math.sin(math.radians(opts.agree_deg))) ** 2)
-    v = candidates[int(np.argmax(support))]
-    for _ in range(5):
-        r = length / (1 + (_sines(v[None], mid, unit)[0] / inlier) ** 2)
-        v = np.linalg.eigh((lines * r[:, None]).T @ lines)[1][:, 0]
+    v = seg.refit(seg.length, inlier, v=candidates[int(np.argmax(support))])
     return v if np.dot(v, first) >= 0 else -v
 
 
@@ -174,7 +196,7 @@ def turn_vertical_edges(kp: np.ndarray, v: np.ndarray, width: float, height: flo
         to_v /= np.maximum(np.linalg.norm(to_v, axis=-1, keepdims=True), 1e-12)
         to_v *= np.where(np.sum(to_v * edge, axis=-1, keepdims=True) < 0, -1.0, 1.0)
         out = np.concatenate([mid - to_v * half, mid + to_v * half], axis=1)
-    out = out * max(width, height) + np.array([(width - 1) / 2, (height - 1) / 2])  # back to pixels
+    out = from_normalised(out, width, height)
     finite = np.isfinite(out).all(axis=(1, 2))
     return np.where(finite[:, None, None], out, kp)  # a box with a non-finite corner is left as it was
 
