@@ -25,6 +25,7 @@ from typing import Any, Callable, Hashable, Iterator, Sequence
 from omnigen.files import LINK_MODES, atomic_write_bytes, link_file
 from omnigen.images import ImageError, check_image
 from omnigen.index import IndexRows
+from omnigen.options import integer
 from omnigen.ownership import claim_output, manifest_of
 from omnigen.progress import print_table, progress
 from omnigen.record import FrameRecord, RecordError
@@ -132,13 +133,18 @@ class ConversionReport:
     stale: list[str] = field(default_factory=list)  # frames an earlier run into --out left, removed
 
 
+MAX_WORKERS = 256
+"""Most --workers: each is a forked copy of this process, and more than a machine's cores only
+contend for them; 0 or a negative number ran one process without a word."""
+
+
 def add_common_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="output dataset folder")
     p.add_argument("--link", choices=LINK_MODES, default="hardlink",
                    help="how images are placed: hardlink (falls back to symlink, then copy), symlink or copy")
     p.add_argument("--strict", action="store_true", help="stop at the first bad frame instead of skipping it")
-    p.add_argument("--limit", type=int, default=None, help="convert only the first N frames")
-    p.add_argument("--workers", type=int, default=default_workers(),
+    p.add_argument("--limit", type=integer(1), default=None, help="convert only the first N frames (default: all)")
+    p.add_argument("--workers", type=integer(1, MAX_WORKERS), default=default_workers(),
                    help="processes converting frames (default: the CPUs available, at most 8); "
                         "the dataset is the same for any number")
     p.add_argument("--durable", action="store_true",

@@ -60,6 +60,7 @@ from omnigen.geometry import (
     rots_z,
     self_occluded_corners_batch,
 )
+from omnigen.options import number
 from omnigen.record import FRAME_ID_PATTERN, FrameRecord, IgnoreRegion, ObjectRecord
 
 # ---------------------------------------------------------------------------------------------
@@ -107,6 +108,9 @@ DEFAULT_GROUP_GAP_S = 10.0
 """Two frames of one camera whose timestamps differ by at most this many seconds are neighbours and
 share a group. 10 s keeps a red-light queue (the same cars, seen again and again) on one side of a
 split, yet separates recordings minutes apart."""
+GROUP_GAP_RANGE_S = (0.0, 86400.0)
+"""--group-gap accepts 0 (only equal timestamps share a run) to a day (in practice one run per
+intersection); a negative gap gave every frame its own run, NaN or infinity one run for all."""
 
 GROUP_METHODS = ("batch", "time", "intersection")
 
@@ -870,8 +874,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="folder to look for images in by file name when SRC/image_path does not exist")
     p.add_argument("--group-by", choices=GROUP_METHODS, default="batch",
                    help="first grouping to try: batch (DAIR-V2X-C batch_id), time (timestamp runs) or intersection")
-    p.add_argument("--group-gap", type=float, default=DEFAULT_GROUP_GAP_S, metavar="SECONDS",
-                   help=f"largest timestamp gap inside one time run (default {DEFAULT_GROUP_GAP_S:g})")
+    p.add_argument("--group-gap", type=number(*GROUP_GAP_RANGE_S), default=DEFAULT_GROUP_GAP_S, metavar="SECONDS",
+                   help="largest timestamp gap inside one time run (default %(default)g)")
 
 
 def options_from_args(args: argparse.Namespace) -> DairOptions:

@@ -22,11 +22,14 @@ from pathlib import Path
 
 from omnigen.dataset import Dataset
 from omnigen.files import LINK_MODES, atomic_write_bytes, atomic_write_text, link_file
+from omnigen.formats.checks import naming_frame
+from omnigen.outputs import refuse_inputs
 from omnigen.formats.kitti import calib_text, kitti_file_names, label_text
 from omnigen.ownership import claim_output
 from omnigen.progress import print_table, progress
 from omnigen.splits import read_split
 
+JOB = "export kitti"
 MAPPING_FILE = "mapping.txt"
 """One line per exported frame: `<kitti file number> <frame_id>`."""
 
@@ -49,35 +52,47 @@ def _exported_by_us(folder: Path) -> bool:
     return re.fullmatch(r"\d{6} \S+", first) is not None
 
 
+def _frame_files(ds: Dataset, i: int, derived: bool) -> tuple[str, str]:
+    """A frame's label and calib text, a non-finite value refused naming its record file."""
+    record = ds[i]
+    with naming_frame(ds, i):
+        return label_text(record, derived), calib_text(record.K)
+
+
 def export_kitti(ds: Dataset, out: str | Path, split: str | None = None, link: str = "hardlink",
                  derived: bool = False) -> ExportReport:
     """Write out/{label_2,calib,image_2}/<number>.* and, last, out/mapping.txt; returns the counts.
 
     A re-export into the same folder starts from nothing: the numbers are given afresh each time,
     so a file left from an earlier export would label another frame. mapping.txt goes first.
+    Every text is made before that, so a refused export (a --out it may not clear, a value that
+    is not finite) leaves the folder as it was.
     """
     start = time.perf_counter()
     out = Path(out)
     keep = None if split is None else set(read_split(ds.root, split))  # a bad --split fails before any deletion
-    claim_output(out, "export kitti", _exported_by_us)
-    (out / MAPPING_FILE).unlink(missing_ok=True)
-    for folder in ("label_2", "calib", "image_2"):
-        shutil.rmtree(out / folder, ignore_errors=True)
+    refuse_inputs(out, [ds.root], JOB)
+    claim_output(out, JOB, _exported_by_us, mark=False)
     frame_ids = ds.frame_ids
     indices = [i for i, f in enumerate(frame_ids) if keep is None or f in keep]
     names = kitti_file_names([frame_ids[i] for i in indices])
+    texts = {i: _frame_files(ds, i, derived) for i in progress(indices, desc="export kitti: labels", unit="frame")}
+    claim_output(out, JOB, _exported_by_us)
+    (out / MAPPING_FILE).unlink(missing_ok=True)
+    for folder in ("label_2", "calib", "image_2"):
+        shutil.rmtree(out / folder, ignore_errors=True)
     report = ExportReport()
     for i in progress(indices, desc="export kitti", unit="frame"):
-        record = ds[i]
-        number = names[record.frame_id]
+        number = names[frame_ids[i]]
+        label, calib = texts.pop(i)
         # not fsynced one by one (that dominates on a busy disk): one flush before mapping.txt
-        atomic_write_bytes(out / "label_2" / f"{number}.txt", label_text(record, derived).encode(), durable=False)
-        atomic_write_bytes(out / "calib" / f"{number}.txt", calib_text(record.K).encode(), durable=False)
-        suffix = Path(record.image).suffix
-        report.link_modes[link_file(ds.path(record.image), out / "image_2" / f"{number}{suffix}", link)] += 1
+        atomic_write_bytes(out / "label_2" / f"{number}.txt", label.encode(), durable=False)
+        atomic_write_bytes(out / "calib" / f"{number}.txt", calib.encode(), durable=False)
+        image = ds.table.image[i]
+        report.link_modes[link_file(ds.path(image), out / "image_2" / f"{number}{Path(image).suffix}", link)] += 1
         report.frames += 1
-        report.objects += len(record.objects)
-        report.dont_care += len(record.ignore_regions)
+        report.objects += int(ds.offsets[i + 1] - ds.offsets[i])
+        report.dont_care += len(ds.table.extras[i]["ignore_regions"])
     os.sync()
     mapping = sorted((number, frame_id) for frame_id, number in names.items())
     atomic_write_text(out / MAPPING_FILE, "".join(f"{n} {f}\n" for n, f in mapping))
@@ -87,7 +102,9 @@ def export_kitti(ds: Dataset, out: str | Path, split: str | None = None, link: s
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path)
-    p.add_argument("--out", type=Path, required=True, help="output folder (gets label_2/, calib/, image_2/, mapping.txt)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder (gets label_2/, calib/, image_2/, mapping.txt): new, empty or an earlier "
+                        "export kitti; outside the dataset")
     p.add_argument("--split", default=None, help="only frames of this split (splits/<name>.txt)")
     p.add_argument("--link", choices=LINK_MODES, default="hardlink",
                    help="how images are placed: hardlink (falls back to symlink, then copy), symlink or copy")

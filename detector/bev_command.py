@@ -6,6 +6,13 @@ all have v > 0 define the image's homography (omnigen.detector.bev.rectify); the
 no keypoints at all (an auxiliary 2D detector's), are placed in the BEV by the ridge map fitted on
 the image's keypoint detections. Per image it writes DIR/<image_id>.json and DIR/<image_id>.png.
 
+DIR is claimed for bev (.omnigen-job, omnigen.ownership): a folder holding anything else is
+refused, as is one that is, lies inside or holds the predictions file or the --images folder. An
+image that cannot be read (over omnigen.images' caps, undecodable) is listed on stderr and its BEV
+drawn on a grey canvas; a figure over omnigen.draw.MAX_CANVAS_PIXELS (an image of an extreme aspect
+ratio) is listed and not drawn; either way the run exits 1. Without an image, the grey canvas
+reaches the detections' extent up to PLACEHOLDER_MAX_SIDE a side.
+
 category_id is 1-based into the taxonomy's classes (as omnigen's COCO export writes it); the
 class names choose the aspect and size priors.
 """
@@ -13,8 +20,8 @@ class names choose the aspect and size priors.
 from __future__ import annotations
 
 import argparse
-import io
 import math
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +32,7 @@ import numpy as np
 from omnigen.detector.results_file import read_results
 from omnigen.detector.bev import RIDGE_LAMBDA, apply_homography, fit_ridge, rectify
 from omnigen.conventions import BOTTOM_CORNERS, NUM_KEYPOINTS
+from omnigen.options import fraction, number
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
 
@@ -51,13 +59,25 @@ class Detection:
         return np.array([*lo, *(hi - lo)])
 
 
+PLACEHOLDER_MAX_SIDE = 4096
+"""Largest side of the grey canvas drawn where an image has no picture (no --images, or none of its
+name): the canvas reaches the detections' extent, a 4K frame's width at most; what lies further out
+is clipped. The predictions file is what sizes it, and 153 bytes can name a corner at 40000 px."""
+
+MAX_RIDGE_LAMBDA = 1e6
+"""Largest --ridge-lambda: far past where the ridge map places every 2D-only box at the mean centre."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("predictions", type=Path, help="COCO-results JSON (image_id, category_id, keypoints, bbox, score)")
-    parser.add_argument("--out", type=Path, required=True, help="folder for <image_id>.json and <image_id>.png")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="new or empty folder (or one of an earlier bev) for <image_id>.json and <image_id>.png")
     parser.add_argument("--images", type=Path, default=None, help="folder holding <image_id>.png/.jpg to draw under")
-    parser.add_argument("--score-thr", type=float, default=0.25, help="drop detections scoring below (default 0.25)")
+    parser.add_argument("--score-thr", type=fraction(), default=0.25,
+                        help="drop detections scoring below, in [0, 1] (default 0.25)")
     parser.add_argument("--taxonomy", default="fine", help="taxonomy whose classes category_id counts (default fine)")
-    parser.add_argument("--ridge-lambda", type=float, default=RIDGE_LAMBDA, help="ridge strength for 2D-only boxes")
+    parser.add_argument("--ridge-lambda", type=number(0.0, MAX_RIDGE_LAMBDA), default=RIDGE_LAMBDA,
+                        help="ridge strength for 2D-only boxes")
     parser.add_argument("--no-draw", action="store_true", help="write the JSON only")
 
 
@@ -147,44 +167,71 @@ def bev_for_image(dets: list[Detection], classes: list[str], lam: float) -> dict
             "boxes_2d": np.stack([d.box_xywh() for d in flat]) if flat else np.zeros((0, 4)), "placed": placed}
 
 
-def run(args: argparse.Namespace) -> int:
+def placeholder_size(points: np.ndarray) -> tuple[int, int]:
+    """(width, height) of the grey canvas under detections with no image: up to the farthest point
+    plus a border, at least 1 and at most PLACEHOLDER_MAX_SIDE pixels a side."""
+    far = points.max(0) + 20
+    return tuple(int(min(max(v, 1), PLACEHOLDER_MAX_SIDE)) for v in far)
+
+
+def draw_image(out: dict[str, Any], image_id: int | str, images: Path | None) -> tuple[Any, str | None]:
+    """One image's BEV figure (a PIL image), and why its picture is not under it (None when it is,
+    or when there is none to draw). Raises ValueError when the figure would be too large to draw."""
     from omnigen.detector.bev_draw import BevScene, render_bev_figure
-    from omnigen.files import atomic_write_bytes, atomic_write_json
-    from omnigen.images import load_rgb
+    from omnigen.images import ImageError, read_rgb
+
+    path = find_image(images, image_id)
+    image, problem = None, None
+    if path is not None:
+        try:
+            image = read_rgb(path)  # size-capped before decoding (omnigen.images)
+        except (ImageError, OSError) as exc:
+            problem = f"{exc}; the BEV is drawn on a grey canvas"
+    boxes = out["boxes_2d"]
+    pts = np.concatenate([out["ground"].reshape(-1, 2), boxes[:, :2].reshape(-1, 2), boxes[:, :2] + boxes[:, 2:]])
+    w, h = image.size if image else placeholder_size(pts)
+    title = f"{image_id}: {len(out['names'])} footprints, {len(out['placed'])} 2D-only" + (
+        "" if image else "  [no image]")
+    scene = BevScene(out["ground"], out["names"], out["result"], boxes, out["placed"], title)
+    return render_bev_figure(scene, image, w, h, what=f"image {image_id}"), problem
+
+
+def run(args: argparse.Namespace) -> int:
+    from omnigen.detector.predict_command import claim_folder
+    from omnigen.files import atomic_write_json
+    from omnigen.outputs import refuse_inputs, save_image
     from omnigen.progress import print_table, progress
     from omnigen.taxonomy import load_taxonomy
 
     classes = load_taxonomy(args.taxonomy).classes
     dets = [d for d in load_predictions(args.predictions, len(classes)) if d.score >= args.score_thr]
+    refuse_inputs(args.out, [args.predictions] + ([args.images] if args.images else []), "bev")
+    claim_folder(args.out, "bev")
     by_image: dict[int | str, list[Detection]] = {}
     for d in dets:
         by_image.setdefault(d.image_id, []).append(d)
     rows, t0 = [], time.perf_counter()
     for image_id, group in progress(sorted(by_image.items(), key=lambda kv: str(kv[0])), "bev", unit="img"):
-        out = bev_for_image(group, classes, args.ridge_lambda)
+        out, problem = bev_for_image(group, classes, args.ridge_lambda), None
         atomic_write_json(args.out / f"{image_id}.json", out["record"])
         res = out["result"]
         if not args.no_draw:
-            path = find_image(args.images, image_id)
-            image = load_rgb(path) if path else None  # size-capped before decoding (omnigen.images)
-            pts = np.concatenate([out["ground"].reshape(-1, 2),
-                                  out["boxes_2d"][:, :2].reshape(-1, 2), (out["boxes_2d"][:, :2] + out["boxes_2d"][:, 2:])])
-            w, h = image.size if image else (int(pts[:, 0].max()) + 20, int(pts[:, 1].max()) + 20)
-            title = f"{image_id}: {len(out['names'])} footprints, {len(out['placed'])} 2D-only" + (
-                "" if image else "  [no image]")
-            scene = BevScene(out["ground"], out["names"], res, out["boxes_2d"], out["placed"], title)
-            buf = io.BytesIO()
-            render_bev_figure(scene, image, w, h).save(buf, format="PNG")
-            atomic_write_bytes(args.out / f"{image_id}.png", buf.getvalue())
+            try:
+                figure, problem = draw_image(out, image_id, args.images)
+                save_image(figure, args.out / f"{image_id}.png", "bev")
+            except ValueError as exc:  # too large a figure: the JSON stands, the picture is not drawn
+                problem = f"{exc}; not drawn"
+            if problem is not None:
+                print(f"skipped: {problem}", file=sys.stderr)
         rows.append((str(image_id), len(out["names"]), len(out["placed"]),
                      "-" if res is None else float(np.median(res.angle_error_deg)),
-                     "-" if res is None else ("yes" if res.degenerate else "no")))
+                     "-" if res is None else ("yes" if res.degenerate else "no"), int(problem is not None)))
     elapsed = time.perf_counter() - t0
     shown = rows if len(rows) <= 20 else rows[:20]
-    footprints = sum(r[1] for r in rows)
+    footprints, skipped = sum(r[1] for r in rows), sum(r[5] for r in rows)
     print_table(f"omnigen bev: {len(rows)} images -> {args.out} ({elapsed:.1f} s)",
-                ["image", "footprints", "2D-only placed", "median angle err (deg)", "one heading"],
-                shown + ([("...", "", "", "", "")] if len(rows) > 20 else []) +
+                ["image", "footprints", "2D-only placed", "median angle err (deg)", "one heading", "skipped"],
+                shown + ([("...", "", "", "", "", "")] if len(rows) > 20 else []) +
                 [("all", footprints, sum(r[2] for r in rows),
-                  "", f"{sum(r[4] == 'yes' for r in rows)} of {len(rows)}")])
-    return 0
+                  "", f"{sum(r[4] == 'yes' for r in rows)} of {len(rows)}", skipped)])
+    return 1 if skipped else 0

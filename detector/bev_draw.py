@@ -16,7 +16,9 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from omnigen.detector.bev import BevResult
-from omnigen.draw import BACKGROUND, BOTTOM_COLOR, BOX2D_COLOR, CLASS_COLORS, PLACEHOLDER, TITLE_HEIGHT, display_scale, font
+from omnigen.draw import (BACKGROUND, BOTTOM_COLOR, BOX2D_COLOR, CLASS_COLORS, PLACEHOLDER, TITLE_HEIGHT, bev_side,
+                          check_canvas, display_scale, font)
+from omnigen.images import MAX_IMAGE_PIXELS
 
 FRONT_COLOR = (255, 255, 255)
 GRID_COLOR = (60, 60, 70)
@@ -40,9 +42,18 @@ def _color(name: str) -> tuple[int, int, int]:
     return CLASS_COLORS.get(name, FALLBACK_COLOR)
 
 
+def image_scale(width: int, height: int) -> int:
+    """The image panel's whole-number upscale: display_scale's, lowered so that the panel holds at
+    most MAX_IMAGE_PIXELS (a narrow image, 20 x 5000, would otherwise be blown up 8 times)."""
+    s = display_scale(width, height, target=720)
+    while s > 1 and width * height * s * s > MAX_IMAGE_PIXELS:
+        s -= 1
+    return s
+
+
 def draw_image_panel(scene: BevScene, image: Image.Image | None, width: int, height: int) -> Image.Image:
     """The image (or a grey placeholder) with each footprint's four ground edges and the 2D-only boxes."""
-    s = display_scale(width, height, target=720)
+    s = image_scale(width, height)
     if image is None:
         image = Image.new("RGB", (width, height), PLACEHOLDER)
     image = image.convert("RGB")
@@ -103,18 +114,41 @@ def draw_bev_panel(scene: BevScene, size: int) -> Image.Image:
         draw.line([tuple(c), tuple(tip)], fill=FRONT_COLOR + (200,), width=1)
     for p in to(scene.placed.reshape(-1, 2)):
         draw.ellipse([p[0] - 5, p[1] - 5, p[0] + 5, p[1] + 5], outline=BOX2D_COLOR + (255,), width=2)
-    caption = f"BEV (no calibration), grid {step:g} m (class-prior scale)"
+    parts = ["BEV (no calibration),", f"grid {step:g} m", "(class-prior scale)"]
     if res.degenerate:
-        caption += ", one heading: aspect from prior"
-    draw.rectangle([0, 0, int(draw.textlength(caption, font=small)) + 8, 17], fill=BACKGROUND + (255,))
-    draw.text((4, 3), caption, fill=(220, 220, 220), font=small)
+        parts[-1] += ","
+        parts += ["one heading:", "aspect from prior"]
+    lines = wrap_words(draw, parts, small, size - 8)
+    tall = 3 + 14 * len(lines)
+    draw.rectangle([0, 0, max(int(draw.textlength(line, font=small)) for line in lines) + 8, tall],
+                   fill=BACKGROUND + (255,))
+    for k, line in enumerate(lines):
+        draw.text((4, 3 + 14 * k), line, fill=(220, 220, 220), font=small)
     return img
 
 
-def render_bev_figure(scene: BevScene, image: Image.Image | None, width: int, height: int) -> Image.Image:
-    """Image panel and BEV panel side by side under a title strip."""
+def wrap_words(draw: ImageDraw.ImageDraw, words: list[str], font_, width: float) -> list[str]:
+    """Words joined into lines no wider than `width` (a word wider than that stands alone): the
+    caption of a small BEV panel was cut mid-word ("aspec")."""
+    lines: list[str] = []
+    for word in words:
+        if lines and draw.textlength(f"{lines[-1]} {word}", font=font_) <= width:
+            lines[-1] = f"{lines[-1]} {word}"
+        else:
+            lines.append(word)
+    return lines
+
+
+def render_bev_figure(scene: BevScene, image: Image.Image | None, width: int, height: int,
+                      what: str = "the BEV picture") -> Image.Image:
+    """Image panel and BEV panel side by side under a title strip; a ValueError, before anything is
+    drawn, when that would be more than omnigen.draw.MAX_CANVAS_PIXELS (an image of an extreme
+    aspect ratio: its panel is as tall as the image)."""
+    s = image_scale(width, height)
+    side = bev_side(height * s)
+    check_canvas(width * s + side, TITLE_HEIGHT + max(height * s, side), what, "too large to draw beside its BEV")
     left = draw_image_panel(scene, image, width, height)
-    right = draw_bev_panel(scene, max(left.height, 360))
+    right = draw_bev_panel(scene, side)
     out = Image.new("RGB", (left.width + right.width, TITLE_HEIGHT + max(left.height, right.height)), BACKGROUND)
     out.paste(left, (0, TITLE_HEIGHT))
     out.paste(right, (left.width, TITLE_HEIGHT))

@@ -6,7 +6,8 @@ x0.98, x0.95, x0.90; principal point shifted by +50 px in x, then in y), writes 
 folders of the ground truth and of each lift, and reports KITTI AP (BEV, 3D) for each, beside the
 keypoint metrics, which are identical by construction (the 2D predictions do not change).
 
-What it shows and what it does not: docs/metric-3d.md.
+What it shows and what it does not: docs/metric-3d.md. The --out JSON's first key,
+"omnigen": "calib-sensitivity", lets a rerun replace it; any other file there is refused.
 """
 
 from __future__ import annotations
@@ -23,11 +24,15 @@ import numpy as np
 from omnigen.detector.results_file import read_results
 from omnigen.conventions import FINE_CLASSES, NUM_KEYPOINTS
 from omnigen.dataset import Dataset
-from omnigen.files import atomic_write_bytes, atomic_write_json
+from omnigen.files import atomic_write_bytes, atomic_write_text
+from omnigen.formats.checks import naming_frame
 from omnigen.formats.kitti import kitti_file_names, label_text
+from omnigen.outputs import MARK_KEY, check_output_file, json_made_by
 from omnigen.progress import print_table
 from omnigen.splits import TRAIN, read_split, split_names
 from omnigen.taxonomy import Taxonomy, load_taxonomy
+
+JOB = "calib-sensitivity"
 
 if TYPE_CHECKING:  # the lift (and cv2 with it) is imported where it is used, not when `omnigen --help` builds the parser
     from omnigen.detector.lift import DimensionPriors
@@ -199,7 +204,9 @@ def write_label_folder(folder: Path, names: dict[int, str], lines: dict[int, lis
 def write_ground_truth(ds: Dataset, folder: Path, names: dict[int, str]) -> None:
     """Ground-truth labels exactly as `omnigen export kitti` writes them (DontCare included)."""
     for f, number in names.items():
-        atomic_write_bytes(folder / f"{number}.txt", label_text(ds[f]).encode(), durable=False)
+        with naming_frame(ds, f):
+            text = label_text(ds[f])
+        atomic_write_bytes(folder / f"{number}.txt", text.encode(), durable=False)
 
 
 def _median(x: np.ndarray) -> float | None:
@@ -256,7 +263,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--taxonomy", default="fine", help="taxonomy the predictions' category ids index (default fine)")
     p.add_argument("--priors", type=Path, default=None,
                    help="dimension priors JSON (DimensionPriors.to_dict); default: fitted on the train split")
-    p.add_argument("--out", type=Path, default=None, help="write the results here as JSON")
+    p.add_argument("--out", type=Path, default=None,
+                   help="write the results here as JSON (a new file, or one calib-sensitivity wrote)")
 
 
 def select_frames(ds: Dataset, split: str, views: str, sources: str) -> list[int]:
@@ -317,6 +325,9 @@ def keypoint_metrics_of(args: argparse.Namespace, ds: Dataset, taxonomy: Taxonom
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.out is not None:  # before the lifts: a refused --out costs nothing
+        inputs = [args.predictions, args.dataset] + ([args.priors] if args.priors is not None else [])
+        check_output_file(args.out, JOB, json_made_by(JOB), inputs)
     ds = Dataset.open(args.dataset)
     priors, priors_from = load_priors(ds, args.priors)
     taxonomy = load_taxonomy(args.taxonomy)
@@ -348,11 +359,11 @@ def run(args: argparse.Namespace) -> int:
           "to the true ground plane.\nKeypoint metrics (OKS mAP50:95 and the rest) are identical in every row: "
           "the 2D predictions do not change, only the K they are lifted with.")
     if args.out is not None:
-        atomic_write_json(args.out, {
-            "dataset": str(args.dataset), "predictions": str(args.predictions), "split": args.split,
+        atomic_write_text(args.out, json.dumps({
+            MARK_KEY: JOB, "dataset": str(args.dataset), "predictions": str(args.predictions), "split": args.split,
             "views": args.views, "sources": args.sources, "frames": len(frames), "priors_from": priors_from,
             "priors": priors.to_dict(), "perturbations": results,
             "keypoint_metrics": keypoint_metrics,
             "keypoint_metrics_note": "identical in every row by construction: the same 2D predictions",
-        }, indent=2)
+        }, indent=2, allow_nan=False) + "\n")
     return 0

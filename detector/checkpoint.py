@@ -3,47 +3,235 @@
 Everything a run needs to resume or to predict is stored in forms `torch.load(weights_only=True)`
 accepts, so loading a checkpoint never executes pickled code: the model configuration as a dict,
 the class names, the state dicts of the model, its EMA, the optimiser, and the run's history.
+
+A checkpoint is also an input someone may hand us: a file of another tool, a damaged copy, one
+edited by hand or one of another model. Every way it can be wrong is one line naming the file and
+what is wrong (not a dict, a missing field, a config field of the wrong type, tensors of another
+model counted rather than listed), and never the advice to load it with weights_only=False: a
+file that is not plain data is refused, not run.
 """
 
 from __future__ import annotations
 
 import io
+import re
+import types
+import typing
+import warnings
+from dataclasses import fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, TypeVar
 
 import torch
 
 from omnigen.detector.model import DetectorConfig, KeypointDetector
 from omnigen.files import atomic_write_bytes
 from omnigen.taxonomy import Taxonomy, load_taxonomy
+from omnigen.untrusted import open_regular
+
+CHECKPOINT_MAX_BYTES = 16 * 2**30
+"""Largest checkpoint read: the x model with its EMA and optimiser state is a few hundred MiB;
+the cap keeps a path to a device or a FIFO from being read for ever."""
+
+T = TypeVar("T")
 
 
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
-    """Serialise to memory, then write atomically: a kill mid-save leaves the old file intact."""
+    """Serialise to memory, then write atomically: a kill mid-save leaves the old file intact, and
+    a failed write removes its temporary file (omnigen.files.atomic_write_bytes)."""
     buf = io.BytesIO()
     torch.save(state, buf)
     atomic_write_bytes(path, buf.getvalue())
 
 
-def load_checkpoint(path: str | Path) -> dict[str, Any]:
+def _first_sentence(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else exc.__class__.__name__
+    return text.split(". ")[0].rstrip(".")
+
+
+def load_plain(path: str | Path) -> Any:
+    """What a torch file holds, loaded as plain data only (`weights_only=True`); one line naming
+    the file for anything else. Torch's own refusal of a pickled object advises loading with
+    weights_only=False, which would run the file's code: that advice is left out."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such checkpoint")
+    with open_regular(path, CHECKPOINT_MAX_BYTES) as fh, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # torch warns about the pickle protocol of foreign files
+        try:
+            return torch.load(fh, map_location="cpu", weights_only=True)
+        except Exception as exc:  # torch raises several types for damaged or foreign files
+            raise ValueError(f"{path}: {_load_error(exc)}") from None
+
+
+def _load_error(exc: Exception) -> str:
+    """Why torch.load refused a file, in a clause of our own words (torch's are several lines)."""
+    text = str(exc)
+    found = re.search(r"GLOBAL ([\w.]+)", text)
+    if found:
+        return (f"holds a Python object ({found.group(1)}), not only tensors, numbers, strings, lists and dicts; "
+                "omnigen loads only such plain-data checkpoints")
+    if "weights_only" in text or "Weights only" in text:
+        return "not an omnigen checkpoint (a pickle of something other than plain data)"
+    return f"not an omnigen checkpoint ({exc.__class__.__name__}: {_first_sentence(exc)})"
+
+
+def _shown(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def a_kind(value: Any) -> str:
+    """"an int", "a Tensor": what a file holds where a dict was expected."""
+    name = type(value).__name__
+    return f"{'an' if name[0].lower() in 'aeiou' else 'a'} {name}"
+
+
+def _type_name(hint: Any) -> str:
+    return hint.__name__ if isinstance(hint, type) else str(hint).replace("typing.", "")
+
+
+def _fits(value: Any, hint: Any) -> bool:
+    """Whether a stored value has a dataclass field's annotated type (bool is no int here, an int
+    is a float: JSON and older writers store 1 for 1.0)."""
+    if hint is Any:
+        return True
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        return any(_fits(value, arg) for arg in typing.get_args(hint))
+    if hint is type(None):
+        return value is None
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, typing.get_origin(hint) or hint)
+
+
+def check_types(path: str | Path, field: str, data: Any, cls: type, unknown_ok: bool = False) -> dict[str, Any]:
+    """`data`, a dict of the dataclass `cls`'s fields, each of its annotated type; else one line
+    naming the file and the field. `unknown_ok` passes fields `cls` does not have (a newer or
+    older writer's) untouched."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: {field} is {a_kind(data)}, expected a dict of {cls.__name__} fields")
+    hints = typing.get_type_hints(cls)
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(map(str, (k for k in data if k not in known)))
+    if unknown and not unknown_ok:
+        raise ValueError(f"{path}: {field} has fields {cls.__name__} does not know: {', '.join(unknown)}")
+    for key, value in data.items():
+        if key in known and not _fits(value, hints[key]):
+            raise ValueError(f"{path}: {field}.{key} is {_shown(value)}, not of type {_type_name(hints[key])}")
+    return data
+
+
+def checked_fields(path: str | Path, field: str, data: Any, cls: Callable[..., T]) -> T:
+    """The dataclass `cls` built from `data` (check_types first, then its own validation), or one
+    line naming the file and the field."""
+    check_types(path, field, data, cls)
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for corrupt or foreign files
-        raise ValueError(f"{path}: not an omnigen checkpoint ({exc.__class__.__name__}: {exc})") from None
+        return cls(**data)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: {field}: {exc}") from None
+
+
+def check_tensors(path: str | Path, field: str, tensors: Any) -> dict[str, torch.Tensor]:
+    """A state dict: names to tensors."""
+    if not isinstance(tensors, dict):
+        raise ValueError(f"{path}: {field} is {a_kind(tensors)}, expected a dict of tensors")
+    for key, value in tensors.items():
+        if not isinstance(key, str) or not isinstance(value, torch.Tensor):
+            raise ValueError(f"{path}: {field}[{_shown(key)}] is {a_kind(value)}, not a tensor")
+    return tensors
+
+
+def detector_config(path: str | Path, state: dict[str, Any]) -> DetectorConfig:
+    """The checkpoint's model configuration, checked field by field."""
+    return checked_fields(path, "config", state["config"], DetectorConfig)
+
+
+def check_state(path: str | Path, state: Any) -> dict[str, Any]:
+    """A loaded checkpoint as prediction, evaluation and training read it: a dict with a valid
+    config, class names as many as the config's classes, a state dict of tensors, and where present
+    a valid taxonomy of those classes and a dict of training settings."""
+    if not isinstance(state, dict):
+        raise ValueError(f"{path}: holds {a_kind(state)}, not an omnigen checkpoint "
+                         "(a dict of config, model and classes)")
     for key in ("config", "model", "classes"):
         if key not in state:
             raise ValueError(f"{path}: checkpoint lacks field {key!r}")
+    cfg = detector_config(path, state)
+    classes = state["classes"]
+    if not isinstance(classes, list) or not all(isinstance(c, str) for c in classes):
+        raise ValueError(f"{path}: classes is {_shown(classes)}, expected a list of class names")
+    if len(classes) != cfg.num_classes:
+        raise ValueError(f"{path}: classes names {len(classes)} classes, config.num_classes is {cfg.num_classes}")
+    check_tensors(path, "model", state["model"])
+    if "taxonomy" in state:
+        taxonomy = Taxonomy.from_dict(state["taxonomy"], path, "taxonomy")
+        if taxonomy.classes != classes:
+            raise ValueError(f"{path}: taxonomy's classes {taxonomy.classes} are not the checkpoint's {classes}")
+    if "train_config" in state:
+        from omnigen.detector.train import TrainConfig  # train imports this module
+
+        check_types(path, "train_config", state["train_config"], TrainConfig, unknown_ok=True)
     return state
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """A checkpoint file, checked (check_state): every error one line naming the file."""
+    return check_state(path, load_plain(path))
+
+
+def load_weights(module: torch.nn.Module, tensors: dict[str, torch.Tensor], path: str | Path,
+                 field: str = "model") -> None:
+    """Load a state dict into `module`, or one line naming the file that counts the tensors that do
+    not fit (load_state_dict lists every one of them: tens of kilobytes for another model size)."""
+    mine = module.state_dict()
+    missing = [k for k in mine if k not in tensors]
+    unexpected = [k for k in tensors if k not in mine]
+    shaped = [k for k in mine if k in tensors and tuple(tensors[k].shape) != tuple(mine[k].shape)]
+    parts = []
+    if shaped:
+        k = shaped[0]
+        parts.append(f"{len(shaped)} of {len(mine)} have other shapes (first {k}: {tuple(tensors[k].shape)} "
+                     f"there, {tuple(mine[k].shape)} here)")
+    if missing:
+        parts.append(f"{len(missing)} missing (first {missing[0]})")
+    if unexpected:
+        parts.append(f"{len(unexpected)} unexpected (first {unexpected[0]})")
+    if parts:
+        raise ValueError(f"{path}: its {field} tensors do not fit the model: {'; '.join(parts)}")
+    module.load_state_dict(tensors)
+
+
+def load_part(path: str | Path, field: str, load: Callable[[], Any]) -> Any:
+    """Run `load` (an optimiser's, scheduler's or generator's load_state_dict on a field of the
+    checkpoint), its refusal one line naming the file and the field."""
+    try:
+        return load()
+    except (KeyError, IndexError, TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"{path}: {field} does not fit this run ({exc.__class__.__name__}: "
+                         f"{_first_sentence(exc)})") from None
+
+
+def config_difference(path: str | Path, theirs: DetectorConfig, mine: DetectorConfig, skip: tuple[str, ...] = (),
+                      why: str = "") -> None:
+    """Refuse the first field (but `skip`) in which a checkpoint's model config differs from the
+    model built here, naming the file and the field (then `why`): its tensors mean other things."""
+    theirs_d, mine_d = theirs.to_dict(), mine.to_dict()
+    for key in mine_d:
+        if key not in skip and theirs_d.get(key) != mine_d[key]:
+            raise ValueError(f"{path}: config field {key!r} is {theirs_d.get(key)!r}, this run builds "
+                             f"{mine_d[key]!r}{why}")
 
 
 def load_model(path: str | Path) -> tuple[KeypointDetector, dict[str, Any]]:
     """The model of a checkpoint (EMA weights when present), in eval mode, and the checkpoint."""
     state = load_checkpoint(path)
-    model = KeypointDetector(DetectorConfig.from_dict(state["config"]))
-    model.load_state_dict(state["model"])
+    model = KeypointDetector(detector_config(path, state))
+    load_weights(model, state["model"], path)
     return model.eval(), state
 
 
@@ -67,14 +255,14 @@ def load_pretrained(model: KeypointDetector, path: str | Path, taxonomy: Taxonom
     whose shape still differs stays freshly initialised. The notes say what was re-initialised.
     """
     state = load_checkpoint(path)
-    theirs, mine = DetectorConfig.from_dict(state["config"]).to_dict(), model.cfg.to_dict()
-    for key in mine:
-        # the crop stage is a network of its own beside the detector: it may be added, dropped,
-        # resized or told where its crops were cut without changing any detector tensor (then the
-        # whole stage starts fresh: a hidden layer of new inputs under a trained one is neither)
-        if key not in ("num_classes", "heading_crop", "crop_classes", "crop_split", "crop_position") and theirs.get(key) != mine[key]:
-            raise ValueError(f"{path}: config field {key!r} is {theirs.get(key)!r}, this run builds {mine[key]!r}: "
-                             "--weights needs the same architecture (only the classes may differ)")
+    # the crop stage is a network of its own beside the detector: it may be added, dropped,
+    # resized or told where its crops were cut without changing any detector tensor (then the
+    # whole stage starts fresh: a hidden layer of new inputs under a trained one is neither)
+    theirs_cfg = detector_config(path, state)
+    config_difference(path, theirs_cfg, model.cfg,
+                      skip=("num_classes", "heading_crop", "crop_classes", "crop_split", "crop_position"),
+                      why=": --weights needs the same architecture (only the classes may differ)")
+    theirs, mine = theirs_cfg.to_dict(), model.cfg.to_dict()
     src = state["model"]
     dst = model.state_dict()
     old_classes = list(state["classes"])

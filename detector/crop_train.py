@@ -124,12 +124,14 @@ def split_crops(dataset: str | Path, taxonomy, imgsz: int, frames: str | None, s
     return cut_crops(data, size, copies, jitter=True, generator=generator, on_frame=on_frame)
 
 
-def detector_stage(state: dict[str, Any]) -> CropNet | SplitCropNet:
-    """The crop stage a detector checkpoint's `state` was trained with (its model's weights)."""
-    from omnigen.detector.model import DetectorConfig, KeypointDetector
+def detector_stage(state: dict[str, Any], path: str | Path = "checkpoint") -> CropNet | SplitCropNet:
+    """The crop stage a detector checkpoint's `state` (of the file `path`, named in errors) was
+    trained with (its model's weights)."""
+    from omnigen.detector.checkpoint import detector_config, load_weights
+    from omnigen.detector.model import KeypointDetector
 
-    model = KeypointDetector(DetectorConfig.from_dict(state["config"]))
-    model.load_state_dict(state["model"])
+    model = KeypointDetector(detector_config(path, state))
+    load_weights(model, state["model"], path)
     if model.crop_net is None:
         raise ValueError("detector_stage: the checkpoint has no crop stage (trained without --heading-crop)")
     return model.crop_net
@@ -208,6 +210,46 @@ def stage_loss(net: CropNet | SplitCropNet, x: torch.Tensor, corners: torch.Tens
     return total, {k: float(v.detach()) for k, v in parts.items()}
 
 
+PARTIAL_FIELDS: dict[str, type | tuple[type, ...]] = {
+    "config": dict, "samples": int, "identity": (dict, type(None)), "net": dict, "opt": dict, "sched": dict,
+    "rng": dict, "history": list, "step": int}
+"""What a partial state (train_stage's `partial`) holds, and its types."""
+
+
+def read_partial(partial: Path, steps: int) -> dict[str, Any]:
+    """A partial state, checked field by field: a damaged or foreign file is one line naming it
+    (it is this command's own file, so the way out is to delete it)."""
+    from omnigen.detector.checkpoint import a_kind, load_plain
+
+    state = load_plain(partial)
+    again = "delete it to start over"
+    if not isinstance(state, dict):
+        raise ValueError(f"{partial}: holds {a_kind(state)}, not a train-crop partial state; {again}")
+    for key, kind in PARTIAL_FIELDS.items():
+        if key not in state:
+            raise ValueError(f"{partial}: lacks {key!r}, not a train-crop partial state; {again}")
+        if not isinstance(state[key], kind) or isinstance(state[key], bool):
+            raise ValueError(f"{partial}: {key} is {a_kind(state[key])}, not a train-crop partial "
+                             f"state's; {again}")
+    if not 0 <= state["step"] <= steps or len(state["history"]) != state["step"] \
+            or not all(isinstance(row, dict) for row in state["history"]):
+        raise ValueError(f"{partial}: step {state['step']} with {len(state['history'])} rows of history does not "
+                         f"fit a run of {steps} steps; {again}")
+    return state
+
+
+def resume_partial(partial: Path, state: dict[str, Any], net: torch.nn.Module, opt: torch.optim.Optimizer,
+                   sched: Any, rng: np.random.Generator) -> None:
+    """Load a checked partial state into the run's net, optimiser, schedule and generator, each
+    refusal one line naming the file and the field."""
+    from omnigen.detector.checkpoint import check_tensors, load_part, load_weights
+
+    load_weights(net, check_tensors(partial, "net", state["net"]), partial, "net")
+    load_part(partial, "opt", lambda: opt.load_state_dict(state["opt"]))
+    load_part(partial, "sched", lambda: sched.load_state_dict(state["sched"]))
+    load_part(partial, "rng", lambda: setattr(rng.bit_generator, "state", state["rng"]))
+
+
 def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig, partial: Path | None = None,
                 save_interval: float = 60.0, on_step: Callable[[int, dict[str, float]], None] | None = None,
                 identity: dict[str, Any] | None = None) -> list[dict[str, float]]:
@@ -225,15 +267,11 @@ def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig
     history: list[dict[str, float]] = []
     step = 0
     if partial is not None and partial.exists():
-        state = torch.load(partial, map_location="cpu", weights_only=True)
-        if state.get("config") != asdict(cfg) or state.get("samples") != len(data) or \
-                state.get("identity") != identity:
-            raise ValueError(f"{partial}: a partial run of other arguments ({state.get('config')}, "
-                             f"{state.get('samples')} crops, {state.get('identity')}); delete it to start over")
-        net.load_state_dict(state["net"])
-        opt.load_state_dict(state["opt"])
-        sched.load_state_dict(state["sched"])
-        rng.bit_generator.state = state["rng"]
+        state = read_partial(partial, cfg.steps)
+        if state["config"] != asdict(cfg) or state["samples"] != len(data) or state["identity"] != identity:
+            raise ValueError(f"{partial}: a partial run of other arguments ({state['config']}, "
+                             f"{state['samples']} crops, {state['identity']}); delete it to start over")
+        resume_partial(partial, state, net, opt, sched, rng)
         history, step = state["history"], state["step"]
     def save() -> None:
         save_checkpoint(partial, {

@@ -15,6 +15,8 @@ import sys
 import time
 from pathlib import Path
 
+from omnigen.options import fraction, integer, number, seed
+
 
 ADDED_LATER = {"position": False}
 """Record fields that a stage written before they existed lacks, with the value it was trained with."""
@@ -28,14 +30,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", help="UrbanOmniView dataset folder (splits from omnigen merge)")
     p.add_argument("--weights", required=True, help="the detector's checkpoint (best.pt or last.pt of omnigen train)")
     p.add_argument("--out", required=True, help="the checkpoint to write: the detector with the new crop stage")
-    p.add_argument("--steps", type=int, default=CropTrainConfig.steps)
-    p.add_argument("--batch", type=int, default=CropTrainConfig.batch, help="crops a step")
-    p.add_argument("--lr", type=float, default=CropTrainConfig.lr, help="peak learning rate of the one-cycle schedule")
-    p.add_argument("--copies", type=int, default=CropTrainConfig.copies,
+    p.add_argument("--steps", type=integer(1, 10_000_000), default=CropTrainConfig.steps)
+    p.add_argument("--batch", type=integer(1, 65536), default=CropTrainConfig.batch, help="crops a step")
+    p.add_argument("--lr", type=number(0.0, 1.0, lo_open=True), default=CropTrainConfig.lr, help="peak learning rate of the one-cycle schedule")
+    p.add_argument("--copies", type=integer(1, 1000), default=CropTrainConfig.copies,
                    help="crops per training object, each about its own moved box")
-    p.add_argument("--balance", type=float, default=CropTrainConfig.balance,
+    p.add_argument("--balance", type=fraction(), default=CropTrainConfig.balance,
                    help="draw a crop with weight (crops of its class)^-BALANCE: 0 uniform, 1 every class equally")
-    p.add_argument("--crop", type=int, default=None, metavar="PX",
+    p.add_argument("--crop", type=integer(16, 1024), default=None, metavar="PX",
                    help="crop side (default: the checkpoint's stage's, else 64)")
     p.add_argument("--classes", action=argparse.BooleanOptionalAction, default=None,
                    help="the stage names each crop's class, and prediction rescores by it "
@@ -47,10 +49,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="tell the corners' net where each crop was cut from its input (crop_stage.crop_position): "
                         "the direction of an object's vertical edges depends on it (make validate: adherence "
                         "7.26 -> 5.84 deg, docs/detector-training.md)")
-    p.add_argument("--heading-gain", type=float, default=CropTrainConfig.heading_gain,
+    p.add_argument("--heading-gain", type=number(0.0, 1000.0), default=CropTrainConfig.heading_gain,
                    help="gain of the heading term beside the corners' (benchmarks/crop_apart.py measured 1, 0.3, "
                         "0.1 and 0.03)")
-    p.add_argument("--offset-gain", type=float, default=CropTrainConfig.offset_gain,
+    p.add_argument("--offset-gain", type=number(0.0, 1000.0), default=CropTrainConfig.offset_gain,
                    help="gain of an L1 term on the bottom face's offset from the top face (0: none; "
                         "docs/detector-training.md measured 0.3, 1 and 4)")
     p.add_argument("--amp", default=CropTrainConfig.amp, choices=["off", "bf16"],
@@ -58,8 +60,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "speed and its corners against float32)")
     p.add_argument("--train-split", default="train")
     p.add_argument("--val-split", default=None, help="scored at the end (default: val if present, else test)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    p.add_argument("--seed", type=seed(), default=0)
+    p.add_argument("--threads", type=integer(0, 1024), default=0, help="torch threads (0: torch's default)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -67,11 +69,10 @@ def run(args: argparse.Namespace) -> int:
 
     import torch
 
-    from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint, save_checkpoint
+    from omnigen.detector.checkpoint import checkpoint_taxonomy, detector_config, load_checkpoint, save_checkpoint
     from omnigen.detector.crop_train import (attach_stage, detector_stage, new_stage, score_stage, split_crops,
                                              train_stage)
     from omnigen.detector.crop_train_config import CropTrainConfig
-    from omnigen.detector.model import DetectorConfig
     from omnigen.detector.predict import trained_imgsz
     from omnigen.detector.train import resolve_val_split
     from omnigen.files import file_digest
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {out}: a checkpoint file name ending in .pt")
     state = load_checkpoint(weights)
     taxonomy = checkpoint_taxonomy(state)
-    det = DetectorConfig.from_dict(state["config"])
+    det = detector_config(weights, state)
     size = det.heading_crop or 64 if args.crop is None else args.crop
     if size <= 0 or size % 16:
         raise ValueError(f"--crop {size}: must be a positive multiple of 16 (the crop net halves it four times)")
@@ -98,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
             "dataset": str(args.dataset), "train_split": args.train_split, "crop": size, "classes": classes,
             "split": split, "position": args.position, "imgsz": imgsz, "config": asdict(cfg)}
     if out.exists():
-        done = {**ADDED_LATER, **load_checkpoint(out).get("crop_stage", {})}
+        recorded = load_checkpoint(out).get("crop_stage")
+        done = {**ADDED_LATER, **(recorded if isinstance(recorded, dict) else {})}
         if isinstance(done.get("config"), dict):
             done["config"] = {**CONFIG_ADDED_LATER, **done["config"]}
         if {k: done.get(k) for k in call} == call:
@@ -134,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - start
     rows = []
     if det.heading_crop == size:  # the detector's own stage, scored on the same crops
-        rows.append(("trained with the detector", score_stage(detector_stage(state), sets["val"])))
+        rows.append(("trained with the detector", score_stage(detector_stage(state, weights), sets["val"])))
     new = score_stage(net, sets["val"])
     rows.append(("trained apart", new))
     record = {**call, "steps_done": len(history), "seconds": round(seconds, 1), "score": asdict(new),

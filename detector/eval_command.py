@@ -8,6 +8,9 @@ category_id, keypoints: 24 numbers, score, bbox); a .pt argument is a checkpoint
 split by omnigen.detector.predict. The metrics and their choices are documented in omnigen.detector.oks_eval and
 omnigen.detector.corner_errors; `--baseline` also scores the box-template baseline (omnigen.detector.box_template:
 the same boxes, corners placed by the training split's mean layouts) and prints it beside the model.
+
+`--out` is a new file or one eval wrote before (its first key is "omnigen": "eval"); the
+predictions, the checkpoint and anything in the dataset folder are refused (omnigen.outputs).
 """
 
 from __future__ import annotations
@@ -21,7 +24,9 @@ from typing import TYPE_CHECKING, Any
 
 import orjson
 
+from omnigen.detector.predict_command import BATCH_MAX, IMGSZ_STEP, input_size
 from omnigen.files import atomic_write_bytes
+from omnigen.options import integer
 
 if TYPE_CHECKING:
     from omnigen.detector.oks_eval import EvalReport
@@ -32,12 +37,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a checkpoint (.pt) or predictions in COCO-results form (.json)")
     p.add_argument("dataset", type=Path, metavar="DATASET")
     p.add_argument("--split", default="test", help="split to evaluate; 'all' for every frame (default: test)")
-    p.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
+    p.add_argument("--out", type=Path, default=None,
+                   help="write the report as JSON here: a new file, or one eval wrote; never an input")
     p.add_argument("--taxonomy", default=None,
                    help="taxonomy of the predictions' category ids (preset or TOML; default: the checkpoint's, or fine)")
-    p.add_argument("--imgsz", type=int, default=None,
-                   help="network input size, with a checkpoint (default: its training size)")
-    p.add_argument("--batch", type=int, default=8, help="images per batch, with a checkpoint")
+    p.add_argument("--imgsz", type=input_size, default=None,
+                   help=f"network input size, a multiple of {IMGSZ_STEP}, with a checkpoint (default: its training size)")
+    p.add_argument("--batch", type=integer(1, BATCH_MAX), default=8, help="images per batch, with a checkpoint")
     p.add_argument("--vertical", choices=("lines", "off"), default="lines",
                    help="with a checkpoint: turn each image's vertical edges to its vertical vanishing point "
                         "(lines, as omnigen predict does) or keep the network's corners (off)")
@@ -71,9 +77,12 @@ def run(args: argparse.Namespace) -> int:
     from omnigen.detector.box_template import evaluate_with_baseline, fit_box_template, training_frames
     from omnigen.detector.oks_eval import evaluate
     from omnigen.dataset import Dataset, DatasetError
+    from omnigen.outputs import check_output_file, json_made_by
     from omnigen.progress import print_table
     from omnigen.taxonomy import load_taxonomy
 
+    if args.out is not None:  # before the work: a refused --out should not cost an evaluation
+        check_output_file(args.out, "eval", json_made_by("eval"), inputs=[args.predictions, args.dataset])
     start = time.perf_counter()
     split = None if args.split in (None, "all") else args.split
     try:
@@ -132,7 +141,8 @@ def run(args: argparse.Namespace) -> int:
     for note in baseline.notes if baseline is not None else []:
         print(f"note (baseline): {note}")
     if args.out is not None:
-        doc = {"report": report.to_dict(),
+        doc = {"omnigen": "eval",  # first: the mark a rerun recognises its own file by (omnigen.outputs.json_made_by)
+               "report": report.to_dict(),
                "arguments": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
                              if k not in ("func", "command")},
                "wall_s": round(wall, 3)}

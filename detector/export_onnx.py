@@ -12,20 +12,60 @@ predict` does by default (`--vertical lines`): that step reads the image's line 
 OpenCV's detector, outside any network. A caller of the graphs applies
 omnigen.detector.vanishing.snap_vertical to each image's refined corners, in the pixels of the
 image the graph saw less its letterbox padding (predict.snap_batch shows how), or leaves the
-corners as the network placed them (`--vertical off`)."""
+corners as the network placed them (`--vertical off`).
+
+Both files start with the job's mark, ONNX metadata {"omnigen": "export onnx"}, so a rerun
+recognises them by their first bytes and replaces them; any other file at --out (the checkpoint
+itself, say) is refused before anything is written (omnigen.outputs)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from omnigen.options import integer
+
 OPSET = 18
+JOB = "export onnx"
+MAX_IMGSZ = 8192
+"""The largest --imgsz: far above any training size, and below the sizes whose traced input (and
+the check's two forward passes) would exhaust a machine's memory."""
+
+
+def onnx_mark() -> bytes:
+    """A serialized ModelProto holding only the mark (metadata_props omnigen = export onnx).
+
+    Written in front of the exported model: protobuf merges concatenated messages, so readers
+    (onnx.load, ONNX Runtime) see one model with the mark among its metadata_props, while the
+    mark sits in the file's first bytes, not after the weights where a serializer puts field 14.
+    """
+    import onnx
+
+    from omnigen.outputs import MARK_KEY
+
+    return onnx.ModelProto(metadata_props=[onnx.StringStringEntryProto(key=MARK_KEY, value=JOB)]).SerializeToString()
+
+
+def made_by_export_onnx(path: Path) -> bool:
+    """A file this job wrote: it starts with onnx_mark(). Reads only that many bytes."""
+    from omnigen.outputs import read_prefix
+
+    mark = onnx_mark()
+    return read_prefix(path, len(mark)) == mark
+
+
+def write_onnx(path: Path, model_bytes: bytes) -> None:
+    """The marked model, by temporary name and rename."""
+    from omnigen.files import atomic_write_bytes
+
+    atomic_write_bytes(path, onnx_mark() + model_bytes)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("weights", help="checkpoint (best.pt or last.pt)")
-    p.add_argument("--out", required=True, type=Path, help="FILE.onnx")
-    p.add_argument("--imgsz", type=int, default=None,
+    p.add_argument("--out", required=True, type=Path,
+                   help="FILE.onnx (new, or written by export onnx before; never the checkpoint)")
+    p.add_argument("--imgsz", type=integer(1, MAX_IMGSZ), default=None,
                    help="square input size (default: the size the checkpoint was trained at, 640 if it does not say)")
     p.add_argument("--dynamic", action="store_true",
                    help="let height and width vary (any multiple of the largest stride); --imgsz is then the "
@@ -51,13 +91,12 @@ def export(model, path: Path, imgsz: int, dynamic: bool = False) -> None:
     import torch
 
     from omnigen.detector.model import InferenceWrapper
-    from omnigen.files import atomic_write_bytes
 
     buf = io.BytesIO()
     torch.onnx.export(InferenceWrapper(model.eval()), (torch.zeros(1, 3, imgsz, imgsz),), buf, opset_version=OPSET,
                       input_names=["images"], output_names=["output0"], dynamo=False,
                       dynamic_axes=DYNAMIC_AXES if dynamic else None)
-    atomic_write_bytes(path, buf.getvalue())
+    write_onnx(path, buf.getvalue())
 
 
 def crop_stage_path(path: Path) -> Path:
@@ -77,7 +116,6 @@ def export_crop_stage(model, path: Path, imgsz: int, dynamic: bool = False) -> N
     import torch
 
     from omnigen.detector.crop_stage import RefineWrapper
-    from omnigen.files import atomic_write_bytes
 
     boxes = torch.tensor([[8.0, 8.0, 40.0, 30.0], [20.0, 4.0, 30.0, 44.0], [0.0, 0.0, 16.0, 16.0]])
     outputs = ["refined"] + (["class_probs"] if model.crop_net.num_classes else [])
@@ -88,7 +126,7 @@ def export_crop_stage(model, path: Path, imgsz: int, dynamic: bool = False) -> N
                       (torch.zeros(1, 3, imgsz, imgsz), boxes, torch.zeros(3, 8, 3)), buf, opset_version=OPSET,
                       input_names=["images", "boxes", "keypoints"], output_names=outputs, dynamo=False,
                       dynamic_axes=axes)
-    atomic_write_bytes(path, buf.getvalue())
+    write_onnx(path, buf.getvalue())
 
 
 def crop_stage_max_difference(model, path: Path, imgsz: int | tuple[int, int], seed: int = 0) -> float:
@@ -137,14 +175,19 @@ def max_difference(model, path: Path, imgsz: int | tuple[int, int], seed: int = 
 def run(args: argparse.Namespace) -> int:
     from omnigen.detector.checkpoint import load_model
     from omnigen.detector.predict import trained_imgsz
+    from omnigen.outputs import check_output_file
     from omnigen.progress import print_table
 
+    # before the load: a mistaken --out (the checkpoint itself, say) fails at once
+    check_output_file(args.out, JOB, made_by_export_onnx, inputs=[args.weights])
     model, state = load_model(args.weights)
     # The training size by default: a model exported at another fixed size refuses the images it
     # was trained on, and sees objects at scales it did not learn.
     imgsz = trained_imgsz(state) if args.imgsz is None else args.imgsz
-    export(model, args.out, imgsz, args.dynamic)
     stage = crop_stage_path(args.out) if model.crop_net is not None else None
+    if stage is not None:  # both files checked before either is written
+        check_output_file(stage, JOB, made_by_export_onnx, inputs=[args.weights])
+    export(model, args.out, imgsz, args.dynamic)
     if stage is not None:
         export_crop_stage(model, stage, imgsz, args.dynamic)
     top = model.strides[-1]

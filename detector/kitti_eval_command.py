@@ -1,15 +1,20 @@
 """KITTI AP (2D, BEV, 3D; R40 and R11) of KITTI label folders.
 
 The numbers follow the official devkit (see omnigen.detector.kitti_eval for every rule); the JSON holds
-{"AP40": {class: {"bbox": [easy, moderate, hard], "bev": [...], "3d": [...]}}, "AP11": {...}} in percent.
+{"omnigen": "eval-kitti", "AP40": {class: {"bbox": [easy, moderate, hard], "bev": [...], "3d": [...]}},
+"AP11": {...}} in percent. Its first key marks it as this command's: a rerun replaces it, any other
+file at --out is refused (omnigen.outputs).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
+
+JOB = "eval-kitti"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -17,14 +22,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pred", required=True, type=Path,
                    help="folder of KITTI-format predictions, one <id>.txt a frame with a 16th field, the score; "
                         "a missing file means no detections")
-    p.add_argument("--out", type=Path, help="write the AP table as JSON here")
+    p.add_argument("--out", type=Path, help="write the AP table as JSON here (a new file, or one eval-kitti wrote)")
     p.add_argument("--ids", type=Path, help="evaluate only these frame ids (one a line, as KITTI's val.txt); "
                                             "default: every .txt in --gt")
 
 
 def run(args: argparse.Namespace) -> int:
     from omnigen.detector.kitti_eval import CLASSES, DIFFICULTIES, METRICS, evaluate, read_folders, read_ids
-    from omnigen.files import atomic_write_json
+    from omnigen.files import atomic_write_text
+    from omnigen.outputs import MARK_KEY, check_output_file, json_made_by
     from omnigen.progress import print_table
 
     for what, folder in (("--gt", args.gt), ("--pred", args.pred)):
@@ -34,6 +40,9 @@ def run(args: argparse.Namespace) -> int:
     if args.ids is not None and not args.ids.is_file():
         print(f"omnigen eval-kitti: --ids {args.ids} not found", file=sys.stderr)
         return 2
+    if args.out is not None:  # before the evaluation: a refused --out costs nothing
+        inputs = [args.gt, args.pred] + ([args.ids] if args.ids is not None else [])
+        check_output_file(args.out, JOB, json_made_by(JOB), inputs)
     start = time.perf_counter()
     ids, gts, preds = read_folders(args.gt, args.pred, read_ids(args.ids) if args.ids else None)
     result = evaluate(gts, preds, CLASSES)
@@ -44,6 +53,6 @@ def run(args: argparse.Namespace) -> int:
         print_table(f"KITTI {kind} (%): {len(ids):,} frames, {sum(len(p) for p in preds):,} detections "
                     f"({seconds:.1f} s)", columns, rows)
     if args.out is not None:
-        atomic_write_json(args.out, result, indent=2)
+        atomic_write_text(args.out, json.dumps({MARK_KEY: JOB, **result}, indent=2, allow_nan=False) + "\n")
         print(f"wrote {args.out}")
     return 0

@@ -18,7 +18,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 import torch
 
-from omnigen.detector.data import KeypointDataset, Letterbox, letterbox, read_image, split_frames
+from omnigen.detector.data import KeypointDataset, Letterbox, letterbox, split_frames
 from omnigen.detector.crop_stage import refine_detections
 from omnigen.detector.model import KeypointDetector
 from omnigen.detector.nms import Detections, postprocess
@@ -76,13 +76,11 @@ def snap_batch(images: list[np.ndarray], boxes: list[Letterbox], dets: list[Dete
 
     out = []
     for image, lb, d in zip(images, boxes, dets):
-        if not len(d):
+        region = snap_region(lb, *image.shape[1::-1])
+        if not len(d) or region is None:
             out.append(d)
             continue
-        h, w = image.shape[:2]
-        x0, y0, x1, y1 = lb.content_box(w, h)
-        x0, y0 = x0 + (PAD_MARGIN if x0 > 0 else 0), y0 + (PAD_MARGIN if y0 > 0 else 0)
-        x1, y1 = x1 - (PAD_MARGIN if x1 < w else 0), y1 - (PAD_MARGIN if y1 < h else 0)
+        x0, y0, x1, y1 = region
         gray = cv2.cvtColor(np.ascontiguousarray(image[y0:y1, x0:x1]), cv2.COLOR_RGB2GRAY)
         kp = d.keypoints[..., :2].detach().cpu().double().numpy() - np.array([x0, y0])
         snapped = snap_vertical(gray, kp, d.scores.detach().cpu().double().numpy()) + np.array([x0, y0])
@@ -90,6 +88,17 @@ def snap_batch(images: list[np.ndarray], boxes: list[Letterbox], dets: list[Dete
         keypoints[..., :2] = torch.from_numpy(snapped).to(keypoints)
         out.append(replace(d, keypoints=keypoints))
     return out
+
+
+def snap_region(lb: Letterbox, width: int, height: int) -> tuple[int, int, int, int] | None:
+    """x0, y0, x1, y1 (exclusive) of the letterboxed image's own pixels less PAD_MARGIN on each
+    padded side, or None when nothing is left: an image 500 times wider than tall (10000 x 20) is
+    one row of the input, which the margins remove, and an empty crop is no image to find lines in
+    (its corners are kept as the network placed them)."""
+    x0, y0, x1, y1 = lb.content_box(width, height)
+    x0, y0 = x0 + (PAD_MARGIN if x0 > 0 else 0), y0 + (PAD_MARGIN if y0 > 0 else 0)
+    x1, y1 = x1 - (PAD_MARGIN if x1 < width else 0), y1 - (PAD_MARGIN if y1 < height else 0)
+    return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
 
 
 def to_image_coords(det: Detections, lb: Letterbox) -> dict[str, np.ndarray]:
@@ -259,12 +268,61 @@ def image_files(paths: Iterable[str | Path]) -> list[Path]:
     return out
 
 
-def predict_images(model: KeypointDetector, files: list[Path], opts: PredictOptions
-                   ) -> Iterator[tuple[Path, np.ndarray, dict[str, np.ndarray]]]:
-    """(file, original RGB image, detections) per image file."""
+@dataclass
+class PredictedImage:
+    """One source image's outcome: its pixels and detections, or why it was skipped."""
+
+    path: Path
+    image: np.ndarray | None = None  # RGB uint8 (H, W, 3)
+    detections: dict[str, np.ndarray] | None = None  # to_image_coords'
+    error: str | None = None  # the skip: the file and the reason (an ImageError's text)
+
+
+def read_source_image(path: Path) -> np.ndarray:
+    """RGB uint8 pixels of an image given to `omnigen predict`, the header's size capped before
+    decoding (omnigen.images); decoded by OpenCV as training decodes (detector.data.read_image)."""
+    import cv2
+
+    from omnigen.images import ImageError, read_image_bytes
+
+    data, _ = read_image_bytes(path)
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        raise ImageError(path, "unreadable image: OpenCV cannot decode it")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def check_input_size(model: KeypointDetector, imgsz: int) -> None:
+    """The network takes inputs whose side is a multiple of its largest stride (32, or 64 with P6)."""
+    stride = model.strides[-1]
+    if imgsz % stride:
+        raise ValueError(f"--imgsz {imgsz}: this model takes multiples of {stride}, its largest stride")
+
+
+def predict_images(model: KeypointDetector, files: list[Path], opts: PredictOptions) -> Iterator[PredictedImage]:
+    """A PredictedImage per file, in order. An image that cannot be read (missing, not a regular
+    file, over the size caps, undecodable) is skipped with its reason; the others are predicted.
+    The input size is checked here, before the first image is read."""
+    check_input_size(model, opts.imgsz)
+    return _predict_images(model, files, opts)
+
+
+def _read_or_skip(path: Path) -> PredictedImage:
+    from omnigen.images import ImageError
+
+    try:
+        return PredictedImage(path, read_source_image(path))
+    except ImageError as exc:
+        return PredictedImage(path, error=str(exc))
+
+
+def _predict_images(model: KeypointDetector, files: list[Path], opts: PredictOptions) -> Iterator[PredictedImage]:
     model.eval()
     for chunk in batches(files, opts.batch):
-        originals = [read_image(f) for f in chunk]
-        boxed = [letterbox(im, opts.imgsz) for im in originals]
-        dets = infer_batch(model, [b[0] for b in boxed], [b[1] for b in boxed], opts)
-        yield from zip(chunk, originals, dets)
+        read = [_read_or_skip(f) for f in chunk]
+        good = [r for r in read if r.error is None]
+        if good:
+            boxed = [letterbox(r.image, opts.imgsz) for r in good]
+            for r, det in zip(good, infer_batch(model, [b[0] for b in boxed], [b[1] for b in boxed], opts)):
+                r.detections = det
+        yield from read

@@ -45,8 +45,8 @@ class TimeBudget:
     val_seconds: float | None = None  # the last validation's duration
 
     def __post_init__(self) -> None:
-        if not self.seconds > 0:
-            raise ValueError(f"TrainConfig.time_minutes: must be > 0, got {self.seconds / 60:g}")
+        if not 0 < self.seconds < math.inf:  # an infinite budget would overflow the plan's epoch count
+            raise ValueError(f"TrainConfig.time_minutes: must be a finite number > 0, got {self.seconds / 60:g}")
 
     def epoch_estimate(self) -> float | None:
         """Seconds of training an epoch takes: the median of the last three measured, leaving out

@@ -11,6 +11,18 @@ epoch), `best.pt` (the best validation OKS mAP so far), `args.json` and `results
 `--resume` continues from `last.pt` with the optimiser, EMA, schedule and history, and gives the
 same weights as an uninterrupted run on the CPU (each sample's augmentation is seeded from
 (seed, epoch, frame), the shuffling from (seed, epoch)).
+
+A run folder is claimed as render claims its folders (`claim_run`, `resumed_config`): a new run
+refuses a folder that holds a run's weights or results unless told `--fresh` (which deletes the
+run's own files and nothing else, and refuses a folder holding anything else), and `--resume`
+refuses settings other than the run's, each named ("--lr0: 0.002 there, 0.1 now"), but for where
+and how fast it runs (RESUMABLE). A changed --epochs or --time is refused too: the schedule was
+laid out over them, and a longer run is a new one that starts from this one's weights
+(`--weights`). best.pt is written before last.pt, so a kill between the two leaves a last.pt
+that the resumed run re-does; a last.pt that records its own epoch as the best while best.pt lacks
+it (a kill in an older version) gets its best.pt back on resume, and a killed save's temporary
+file is removed. A loss that is not finite stops the run (`FiniteWatch`): nothing of that epoch is
+saved, and the error names the epoch, the step and the frames of its batch.
 results.csv has a row per epoch; its `time` column is the seconds the run's epochs have taken so
 far, validation included, summed over resumed invocations (the work a kill threw away is not in
 it), so a run cut into time-boxed jobs still says what it cost.
@@ -23,11 +35,13 @@ step goes and what was done about it: docs/detector-training.md, "Speed".
 from __future__ import annotations
 
 import datetime
+import json
 import math
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field, replace
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -37,7 +51,9 @@ import torch.distributed as dist
 
 from omnigen.detector.balance import describe as describe_repeat
 from omnigen.detector.balance import check_crop_focus, check_repeat_thresh, repeat_factors
-from omnigen.detector.checkpoint import checkpoint_taxonomy, load_checkpoint, load_pretrained, save_checkpoint
+from omnigen.detector.checkpoint import (a_kind, check_tensors, checked_fields, checkpoint_taxonomy, config_difference,
+                                         detector_config, load_checkpoint, load_part, load_pretrained, load_weights,
+                                         save_checkpoint)
 from omnigen.detector.data import Augment, KeypointDataset, split_frames
 from omnigen.detector.ema import ModelEMA
 from omnigen.detector.loss import OKS_SIGMA as KPT_SIGMA
@@ -47,8 +63,10 @@ from omnigen.detector.predict import EVAL_CONF, EVAL_MAX_DET, EVAL_MULTI_LABEL, 
 from omnigen.detector import time_budget
 from omnigen.detector.time_budget import TimeBudget
 from omnigen.detector.train_loader import EpochBatches, collate_uint8, make_loader
-from omnigen.detector.train_step import PartSums, TrainStep, to_device, use_channels_last
-from omnigen.files import atomic_write_text, dumps_json
+from omnigen.detector.train_step import FiniteWatch, PartSums, TrainStep, finite_weights, to_device, use_channels_last
+from omnigen.files import TMP_PREFIX, atomic_write_bytes, atomic_write_text, dumps_json
+from omnigen.outputs import read_prefix
+from omnigen.ownership import output_lock
 from omnigen.splits import TEST, split_names
 from omnigen.taxonomy import load_taxonomy
 
@@ -270,14 +288,161 @@ def validate(model: KeypointDetector, data: KeypointDataset, split: str | None, 
             "corner_error_rel": row.corner_error_rel}
 
 
+RUN_FILES = ("last.pt", "best.pt", "results.csv", "args.json")
+"""What `omnigen train` writes into its run folder, besides its temporary files."""
+
+RESUMABLE = ("out", "device", "workers", "cache")
+"""The settings a resumed run may change: where the folder and the run are, its loader processes
+and its image cache; they give the same weights. Every other one is the run's."""
+
+FLAGS = {"dataset": "DATASET", "time_minutes": "--time", "augment": "--no-augment"}
+"""The command-line names of the TrainConfig fields not spelled as their field (`--lr0` is lr0)."""
+NOT_ON_THE_COMMAND_LINE = ("width", "depth", "weight_decay", "warmup_iters", "ema_decay", "ema_tau", "save_interval")
+
+
+def flag_of(name: str) -> str:
+    """How a TrainConfig field is named to a user: its flag, else the field."""
+    if name in NOT_ON_THE_COMMAND_LINE:
+        return f"TrainConfig.{name}"
+    return FLAGS.get(name, "--" + name.replace("_", "-"))
+
+
+def _shown(name: str, value: Any) -> str:
+    if name == "augment":
+        return "given" if value == asdict(Augment.off()) else "not given" if value == asdict(Augment()) else f"{value}"
+    return "unset" if value is None else str(value)
+
+
+def _same_setting(name: str, was: Any, now: Any) -> bool:
+    if was == now:
+        return True
+    # the same dataset folder however it is spelled (relative, through a link)
+    return name == "dataset" and os.path.exists(was) and os.path.exists(now) and os.path.samefile(was, now)
+
+
+def is_run_file(path: Path) -> bool:
+    """Whether `path`, named as one of RUN_FILES, is what `omnigen train` writes there (by its first
+    bytes: a torch archive, results.csv's header, a JSON object of TrainConfig fields): all that
+    --fresh deletes."""
+    head = read_prefix(path)
+    if path.suffix == ".pt":
+        return head.startswith(b"PK\x03\x04") and b"/data.pkl" in head[:200]
+    if path.name == "results.csv":
+        return head.startswith(b"epoch,")
+    try:
+        recorded = json.loads(head)
+    except ValueError:
+        return False
+    return isinstance(recorded, dict) and {"dataset", "out", "epochs", "imgsz"} <= set(recorded)
+
+
+def claim_run(out: Path, fresh: bool, delete: bool) -> None:
+    """Make `out` the folder of a new run, or refuse it, before anything is read or written.
+
+    A folder holding a run's weights or results (last.pt, best.pt, results.csv) is refused: a new
+    run would replace them. `fresh` deletes them first (where `delete`: rank 0 of several), and
+    only from a folder that holds nothing but a run's own files, each recognised as train's
+    (is_run_file). Files of others beside no run are left alone (benchmarks/validate.py keeps its
+    markers in the run folder); an args.json not written by train is refused, as it would be
+    overwritten.
+    """
+    if not out.is_dir():
+        return
+    held = [name for name in RUN_FILES[:3] if (out / name).exists()]
+    if held and not fresh:
+        raise ValueError(f"{out}: holds a training run ({', '.join(held)}); add --resume to continue it, --fresh "
+                         "to delete its files and start over, or choose another --out")
+    if (out / "args.json").exists() and not is_run_file(out / "args.json"):
+        raise ValueError(f"{out / 'args.json'}: was not written by 'omnigen train'; refusing to overwrite it "
+                         "(choose another --out)")
+    if not fresh:
+        return
+    theirs = sorted(p.name for p in out.iterdir()
+                    if not (p.name in RUN_FILES and is_run_file(p)) and not p.name.startswith(TMP_PREFIX))
+    if theirs:
+        more = f" and {len(theirs) - 5} more" if len(theirs) > 5 else ""
+        raise ValueError(f"{out}: --fresh deletes only a run's own files ({', '.join(RUN_FILES)}), and this folder "
+                         f"also holds {', '.join(theirs[:5])}{more}, which 'omnigen train' did not make; choose "
+                         "another --out")
+    if delete:
+        for name in RUN_FILES:  # last.pt first: a kill midway leaves no run that --resume would take up
+            (out / name).unlink(missing_ok=True)
+
+
+RESUME_FIELDS = {"train_config": dict, "raw_model": dict, "optimizer": dict, "ema_updates": int, "epoch": int,
+                 "best_fitness": (int, float), "history": list}
+"""What --resume reads from last.pt beside what prediction reads, and its types."""
+
+
+def resumed_config(cfg: TrainConfig, state: dict[str, Any], path: Path) -> TrainConfig:
+    """The run's recorded settings (last.pt's train_config) with this invocation's RESUMABLE ones.
+
+    Any other setting given differently is refused, every difference named, as render refuses a
+    folder of other frames: a resume that silently took the run's --lr0 or dataset over the one
+    given would train something other than what was asked for.
+    """
+    for key, kind in RESUME_FIELDS.items():
+        if key not in state:
+            raise ValueError(f"{path}: lacks {key!r}, which --resume needs (not a checkpoint of omnigen train)")
+        if not isinstance(state[key], kind) or isinstance(state[key], bool):
+            raise ValueError(f"{path}: {key} is {a_kind(state[key])}, not what --resume needs")
+    if not all(isinstance(row, dict) for row in state["history"]):
+        raise ValueError(f"{path}: history holds something other than rows of numbers")
+    check_tensors(path, "raw_model", state["raw_model"])
+    # checkpoints from before the optimizer was a choice trained with Adam
+    recorded = checked_fields(path, "train_config", {"optimizer": "adam", **state["train_config"]}, TrainConfig)
+    checked_fields(path, "train_config.augment", recorded.augment, Augment)
+    differ = [f.name for f in fields(TrainConfig) if f.name not in RESUMABLE
+              and not _same_setting(f.name, getattr(recorded, f.name), getattr(cfg, f.name))]
+    if differ:
+        said = "; ".join(f"{flag_of(k)}: {_shown(k, getattr(recorded, k))} there, {_shown(k, getattr(cfg, k))} now"
+                         for k in differ)
+        raise ValueError(f"{cfg.out}: was trained with other settings ({said}; recorded in {path}); --resume goes on "
+                         "with the run's own (only --device, --workers and --cache may change): give its settings, "
+                         "or train a new run into another --out (--weights starts one from its weights)")
+    return replace(recorded, **{k: getattr(cfg, k) for k in RESUMABLE})
+
+
+def tidy_run(out: Path, state: dict[str, Any] | None) -> None:
+    """Undo what a kill left in a run folder before the run goes on in it: the temporary file of a
+    save cut short, and where last.pt records its own epoch as the run's best while best.pt does
+    not hold it (killed between the two writes, before best.pt was written first), best.pt."""
+    for tmp in out.glob(TMP_PREFIX + "*"):
+        if tmp.is_file():
+            tmp.unlink(missing_ok=True)
+    if state is None or not state["history"]:
+        return
+    own = state["history"][-1].get("oks_map50_95") if isinstance(state["history"][-1], dict) else None
+    if own is None or own != state["best_fitness"]:
+        return
+    best = out / "best.pt"
+    try:
+        kept = load_checkpoint(best).get("best_fitness", -1.0) if best.exists() else -1.0
+    except ValueError:
+        kept = -1.0  # a damaged best.pt: the run's own file, replaced
+    if not isinstance(kept, (int, float)) or kept < own:
+        atomic_write_bytes(best, (out / "last.pt").read_bytes())
+
+
 def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[str, float]], None] | None = None,
-          stop_after: int | None = None) -> dict[str, Any]:
+          stop_after: int | None = None, fresh: bool = False) -> dict[str, Any]:
     """Run (or resume) training; returns the final history row of rank 0.
 
     `stop_after` ends the run after that many epochs in total (the schedule still spans
     cfg.epochs), as a kill would, so that a later `resume=True` continues it: time-boxed jobs on a
-    cluster do the same.
+    cluster do the same. `fresh` deletes a run already in cfg.out first (claim_run). Rank 0 holds
+    the folder's lock (omnigen.ownership.output_lock) for the whole run: two runs into one folder
+    would overwrite each other's checkpoints.
     """
+    if resume and fresh:
+        raise ValueError("--resume continues the run in --out and --fresh deletes it; give one of them")
+    with output_lock(cfg.out, "train") if distributed()[0] == 0 else nullcontext():
+        return _train(cfg, resume, fresh, on_epoch, stop_after)
+
+
+def _train(cfg: TrainConfig, resume: bool, fresh: bool, on_epoch: Callable[[int, dict[str, float]], None] | None,
+           stop_after: int | None) -> dict[str, Any]:
+    """train() inside the run folder's lock."""
     clock = time_budget.clock  # seconds of the run's epochs and budget (tests may replace it)
     entered = clock()  # a time budget counts the setup (dataset, image cache) too
     rank, local_rank, world = distributed()
@@ -290,13 +455,13 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     out = Path(cfg.out)
     state = load_checkpoint(out / "last.pt") if resume else None
     if state is not None:
-        # the run's own settings; where it runs, its loader processes and its image cache may change;
-        # checkpoints from before the optimizer was a choice trained with Adam
-        saved = {"optimizer": "adam", **state["train_config"]}
-        cfg = replace(TrainConfig(**saved), out=cfg.out, device=cfg.device, workers=cfg.workers, cache=cfg.cache)
+        cfg = resumed_config(cfg, state, out / "last.pt")
         taxonomy = checkpoint_taxonomy(state)
     else:
+        claim_run(out, fresh, delete=rank == 0)
         taxonomy = load_taxonomy(cfg.taxonomy)
+    if rank == 0 and (resume or fresh or (out / "args.json").exists()):
+        tidy_run(out, state)
     torch.manual_seed(cfg.seed)
 
     train_ids = split_frames(cfg.dataset, cfg.train_split)
@@ -326,10 +491,12 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     optimizer = make_optimizer(cfg, model)
     start_epoch, best, history = 0, -1.0, []
     if state is not None:
-        model.load_state_dict(state["raw_model"])
-        ema.ema.load_state_dict(state["model"])
+        path = out / "last.pt"
+        config_difference(path, detector_config(path, state), model.cfg)
+        load_weights(model, state["raw_model"], path, "raw_model")
+        load_weights(ema.ema, state["model"], path, "model")
         ema.updates = int(state["ema_updates"])
-        optimizer.load_state_dict(state["optimizer"])
+        load_part(path, "optimizer", lambda: optimizer.load_state_dict(state["optimizer"]))
         start_epoch, best, history = int(state["epoch"]) + 1, float(state["best_fitness"]), list(state["history"])
     criterion = DetectionLoss(model.cfg.num_classes, gains=LossGains(kpt_l1=cfg.kpt_l1, kpt_labelled=cfg.kpt_labelled,
                                                                         heading=cfg.heading_gain))
@@ -337,7 +504,7 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
     # fp16 gradients underflow without scaling; bf16 has float32's range and needs none
     scaler = torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16)
     if state is not None and state.get("scaler"):
-        scaler.load_state_dict(state["scaler"])
+        load_part(out / "last.pt", "scaler", lambda: scaler.load_state_dict(state["scaler"]))
     ddp = torch.nn.parallel.DistributedDataParallel(model, device_ids=[local_rank] if device.type == "cuda" else None) \
         if world > 1 else model
     step = TrainStep(model, ddp, criterion, optimizer, scaler, ema, amp_dtype)
@@ -373,27 +540,34 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
         end = agree(int(state.get("planned_epochs") or budget.plan(start_epoch, used(), cfg.val_every, validates)),
                     device, world)
 
+    frame_ids = data.ds.frame_ids
+    saved = start_epoch if state is not None else None  # the epochs last.pt holds
     epoch = start_epoch
     while epoch < (end if stop_after is None else min(end, stop_after)):
         total = end * iters_per_epoch
         model.train()
         sums = PartSums()
+        watch = FiniteWatch(iters_per_epoch, device)
         bar = tqdm(range(iters_per_epoch), desc=f"epoch {epoch + 1}/{end}", disable=rank != 0, leave=False,
                    dynamic_ncols=True, mininterval=0.5 if sys.stderr.isatty() else 60.0)  # logs: a line a minute
         t0, show = clock(), time.perf_counter()
         for i in bar:
-            images, targets, _ = next(batches)  # this epoch's i-th batch: the sampler goes epoch by epoch
+            images, targets, samples = next(batches)  # this epoch's i-th batch: the sampler goes epoch by epoch
             it = epoch * iters_per_epoch + i
             for g in optimizer.param_groups:
                 g["lr"] = learning_rate(cfg, it, total)
             criterion.kpt_sigma = kpt_sigma(cfg, it, total)
             criterion.turn_free = it >= cfg.kpt_turn_start * total
             sums.add(step(*to_device(images, targets, device, channels_last)))
+            watch.add(step.finite, [frame_ids[s.frame_index] for s in samples])
             if rank == 0 and time.perf_counter() >= show:  # read the device's sums only when the bar may redraw
+                if world == 1:  # one process stops at once; several stop together at the epoch's end
+                    stop_if_not_finite(watch, epoch, out, saved, device, world)
                 # refresh=False: a redraw per step would defeat the log's one line a minute
                 bar.set_postfix({k: f"{v:.3f}" for k, v in sums.means().items()}, refresh=False)
                 show = time.perf_counter() + bar.mininterval
         means = sums.means()  # waits for the epoch's last step
+        stop_if_not_finite(watch, epoch, out, saved, device, world, model, ema.ema)
         row: dict[str, float] = {"epoch": epoch + 1, "lr": optimizer.param_groups[0]["lr"],
                                  "seconds": clock() - t0}
         row.update(means)
@@ -429,15 +603,50 @@ def train(cfg: TrainConfig, resume: bool = False, on_epoch: Callable[[int, dict[
                         "optimizer": optimizer.state_dict(), "scaler": scaler.state_dict(),
                         "epoch": epoch, "best_fitness": max(best, fitness), "planned_epochs": end,
                         "history": history, "train_config": asdict(cfg)}
-                save_checkpoint(out / "last.pt", ckpt)
-                if fitness > best:
+                if fitness > best:  # before last.pt: a kill between the two leaves a last.pt that re-does this epoch
                     best = fitness
                     save_checkpoint(out / "best.pt", ckpt)
+                save_checkpoint(out / "last.pt", ckpt)
+                saved = epoch + 1
                 write_results_csv(out / "results.csv", history)
         if world > 1:
             dist.barrier(device_ids=[torch.cuda.current_device()] if device.type == "cuda" else None)
         epoch += 1
     return history[-1] if history else {}
+
+
+class NonFiniteLoss(RuntimeError):
+    """Training reached a loss (or weights) that is not finite; nothing of that epoch was saved."""
+
+
+def stop_if_not_finite(watch: FiniteWatch, epoch: int, out: Path, saved: int | None, device: torch.device,
+                       world: int, *modules: torch.nn.Module) -> None:
+    """Raise NonFiniteLoss, naming the epoch, the step and the frames of its batch, when a step of
+    this epoch so far was not finite or (given `modules`, at the epoch's end) its weights are not.
+    Every process calls it at the epoch's end: they stop together."""
+    bad = watch.first_bad()
+    if bad is None and modules and not finite_weights(*modules):
+        bad = len(watch.frames) - 1  # the epoch's last update made them: no loss of the epoch showed it
+    if not any_rank(bad is not None, device, world):
+        return
+    kept = f"{out / 'last.pt'} holds epoch {saved}, the last saved" if saved else "nothing was saved"
+    if bad is None:
+        raise NonFiniteLoss(f"{out}: training stopped at epoch {epoch + 1}: another process's loss was not finite; "
+                            f"{kept}")
+    frames = watch.frames[bad]
+    named = ", ".join(frames[:16]) + (f" and {len(frames) - 16} more" if len(frames) > 16 else "")
+    raise NonFiniteLoss(f"{out}: training stopped: the loss was not finite at epoch {epoch + 1}, step {bad + 1} of "
+                        f"{len(watch.flags)} (frames {named}); nothing of this epoch was saved, {kept}; check those "
+                        "frames' labels, or train with a lower --lr0")
+
+
+def any_rank(flag: bool, device: torch.device, world: int) -> bool:
+    """Whether `flag` holds on any process."""
+    if world == 1:
+        return flag
+    t = torch.tensor([int(flag)], device=device if device.type == "cuda" else "cpu")
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item())
 
 
 def agree(value: int, device: torch.device, world: int) -> int:

@@ -12,10 +12,13 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from omnigen.dataset import MANIFEST, RECORDS_DIR, RENDER_ARGS_FILE, record_files
+from omnigen.dataset import (MANIFEST, MANIFEST_MAX_BYTES, RECORDS_DIR, RENDER_ARGS_FILE, ManifestError, parse_record,
+                             read_manifest, read_record_bytes, record_files)
 from omnigen.images import ImageError, check_image
+from omnigen.plausible import record_problems
 from omnigen.progress import progress
 from omnigen.record import FrameRecord, RecordError
+from omnigen.untrusted import UntrustedFileError, read_regular
 from omnigen.writer import update_records_digest
 
 
@@ -30,53 +33,63 @@ class Problem:
 
 
 def check_dataset(root: str | os.PathLike, show_progress: bool = True) -> tuple[int, list[Problem]]:
-    """Return (frames checked, problems): schema, finite values, files present, unique ids,
-    images whole (decoded in full, omnigen.images.check_image) and of the record's size."""
+    """Return (frames checked, problems): the manifest's schema, schema and finite values of each
+    record, plausible values (omnigen.plausible: whoever wrote the record), files present, unique
+    ids, images whole (decoded in full, omnigen.images.check_image) and of the record's size."""
     root = Path(root)
-    problems: list[Problem] = []
     if not (root / RECORDS_DIR).is_dir():
         return 0, [Problem(str(root), RECORDS_DIR, "missing: not an UrbanOmniView dataset")]
-    if not (root / MANIFEST).exists():
-        problems.append(Problem(str(root), MANIFEST, "missing (the dataset was never finalized)"))
+    problems: list[Problem] = []
+    manifest = _manifest(root, problems)
     entries = record_files(root)
-    render, render_source = _render_settings(root)
+    render, render_source = _render_settings(root, manifest, problems)
     digest = hashlib.sha256()
     for e in progress(entries, desc="validating", unit="frame", disable=not show_progress):
-        data = Path(e.path).read_bytes()
-        update_records_digest(digest, e.name, data)
         try:
-            rec = FrameRecord.from_dict(json.loads(data), file=e.path)
-        except json.JSONDecodeError as exc:
-            problems.append(Problem(e.path, "<json>", f"not valid JSON: {exc}"))
-            continue
+            data = read_record_bytes(e.path)
+            update_records_digest(digest, e.name, data)
+            rec = parse_record(data, e.path)
         except RecordError as exc:
             problems.append(Problem(e.path, exc.field, exc.message))
             continue
-        if e.name != f"{rec.frame_id}.json":
-            problems.append(Problem(e.path, "frame_id", f"{rec.frame_id!r} does not match the file name"))
-        if not rec.frame_id.startswith(f"{rec.source}-"):
-            problems.append(Problem(e.path, "frame_id", f"{rec.frame_id!r} is not prefixed by its source '{rec.source}-'"))
-        if render and rec.synthetic is not None:
-            problems += _render_problems(e.path, rec, render, render_source)
-        files = [("image", rec.image)]
-        if rec.synthetic is not None:
-            files += [("synthetic.depth", rec.synthetic.depth), ("synthetic.instance", rec.synthetic.instance)]
-        for field, rel in files:
-            if not (root / rel).is_file():
-                problems.append(Problem(e.path, field, f"file {rel} not found"))
-            elif field == "image":
-                problems.extend(_image_problems(root / rel, rec, e.path))
-    manifest_path = root / MANIFEST
-    if manifest_path.exists():
-        try:
-            recorded = json.loads(manifest_path.read_text()).get("records_sha256")
-        except json.JSONDecodeError as exc:
-            problems.append(Problem(str(manifest_path), "<json>", f"not valid JSON: {exc}"))
-        else:
-            if recorded != digest.hexdigest():
-                problems.append(Problem(str(manifest_path), "records_sha256",
-                                        "does not match records/ (an interrupted or unfinished write?)"))
+        problems += _record_problems(root, e, rec, render, render_source)
+    if manifest is not None and manifest.get("records_sha256") != digest.hexdigest():
+        problems.append(Problem(str(root / MANIFEST), "records_sha256",
+                                "does not match records/ (an interrupted or unfinished write?)"))
     return len(entries), problems
+
+
+def _manifest(root: Path, problems: list[Problem]) -> dict | None:
+    """The manifest checked against its schema (omnigen.dataset.read_manifest); None, with the
+    problem noted, when it is missing or broken."""
+    if not (root / MANIFEST).exists():
+        problems.append(Problem(str(root), MANIFEST, "missing (the dataset was never finalized)"))
+        return None
+    try:
+        return read_manifest(root)
+    except ManifestError as exc:
+        problems.append(Problem(exc.file, exc.field, exc.message))
+        return None
+
+
+def _record_problems(root: Path, e: os.DirEntry, rec: FrameRecord, render: dict, render_source: str) -> list[Problem]:
+    """Everything wrong with one parsed record: its name, its values, its files."""
+    problems = [Problem(e.path, field, message) for field, message in record_problems(rec)]
+    if e.name != f"{rec.frame_id}.json":
+        problems.append(Problem(e.path, "frame_id", f"{rec.frame_id!r} does not match the file name"))
+    if not rec.frame_id.startswith(f"{rec.source}-"):
+        problems.append(Problem(e.path, "frame_id", f"{rec.frame_id!r} is not prefixed by its source '{rec.source}-'"))
+    if render and rec.synthetic is not None:
+        problems += _render_problems(e.path, rec, render, render_source)
+    files = [("image", rec.image)]
+    if rec.synthetic is not None:
+        files += [("synthetic.depth", rec.synthetic.depth), ("synthetic.instance", rec.synthetic.instance)]
+    for field, rel in files:
+        if not (root / rel).is_file():
+            problems.append(Problem(e.path, field, f"file {rel} not found"))
+        elif field == "image":
+            problems.extend(_image_problems(root / rel, rec, e.path))
+    return problems
 
 
 def _image_problems(path: Path, rec: FrameRecord, record_file: str) -> list[Problem]:
@@ -90,18 +103,24 @@ def _image_problems(path: Path, rec: FrameRecord, record_file: str) -> list[Prob
     return []
 
 
-def _render_settings(root: Path) -> tuple[dict, str]:
+def _render_settings(root: Path, manifest: dict | None, problems: list[Problem]) -> tuple[dict, str]:
     """A render folder's arguments (its .render-args.json, else its manifest's `render` entry)
-    and where they were read; ({}, "") for any other dataset."""
-    for path, key in ((root / RENDER_ARGS_FILE, None), (root / MANIFEST, "render")):
+    and where they were read; ({}, "") for any other dataset. The arguments file is read as a
+    regular file of at most MANIFEST_MAX_BYTES (one replaced by a FIFO would block validate)."""
+    path = root / RENDER_ARGS_FILE
+    if path.exists():
         try:
-            data = json.loads(path.read_text())
-        except (OSError, ValueError):
-            continue  # absent, or broken (the manifest's own check says so)
-        settings = data.get(key) if key else data
-        if isinstance(settings, dict) and settings:
-            return settings, str(path)
-    return {}, ""
+            data = json.loads(read_regular(path, MANIFEST_MAX_BYTES))
+        except UntrustedFileError as exc:
+            problems.append(Problem(str(path), "<file>", exc.message))
+            return {}, ""
+        except (ValueError, OSError) as exc:
+            problems.append(Problem(str(path), "<json>", f"not readable as JSON: {exc}"))
+            return {}, ""
+        if isinstance(data, dict) and data:
+            return data, str(path)
+    render = (manifest or {}).get("render")
+    return (render, str(root / MANIFEST)) if render else ({}, "")
 
 
 def _render_problems(file: str, rec: FrameRecord, render: dict, source: str) -> list[Problem]:

@@ -47,6 +47,18 @@ EXPORTERS: dict[str, str] = {
 }
 
 
+class HelpFormatter(argparse.HelpFormatter):
+    """argparse's help with every option's default shown, as Ultralytics' CLI shows its
+    defaults: "(default: X)" is added to each help line that does not already say its default."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        shown = action.default not in (None, False, argparse.SUPPRESS, [], "")
+        if action.option_strings and shown and "default" not in text:
+            text = f"{text} (default: %(default)s)".lstrip()
+        return text
+
+
 def add_commands(subparsers: argparse._SubParsersAction, registry: dict[str, str]) -> None:
     """One subcommand per registry entry; the module gives add_arguments(parser) and run(args).
 
@@ -63,7 +75,7 @@ def add_commands(subparsers: argparse._SubParsersAction, registry: dict[str, str
         first = (module.__doc__ or module_name).strip().splitlines()[0]
         if first[1:2].islower():  # "Train the ..." -> "train the ...", as argparse's help reads; not "KITTI"
             first = first[:1].lower() + first[1:]
-        q = subparsers.add_parser(name, help=first.rstrip("."))
+        q = subparsers.add_parser(name, help=first.rstrip("."), formatter_class=HelpFormatter)
         module.add_arguments(q)
         q.set_defaults(func=module.run)
 

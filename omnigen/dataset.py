@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -32,17 +32,34 @@ from omnigen.conventions import FINE_CLASSES
 from omnigen.files import TMP_PREFIX
 from omnigen.geometry import Box3D, Plane
 from omnigen.index import DatasetIndex, read_index, records_fingerprint, write_index
+from omnigen.options import SEED_MAX
 from omnigen.progress import progress
 from omnigen.record import DIFFICULTY_NAMES, FrameRecord, IgnoreRegion, ObjectRecord, RecordError, SyntheticInfo
 from omnigen.tables import FrameTable, ObjectTable
+from omnigen.taxonomy import TaxonomyError, recorded_taxonomy
+from omnigen.untrusted import UntrustedFileError, read_regular
 
 MANIFEST = "manifest.json"
+MANIFEST_MAX_BYTES = 16 * 2**20
+"""Largest manifest.json read. A manifest holds counts, a merge's sources and its splits' counts:
+kilobytes, tens for a merge of many sources; the cap only keeps a huge or endless file out."""
 RECORDS_DIR = "records"
+RECORD_MAX_BYTES = 64 * 2**20
+"""Largest record file read. A record holds one frame's objects, about 1.5 kB each: a frame of
+40,000 objects fits; the cap only keeps a huge or endless file out."""
 RENDER_ARGS_FILE = ".render-args.json"  # a render folder's recorded arguments (rigs/render.py)
 
 
 class DatasetError(RuntimeError):
     """A dataset folder that cannot be read as a whole (missing, or with bad records)."""
+
+
+class ManifestError(DatasetError):
+    """A manifest.json that is unreadable or breaks its schema; names the file and the field."""
+
+    def __init__(self, file: str | os.PathLike, field: str, message: str):
+        self.file, self.field, self.message = os.fspath(file), field, message
+        super().__init__(f"{self.file}: field '{field}': {message}")
 
 
 def record_path(root: Path, frame_id: str) -> Path:
@@ -67,15 +84,29 @@ def check_record_name(frame_id: str, file_name: str, path: str | os.PathLike) ->
                            "found by file name, so the dataset is refused (omnigen validate lists every such record)")
 
 
+def read_record_bytes(path: str | os.PathLike) -> bytes:
+    """A record file's bytes, read as a regular file of at most RECORD_MAX_BYTES (a record named
+    like one but replaced by a FIFO or a link to a device would block or fill memory)."""
+    try:
+        return read_regular(path, RECORD_MAX_BYTES)
+    except UntrustedFileError as exc:
+        raise RecordError(None, "<file>", exc.message, os.fspath(path)) from None
+
+
+def parse_record(data: bytes, path: str | os.PathLike) -> FrameRecord:
+    """Parse and validate one record file's bytes; errors name the file."""
+    try:
+        parsed = json.loads(data)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise RecordError(None, "<json>", f"not valid JSON: {exc}", os.fspath(path)) from None
+    except RecursionError:
+        raise RecordError(None, "<json>", "JSON nested too deeply to read", os.fspath(path)) from None
+    return FrameRecord.from_dict(parsed, file=os.fspath(path))
+
+
 def read_record(path: str | os.PathLike) -> FrameRecord:
     """Read and validate one record file; errors name the file."""
-    path = str(path)
-    try:
-        with open(path, "rb") as fh:
-            data = json.loads(fh.read())
-    except json.JSONDecodeError as exc:
-        raise RecordError(None, "<json>", f"not valid JSON: {exc}", path) from None
-    return FrameRecord.from_dict(data, file=path)
+    return parse_record(read_record_bytes(path), path)
 
 
 class Dataset:
@@ -208,11 +239,149 @@ def _frame_from_row(f: dict[str, Any], objects: list[ObjectRecord]) -> FrameReco
 
 
 def read_manifest(root: Path) -> dict[str, Any]:
-    """A dataset folder's manifest.json, {} when it has none; a manifest that is no JSON is an error."""
-    path = root / MANIFEST
+    """A dataset folder's manifest.json, {} when it has none; checked against its schema first
+    (check_manifest), so that no consumer meets a list where it expects an object, a string where
+    it expects a number, or a taxonomy that names a file. Any failure is a ManifestError naming the
+    file and the field.
+
+    The file is read as a regular file of at most MANIFEST_MAX_BYTES (omnigen.untrusted): a
+    manifest replaced by a FIFO or a link to a device would otherwise block or fill memory.
+    """
+    path = Path(root) / MANIFEST
     if not path.exists():
         return {}
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{path}: not valid JSON: {exc}") from None
+        manifest = json.loads(read_regular(path, MANIFEST_MAX_BYTES))
+    except UntrustedFileError as exc:
+        raise ManifestError(path, "<file>", exc.message) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ManifestError(path, "<json>", f"not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ManifestError(path, "<json>", "JSON nested too deeply to read") from None
+    except OSError as exc:
+        raise ManifestError(path, "<file>", f"cannot read: {exc.strerror or exc}") from None
+    check_manifest(manifest, path)
+    return manifest
+
+
+# ---------------------------------------------------------------------------------------------
+# The manifest's schema
+# ---------------------------------------------------------------------------------------------
+
+class _Bad(Exception):
+    """A schema check's failure: the field and the message (ManifestError adds the file)."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(field, message)
+        self.field, self.message = field, message
+
+
+Check = Callable[[Any, str], None]
+
+
+def _text(value: Any, field: str) -> None:
+    if not isinstance(value, str):
+        raise _Bad(field, f"expected a string, got {_kind(value)}")
+
+
+def _count(value: Any, field: str) -> None:
+    if type(value) is not int or value < 0:
+        raise _Bad(field, f"expected a whole number >= 0, got {_kind(value)}")
+
+
+def _seed(value: Any, field: str) -> None:
+    if type(value) is not int or not 0 <= value <= SEED_MAX:
+        raise _Bad(field, f"expected a seed in [0, 2**63 - 1], got {_kind(value)}")
+
+
+def _test_fraction(value: Any, field: str) -> None:
+    if type(value) not in (int, float) or not 0 <= value < 1:  # NaN fails the comparison
+        raise _Bad(field, f"expected a number in [0, 1), got {_kind(value)}")
+
+
+def _absolute_path(value: Any, field: str) -> None:
+    """A merge records its sources resolved: a relative path would depend on the working folder."""
+    _text(value, field)
+    if not os.path.isabs(value) or "\0" in value:
+        raise _Bad(field, f"expected an absolute path, got {value!r}")
+
+
+def _optional(check: Check) -> Check:
+    def optional(value: Any, field: str) -> None:
+        if value is not None:
+            check(value, field)
+    return optional
+
+
+def _list(check: Check) -> Check:
+    def items(value: Any, field: str) -> None:
+        if not isinstance(value, list):
+            raise _Bad(field, f"expected a list, got {_kind(value)}")
+        for i, item in enumerate(value):
+            check(item, f"{field}[{i}]")
+    return items
+
+
+def _table(check: Check) -> Check:
+    """An object whose every value passes `check` (its keys are names: sources, classes...)."""
+    def table(value: Any, field: str) -> None:
+        if not isinstance(value, dict):
+            raise _Bad(field, f"expected an object, got {_kind(value)}")
+        for key, item in value.items():
+            check(item, f"{field}.{key}")
+    return table
+
+
+def _object(fields: dict[str, Check]) -> Check:
+    """An object whose known fields pass their checks; other fields are left alone (a newer
+    omnigen may write more, and nothing here reads them)."""
+    def obj(value: Any, field: str) -> None:
+        if not isinstance(value, dict):
+            raise _Bad(field, f"expected an object, got {_kind(value)}")
+        for key, check in fields.items():
+            if key in value:
+                check(value[key], f"{field}.{key}" if field else key)
+    return obj
+
+
+def _kind(value: Any) -> str:
+    text = repr(value)
+    return f"{type(value).__name__} {text if len(text) <= 60 else text[:57] + '...'}"
+
+
+def _any_object(value: Any, field: str) -> None:
+    _object({})(value, field)
+
+
+_COUNTS = _table(_count)
+_SPLIT = _object({"frames": _count, "objects": _count, "frames_by_source_view": _COUNTS, "objects_by_class": _COUNTS})
+MANIFEST_SCHEMA: Check = _object({
+    "format": _text, "schema_version": _count, "omnigen_version": _text, "records_sha256": _text, "name": _text,
+    "counts": _object({"frames": _count, "objects": _count, "frames_by_source": _COUNTS, "frames_by_view": _COUNTS,
+                       "objects_by_class": _COUNTS}),
+    "taxonomy": _any_object,  # its content: omnigen.taxonomy.recorded_taxonomy
+    "merge": _object({
+        "sources": _list(_object({"path": _absolute_path, "name": _text, "records_sha256": _optional(_text),
+                                  "frames": _count, "objects": _count, "frames_by_source": _COUNTS})),
+        "seed": _seed, "test_fraction": _test_fraction, "split_files": _list(_text),
+        "unique_images": _count, "duplicate_frames": _count, "duplicate_frame_ids": _list(_text)}),
+    "splits": _table(_SPLIT),
+    "render": _object({"width": _count, "height": _count, "seed": _seed}),
+    "conversion": _object({"converter": _text}),
+    "conversion_stats": _any_object,  # counts for people to read; no code reads them
+})
+"""What the fields a consumer reads must hold: merge --update reads `merge`, export `taxonomy`,
+render and validate `render`, the converters `conversion`, stats and exports `name`."""
+
+
+def check_manifest(manifest: Any, path: str | os.PathLike) -> None:
+    """A ManifestError naming the first field that breaks MANIFEST_SCHEMA, or the taxonomy entry
+    that is not a preset's name or a well-formed mapping."""
+    try:
+        MANIFEST_SCHEMA(manifest, "")
+    except _Bad as exc:
+        raise ManifestError(path, exc.field or "<manifest>", exc.message) from None
+    try:
+        recorded_taxonomy(manifest, path)
+    except TaxonomyError as exc:
+        raise ManifestError(path, exc.field, exc.message) from None

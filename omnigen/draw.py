@@ -22,7 +22,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from omnigen.conventions import BOTTOM_CORNERS, FINE_CLASSES, NEAR_PLANE, SKELETON, TOP_CORNERS
-from omnigen.images import load_rgb
+from omnigen.images import MAX_IMAGE_PIXELS, load_rgb
 from omnigen.record import FrameRecord
 
 TOP_COLOR = (255, 150, 0)
@@ -54,12 +54,41 @@ def display_scale(width: int, height: int, target: int = 900, most: int = 8) -> 
     return int(max(1, min(most, target // max(width, 1))))
 
 
-def load_image(path: str | Path, width: int, height: int) -> tuple[Image.Image, str | None]:
-    """The frame's image as RGB, or a grey placeholder of the record's size and the reason it failed."""
+MAX_CANVAS_PIXELS = 4 * MAX_IMAGE_PIXELS
+"""Largest picture drawn (width x height, title strip and BEV included). An image at
+omnigen.images.MAX_IMAGE_PIXELS with a 0.2 margin and its BEV beside it stays under it; a record
+claiming 65535 x 65535 pixels, or a --scale or --margin that would blow a frame up to gigabytes,
+is refused before anything is allocated."""
+
+MAX_BEV_SIDE = 4096
+"""Largest BEV panel side: the panel is as tall as the image panel, but a square of a tall image's
+height would hold more pixels than the image itself."""
+
+
+def load_image(path: str | Path) -> tuple[Image.Image | None, str | None]:
+    """The frame's image as RGB, or None and the reason it failed (draw_frame then draws on grey)."""
     try:
         return load_rgb(path), None  # the header's size is capped before any pixel is decoded
     except Exception as exc:  # noqa: BLE001 - the viewer must draw the labels whatever the pixels do
-        return Image.new("RGB", (width, height), PLACEHOLDER), f"{type(exc).__name__}: {exc}".splitlines()[0]
+        return None, f"{type(exc).__name__}: {exc}".splitlines()[0]
+
+
+def bev_side(panel_height: int) -> int:
+    """The BEV panel's side beside an image panel `panel_height` tall."""
+    return min(max(panel_height, 360), MAX_BEV_SIDE)
+
+
+def panel_size(width: int, height: int, scale: float, margin: float) -> tuple[int, int, int, int]:
+    """(w, h, mx, my): a `width` x `height` image at `scale` and the margin on each side, in pixels."""
+    w, h = max(1, int(round(width * scale))), max(1, int(round(height * scale)))
+    return w, h, int(round(margin * w)), int(round(margin * h))
+
+
+def check_canvas(width: int, height: int, what: str, hint: str = "use a smaller --scale or --margin") -> None:
+    """Refuse a picture larger than MAX_CANVAS_PIXELS before it is allocated, naming what it is of."""
+    if width * height > MAX_CANVAS_PIXELS:
+        raise ValueError(f"{what}: the picture would be {width}x{height} pixels, more than the {MAX_CANVAS_PIXELS} "
+                         f"allowed (omnigen.draw.MAX_CANVAS_PIXELS); {hint}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -133,15 +162,13 @@ def draw_frame(rec: FrameRecord, image: Image.Image | None = None, scale: float 
     the contract keeps the raw projection of corners outside the image, and a truncated object's
     cuboid is easier to judge whole. Corners outside the image are drawn as hollow markers.
     """
-    if image is None:
-        image = Image.new("RGB", (rec.width, rec.height), PLACEHOLDER)
+    w, h, mx, my = panel_size(rec.width, rec.height, scale, margin)
+    if image is None:  # made at the panel's size: a record may claim far more pixels than it has
+        image = Image.new("RGB", (w, h), PLACEHOLDER)
     image = image.convert("RGB")
-    if image.size != (rec.width, rec.height):  # draw in the record's pixel grid whatever the file says
-        image = image.resize((rec.width, rec.height), Image.BILINEAR)
-    w, h = int(round(rec.width * scale)), int(round(rec.height * scale))
-    if scale != 1.0:
-        image = image.resize((w, h), Image.NEAREST if scale >= 1 else Image.BILINEAR)
-    mx, my = int(round(margin * w)), int(round(margin * h))
+    if image.size != (w, h):  # an image not of the record's size is stretched onto the record's grid
+        whole = image.size == (rec.width, rec.height) and scale >= 1
+        image = image.resize((w, h), Image.NEAREST if whole else Image.BILINEAR)
     if mx or my:
         canvas = Image.new("RGB", (w + 2 * mx, h + 2 * my), BACKGROUND)
         canvas.paste(image, (mx, my))
@@ -317,51 +344,66 @@ def _visible_ground(rec: FrameRecord, origin, right, forward, on_ground: bool, f
 
 @dataclass
 class FrameView:
-    """The composed picture: a title strip, the image panel at (0, TITLE_HEIGHT), the BEV beside it."""
+    """The composed picture: a title strip, the image panel at (0, strip), the BEV beside it."""
 
     image: Image.Image
     frame: Panel
     bev: BevPanel | None
     image_error: str | None
+    strip: int = TITLE_HEIGHT  # the title strip's height: two rows where the key does not fit beside the title
 
     @property
     def frame_origin(self) -> tuple[int, int]:
-        return 0, TITLE_HEIGHT
+        return 0, self.strip
 
     @property
     def bev_origin(self) -> tuple[int, int]:
-        return self.frame.image.width, TITLE_HEIGHT
+        return self.frame.image.width, self.strip
+
+
+LEGEND = (("top", TOP_COLOR), ("bottom", BOTTOM_COLOR), ("verticals", VERTICAL_COLOR), ("2D box", BOX2D_COLOR),
+          ("ignore", IGNORE_COLOR))
+
+
+def _legend_width(d: ImageDraw.ImageDraw, f) -> int:
+    return sum(int(d.textlength(label, font=f)) + 12 for label, _ in LEGEND)
 
 
 def render_frame(rec: FrameRecord, image_path: str | Path | None, bev: bool = True, scale: float | None = None,
                  bev_size: int | None = None, margin: float = 0.0) -> FrameView:
-    """The frame drawn (and its BEV beside it), with a title strip naming it and a colour key."""
+    """The frame drawn (and its BEV beside it), with a title strip naming it and a colour key.
+
+    The key is whole or not at all: where it does not fit beside the title (a 640 px frame without
+    its BEV), the strip takes a second row for it rather than drop entries."""
+    if scale is None:
+        scale = display_scale(rec.width, rec.height)
+    w, h, mx, my = panel_size(rec.width, rec.height, scale, margin)
+    side = (bev_size or bev_side(h + 2 * my)) if bev else 0
+    check_canvas(w + 2 * mx + side, 2 * TITLE_HEIGHT + max(h + 2 * my, side), f"frame {rec.frame_id}")
     if image_path is None:
         image, error = None, "no image"
     else:
-        image, error = load_image(image_path, rec.width, rec.height)
-    if scale is None:
-        scale = display_scale(rec.width, rec.height)
+        image, error = load_image(image_path)
     panel = draw_frame(rec, image, scale, margin=margin)
-    bev_panel = draw_bev(rec, bev_size or max(panel.image.height, 360)) if bev else None
+    bev_panel = draw_bev(rec, side) if bev else None
     width = panel.image.width + (bev_panel.image.width if bev_panel else 0)
-    height = TITLE_HEIGHT + max(panel.image.height, bev_panel.image.height if bev_panel else 0)
-    out = Image.new("RGB", (width, height), BACKGROUND)
-    out.paste(panel.image, (0, TITLE_HEIGHT))
-    if bev_panel:
-        out.paste(bev_panel.image, (panel.image.width, TITLE_HEIGHT))
-    d = ImageDraw.Draw(out)
     f = font(12)
     title = f"{rec.frame_id}  {rec.source} / {rec.view}  {rec.width}x{rec.height}  {len(rec.objects)} objects"
     if error:
         title += f"  [image: {error}]"
+    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    one_row = probe.textlength(title, font=f) + 12 + _legend_width(probe, f) <= width
+    strip = TITLE_HEIGHT if one_row else 2 * TITLE_HEIGHT
+    height = strip + max(panel.image.height, bev_panel.image.height if bev_panel else 0)
+    out = Image.new("RGB", (width, height), BACKGROUND)
+    out.paste(panel.image, (0, strip))
+    if bev_panel:
+        out.paste(bev_panel.image, (panel.image.width, strip))
+    d = ImageDraw.Draw(out)
     d.text((4, 4), title, fill=(235, 235, 235), font=f)
-    x = width - 4
-    for label, color in (("ignore", IGNORE_COLOR), ("2D box", BOX2D_COLOR), ("verticals", VERTICAL_COLOR),
-                         ("bottom", BOTTOM_COLOR), ("top", TOP_COLOR)):
-        x -= int(d.textlength(label, font=f)) + 4
-        if x < d.textlength(title, font=f) + 12:
-            break
-        d.text((x, 4), label, fill=color, font=f)
-        x -= 8
-    return FrameView(out, panel, bev_panel, error)
+    x = width - _legend_width(d, f) + 8 if one_row else 4
+    y = 4 if one_row else 4 + TITLE_HEIGHT
+    for label, color in LEGEND:
+        d.text((x, y), label, fill=color, font=f)
+        x += int(d.textlength(label, font=f)) + 12
+    return FrameView(out, panel, bev_panel, error, strip)

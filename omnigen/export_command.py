@@ -18,14 +18,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from omnigen import cli
 
     formats = p.add_subparsers(dest="format", required=True, metavar="FORMAT")
-    coco = formats.add_parser("coco", help="COCO keypoints JSON (pycocotools reads it)")
+    coco = formats.add_parser("coco", help="COCO keypoints JSON (pycocotools reads it)", formatter_class=cli.HelpFormatter)
     coco.add_argument("dataset", type=Path)
-    coco.add_argument("--out", type=Path, required=True, help="output .json file")
+    coco.add_argument("--out", type=Path, required=True,
+                      help="output .json file (new, or one export coco wrote; never in the dataset)")
     coco.add_argument("--split", default=None, help="only frames of this split (splits/<name>.txt)")
     coco.add_argument("--taxonomy", default=None, help="fine, coarse or a TOML file (default: the dataset's)")
-    yolo = formats.add_parser("yolo", help="Ultralytics pose layout (images/, labels/, data.yaml)")
+    yolo = formats.add_parser("yolo", help="Ultralytics pose layout (images/, labels/, data.yaml)",
+                              formatter_class=cli.HelpFormatter)
     yolo.add_argument("dataset", type=Path)
-    yolo.add_argument("--out", type=Path, required=True, help="output folder")
+    yolo.add_argument("--out", type=Path, required=True,
+                      help="output folder (new, empty or an earlier export yolo; outside the dataset)")
     yolo.add_argument("--taxonomy", default=None, help="fine, coarse or a TOML file (default: the dataset's)")
     yolo.add_argument("--link", choices=LINK_MODES, default="hardlink", help="how images are placed")
     cli.add_commands(formats, cli.EXPORTERS)

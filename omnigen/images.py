@@ -5,7 +5,8 @@ decodes it allocates gigabytes; a PNG cut short keeps its header, so a reader of
 (conversion, validation) passes it and training fails on it weeks later. So: the claimed size is
 checked against MAX_IMAGE_PIXELS before any pixel is decoded, and then the whole image is decoded
 (PNG also verified chunk by chunk), which is the only way to know that the pixels are all there.
-Converters, `omnigen validate` and `omnigen show` read images through here.
+Converters, `omnigen validate`, `omnigen show`, `omnigen predict` and `omnigen bev` read images
+through here.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from typing import Iterator
 
 from PIL import Image, UnidentifiedImageError
 
-from omnigen.untrusted import UntrustedFileError, open_regular
+from omnigen.untrusted import UntrustedFileError, open_regular, read_regular
 
 MAX_IMAGE_PIXELS = 50_000_000
 """Largest image accepted (width x height). An 8K frame (7680 x 4320) is 33.2 million pixels; no
@@ -80,6 +81,8 @@ _PIL_ERRORS = (OSError, SyntaxError, ValueError, EOFError, Image.DecompressionBo
 def _unreadable(exc: BaseException) -> str:
     if isinstance(exc, UnidentifiedImageError):  # its text names PIL's file object, not the file
         return "unreadable image: not a format PIL can identify"
+    if isinstance(exc, Image.DecompressionBombError):  # PIL's own, larger cap, checked as it opens the file
+        return f"unreadable image: header claims more pixels than PIL decodes; not decoded ({exc})"
     return f"unreadable image: {exc}"
 
 
@@ -142,3 +145,29 @@ def load_rgb(path: Path | str) -> Image.Image:
     with _opened(path, path) as im:
         _capped_size(im, path)
         return im.convert("RGB")
+
+
+def read_rgb(path: Path | str) -> Image.Image:
+    """load_rgb for a job that goes on without the image: every failure, PIL's own included, is an
+    ImageError naming the file, so the caller lists it and skips the image (omnigen bev)."""
+    try:
+        return load_rgb(path)
+    except (FileNotFoundError, ImageError):
+        raise
+    except _PIL_ERRORS as exc:
+        raise ImageError(path, _unreadable(exc)) from None
+
+
+def read_image_bytes(path: Path | str) -> tuple[bytes, tuple[int, int]]:
+    """The bytes of an image file and its (width, height), the header's size within the caps.
+
+    For a reader that decodes with another library (the detector decodes with OpenCV, as in
+    training): it decodes these bytes, the ones whose header was checked, not the file read again.
+    """
+    try:
+        data = read_regular(path, MAX_IMAGE_BYTES)
+    except UntrustedFileError as exc:
+        raise ImageError(path, exc.message) from None
+    except OSError as exc:  # gone, or unreadable, since it was listed
+        raise ImageError(path, f"cannot be read: {exc.strerror or exc}") from None
+    return data, image_size(data, path)

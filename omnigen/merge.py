@@ -2,7 +2,10 @@
 
 What a merge guarantees:
 - every frame keeps its record and its (source-prefixed) frame id; a frame id found in two inputs
-  is one frame when the records are identical and an error otherwise;
+  is one frame when the records and the pixels (image, depth, instance) are identical, reported as
+  a duplicate (the count and the first ids on the console and in the manifest), and an error
+  naming the ids and the differing files otherwise: keeping either copy would silently drop the
+  other's pixels, and which one is right is the user's call, not the merge's;
 - images are deduplicated by content (SHA-256): frames whose pixels are identical share one file,
   and are put in one split group so the same image can never be both trained and tested on;
 - the test split is deterministic for a seed, stratified by source and view, and keeps groups whole
@@ -30,13 +33,16 @@ from typing import Any
 import numpy as np
 
 from omnigen.conventions import FINE_CLASSES
-from omnigen.dataset import MANIFEST, Dataset, DatasetError, record_path
+from omnigen.dataset import MANIFEST, Dataset, DatasetError, read_manifest, read_record_bytes, record_path
 from omnigen.files import dumps_json, link_file
+from omnigen.images import MAX_IMAGE_BYTES
 from omnigen.ownership import claim_output, manifest_of, output_lock
 from omnigen.progress import progress
-from omnigen.splits import SPLITS_DIR, assign_test_split, read_assignments, read_id_list, write_split
+from omnigen.splits import (SPLITS_DIR, SourceShare, assign_test_split, read_assignments, read_id_list, split_shares,
+                            write_split)
 from omnigen.tables import FrameTable, ObjectTable
-from omnigen.taxonomy import Taxonomy, load_taxonomy, recorded_taxonomy
+from omnigen.taxonomy import Taxonomy, preset_taxonomy, recorded_taxonomy
+from omnigen.untrusted import open_regular
 from omnigen.writer import DatasetWriter, update_records_digest
 
 
@@ -46,12 +52,14 @@ class MergeReport:
     objects: int = 0
     unique_images: int = 0
     duplicate_frames: int = 0
+    duplicate_ids: list[str] = field(default_factory=list)  # frame-id order; same records and pixels, kept once
     by_source: Counter = field(default_factory=Counter)
     by_split: Counter = field(default_factory=Counter)
     test_fraction: float = 0.0  # the share asked for; by_split says what the whole groups gave
     link_modes: Counter = field(default_factory=Counter)
     seconds: float = 0.0
     unmatched_lines: Counter = field(default_factory=Counter)  # split file -> lines naming no frame
+    shares: list[SourceShare] = field(default_factory=list)  # per source: test frames, frames, groups
 
 
 @dataclass(frozen=True)
@@ -81,9 +89,75 @@ class _Groups:
             self.parent[hi] = lo  # the smaller key represents: deterministic
 
 
-def _file_sha256(path: Path) -> str:
-    with open(path, "rb") as fh:
+DUPLICATES_SHOWN = 10
+"""How many duplicate frame ids (or conflicting ones) a merge names, in the manifest and on the
+console, beside their count: enough to find the overlapping sources, short enough to read."""
+
+
+def _file_sha256(path: str | os.PathLike) -> str:
+    """A source's pixel file's digest, read as a regular file (a FIFO would block the merge)."""
+    with open_regular(path, MAX_IMAGE_BYTES) as fh:
         return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def _file_difference(a: str, b: str) -> str | None:
+    """None when files a and b hold the same bytes, else how they differ. Cheapest test first: one
+    file (same device and inode, as a hard-linked merge of merges has) is the same; sizes that differ
+    differ; only files of one size are hashed."""
+    try:
+        sa, sb = os.stat(a), os.stat(b)
+    except FileNotFoundError as exc:
+        return f"{exc.filename} is missing"
+    if (sa.st_dev, sa.st_ino) == (sb.st_dev, sb.st_ino):
+        return None
+    if sa.st_size != sb.st_size:
+        return f"{sa.st_size} and {sb.st_size} bytes"
+    return None if _file_sha256(a) == _file_sha256(b) else "same size, different content"
+
+
+def _pixel_differences(first: Dataset, other: Dataset, first_row: int, other_row: int) -> list[str]:
+    """What differs between two sources' pixel files of one frame whose records are identical (so
+    both name the same relative paths): one 'FIELD PATH differs (how)' per differing file."""
+    rel = {"image": first.table.image[first_row]}
+    syn = first.table.extras[first_row]["synthetic"]
+    if syn is not None:
+        rel.update(depth=syn["depth"], instance=syn["instance"])
+    differences = []
+    for key, path in rel.items():
+        how = _file_difference(os.path.join(first.root, path), os.path.join(other.root, path))
+        if how is not None:
+            differences.append(f"{key} {path} differs ({how})")
+    return differences
+
+
+def _one_frame_per_id(datasets: list[Dataset], report: MergeReport) -> dict[str, _Frame]:
+    """Every frame id once, from the first source that has it. A frame id in a later source too is
+    a duplicate (reported) when its record and pixels are the same, and refused otherwise: all
+    conflicts are gathered first, so the error names every id of the overlap at once."""
+    frames: dict[str, _Frame] = {}
+    conflicts: list[str] = []
+    for k, ds in enumerate(datasets):
+        for i, frame_id in enumerate(ds.table.frame_id):
+            other = frames.get(frame_id)
+            if other is None:
+                frames[frame_id] = _Frame(frame_id, k, i)
+                continue
+            first = datasets[other.source_index]
+            if read_record_bytes(record_path(first.root, frame_id)) != read_record_bytes(record_path(ds.root, frame_id)):
+                raise DatasetError(f"frame {frame_id} is in {first.root} and {ds.root} "
+                                   f"with different records; frame ids must be unique across sources")
+            differences = _pixel_differences(first, ds, other.row, i)
+            if differences:
+                conflicts.append(f"{frame_id} in {first.root} and {ds.root}: {', '.join(differences)}")
+            report.duplicate_ids.append(frame_id)
+    if conflicts:
+        raise DatasetError(f"frame ids in two sources with identical records but different pixels ({len(conflicts)}); "
+                           f"refusing to keep one source's pixels and drop the other's: {'; '.join(conflicts[:DUPLICATES_SHOWN])}"
+                           f"{'; ...' if len(conflicts) > DUPLICATES_SHOWN else ''} (remove the stale copy, or give "
+                           "the frames distinct ids)")
+    report.duplicate_ids.sort()
+    report.duplicate_frames = len(report.duplicate_ids)
+    return frames
 
 
 def _made_by_merge(folder: Path) -> bool:
@@ -97,7 +171,7 @@ def _prepare_out(out: Path, update: bool) -> dict[str, Any]:
     if update and not manifest_path.exists():
         raise DatasetError(f"{out}: --update needs a finished merged dataset there (no {MANIFEST})")
     claim_output(out, "merge", _made_by_merge, mark=False)  # refused early; marked before the first deletion
-    return json.loads(manifest_path.read_text()) if update else {}
+    return read_manifest(out) if update else {}
 
 
 def merge(
@@ -126,7 +200,7 @@ def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fract
     start = time.perf_counter()
     previous = _prepare_out(out, update)
     earlier_merge = previous.get("merge", {})
-    taxonomy = taxonomy or (recorded_taxonomy(previous) if update else load_taxonomy("fine"))
+    taxonomy = taxonomy or (recorded_taxonomy(previous) if update else preset_taxonomy("fine"))
     test_fraction = earlier_merge.get("test_fraction", 0.10) if test_fraction is None else test_fraction
     seed = earlier_merge.get("seed", 0) if seed is None else seed
     earlier = [s["path"] for s in earlier_merge.get("sources", [])]
@@ -139,19 +213,8 @@ def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fract
     datasets = [Dataset.open(p) for p in paths]
 
     # 1. Every frame once, in frame-id order.
-    frames: dict[str, _Frame] = {}
     report = MergeReport()
-    for k, ds in enumerate(datasets):
-        for i, frame_id in enumerate(ds.table.frame_id):
-            other = frames.get(frame_id)
-            if other is not None:
-                a = record_path(datasets[other.source_index].root, frame_id).read_bytes()
-                if a != record_path(ds.root, frame_id).read_bytes():
-                    raise DatasetError(f"frame {frame_id} is in {datasets[other.source_index].root} and {ds.root} "
-                                       f"with different records; frame ids must be unique across sources")
-                report.duplicate_frames += 1
-                continue
-            frames[frame_id] = _Frame(frame_id, k, i)
+    frames = _one_frame_per_id(datasets, report)
     order = sorted(frames)
 
     # 2. Pixels. Records keep their paths where they can (then the record file is linked as it is);
@@ -200,8 +263,9 @@ def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fract
                 fixed[frame_id] = name
     strata = {fid: f"{datasets[f.source_index].table.source[f.row]}/{datasets[f.source_index].table.view[f.row]}"
               for fid, f in frames.items()}
-    assignment = assign_test_split({fid: groups.find(fid) for fid in order}, strata, test_fraction, seed,
-                                   {k: v for k, v in fixed.items() if k in frames})
+    group_of = {fid: groups.find(fid) for fid in order}
+    assignment = assign_test_split(group_of, strata, test_fraction, seed, {k: v for k, v in fixed.items() if k in frames})
+    report.shares = split_shares(group_of, strata, assignment)
 
     # 4. Records (paths rewritten), images, depth and instance files.
     claim_output(out, "merge", _made_by_merge)
@@ -216,7 +280,7 @@ def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fract
         f = frames[frame_id]
         ds = datasets[f.source_index]
         src = record_path(ds.root, frame_id)
-        data = src.read_bytes()
+        data = read_record_bytes(src)
         if frame_id in rewrites:
             data = _rewrite_paths(data, rewrites[frame_id])
             writer.write_record_bytes(frame_id, data)
@@ -251,6 +315,7 @@ def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fract
             "split_files": [str(Path(p).resolve()) for p in split_files or []],
             "unique_images": report.unique_images,
             "duplicate_frames": report.duplicate_frames,
+            "duplicate_frame_ids": report.duplicate_ids[:DUPLICATES_SHOWN],
         },
         "splits": _split_counts(ds_out, assignment),
     }

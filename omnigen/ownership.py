@@ -43,6 +43,9 @@ def claim_output(out: str | Path, job: str, made_by_job: Callable[[Path], bool],
     just before its first deletion, so a failed run leaves no claim on an empty folder.
     """
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"{out}: is a file, not a folder; 'omnigen {job}' writes a folder here (choose another "
+                           "--out)")
     marker = out / JOB_MARKER
     if marker.exists():
         owner = marker.read_text().strip()
@@ -52,8 +55,9 @@ def claim_output(out: str | Path, job: str, made_by_job: Callable[[Path], bool],
         return
     if out.is_dir() and any(out.iterdir()):
         if not made_by_job(out):
-            raise DatasetError(f"{out}: holds files that 'omnigen {job}' did not make; refusing to overwrite "
-                               "them (choose a new or empty folder)")
+            first = min(p.name for p in out.iterdir())  # which file is in the way is what the user needs
+            raise DatasetError(f"{out}: holds {first} (and perhaps more), which 'omnigen {job}' did not make; "
+                               "refusing to overwrite them (choose a new or empty folder)")
     if mark:
         atomic_write_text(marker, job + "\n")
 

@@ -1,4 +1,9 @@
-"""Draw one frame's cuboids, boxes and ignore regions (and its BEV) as a PNG."""
+"""Draw one frame's cuboids, boxes and ignore regions (and its BEV) as a PNG.
+
+The picture is written to a new file or over one that show wrote before (its PNG carries show's
+mark), by temporary name and rename; never into the dataset or onto the frame's image, which may
+be a hard link into the source tree it came from (omnigen.outputs).
+"""
 
 from __future__ import annotations
 
@@ -6,21 +11,33 @@ import argparse
 import sys
 from pathlib import Path
 
+from omnigen.options import number
+
+MAX_SCALE = 16.0
+"""Largest --scale: a whole-number upscale is what makes small images readable (the default goes
+to 8); beyond 16 a pixel of the image is a block of the picture with nothing more to see."""
+MAX_MARGIN = 1.0
+"""Largest --margin: a border as wide as the image on each side; corners further out than that
+belong to objects mostly outside the picture anyway."""
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path)
     p.add_argument("frame_id", help="a frame id (or the part after the source prefix when it is unique)")
-    p.add_argument("--out", type=Path, default=None, help="output PNG (default: FRAME_ID.png here)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="output PNG (default: FRAME_ID.png here): a new file, or one show wrote; never in the dataset")
     p.add_argument("--bev", action="store_true", help="add the bird's-eye view of the ground plane beside the image")
-    p.add_argument("--scale", type=float, default=None,
-                   help="display scale (default: whole-number upscale of small images)")
-    p.add_argument("--margin", type=float, default=0.0,
-                   help="border around the image, as a fraction of its size, to show corners outside it (e.g. 0.2)")
+    p.add_argument("--scale", type=number(0.0, MAX_SCALE, lo_open=True), default=None,
+                   help=f"display scale in (0, {MAX_SCALE:g}] (default: whole-number upscale of small images)")
+    p.add_argument("--margin", type=number(0.0, MAX_MARGIN), default=0.0,
+                   help="border around the image, as a fraction of its size, to show corners outside it (e.g. 0.2; "
+                        f"at most {MAX_MARGIN:g})")
 
 
 def run(args: argparse.Namespace) -> int:
     from omnigen.dataset import Dataset
     from omnigen.draw import render_frame
+    from omnigen.outputs import check_output_file, image_made_by, save_image
 
     ds = Dataset.open(args.dataset)
     frame_id = _resolve_frame_id(ds.frame_ids, args.frame_id)
@@ -32,10 +49,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"omnigen show: error: {args.dataset}: no frame {args.frame_id!r}{hint}", file=sys.stderr)
         return 1
     rec = ds.frame(frame_id)
-    view = render_frame(rec, ds.path(rec.image), bev=args.bev, scale=args.scale, margin=args.margin)
-    out = args.out or Path(f"{frame_id}.png")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    view.image.save(out)
+    image = ds.path(rec.image)
+    out = check_output_file(args.out or Path(f"{frame_id}.png"), "show", image_made_by("show"),
+                            inputs=[args.dataset, image])
+    view = render_frame(rec, image, bev=args.bev, scale=args.scale, margin=args.margin)
+    save_image(view.image, out, "show")
     note = f" (image: {view.image_error})" if view.image_error else ""
     print(f"{frame_id}: {len(rec.objects)} objects, {len(rec.ignore_regions)} ignore regions -> {out}{note}")
     return 0

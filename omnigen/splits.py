@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import os
 from collections import Counter, defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Mapping
 
@@ -72,7 +73,8 @@ def assign_test_split(
     (e.g. "kitti/ego"); fixed: assignments to keep (from a split file or an earlier merge); a group
     with any fixed frame follows it. Free groups are visited in seeded-hash order and each joins the
     test set when that brings the test frames of the strata it touches closer to
-    round(fraction * stratum size). With a fraction above 0 and two or more groups, the test set
+    round(fraction * stratum size). With a fraction above 0, every source with two or more groups
+    has test frames (`_hold_out_each_source`), and with two or more groups in all the test set
     holds at least one group.
     """
     if not 0.0 <= fraction < 1.0:
@@ -112,6 +114,8 @@ def assign_test_split(
             out[f] = side
         if side == TEST:
             in_test.update(adds)
+    if fraction > 0:
+        _hold_out_each_source(members, strata, out, free, seed)
     if fraction > 0 and free and len(members) >= 2 and TEST not in out.values():
         # Groups larger than the whole target (19 frames in groups of 10 at 0.1) would leave no
         # test split at all, and `export --split test` would then fail: with two or more groups
@@ -120,3 +124,67 @@ def assign_test_split(
         for f in members[g]:
             out[f] = TEST
     return out
+
+
+def source_of(stratum: str) -> str:
+    """The source part of a stratum ("kitti/ego" -> "kitti")."""
+    return stratum.partition("/")[0]
+
+
+def _hold_out_each_source(members: Mapping[str, list[str]], strata: Mapping[str, str], out: dict[str, str],
+                          free: list[str], seed: int) -> None:
+    """Give every source of two or more groups at least one test group, in place.
+
+    The squared-error draw weighs a group as a whole, so a source made of a few large groups (two
+    rendered cities, each seen by three rigs) never finds one that brings its strata closer to
+    their targets, and the test set held no frame of it: its evaluation scored nothing rendered.
+    Such a source gets its smallest free group (the seeded order breaks ties) while another of its
+    groups stays in training; a source of one group cannot be split without leaking it, and
+    `split_shares` names it instead.
+    """
+    groups_of: dict[str, set[str]] = defaultdict(set)
+    for g, frames in members.items():
+        for f in frames:
+            groups_of[source_of(strata[f])].add(g)
+    free_set = set(free)
+    for source in sorted(groups_of):
+        mine = groups_of[source]
+        if len(mine) < 2 or any(out[f] == TEST for g in mine for f in members[g] if source_of(strata[f]) == source):
+            continue
+        movable = [g for g in mine if g in free_set and out[members[g][0]] == TRAIN]
+        if not movable:
+            continue
+        g = min(movable, key=lambda g: (len(members[g]), _rank(seed, g)))
+        if all(out[members[h][0]] == TEST or h == g for h in mine):
+            continue  # taking it would leave the source no training group
+        for f in members[g]:
+            out[f] = TEST
+
+
+@dataclass(frozen=True)
+class SourceShare:
+    """How much of one source the test split holds, and how many groups it could be cut from."""
+
+    source: str
+    test: int
+    frames: int
+    groups: int
+
+    @property
+    def share(self) -> float:
+        return self.test / self.frames if self.frames else 0.0
+
+
+def split_shares(groups: Mapping[str, str], strata: Mapping[str, str], assignment: Mapping[str, str]
+                 ) -> list[SourceShare]:
+    """Per source: test frames, frames and groups, in source order: what merge prints, so that a
+    share far from the one asked for (whole groups) and a source of one group are seen at once."""
+    frames: Counter[str] = Counter()
+    test: Counter[str] = Counter()
+    group_sets: dict[str, set[str]] = defaultdict(set)
+    for f, stratum in strata.items():
+        source = source_of(stratum)
+        frames[source] += 1
+        test[source] += assignment.get(f) == TEST
+        group_sets[source].add(groups.get(f, f))
+    return [SourceShare(s, test[s], frames[s], len(group_sets[s])) for s in sorted(frames)]

@@ -6,17 +6,20 @@ import argparse
 import time
 from pathlib import Path
 
+from omnigen.options import integer, number, seed
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path)
-    p.add_argument("--out", type=Path, required=True, help="report folder (created; files in it are replaced)")
-    p.add_argument("--gallery", type=int, default=6, help="sample frames drawn with cuboids and BEV (0: none)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="report folder (created; a rerun replaces its files; a folder of other files is refused)")
+    p.add_argument("--gallery", type=integer(0), default=6, help="sample frames drawn with cuboids and BEV (0: none)")
     p.add_argument("--no-check-images", dest="check_images", action="store_false",
                    help="do not open every image's header (the one step that reads a file per frame)")
-    p.add_argument("--prior-sigma", type=float, default=None,
+    p.add_argument("--prior-sigma", type=number(0, lo_open=True), default=None,
                    help="flag dimensions this many spreads from their class prior (default: omnigen.priors.FAR_SIGMA)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the gallery's pick")
-    p.add_argument("--jobs", type=int, default=0, help="processes drawing figures (0: up to 4, one per core)")
+    p.add_argument("--seed", type=seed(), default=0, help="seed of the gallery's pick")
+    p.add_argument("--jobs", type=integer(0), default=0, help="processes drawing figures (0: up to 4, one per core)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,4 +1,4 @@
-"""Check a dataset: schema, finite values, files present, unique ids."""
+"""Check a dataset: its manifest, each record's schema and plausible values, files present, unique ids."""
 
 from __future__ import annotations
 
@@ -6,10 +6,12 @@ import argparse
 import time
 from pathlib import Path
 
+from omnigen.options import integer
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path)
-    p.add_argument("--max-problems", type=int, default=50, help="how many problems to list (all are counted)")
+    p.add_argument("--max-problems", type=integer(0), default=50, help="how many problems to list (all are counted)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -32,6 +32,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import numbers
 import os
 import shutil
 import time
@@ -43,19 +44,23 @@ from pathlib import Path
 import numpy as np
 
 from omnigen.camera import Camera
-from omnigen.dataset import MANIFEST, RECORDS_DIR, RENDER_ARGS_FILE, read_manifest
+from omnigen.dataset import MANIFEST, MANIFEST_MAX_BYTES, RECORDS_DIR, RENDER_ARGS_FILE, read_manifest
 from omnigen.files import atomic_write_bytes, atomic_write_json, make_temp
 from omnigen.index import INDEX_FILE
+from omnigen.options import SEED_MAX
 from omnigen.record import FrameRecord, SyntheticInfo
 from omnigen.rigs.annotate import annotate
-from omnigen.rigs.rig import Rig, load_rig
+from omnigen.rigs.rig import RESOLUTION_RANGE, Rig, load_rig
 from omnigen.rigs.sampling import Obstacles, rig_rng, sample_camera
 from omnigen.scenes.description import Scene, to_dict
 from omnigen.scenes.generate import FrameOverrides
+from omnigen.untrusted import read_regular
 from omnigen.writer import DatasetWriter
 
 BACKENDS = ("cycles", "raster")
 QUALITIES = ("preview", "fast", "final")
+MAX_FRAME_INDEX = SEED_MAX
+"""The last frame index: frame indices, like seeds, are what numpy's seeding and an int64 hold."""
 
 
 def frame_id_for(rig: str, seed: int, index: int) -> str:
@@ -259,6 +264,20 @@ class RenderJob:
     labels: str = "auto"  # Cycles: depth, ids and silhouettes from GL (auto, gl) or Cycles' own passes
     device: str = "auto"  # Cycles' compute devices (scenes/cycles_devices.py): how frames render, not what
 
+    def __post_init__(self) -> None:
+        """Refuse numbers the frames cannot be made from, before anything is written: a seed past
+        int64 failed at the first record, after that frame's images were on disk, and a width of 0
+        rendered at the rig's width without a word."""
+        _within("seed", self.seed, 0, SEED_MAX)
+        _within("frames", self.frames, 0, MAX_FRAME_INDEX)
+        _within("start", self.start, 0, MAX_FRAME_INDEX)
+        if self.start + self.frames - 1 > MAX_FRAME_INDEX:
+            raise ValueError(f"the last frame index, start + frames - 1 = {self.start + self.frames - 1}, is past "
+                             f"{MAX_FRAME_INDEX} (frame indices are int64); choose a smaller --start")
+        for name in ("width", "height"):
+            if getattr(self, name) is not None:
+                _within(name, getattr(self, name), *RESOLUTION_RANGE)
+
     def indices(self) -> range:
         """Every frame index of the run (all shards)."""
         return range(self.start, self.start + self.frames)
@@ -267,6 +286,11 @@ class RenderJob:
         """The frame indices this shard renders: index % N == K - 1 (round robin on the absolute index)."""
         k, n = self.shard
         return [i for i in self.indices() if i % n == k - 1]
+
+
+def _within(name: str, value: int, lo: int, hi: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not lo <= value <= hi:
+        raise ValueError(f"--{name} {value!r} is outside [{lo}, {hi}]")
 
 
 def parse_shard(text: str) -> tuple[int, int]:
@@ -351,8 +375,8 @@ def _recorded_args(out: Path) -> tuple[dict, str] | None:
     the first record (its size, rig, scene and seed)."""
     path = out / RENDER_ARGS
     if path.exists():
-        try:
-            return json.loads(path.read_text()), str(path)
+        try:  # a regular file of bounded size: a FIFO put there would otherwise hang the render
+            return json.loads(read_regular(path, MANIFEST_MAX_BYTES)), str(path)
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise ValueError(f"{path}: not valid JSON ({exc}); delete the folder or rerun with --fresh") from None
     render = read_manifest(out).get("render") if (out / MANIFEST).exists() else None
@@ -361,8 +385,10 @@ def _recorded_args(out: Path) -> tuple[dict, str] | None:
     records = sorted((out / RECORDS_DIR).glob("synthetic-*.json")) if (out / RECORDS_DIR).is_dir() else []
     if not records:
         return None
-    r = json.loads(records[0].read_text())
-    syn = r.get("synthetic") or {}
+    r = json.loads(read_regular(records[0], MANIFEST_MAX_BYTES))
+    if not isinstance(r, dict):
+        raise ValueError(f"{records[0]}: not a record (a JSON object); delete the folder or rerun with --fresh")
+    syn = r.get("synthetic") if isinstance(r.get("synthetic"), dict) else {}
     return {"width": r.get("width"), "height": r.get("height"), "rig": syn.get("rig"), "scene": syn.get("scene"),
             "seed": syn.get("seed")}, str(records[0])
 

@@ -6,41 +6,73 @@ import argparse
 import sys
 from pathlib import Path
 
+from omnigen.options import SEED_MAX, integer, number, seed
+from omnigen.rigs.rig import RESOLUTION_RANGE
+
+MAX_FRAMES = 10_000_000
+"""Frames one run renders at most: each shard lists the run's indices before it starts, and ten
+million of them already hold a few hundred MB; a larger dataset is several runs (--start)."""
+MAX_RAY_WORKERS = 10_000
+"""Concurrent render actors at most: each is a process holding a city; more is a typo."""
+MAX_RETRIES = 100
+"""A frame that fails this often fails for a reason a further try will not remove."""
+CPUS_PER_WORKER = (0.0001, 1024.0)
+"""Ray's smallest fraction of a CPU, and more CPUs than one node has: an actor asking for more
+would wait for ever for a node to place it on."""
+
+
+def _shard(text: str) -> tuple[int, int]:
+    """--shard K/N at parse time (omnigen.rigs.render.parse_shard, imported only when given)."""
+    from omnigen.rigs.render import parse_shard
+
+    try:
+        return parse_shard(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix(f"--shard {text!r}: ")) from None
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from omnigen.scenes.weather import FOG_DENSITY_RANGE, PRECIPITATION_RANGE
+
+    pixels = integer(*RESOLUTION_RANGE)
     p.add_argument("--rig", required=True, help="ego, pole, drone or a rig TOML file")
-    p.add_argument("--frames", type=int, required=True, help="how many frames (indices start..start+N-1)")
+    p.add_argument("--frames", type=integer(1, MAX_FRAMES), required=True,
+                   help="how many frames (indices start..start+N-1)")
     p.add_argument("--out", type=Path, required=True, help="output dataset folder (rerun to resume)")
-    p.add_argument("--seed", type=int, default=0, help="dataset seed: the city and every frame follow from it")
+    p.add_argument("--seed", type=seed(), default=0,
+                   help="dataset seed: the city and every frame follow from it (default %(default)s)")
     p.add_argument("--scene", default="downtown",
                    help="city preset (downtown, arterial, suburban, intersection, tiny) or a TOML file; or a mix "
                         "NAME,NAME,... of which each --seed draws one (seed mod the count)")
-    p.add_argument("--width", type=int, default=None, help="image width (default: the rig's)")
-    p.add_argument("--height", type=int, default=None, help="image height (default: the rig's)")
+    p.add_argument("--width", type=pixels, default=None, help="image width (default: the rig's)")
+    p.add_argument("--height", type=pixels, default=None, help="image height (default: the rig's)")
     p.add_argument("--backend", choices=("cycles", "raster"), default="cycles", help="Cycles, or the fast raster preview")
     p.add_argument("--quality", choices=("preview", "fast", "final"), default="fast",
                    help="Cycles samples, denoising and bounces (raster ignores it)")
-    p.add_argument("--start", type=int, default=0, help="index of the first frame")
+    p.add_argument("--start", type=integer(0, SEED_MAX), default=0,
+                   help="index of the first frame (default %(default)s)")
     p.add_argument("--weather", default=None, help="fix the weather (clear, overcast, rain, snow, fog); default: drawn per frame")
     p.add_argument("--time-of-day", default=None,
                    help="fix the time of day (dawn, morning, noon, afternoon, dusk, night); default: drawn per frame")
-    p.add_argument("--fog-density", type=float, default=None, help="fix the fog density (1/m); default: drawn")
-    p.add_argument("--precipitation", type=float, default=None, help="fix rain or snow intensity (0-1); default: drawn")
+    p.add_argument("--fog-density", type=number(*FOG_DENSITY_RANGE), default=None,
+                   help="fix the fog density (1/m); default: drawn")
+    p.add_argument("--precipitation", type=number(*PRECIPITATION_RANGE), default=None,
+                   help="fix rain or snow intensity (0: none, 1: the heaviest); default: drawn")
     p.add_argument("--save-blend", type=Path, default=None,
                    help="Cycles: also write the first rendered frame's scene as a .blend to open in Blender")
     p.add_argument("--labels", choices=("auto", "gl", "cycles"), default="auto",
                    help="Cycles: where depth, instance ids and silhouettes come from: gl (the raster id pass over "
-                        "the same geometry, milliseconds), cycles (one-sample Cycles passes), auto (gl when a "
-                        "headless OpenGL context can be made)")
+                        "the same geometry), cycles (one-sample Cycles passes), auto (gl when a headless OpenGL "
+                        "context can be made)")
     from omnigen.scenes.cycles_devices import DEVICE_KINDS  # plain Python, no bpy
 
     p.add_argument("--device", choices=DEVICE_KINDS, default="auto",
                    help="Cycles' compute devices: auto (the best GPU there is, OptiX > CUDA > HIP > oneAPI > Metal, "
                         "else the CPU), cpu, or one GPU type (an error if absent); not a frame-deciding argument: a "
                         "render resumes on any device (docs/rendering.md)")
-    p.add_argument("--shard", default=None, metavar="K/N",
+    p.add_argument("--shard", type=_shard, default=None, metavar="K/N",
                    help="render only frames with index %% N == K-1 (1 <= K <= N) into the shared --out; the shard "
-                        "that finds every frame of the run written finalizes (docs/rendering-at-scale.md)")
+                        "that finds every frame of the run written finalizes (docs/rendering-at-scale.md); default: every frame")
     p.add_argument("--fresh", action="store_true",
                    help="delete the folder's frames, index, manifest and recorded arguments first and start over "
                         "(a rerun with other arguments is refused without it)")
@@ -50,29 +82,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="local: this process renders; ray: frames fan out over a Ray cluster (optional extra)")
     p.add_argument("--ray-address", default=None,
                    help="Ray cluster to join (auto, host:6379, ray://host:10001); default: a local Ray for the run")
-    p.add_argument("--ray-workers", type=int, default=None, help="concurrent render actors (default: CPUs / cpus-per-worker)")
-    p.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs Ray reserves for each render actor")
-    p.add_argument("--frames-per-worker", type=int, default=100,
-                   help="restart a Ray render actor after this many frames (keeps memory flat)")
-    p.add_argument("--retries", type=int, default=2, help="retries of a failed frame on Ray before it is reported")
+    p.add_argument("--ray-workers", type=integer(1, MAX_RAY_WORKERS), default=None,
+                   help="concurrent render actors (default: CPUs / cpus-per-worker)")
+    p.add_argument("--cpus-per-worker", type=number(*CPUS_PER_WORKER), default=1.0,
+                   help="CPUs Ray reserves for each render actor (default %(default)g)")
+    p.add_argument("--frames-per-worker", type=integer(1, MAX_FRAMES), default=100,
+                   help="restart a Ray render actor after this many frames, which keeps memory flat "
+                        "(default %(default)s)")
+    p.add_argument("--retries", type=integer(0, MAX_RETRIES), default=2,
+                   help="retries of a failed frame on Ray before it is reported (default %(default)s)")
 
 
 def run(args: argparse.Namespace) -> int:
     from omnigen.progress import print_table
     from omnigen.rigs.render import (RenderJob, Renderer, claim_render_folder, finalize_run, missing_frames,
-                                     parse_shard, render_args, start_over)
+                                     render_args, start_over)
 
-    if args.frames < 0 or args.seed < 0 or args.start < 0:
-        print("omnigen render: --frames, --seed and --start must be >= 0", file=sys.stderr)
-        return 2
-    if args.frames_per_worker < 1 or args.retries < 0 or (args.ray_workers is not None and args.ray_workers < 1):
-        print("omnigen render: --frames-per-worker and --ray-workers must be >= 1, --retries >= 0", file=sys.stderr)
-        return 2
-    try:
-        shard = parse_shard(args.shard) if args.shard else (1, 1)
-    except ValueError as exc:
-        print(f"omnigen render: {exc}", file=sys.stderr)
-        return 2
+    shard = args.shard or (1, 1)  # checked when parsed, as every number of this command is
     from omnigen.scenes.generate import FrameOverrides
     from omnigen.scenes.weather import TIMES_OF_DAY, WEATHER_KINDS
 

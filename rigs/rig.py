@@ -16,9 +16,17 @@ from pathlib import Path
 from typing import Any
 
 from omnigen.conventions import VIEWS
+from omnigen.record import FRAME_ID_PATTERN
 
 PRESET_DIR = Path(__file__).parent / "presets"
 ANCHORS = ("traffic", "lane", "intersection", "roadside", "anywhere")
+RESOLUTION_RANGE = (8, 8192)
+"""Image widths and heights a rig's `resolution` and `omnigen render --width/--height` accept:
+fewer than 8 pixels hold no object worth a label; 8192 a side (67 megapixels) is the most rig
+files have ever been allowed."""
+NAME_MAX_CHARS = 64
+"""A rig's name is part of every frame id and file name (`synthetic-<rig>-s<seed>-<index>`): at
+most this long, so that the names stay under the file system's 255 bytes with any seed and index."""
 
 
 class RigError(ValueError):
@@ -99,6 +107,18 @@ def _int(data: dict, key: str, file: str, default: int, lo: int, hi: int) -> int
     return v
 
 
+def _name(data: dict[str, Any], stem: str, file: str) -> str:
+    """The rig's name (the file's stem unless the file sets one) as frame ids and file names take
+    it, checked here: a name the record refuses (a space, a slash) failed only after the first
+    frame's images were written."""
+    text = str(data.get("name", stem))
+    if len(text) > NAME_MAX_CHARS or not FRAME_ID_PATTERN.match(text):
+        said = "" if "name" in data else " (the file's name: set name = \"...\" in it)"
+        raise RigError(file, "name", f"{text!r}{said} must be at most {NAME_MAX_CHARS} letters, digits, '.', '_' "
+                                     "or '-', the first a letter or digit: it names every frame and file")
+    return text
+
+
 def rig_from_dict(data: dict[str, Any], name: str, file: str = "<rig>") -> Rig:
     known = {"view", "anchor", "height", "pitch", "yaw_jitter", "hfov", "resolution", "min_objects",
              "max_tries", "description", "name"}
@@ -120,12 +140,13 @@ def rig_from_dict(data: dict[str, Any], name: str, file: str = "<rig>") -> Rig:
             raise RigError(file, f"anchor.{k}", f"weight must be a number >= 0, got {w!r}")
     if sum(anchor.values()) <= 0:
         raise RigError(file, "anchor", "weights sum to zero")
+    lo, hi = RESOLUTION_RANGE
     res = data.get("resolution")
     if (not isinstance(res, list) or len(res) != 2
-            or not all(isinstance(x, int) and not isinstance(x, bool) and 8 <= x <= 8192 for x in res)):
-        raise RigError(file, "resolution", f"expected [width, height] integers in [8, 8192], got {res!r}")
+            or not all(isinstance(x, int) and not isinstance(x, bool) and lo <= x <= hi for x in res)):
+        raise RigError(file, "resolution", f"expected [width, height] integers in [{lo}, {hi}], got {res!r}")
     return Rig(
-        name=str(data.get("name", name)), view=view,
+        name=_name(data, name, file), view=view,
         anchor={k: float(w) for k, w in anchor.items()},
         height=_range(data, "height", file, 0.3, 1000.0),
         pitch=_range(data, "pitch", file, -89.0, 90.0),

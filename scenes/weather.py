@@ -25,6 +25,11 @@ from omnigen.scenes.seeding import choice_index
 
 WEATHER_KINDS = ("clear", "overcast", "rain", "snow", "fog")
 TIMES_OF_DAY = ("dawn", "morning", "noon", "afternoon", "dusk", "night")
+FOG_DENSITY_RANGE = (0.0, 1.0)
+"""Fog densities (1/m) a caller may fix: 0 is clear air; 1 leaves a visibility of 4 m (3.912 / 1),
+past which a street scene shows nothing to label. The drawn ones stay within 0.0001 to 0.012."""
+PRECIPITATION_RANGE = (0.0, 1.0)
+"""Rain or snow intensity a caller may fix: a fraction of the heaviest the backends draw."""
 
 # (cloud cover, haze/fog density 1/m, precipitation, wetness, snow cover): uniform ranges.
 # Haze is thin enough that a drone 40-120 m up sees cars clearly: clear air keeps 95-99% of the
@@ -57,12 +62,19 @@ def draw_weather(rng: np.random.Generator, kinds: dict[str, float], kind: str | 
     cloud, fog, precip, wet, snow = u("cloud"), u("fog"), u("precip"), u("wet"), u("snow")
     wind = float(rng.uniform(0.0, 2 * math.pi))
     if fog_density is not None:
-        if fog_density < 0:
-            raise ValueError("fog density must be >= 0")
-        fog = float(fog_density)
+        fog = _fixed("fog density", fog_density, FOG_DENSITY_RANGE)
     if precipitation is not None:
-        precip = float(np.clip(precipitation, 0.0, 1.0))
+        precip = _fixed("precipitation", precipitation, PRECIPITATION_RANGE)
     return Weather(kind, cloud, fog, precip, wet, snow, wind)
+
+
+def _fixed(what: str, value: float, bounds: tuple[float, float]) -> float:
+    """A value the caller fixed, refused outside `bounds` (NaN too): a precipitation of 5 was
+    clamped to 1 without a word, so the frame showed other weather than was asked for."""
+    lo, hi = bounds
+    if not lo <= value <= hi:
+        raise ValueError(f"{what} {value} is outside [{lo:g}, {hi:g}]")
+    return float(value)
 
 
 # ---------------------------------------------------------------------------------------------

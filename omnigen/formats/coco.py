@@ -4,6 +4,9 @@ pycocotools and most pose tools read it unchanged: images, annotations with 24 k
 (x, y, v per corner; v = 0 corners written as 0 0 0), categories with keypoint names and a 1-based
 skeleton. omnigen adds fields COCO tools ignore: per image K, frame_id, source and view; per
 annotation the 3D box, truncation, occlusion level, instance id and the source's own 2D boxes.
+
+The file's first key is `"omnigen": "export coco"`: a rerun recognises its own file by its first
+bytes and replaces it; any other file at --out is refused (omnigen.outputs).
 """
 
 from __future__ import annotations
@@ -18,7 +21,12 @@ from omnigen.conventions import CORNER_NAMES, FINE_CLASSES, SKELETON, V_OUTSIDE,
 from omnigen.dataset import Dataset
 from omnigen.splits import read_split
 from omnigen.files import atomic_write_bytes
+from omnigen.formats.checks import check_frame_values, check_object_columns
+from omnigen.outputs import MARK_KEY, check_output_file, json_made_by, read_prefix
 from omnigen.taxonomy import Taxonomy, recorded_taxonomy
+
+JOB = "export coco"
+DESCRIPTION = "UrbanOmniView (COCO keypoints view)"
 
 
 def xyxy_to_xywh(b: np.ndarray) -> list[float]:
@@ -58,13 +66,23 @@ def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = N
     vis = coco_visibility(t.in_image, t.behind_camera, t.occluded)
     class_ids = taxonomy.fine_class_ids()
     cid = class_ids[t.category] if len(t) else np.zeros(0, int)
-    bbox = _xywh(t.bbox).tolist()
-    area = (np.diff(t.bbox[:, [0, 2]], axis=1) * np.diff(t.bbox[:, [1, 3]], axis=1)).ravel().tolist()
-    kps = keypoints_with_visibility(t.keypoints, vis).tolist()
-    num_kp = (vis > 0).sum(axis=1).tolist()
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow is what check_object_columns reports
+        xywh = _xywh(t.bbox)
+        area = (np.diff(t.bbox[:, [0, 2]], axis=1) * np.diff(t.bbox[:, [1, 3]], axis=1)).ravel()
+        src_xywh, vis_xywh = _xywh(t.bbox_source), _xywh(t.bbox_visible)
+    kps = keypoints_with_visibility(t.keypoints, vis)
     has_src = ~np.isnan(t.bbox_source).any(axis=1)
     has_vis = ~np.isnan(t.bbox_visible).any(axis=1)
-    bbox_src, bbox_vis = _xywh(t.bbox_source).tolist(), _xywh(t.bbox_visible).tolist()
+    check_object_columns(ds, {
+        "bbox": ("COCO bbox and area", np.hstack([xywh, area[:, None]])), "keypoints": ("COCO keypoints", kps),
+        "box3d.center": ("box3d center", t.center), "box3d.dims": ("box3d dims", t.dims),
+        "box3d.rotation": ("box3d rotation", t.rotation), "truncation": ("truncation", t.truncation),
+        "bbox_source": ("COCO bbox_source", np.where(has_src[:, None], src_xywh, 0.0)),
+        "bbox_visible": ("COCO bbox_visible", np.where(has_vis[:, None], vis_xywh, 0.0)),
+    }, keep=(cid >= 0) & _kept_frames(ds, keep)[t.frame])
+    bbox, area, kps = xywh.tolist(), area.tolist(), kps.tolist()
+    num_kp = (vis > 0).sum(axis=1).tolist()
+    bbox_src, bbox_vis = src_xywh.tolist(), vis_xywh.tolist()
     centers, dims, rotations = t.center.tolist(), t.dims.tolist(), t.rotation.tolist()
     trunc, occ_level, inst = t.truncation.tolist(), t.occlusion_level.tolist(), t.instance_id.tolist()
     fine = [FINE_CLASSES[c] for c in t.category.tolist()]
@@ -74,9 +92,14 @@ def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = N
         if keep is not None and frame_id not in keep:
             continue
         extras = ft.extras[i]
+        with np.errstate(over="ignore", invalid="ignore"):  # checked below
+            regions = [xyxy_to_xywh(np.asarray(r["bbox"], dtype=np.float64)) for r in extras["ignore_regions"]]
+        check_frame_values(ds, i, "K", "COCO K", ft.K[i])
+        for k, region in enumerate(regions):
+            check_frame_values(ds, i, f"ignore_regions[{k}].bbox", "COCO ignore region", region)
         image = {"id": i + 1, "file_name": ft.image[i], "width": int(ft.width[i]), "height": int(ft.height[i]),
                  "frame_id": frame_id, "source": ft.source[i], "view": ft.view[i], "K": ft.K[i].tolist(),
-                 "ignore_regions": [xyxy_to_xywh(np.asarray(r["bbox"])) for r in extras["ignore_regions"]]}
+                 "ignore_regions": regions}
         if extras["synthetic"] is not None:
             image["depth_file"] = extras["synthetic"]["depth"]
             image["instance_file"] = extras["synthetic"]["instance"]
@@ -99,15 +122,33 @@ def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = N
                 ann["bbox_visible"] = bbox_vis[j]
             annotations.append(ann)
     return {
-        "info": {"description": "UrbanOmniView (COCO keypoints view)", "taxonomy": taxonomy.name,
+        "info": {"description": DESCRIPTION, "taxonomy": taxonomy.name,
                  "split": split or "all", "dataset": ds.manifest.get("name", ds.root.name)},
         "images": images, "annotations": annotations, "categories": coco_categories(taxonomy),
     }
 
 
+def _kept_frames(ds: Dataset, keep: set[str] | None) -> np.ndarray:
+    """(F,) which frames the export writes."""
+    return np.array([keep is None or f in keep for f in ds.table.frame_id], dtype=bool)
+
+
+_EARLIER_EXPORT = b'{"info":{"description":"%s"' % DESCRIPTION.encode()
+
+
+def made_by_export_coco(path: Path) -> bool:
+    """A file this job wrote: marked as its first key, or an export from before the mark (its
+    first bytes are the info block only to_coco writes first)."""
+    return json_made_by(JOB)(path) or read_prefix(path, len(_EARLIER_EXPORT)) == _EARLIER_EXPORT
+
+
 def export_coco(ds: Dataset, out: str | Path, split: str | None = None, taxonomy: Taxonomy | None = None) -> dict[str, int]:
-    """Write the COCO file atomically; returns counts for the summary."""
-    coco = to_coco(ds, split, taxonomy)
+    """Write the COCO file atomically; returns counts for the summary.
+
+    Refused before anything is built: an --out that is (or lies in) the dataset, and an existing
+    file this job did not write."""
+    out = check_output_file(out, JOB, made_by_export_coco, inputs=[ds.root])
+    coco = {MARK_KEY: JOB, **to_coco(ds, split, taxonomy)}
     # orjson encodes the 300,000 annotations of a large dataset several times faster than json;
     # insertion order is deterministic, so reruns are byte-identical without sorting keys.
     atomic_write_bytes(out, orjson.dumps(coco) + b"\n")

@@ -21,6 +21,7 @@ import re
 import numpy as np
 
 from omnigen.conventions import KITTI_CLASSES
+from omnigen.formats.checks import is_finite, non_finite
 from omnigen.geometry import Box3D, wrap_angle
 from omnigen.record import FrameRecord, ObjectRecord
 
@@ -144,11 +145,24 @@ def _own_values(record: FrameRecord, obj: ObjectRecord) -> dict | None:
     return None
 
 
-def label_line(record: FrameRecord, obj: ObjectRecord, derived: bool = False) -> str:
+LABEL_FIELDS = ("alpha", "bbox left", "bbox top", "bbox right", "bbox bottom", "height", "width", "length",
+                "location x", "location y", "location z", "rotation_y")
+"""The names of a label line's numbers after its `truncated` and `occluded`, in KITTI's order."""
+
+
+def _check_finite(truncated: float, numbers: list[float], where: str) -> None:
+    """Refuse a label line with a value that is not finite (Python would write `inf` or `nan`)."""
+    for name, value in zip(("truncated", *LABEL_FIELDS), (truncated, *numbers)):
+        if not math.isfinite(value):
+            raise non_finite(where, f"KITTI {name}", value)
+
+
+def label_line(record: FrameRecord, obj: ObjectRecord, derived: bool = False, where: str = "object") -> str:
     """One label_2 line. Values KITTI wrote itself are written back unless `derived`; else
     truncated = truncation, occluded = occlusion_level (3 = unknown), alpha from the location and
-    rotation_y, 2D box = bbox."""
-    h, w, l, x, y, z, ry = box_to_kitti(obj.box)
+    rotation_y, 2D box = bbox. A value that is not finite is refused (NonFiniteError, naming `where`)."""
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow is what _check_finite reports
+        h, w, l, x, y, z, ry = box_to_kitti(obj.box)
     own = None if derived else _own_values(record, obj)
     if own is not None:
         truncated, occluded, alpha = float(own["truncated"]), int(own["occluded"]), float(own["alpha"])
@@ -157,22 +171,28 @@ def label_line(record: FrameRecord, obj: ObjectRecord, derived: bool = False) ->
         truncated, occluded, alpha = obj.truncation, int(obj.occlusion_level), kitti_alpha(ry, x, z)
         box2d = obj.bbox
     numbers = [alpha, *box2d, h, w, l, x, y, z, ry]
+    _check_finite(truncated, numbers, where)
     return f"{kitti_name(obj)} {kitti_number(truncated)} {occluded} " + " ".join(kitti_number(v) for v in numbers)
 
 
-def dont_care_line(bbox: np.ndarray) -> str:
+def dont_care_line(bbox: np.ndarray, where: str = "ignore region") -> str:
+    if not is_finite(bbox):
+        raise non_finite(where, "KITTI DontCare box", bbox)
     return "DontCare -1 -1 -10 " + " ".join(kitti_number(v) for v in bbox) + " -1 -1 -1 -1000 -1000 -1000 -10"
 
 
 def label_text(record: FrameRecord, derived: bool = False) -> str:
-    """Objects in record order (instance ids ascending for converted KITTI), then ignore regions."""
-    lines = [label_line(record, o, derived) for o in record.objects]
-    lines += [dont_care_line(r.bbox) for r in record.ignore_regions]
+    """Objects in record order (instance ids ascending for converted KITTI), then ignore regions.
+    A value that is not finite is refused (NonFiniteError naming the object or region)."""
+    lines = [label_line(record, o, derived, f"objects[{k}]") for k, o in enumerate(record.objects)]
+    lines += [dont_care_line(r.bbox, f"ignore_regions[{k}].bbox") for k, r in enumerate(record.ignore_regions)]
     return "".join(f"{line}\n" for line in lines)
 
 
 def calib_text(K: np.ndarray) -> str:
     """KITTI's seven calib lines. Every P is [K | 0]: the record's camera is the only camera."""
+    if not is_finite(K):
+        raise non_finite("K", "KITTI calib's P2", K)
     P = np.hstack([np.asarray(K, dtype=np.float64), np.zeros((3, 1))])
     rows = [(f"P{i}", P) for i in range(4)]
     rows += [("R0_rect", np.eye(3)), ("Tr_velo_to_cam", TR_VELO_TO_CAM), ("Tr_imu_to_velo", TR_IMU_TO_VELO)]

@@ -23,12 +23,15 @@ import numpy as np
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS, V_OUTSIDE, coco_visibility
 from omnigen.dataset import Dataset
 from omnigen.files import atomic_write_bytes, atomic_write_text, link_file
+from omnigen.formats.checks import check_object_columns
+from omnigen.outputs import refuse_inputs
 from omnigen.progress import progress
 from omnigen.ownership import claim_output
 from omnigen.splits import read_assignments
 from omnigen.taxonomy import Taxonomy, recorded_taxonomy
 
 
+JOB = "export yolo"
 LABEL_FORMAT = "%d" + " %.6f" * 4 + " %.6f %.6f %d" * NUM_KEYPOINTS + "\n"
 
 
@@ -36,20 +39,25 @@ def label_rows(ds: Dataset, class_ids: np.ndarray) -> np.ndarray:
     """(N, 29) label values of every object at once: class, box, then x y v per corner.
 
     Coordinates are shifted by half a pixel (our pixel centres are integers, Ultralytics measures
-    from the corner), normalised and clipped to [0, 1]; corners with v = 0 are 0 0 0.
+    from the corner), normalised and clipped to [0, 1]; corners with v = 0 are 0 0 0. The values
+    are checked finite before the clip (NonFiniteError): clipped, an overflowed box would pass
+    as one reaching the image's edge.
     """
     t = ds.objects
     w = ds.table.width[t.frame].astype(np.float64)[:, None]
     h = ds.table.height[t.frame].astype(np.float64)[:, None]
     x1, y1, x2, y2 = (t.bbox[:, k:k + 1] for k in range(4))
-    box = np.clip(np.hstack([((x1 + x2) / 2 + 0.5) / w, ((y1 + y2) / 2 + 0.5) / h, (x2 - x1) / w, (y2 - y1) / h]), 0, 1)
     v = coco_visibility(t.in_image, t.behind_camera, t.occluded)
     on = v != V_OUTSIDE
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow is what the check below reports
+        box = np.hstack([((x1 + x2) / 2 + 0.5) / w, ((y1 + y2) / 2 + 0.5) / h, (x2 - x1) / w, (y2 - y1) / h])
+        xy = np.where(on[..., None], (t.keypoints + 0.5) / np.stack([w, h], axis=-1), 0.0)
+    check_object_columns(ds, {"bbox": ("YOLO box", box), "keypoints": ("YOLO keypoints", xy)},
+                         keep=class_ids[t.category] >= 0)
     kp = np.zeros((len(t), NUM_KEYPOINTS, 3))
-    kp[..., 0] = np.where(on, np.clip((np.nan_to_num(t.keypoints[..., 0]) + 0.5) / w, 0, 1), 0)
-    kp[..., 1] = np.where(on, np.clip((np.nan_to_num(t.keypoints[..., 1]) + 0.5) / h, 0, 1), 0)
+    kp[..., :2] = np.clip(xy, 0, 1)
     kp[..., 2] = v
-    return np.hstack([class_ids[t.category][:, None].astype(np.float64), box, kp.reshape(len(t), -1)])
+    return np.hstack([class_ids[t.category][:, None].astype(np.float64), np.clip(box, 0, 1), kp.reshape(len(t), -1)])
 
 
 def data_yaml(out: Path, names: list[str], splits: list[str]) -> str:
@@ -86,16 +94,19 @@ def export_yolo(ds: Dataset, out: str | Path, taxonomy: Taxonomy | None = None, 
     A re-export into the same folder starts from nothing: a frame an earlier export put in another
     split (the splits changed) would otherwise sit in both, a test frame among the training ones.
     data.yaml goes first and comes back last, so an interrupted export is no dataset to a reader.
+    Everything that can refuse the export (the folder, the values) is checked before that.
     """
     out = Path(out)
-    claim_output(out, "export yolo", _exported_by_us)
-    (out / "data.yaml").unlink(missing_ok=True)
-    for folder in ("images", "labels"):
-        shutil.rmtree(out / folder, ignore_errors=True)
+    refuse_inputs(out, [ds.root], JOB)
+    claim_output(out, JOB, _exported_by_us, mark=False)
     taxonomy = taxonomy or recorded_taxonomy(ds.manifest)
     class_ids = taxonomy.fine_class_ids()
     assignment = read_assignments(ds.root)
     rows = label_rows(ds, class_ids)
+    claim_output(out, JOB, _exported_by_us)
+    (out / "data.yaml").unlink(missing_ok=True)
+    for folder in ("images", "labels"):
+        shutil.rmtree(out / folder, ignore_errors=True)
     kept = rows[:, 0] >= 0
     counts = {"images": 0, "objects": 0}
     splits: set[str] = set()

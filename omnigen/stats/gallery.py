@@ -15,6 +15,9 @@ import numpy as np
 from omnigen.conventions import SOURCES, VIEWS
 from omnigen.dataset import Dataset
 from omnigen.draw import display_scale, render_frame
+from omnigen.outputs import save_image
+
+JOB = "stats"
 
 GALLERY_WIDTH = 720
 """Image panels wider than this are scaled down in the gallery (`omnigen show` keeps full size)."""
@@ -52,8 +55,7 @@ def write_gallery(ds: Dataset, out: Path, n: int, seed: int = 0) -> list[dict[st
         scale = GALLERY_WIDTH / rec.width if rec.width > GALLERY_WIDTH else display_scale(rec.width, rec.height, 640)
         view = render_frame(rec, ds.path(rec.image), bev=True, scale=scale)
         rel = f"gallery/{rec.frame_id}.png"
-        (out / "gallery").mkdir(parents=True, exist_ok=True)
-        view.image.save(out / rel, optimize=False)
+        save_image(view.image, out / rel, JOB, optimize=False)  # by temporary name and rename
         entries.append({"frame_id": rec.frame_id, "source": rec.source, "view": rec.view, "file": rel,
                         "objects": len(rec.objects), "width": view.image.width, "height": view.image.height,
                         "image_error": view.image_error})

@@ -28,10 +28,11 @@ from markupsafe import Markup
 from omnigen import __version__
 from omnigen.dataset import Dataset
 from omnigen.files import atomic_write_text
+from omnigen.outputs import refuse_inputs
 from omnigen.ownership import claim_output
 from omnigen.priors import FAR_SIGMA
 from omnigen.stats.compute import OCCLUSION_LEVEL_NAMES, compute_stats, derive
-from omnigen.stats.gallery import write_gallery
+from omnigen.stats.gallery import JOB, write_gallery
 from omnigen.stats.health import check_health
 from omnigen.stats.plots import CAMERA_LABELS, FIGURES, figures_for, plot_section
 
@@ -147,8 +148,10 @@ def write_report(ds: Dataset, out: str | Path, gallery: int = 6, check_images: b
     """Compute, check, draw and write the whole report; returns the stats and each step's seconds."""
     out = Path(out)
     # The report deletes its own folders below: claimed first, so a folder it did not make (a
-    # dataset, say, given as --out by mistake) is refused with nothing touched.
-    claim_output(out, "stats", _made_by_stats)
+    # dataset, say, given as --out by mistake) is refused with nothing touched; so is a folder
+    # inside the dataset, or one that holds it.
+    refuse_inputs(out, [ds.root], JOB)
+    claim_output(out, JOB, _made_by_stats)
     for sub in ("plots", "gallery"):  # the report's own folders: no figure of an older report may linger
         shutil.rmtree(out / sub, ignore_errors=True)
     timings: dict[str, float] = {}

@@ -79,3 +79,34 @@ def test_errors_are_one_readable_line(tmp_path, capsys):
     assert main(["export", "coco", str(tmp_path / "missing"), "--out", str(tmp_path / "x.json")]) == 1
     err = capsys.readouterr().err
     assert "not an UrbanOmniView dataset" in err and "Traceback" not in err
+
+
+def _options(parser, prefix=()):
+    """(command words, action) for every option of every command and subcommand."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _options(sub, (*prefix, name))
+        elif action.option_strings and action.dest not in ("help", "version"):
+            yield prefix, action, parser
+
+
+def test_every_numeric_option_is_checked_when_parsed_and_every_default_is_shown():
+    """Issue 44: a number that parses is not one a command can use (`--batch -1` processed no
+    image), so every numeric option has a type of omnigen.options, which names its range; issue
+    45: `render --help` did not say the default quality. Every option's help shows its default."""
+    from omnigen.cli import build_parser
+
+    bare, unshown = [], []
+    for words, action, parser in _options(build_parser()):
+        name = f"omnigen {' '.join(words)} {action.option_strings[-1]}"
+        if action.type in (int, float):
+            bare.append(name)
+        if action.default not in (None, False, [], "") and action.help is not None:
+            text = parser.formatter_class(prog="x")._get_help_string(action) or ""
+            if "default" not in text:
+                unshown.append(name)
+    assert not bare, f"numeric options without a checked type: {bare}"
+    assert not unshown, f"options whose help does not show the default: {unshown}"

@@ -157,3 +157,20 @@ def test_segments_are_clipped_to_a_rectangle():
                                [[0, 50], [320, 50]])
     assert clip_segment(np.array([[-100.0, -5], [500, -5]]), (0, 0), (320, 192)) is None
     assert clip_segment(np.array([[np.nan, 0], [5, 5]]), (0, 0), (320, 192)) is None
+
+
+@pytest.mark.parametrize("bev", [False, True])
+def test_the_colour_key_is_whole_at_any_width(bev):
+    """At 640 px without its BEV the key did not fit beside a long title and "top" was dropped:
+    the strip takes a second row instead, and every entry of the key is drawn."""
+    from dataclasses import replace
+
+    from omnigen.draw import LEGEND
+
+    rec = replace(_record(), frame_id="synthetic-drone-s0-000000", source="synthetic", view="aerial")
+    view = render_frame(rec, None, bev=bev, scale=2.0)
+    assert view.frame_origin == (0, view.strip)
+    assert view.strip == (TITLE_HEIGHT if bev else 2 * TITLE_HEIGHT)
+    strip = np.asarray(view.image)[:view.strip].reshape(-1, 3)
+    for label, colour in LEGEND:
+        assert (np.abs(strip.astype(int) - colour).sum(axis=1) < 30).sum() > 5, label

@@ -198,7 +198,7 @@ def test_the_train_command_carries_the_sampling_flags(fake, tmp_path, monkeypatc
     from omnigen.detector import train as train_module
 
     seen = {}
-    monkeypatch.setattr(train_module, "train", lambda cfg, resume=False, on_epoch=None: seen.setdefault("cfg", cfg) and {})
+    monkeypatch.setattr(train_module, "train", lambda cfg, **kw: seen.setdefault("cfg", cfg) and {})
     assert main(["train", str(fake), "--out", str(tmp_path / "run"), "--crop", "320", "--crop-focus", "0.5",
                  "--repeat-thresh", "0.3"]) == 0
     assert (seen["cfg"].crop_focus, seen["cfg"].repeat_thresh) == (0.5, 0.3)

@@ -238,3 +238,18 @@ def test_wild_corners_of_a_poor_detector_never_crash():
         except ValueError:
             continue
         assert np.isfinite(res.homography).all()
+
+
+def test_the_bev_caption_wraps_whole_words_to_the_panel():
+    """A small BEV panel cut its caption mid-word ("aspec"): the words now wrap to its width."""
+    from PIL import Image, ImageDraw
+
+    from omnigen.detector.bev_draw import wrap_words
+    from omnigen.draw import font
+
+    draw = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    words = ["BEV (no calibration),", "grid 5 m", "(class-prior scale),", "one heading:", "aspect from prior"]
+    lines = wrap_words(draw, words, font(11), 200)
+    assert " ".join(lines) == " ".join(words) and len(lines) > 1
+    assert all(draw.textlength(line, font=font(11)) <= 200 for line in lines)
+    assert wrap_words(draw, words, font(11), 10_000) == [" ".join(words)]

@@ -302,9 +302,12 @@ def test_train_crop_trains_again_for_a_detector_rewritten_in_place_and_refuses_b
 
     save_checkpoint(weights, state)  # the detector trained again into the same file
     assert omnigen(args) == 1 and "not trained with these arguments" in capsys.readouterr().err
-    for bad in ("-16", "0", "40"):
-        assert omnigen([*args[:4], "--out", str(tmp_path / f"c{bad}.pt"), *args[6:], "--crop", bad]) == 1
-        assert "positive multiple of 16" in capsys.readouterr().err
+    for bad in ("-16", "0"):  # outside the range: refused as the arguments are parsed
+        with pytest.raises(SystemExit) as exc:
+            omnigen([*args[:4], "--out", str(tmp_path / f"c{bad}.pt"), *args[6:], "--crop", bad])
+        assert exc.value.code == 2 and "is outside [16, 1024]" in capsys.readouterr().err
+    assert omnigen([*args[:4], "--out", str(tmp_path / "c40.pt"), *args[6:], "--crop", "40"]) == 1
+    assert "positive multiple of 16" in capsys.readouterr().err
 
 
 def test_bf16_training_runs_and_learns(split_fake_dataset):

@@ -119,9 +119,9 @@ def test_resume_equals_uninterrupted_run(fake, tmp_path):
     train(_cfg(fake, tmp_path / "full", epochs=3, val_every=100, taxonomy="coarse"))
     train(_cfg(fake, tmp_path / "cut", epochs=3, val_every=100, taxonomy="coarse"), stop_after=2)  # as if killed
     assert load_checkpoint(tmp_path / "cut" / "last.pt")["epoch"] == 1
-    # `omnigen train D --out R --resume` passes default settings: the run's own (coarse, 3 epochs) win
+    # resumed with the run's own settings (other ones are refused: test_safety_train.py)
     cut_time = load_checkpoint(tmp_path / "cut" / "last.pt")["history"][-1]["time"]
-    train(_cfg(fake, tmp_path / "cut", epochs=50, val_every=100), resume=True)
+    train(_cfg(fake, tmp_path / "cut", epochs=3, val_every=100, taxonomy="coarse"), resume=True)
     # results.csv's time column goes on from where the cut run stopped, not from zero
     rows = list(csv.DictReader((tmp_path / "cut" / "results.csv").open()))
     times = [float(r["time"]) for r in rows]
@@ -148,7 +148,10 @@ def test_resuming_a_checkpoint_from_before_the_optimizer_choice_keeps_adam(fake,
     state = load_checkpoint(tmp_path / "run" / "last.pt")
     del state["train_config"]["optimizer"]  # as checkpoints written before it existed
     save_checkpoint(tmp_path / "run" / "last.pt", state)
-    train(_cfg(fake, tmp_path / "run", epochs=2, val_every=100), resume=True)
+    # the checkpoint's run was Adam's: resumed as one, and resuming it as AdamW is refused
+    with pytest.raises(ValueError, match="--optimizer: adam there, adamw now"):
+        train(_cfg(fake, tmp_path / "run", epochs=2, val_every=100), resume=True)
+    train(_cfg(fake, tmp_path / "run", epochs=2, val_every=100, optimizer="adam"), resume=True)
     assert json.loads((tmp_path / "run" / "args.json").read_text())["optimizer"] == "adam"
 
 
@@ -441,14 +444,13 @@ def test_time_spent_after_an_epochs_plan_never_leaves_it_unvalidated_or_unsaved(
 
 
 def test_a_resumed_time_boxed_run_spends_what_is_left_of_its_budget(fake, tmp_path, step_clock):
-    # Killed after 2 epochs and resumed (with other settings on the command line, as `--resume`
-    # passes them): the budget is the run's, so it plans the same 5 epochs and ends with the same
-    # weights as the uninterrupted run
+    # Killed after 2 epochs and resumed: the budget is the run's, so it plans the same 5 epochs and
+    # ends with the same weights as the uninterrupted run
     cfg = dict(epochs=1000, time_minutes=10 / 60, lr0=1e-2, lrf=0.01)
     train(_cfg(fake, tmp_path / "full", **cfg))
     train(_cfg(fake, tmp_path / "cut", **cfg), stop_after=2)
     assert len(load_checkpoint(tmp_path / "cut" / "last.pt")["history"]) == 2
-    last = train(_cfg(fake, tmp_path / "cut", epochs=3), resume=True)
+    last = train(_cfg(fake, tmp_path / "cut", **cfg), resume=True)
     full, cut = (load_checkpoint(tmp_path / run / "last.pt") for run in ("full", "cut"))
     assert len(cut["history"]) == len(full["history"]) == 5 and cut["planned_epochs"] == 5
     assert last["lr"] == pytest.approx(1e-2 * 0.01, rel=1e-9)
@@ -562,7 +564,7 @@ def test_the_train_command_carries_the_corner_order_flags_into_the_run(fake, tmp
     from omnigen.detector import train as train_module
 
     seen = {}
-    monkeypatch.setattr(train_module, "train", lambda cfg, resume=False, on_epoch=None: seen.setdefault("cfg", cfg) and {})
+    monkeypatch.setattr(train_module, "train", lambda cfg, **kw: seen.setdefault("cfg", cfg) and {})
     assert main(["train", str(fake), "--out", str(tmp_path / "run"), "--kpt-heading", "--heading-gain", "3",
                  "--kpt-labelled", "1", "--kpt-turn-start", "0.3"]) == 0
     cfg = seen["cfg"]

@@ -58,8 +58,10 @@ def test_parse_shard_and_partition():
     for bad in ("0/3", "4/3", "x", "1/0", "1-3"):
         with pytest.raises(ValueError):
             parse_shard(bad)
-    assert main(["render", *ARGS, "--out", "/nonexistent/x", "--shard", "4/3"]) == 2
-    assert main(["render", *ARGS, "--out", "/nonexistent/x", "--executor", "ray", "--retries", "-1"]) == 2
+    for bad in (["--shard", "4/3"], ["--executor", "ray", "--retries", "-1"]):  # refused when parsed: usage, exit 2
+        with pytest.raises(SystemExit) as refused:
+            main(["render", *ARGS, "--out", "/nonexistent/x", *bad])
+        assert refused.value.code == 2
     job = RenderJob(rig=RIG, frames=10, out=Path("/nonexistent"), start=5)
     parts = [RenderJob(rig=RIG, frames=10, out=Path("/x"), start=5, shard=(k, 3)).shard_indices() for k in (1, 2, 3)]
     assert sorted(sum(parts, [])) == list(job.indices())  # a partition: disjoint, complete
