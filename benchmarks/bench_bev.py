@@ -12,6 +12,10 @@ Each frame: a camera 5-10 m up pitched 15-35 degrees down (hfov 60-90, 1280x720)
   bounding box);
 - time: per image, rectify() only. Medians and 95th percentiles over frames; best of --repeats for time.
 
+The last lines time the polish on crowded images (--crowd detections each, 2 px of noise): the
+exact Jacobian against scipy's finite differences, in one run, and the largest difference between
+the homographies the two give.
+
     .venv/bin/python benchmarks/bench_bev.py
 """
 
@@ -55,6 +59,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeats", type=int, default=3, help="timing runs (accuracy is deterministic)")
     ap.add_argument("--no-refine", action="store_true", help="L_rect only, without the reprojection polish")
+    ap.add_argument("--crowd", type=int, nargs="*", default=[20, 50],
+                    help="detections an image in the polish's timings (none: skip them)")
+    ap.add_argument("--crowd-frames", type=int, default=10)
     args = ap.parse_args()
 
     rng = np.random.default_rng(args.seed)
@@ -73,6 +80,30 @@ def main() -> None:
               f"{np.percentile(angles, 95):.3f} deg (target < {t_angle} deg); centre error median "
               f"{np.median(centres):.3f}%, p95 {np.percentile(centres, 95):.3f}% of extent{tc}; "
               f"time {1000 * statistics.median(times):.1f} ms/image (median of {args.repeats} runs)")
+
+    for n in [] if args.no_refine else args.crowd:
+        crowd(n, args.crowd_frames, args.seed)
+
+
+def crowd(n: int, frames: int, seed: int) -> None:
+    """Median time of rectify() on images of `n` detections (2 px noise), exact Jacobian against
+    finite differences, and the largest difference of their homographies."""
+    rng = np.random.default_rng(seed)
+    times: dict[str, list[float]] = {"exact": [], "2-point": []}
+    worst = 0.0
+    for _ in range(frames):
+        f = synthetic_frame(rng, n=n)
+        seen = f.pixels + rng.normal(0, 2.0, f.pixels.shape)
+        found = {}
+        for jacobian in times:
+            t = time.perf_counter()
+            found[jacobian] = rectify(seen, f.classes, jacobian=jacobian).homography
+            times[jacobian].append(time.perf_counter() - t)
+        worst = max(worst, float(np.abs(found["exact"] - found["2-point"]).max()))
+    exact, fd = statistics.median(times["exact"]), statistics.median(times["2-point"])
+    print(f"{frames} images of {n} detections (2 px): rectify with the polish {exact:.3f} s/image (exact "
+          f"Jacobian) against {fd:.3f} s/image (finite differences), {fd / exact:.1f}x; largest homography "
+          f"difference {worst:.1e}")
 
 
 if __name__ == "__main__":

@@ -24,15 +24,32 @@ The only real photographs here are KITTI's (ego view); there is no roadside or a
 what a real camera's histogram looks like. Without ../shared/realdata the comparisons are left out
 with a one-line reason; the synthetic figures are still printed.
 
+Cycles rows (issue 45): the same rigs rendered with `omnigen render --backend cycles` at its default
+quality (--cycles-frames frames a rig at --cycles-size; 0 frames leaves them out), in the same
+statistics and histograms, and the road's luminance beside KITTI's:
+
+- the road's pixels in a render: those of no agent (instance 0) whose depth puts them on the
+  record's ground plane (within ROAD_TOLERANCE): the road's top is the ground (z = 0), sidewalks
+  and lots stand a kerb (0.15 m) higher, the ground beyond the city 0.05 m lower, and road
+  markings (0.01 m up) lie on the road and count. No extra render pass: depth, instance mask and
+  ground plane are in every rendered dataset. Per frame the median luminance of those pixels;
+  per set the median over frames;
+- KITTI's road: the sample has no road mask, so its ground ahead of the car stands in for it: the
+  KITTI_ROAD_AHEAD metres ahead of camera 2, KITTI_ROAD_HALF_WIDTH either side, on the plane
+  KITTI_CAMERA_HEIGHT below the camera (KITTI's camera height), labelled boxes left out; the 10th
+  to 90th percentile of those pixels' luminance is the range a render's road median is set against.
+
 It also prints issue 26's class figure: 10 frames (6 drone + 4 pole, 320x240, raster, the default
 preset): how many classes appear (traffic cones among them?), the median car length and the range
 of pedestrian heights. The last line is the contrast figure per rig against the issue's targets.
 
     .venv/bin/python benchmarks/bench_realism.py [--frames 12] [--size 640] [--work runs/realism]
         [--seed 0] [--scene NAME] [--realdata ../shared/realdata] [--out realism.json] [--no-classes]
+        [--cycles-frames 4] [--cycles-size 320] [--cycles-rigs ego,pole,drone]
 
 Renders are kept in --work and reused while the renderer's sources (scenes/, rigs/, omnigen/) are
-unchanged; any change to them renders again (a stamp file holds their hash).
+unchanged; any change to them renders again (a stamp file holds their hash, a timing file the
+render's wall time, so a reused Cycles render still reports its seconds per frame).
 """
 
 from __future__ import annotations
@@ -68,6 +85,15 @@ PED_HEIGHT_RANGE = (1.5, 1.95)
 MIN_CLASSES = 6
 SOURCE_DIRS = ("scenes", "rigs", "omnigen")
 STAMP = "sources.sha256"
+TIMING = "timing.json"
+CYCLES_FRAMES, CYCLES_SIZE = 4, 320
+ROAD_TOLERANCE = 0.03
+"""Metres from the ground plane within which a render's background pixel counts as road (the road's
+top is the plane; sidewalks stand 0.15 m above it, the ground beyond the city 0.05 m below)."""
+KITTI_CAMERA_HEIGHT = 1.65
+KITTI_ROAD_AHEAD = (5.0, 20.0)
+KITTI_ROAD_HALF_WIDTH = 2.0
+ROAD_PERCENTILES = (10.0, 90.0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -362,25 +388,41 @@ def sources_hash() -> str:
 
 
 def render(rig: str, out: Path, frames: int, width: int, height: int, seed: int, stamp: str,
-           scene: str | None = None) -> Path:
-    """`omnigen render --backend raster --quality preview` of frames 0..frames-1 into `out`, unless
-    `out` already holds them from the same sources (`scene` None: the command's default preset). Raises RuntimeError with the command's last
-    lines when it fails (no headless EGL, for one)."""
+           scene: str | None = None, backend: str = "raster") -> Path:
+    """`omnigen render --backend raster --quality preview` (backend "cycles": `--backend cycles` at
+    the command's default quality) of frames 0..frames-1 into `out`, unless `out` already holds them
+    from the same sources (`scene` None: the command's default preset); the wall time goes to
+    TIMING. Raises RuntimeError with the command's last lines when it fails (no headless EGL, no
+    bpy)."""
+    import time
+
     stamp_file = out / STAMP
     have = len(list((out / "records").glob("*.json"))) if (out / "records").is_dir() else 0
     if have == frames and stamp_file.exists() and stamp_file.read_text().strip() == stamp:
         return out
     if out.exists():
         shutil.rmtree(out)
+    quality = ["--quality", "preview"] if backend == "raster" else []
     cmd = [sys.executable, "-m", "omnigen", "render", "--rig", rig, "--frames", str(frames), "--out", str(out),
-           "--seed", str(seed), "--width", str(width), "--height", str(height), "--backend", "raster",
-           "--quality", "preview"] + (["--scene", scene] if scene else [])
+           "--seed", str(seed), "--width", str(width), "--height", str(height), "--backend", backend,
+           *quality] + (["--scene", scene] if scene else [])
+    t0 = time.perf_counter()
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     if res.returncode != 0:
         tail = "\n".join((res.stdout + res.stderr).strip().splitlines()[-5:])
         raise RuntimeError(f"{' '.join(cmd[1:])} failed ({res.returncode}):\n{tail}")
+    (out / TIMING).write_text(json.dumps({"seconds": time.perf_counter() - t0, "frames": frames}) + "\n")
     stamp_file.write_text(stamp + "\n")
     return out
+
+
+def seconds_per_frame(dataset: Path) -> float | None:
+    """The render's wall time a frame (the process start and the scene's build included), from TIMING."""
+    p = dataset / TIMING
+    if not p.exists():
+        return None
+    t = json.loads(p.read_text())
+    return float(t["seconds"]) / max(int(t["frames"]), 1)
 
 
 def shown(path: Path) -> str:
@@ -391,10 +433,12 @@ def shown(path: Path) -> str:
         return str(path)
 
 
-def rig_dataset(work: Path, rig: str, frames: int, size: int, seed: int, stamp: str, scene: str | None) -> Path:
+def rig_dataset(work: Path, rig: str, frames: int, size: int, seed: int, stamp: str, scene: str | None,
+                backend: str = "raster") -> Path:
     """The benchmark's square renders of one rig in the work folder (the figure script reads the same)."""
     tag = f"-{Path(scene).stem}" if scene else ""
-    return render(rig, work / f"{rig}-{frames}-{size}-s{seed}{tag}", frames, size, size, seed, stamp, scene)
+    prefix = "" if backend == "raster" else f"{backend}-"
+    return render(rig, work / f"{prefix}{rig}-{frames}-{size}-s{seed}{tag}", frames, size, size, seed, stamp, scene, backend)
 
 
 def read_rgb(path: Path, width: int | None = None) -> np.ndarray:
@@ -440,6 +484,89 @@ def real_sources(realdata: Path) -> tuple[Path | None, Path | None, list[str]]:
     elif not any(p.suffix.lower() in (".jpg", ".png") for p in dair.rglob("*")):
         notes.append("DAIR-V2X: labels only (no image in the sample): its objects are compared, not its look")
     return kitti, dair, notes
+
+
+# ---------------------------------------------------------------------------------------------
+# The road's luminance (see the module doc)
+# ---------------------------------------------------------------------------------------------
+
+
+def _rays(K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel centre's ray (x / z, y / z) in the camera frame (x right, y down, z ahead)."""
+    v, u = np.mgrid[0:height, 0:width]
+    return (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+
+
+def road_mask(depth: np.ndarray, instance: np.ndarray, K: np.ndarray, normal, offset: float,
+              tolerance: float = ROAD_TOLERANCE) -> np.ndarray:
+    """The pixels of a render that show road: no agent (instance 0), a finite depth (camera z), and
+    a point within `tolerance` of the ground plane n . X + offset = 0 (the record's, camera frame)."""
+    x, y = _rays(K, depth.shape[1], depth.shape[0])
+    hit = np.isfinite(depth)
+    z = np.where(hit, depth, 0.0)
+    height = np.stack([x * z, y * z, z], axis=-1) @ np.asarray(normal, dtype=np.float64) + float(offset)
+    return hit & (instance == 0) & (np.abs(height) < tolerance)
+
+
+def road_medians(dataset: Path) -> list[float]:
+    """Each frame's median luminance over its road pixels (road_mask), in frame order; a frame that
+    shows no road is left out."""
+    from omnigen.rigs.render import read_depth_exr, read_instance_png
+
+    out = []
+    for record in dataset_records(dataset):
+        plane = record.get("ground_plane")
+        if plane is None:
+            continue
+        syn = record["synthetic"]
+        mask = road_mask(read_depth_exr(dataset / syn["depth"]), read_instance_png(dataset / syn["instance"]),
+                         np.asarray(record["K"], dtype=np.float64), plane["normal"], plane["offset"])
+        if mask.any():
+            out.append(float(np.median(luminance(read_rgb(dataset / record["image"]))[mask])))
+    return out
+
+
+def ground_strip(K: np.ndarray, width: int, height: int, camera_height: float = KITTI_CAMERA_HEIGHT,
+                 ahead: tuple[float, float] = KITTI_ROAD_AHEAD, half_width: float = KITTI_ROAD_HALF_WIDTH) -> np.ndarray:
+    """The pixels of a level camera `camera_height` above flat ground whose ray meets the ground
+    between `ahead` metres in front of it and within `half_width` of its axis: the lane ahead."""
+    x, y = _rays(K, width, height)
+    dist = np.where(y > 0, camera_height / np.where(y > 0, y, 1.0), np.inf)
+    return (dist >= ahead[0]) & (dist <= ahead[1]) & (np.abs(x) * np.minimum(dist, ahead[1]) <= half_width)
+
+
+def kitti_road_luminance(kitti: Path) -> np.ndarray:
+    """The luminance of KITTI's ground ahead of the car (ground_strip through each frame's P2, every
+    labelled box, DontCare too, left out), every frame's pixels together."""
+    from omnigen.converters.kitti import parse_calib, parse_labels
+
+    values = []
+    for image in sorted((kitti / "image_2").glob("*.png")):
+        calib, label = kitti / "calib" / f"{image.stem}.txt", kitti / "label_2" / f"{image.stem}.txt"
+        if not calib.exists():
+            continue
+        rgb = read_rgb(image)
+        mask = ground_strip(parse_calib(calib.read_text(), str(calib)).projection("P2")[:, :3], rgb.shape[1], rgb.shape[0])
+        for lab in parse_labels(label.read_text(), str(label)) if label.exists() else []:
+            x1, y1, x2, y2 = (int(round(c)) for c in lab.bbox)
+            mask[max(y1, 0):max(y2 + 1, 0), max(x1, 0):max(x2 + 1, 0)] = False
+        values.append(luminance(rgb)[mask])
+    return np.concatenate(values) if values else np.zeros(0)
+
+
+def road_summary(medians: list[float], span: tuple[float, float] | None) -> dict:
+    """A set's road figure: its frames' road medians, their median, and how many lie in `span`."""
+    inside = None if span is None else sum(span[0] <= m <= span[1] for m in medians)
+    return {"frames": len(medians), "per_frame": [round(m, 1) for m in medians],
+            "median": float(np.median(medians)) if medians else None, "in_range": inside,
+            "in_span": None if span is None or not medians else bool(span[0] <= float(np.median(medians)) <= span[1])}
+
+
+def road_rows(roads: dict[str, dict], span: tuple[float, float] | None, timing: dict[str, float | None]) -> list[list]:
+    f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
+    return [[name, r["frames"], f(r["median"]), "-" if not r["per_frame"] else f"{min(r['per_frame']):.0f}-{max(r['per_frame']):.0f}",
+             "-" if r["in_range"] is None else f"{r['in_range']}/{r['frames']}", f(timing.get(name))]
+            for name, r in roads.items()]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -504,12 +631,17 @@ def run(args: argparse.Namespace) -> dict:
     stamp = sources_hash()
     kitti, dair, notes = real_sources(Path(args.realdata))
     datasets = {rig: rig_dataset(work, rig, args.frames, args.size, args.seed, stamp, args.scene) for rig in RIGS}
-    scenes = sorted({dataset_scene(ds) for ds in datasets.values()})
-    sets = {rig: set_stats(rig, dataset_images(ds)) for rig, ds in datasets.items()}
+    cycles = {f"{rig} (cycles)": rig_dataset(work, rig, args.cycles_frames, args.cycles_size, args.seed, stamp, args.scene, "cycles")
+              for rig in (args.cycles_rigs if args.cycles_frames > 0 else ())}
+    scenes = sorted({dataset_scene(ds) for ds in (*datasets.values(), *cycles.values())})
+    sets = {name: set_stats(name, dataset_images(ds)) for name, ds in (*datasets.items(), *cycles.items())}
     if kitti is not None:
         sets["kitti"] = set_stats("kitti", kitti_images(kitti, args.size))
     print(f"realism: {args.frames} frames a rig at {args.size}x{args.size}, raster preview, scene "
           f"{', '.join(scenes)}, seed {args.seed}; renders in {shown(work)}")
+    if cycles:
+        print(f"cycles rows: {args.cycles_frames} frames a rig at {args.cycles_size}x{args.cycles_size}, "
+              f"omnigen render --backend cycles at its default quality")
     for n in notes:
         print(n)
     print_table("image statistics (median over frames)",
@@ -518,11 +650,18 @@ def run(args: argparse.Namespace) -> dict:
                   f"{s.colourfulness:.1f}"] for s in sets.values()])
     distances = {}
     if "kitti" in sets:
-        distances = {rig: compare(sets[rig], sets["kitti"]) for rig in RIGS}
+        distances = {name: compare(sets[name], sets["kitti"]) for name in (*RIGS, *cycles)}
         print_table("histograms against KITTI's (intersection: 1 same; EMD: grey levels, 0 same)",
                     ["rig", "lum inters.", "lum EMD", "RGB inters.", "R EMD", "G EMD", "B EMD"],
                     [[rig, f"{d['lum_intersection']:.3f}", f"{d['lum_emd']:.1f}", f"{d['rgb_intersection']:.3f}",
                       f"{d['r_emd']:.1f}", f"{d['g_emd']:.1f}", f"{d['b_emd']:.1f}"] for rig, d in distances.items()])
+
+    roads, span = road_figure(datasets | cycles, kitti)
+    where = "" if span is None else f", p10-p90 {span[0]:.1f}-{span[1]:.1f}"
+    print_table("road luminance (each frame's median over its road pixels; KITTI: its ground "
+                f"{KITTI_ROAD_AHEAD[0]:g}-{KITTI_ROAD_AHEAD[1]:g} m ahead, every pixel{where})",
+                ["set", "frames", "road median", "per frame", "in KITTI's p10-p90", "s/frame"],
+                road_rows(roads, span, {name: seconds_per_frame(ds) for name, ds in cycles.items()}))
 
     objects = [synthetic_objects(rig, dataset_records(ds)) for rig, ds in datasets.items()]
     if kitti is not None:
@@ -547,6 +686,10 @@ def run(args: argparse.Namespace) -> dict:
         cf = class_figure(work, args.seed, stamp, args.scene)
         result["class_figure"] = cf
         print(class_line(cf))
+    result["road_luminance"] = {"kitti_p10_p90": span, "sets": roads,
+                                "cycles_seconds_per_frame": {name: seconds_per_frame(ds) for name, ds in cycles.items()}}
+    if cycles:
+        print(road_line(roads, span, list(cycles)))
     result["lum_std"] = {rig: sets[rig].lum_std for rig in RIGS}
     result["meets_contrast_targets"] = all(sets[r].lum_std >= TARGETS[r] for r in RIGS)
     if args.out:
@@ -554,6 +697,32 @@ def run(args: argparse.Namespace) -> dict:
         Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
     print("realism: " + ", ".join(f"{rig} lum std {sets[rig].lum_std:.1f} (>= {TARGETS[rig]:.0f})" for rig in RIGS))
     return result
+
+
+def road_figure(datasets: dict[str, Path], kitti: Path | None) -> tuple[dict[str, dict], tuple[float, float] | None]:
+    """Each set's road_summary, KITTI's row (its pixels' median; frames: how many KITTI frames), and
+    KITTI's road p10-p90 (None without the real sample)."""
+    span, roads = None, {name: road_medians(ds) for name, ds in datasets.items()}
+    if kitti is not None:
+        k = kitti_road_luminance(kitti)
+        if k.size:
+            span = tuple(float(v) for v in np.percentile(k, ROAD_PERCENTILES))
+            out = {name: road_summary(m, span) for name, m in roads.items()}
+            out["kitti"] = {"frames": len(list((kitti / "image_2").glob("*.png"))), "per_frame": [], "median": float(np.median(k)),
+                            "in_range": None, "in_span": None}
+            return out, span
+    return {name: road_summary(m, span) for name, m in roads.items()}, span
+
+
+def road_line(roads: dict[str, dict], span: tuple[float, float] | None, names: list[str]) -> str:
+    """The Cycles rows' road medians beside KITTI's range, in one line."""
+    where = "no KITTI sample" if span is None else f"KITTI's road p10-p90 {span[0]:.1f}-{span[1]:.1f}"
+    parts = []
+    for name in names:
+        r = roads[name]
+        verdict = "" if r["in_span"] is None else (" in range" if r["in_span"] else " OUT of range")
+        parts.append(f"{name} road median {'-' if r['median'] is None else format(r['median'], '.1f')}{verdict}")
+    return f"realism: {', '.join(parts)} ({where})"
 
 
 def add_render_arguments(ap: argparse.ArgumentParser) -> None:
@@ -567,11 +736,27 @@ def add_render_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--realdata", default=str(ROOT.parent / "shared" / "realdata"))
 
 
+def _rig_list(text: str) -> list[str]:
+    """--cycles-rigs: a comma-separated list of RIGS."""
+    rigs = [r.strip() for r in text.split(",") if r.strip()]
+    unknown = [r for r in rigs if r not in RIGS]
+    if not rigs or unknown:
+        raise argparse.ArgumentTypeError(f"{text!r}: choose rigs from {', '.join(RIGS)}")
+    return rigs
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_render_arguments(ap)
     ap.add_argument("--out", default="", help="write the figures as JSON here")
     ap.add_argument("--no-classes", action="store_true", help="leave out the 10-frame class figure")
+    from omnigen.options import integer
+
+    ap.add_argument("--cycles-frames", type=integer(0, None), default=CYCLES_FRAMES,
+                    help=f"Cycles frames a rig (default {CYCLES_FRAMES}; 0: no Cycles rows)")
+    ap.add_argument("--cycles-size", type=integer(16, 4096), default=CYCLES_SIZE,
+                    help=f"square size of the Cycles renders (default {CYCLES_SIZE})")
+    ap.add_argument("--cycles-rigs", type=_rig_list, default=list(RIGS), help=f"rigs of the Cycles rows (default {','.join(RIGS)})")
     return ap
 
 

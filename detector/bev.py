@@ -330,12 +330,13 @@ def _solve(pts: np.ndarray, x0: np.ndarray, prior: np.ndarray | None,
 
 
 def rectify(ground_xy: np.ndarray, classes: Sequence[str | None] | None = None,
-            init_instance: int | None = None, refine: bool = True) -> BevResult:
+            init_instance: int | None = None, refine: bool = True, jacobian: str = "exact") -> BevResult:
     """The BEV of one image from its detections' ground corners (N, 4, 2) in pixels (corners 4-7).
 
     `classes` name each detection's class for the aspect and size priors (None: car).
     `init_instance` forces the instance of the DLT start (tests); by default the best-conditioned one.
-    `refine` polishes the L_rect solution by reprojection error (`refine_reprojection`).
+    `refine` polishes the L_rect solution by reprojection error (`refine_reprojection`, whose
+    `jacobian` this passes on).
     """
     quads = np.asarray(ground_xy, dtype=np.float64)
     if quads.ndim != 3 or quads.shape[1:] != (4, 2) or len(quads) == 0:
@@ -372,7 +373,7 @@ def rectify(ground_xy: np.ndarray, classes: Sequence[str | None] | None = None,
         nfev += nfev2
 
     if refine and n >= 2:
-        x, nfev3 = refine_reprojection(x, pts, aspects if degenerate else None, px_scale=T[0, 0])
+        x, nfev3 = refine_reprojection(x, pts, aspects if degenerate else None, px_scale=T[0, 0], jacobian=jacobian)
         nfev += nfev3
 
     H = _affine_matrix(x[2], x[3]) @ _projective_matrix(x[0], x[1]) @ T
@@ -414,7 +415,7 @@ def _rectangles(inst: np.ndarray, handedness: float = 1.0) -> np.ndarray:
 
 
 def refine_reprojection(x: np.ndarray, pts: np.ndarray, prior_aspect: np.ndarray | None,
-                        px_scale: float = 1.0) -> tuple[np.ndarray, int]:
+                        px_scale: float = 1.0, jacobian: str = "exact") -> tuple[np.ndarray, int]:
     """Maximum-likelihood polish: true rectangles on the ground and the 4 rectification parameters,
     fitted jointly to the observed corners by their reprojection error.
 
@@ -427,7 +428,13 @@ def refine_reprojection(x: np.ndarray, pts: np.ndarray, prior_aspect: np.ndarray
     above SPARSE_FROM instances). Soft-L1 at ROBUST_PX pixels (`px_scale` converts pixels to the
     normalised units of `pts`). In the degenerate case a weak aspect prior pins the stretch. A
     polish that ends folded or non-finite is discarded and the L_rect solution returned.
+
+    `jacobian` "exact" (`_reprojection_jacobian`) or scipy's "2-point" finite differences, which
+    give the same solution (tests/detector/test_bev.py, benchmarks/bench_bev.py) 4 + 5 N times
+    slower a step.
     """
+    if jacobian not in ("exact", "2-point"):
+        raise ValueError(f"jacobian must be 'exact' or '2-point', got {jacobian!r}")
     quads, _ = _warp(x, pts)
     e = np.linalg.norm(np.roll(quads, -1, axis=1) - quads, axis=-1)
     inst0 = np.stack([quads[..., 0].mean(1), quads[..., 1].mean(1), headings_of(quads),
@@ -443,24 +450,102 @@ def refine_reprojection(x: np.ndarray, pts: np.ndarray, prior_aspect: np.ndarray
             res.append(0.01 * (inst[:, 3] - inst[:, 4] - np.log(prior_aspect)))
         return np.concatenate(res)
 
-    rows = 8 * n + (n if prior_aspect is not None else 0)
-    sparsity = np.zeros((rows, 4 + 5 * n), dtype=bool)
-    sparsity[:, :4] = True
-    for i in range(n):
-        sparsity[8 * i:8 * i + 8, 4 + 5 * i:9 + 5 * i] = True
-        if prior_aspect is not None:
-            sparsity[8 * n + i, 4 + 5 * i:9 + 5 * i] = True
+    def exact(theta: np.ndarray):
+        J = _reprojection_jacobian(theta[:4], theta[4:].reshape(n, 5), handedness, prior_aspect is not None)
+        if n <= SPARSE_FROM:
+            return J
+        from scipy.sparse import csr_matrix
+
+        return csr_matrix(J)
+
     theta0 = np.concatenate([x, inst0.ravel()])
     from scipy.optimize import least_squares  # here, as in _solve
 
-    sol = least_squares(residuals, theta0, jac_sparsity=sparsity if n > SPARSE_FROM else None, method="trf",
-                        x_scale="jac",
+    if jacobian == "exact":
+        jac, sparsity = exact, None
+    else:
+        jac, sparsity = "2-point", _reprojection_sparsity(n, prior_aspect is not None) if n > SPARSE_FROM else None
+    sol = least_squares(residuals, theta0, jac=jac, jac_sparsity=sparsity, method="trf", x_scale="jac",
                         loss="soft_l1", f_scale=ROBUST_PX * px_scale,
                         xtol=1e-10, ftol=1e-10, max_nfev=200)
     _, w = _warp(sol.x[:4], pts)
     if (w <= 0).any() or not np.isfinite(sol.x).all():
         return x, int(sol.nfev)
     return sol.x[:4], int(sol.nfev)
+
+
+def _reprojection_sparsity(n: int, with_prior: bool) -> np.ndarray:
+    """Which residuals of `refine_reprojection` each parameter moves (for finite differences)."""
+    rows = 8 * n + (n if with_prior else 0)
+    sparsity = np.zeros((rows, 4 + 5 * n), dtype=bool)
+    sparsity[:, :4] = True
+    for i in range(n):
+        sparsity[8 * i:8 * i + 8, 4 + 5 * i:9 + 5 * i] = True
+        if with_prior:
+            sparsity[8 * n + i, 4 + 5 * i:9 + 5 * i] = True
+    return sparsity
+
+
+def _clipped_exp_slope(x: np.ndarray) -> np.ndarray:
+    """d/dx of `_bounded_exp`: exp inside the clamp, 0 outside it (where the clamp holds it flat)."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.where(np.abs(x) <= LOG_BETA_LIMIT, np.exp(np.clip(x, -LOG_BETA_LIMIT, LOG_BETA_LIMIT)), 0.0)
+
+
+def _reprojection_jacobian(g: np.ndarray, inst: np.ndarray, handedness: float, with_prior: bool) -> np.ndarray:
+    """The exact Jacobian of `refine_reprojection`'s residuals: d(image corners, prior) / d(g, inst).
+
+    The residuals' rows are each instance's 8 corner coordinates (then one prior row per instance);
+    the columns are the 4 rectification parameters g = (l1, l2, alpha, log beta), then each
+    instance's (cx, cy, heading, log length, log width). Finite differences needed 4 + 5 N residual
+    evaluations per step, which made the polish the slowest part of `omnigen bev`; this costs about
+    one. The chain is rectangle -> affine -> projective (`_rectangles`, then `_unwarp`); where
+    `_unwarp` guards |w| < 1e-9 the guarded w is held constant, as the residuals hold it.
+    """
+    n = len(inst)
+    l1, l2, alpha, log_beta = g
+    beta = float(_bounded_exp(log_beta))
+    dbeta = float(_clipped_exp_slope(log_beta))
+    cx, cy, th, ll, lw = inst.T
+    el, ew = _bounded_exp(ll), handedness * _bounded_exp(lw)
+    lx = _UNIT_RECT[None, :, 0] * el[:, None]  # (n, 4)
+    ly = _UNIT_RECT[None, :, 1] * ew[:, None]
+    c, s = np.cos(th)[:, None], np.sin(th)[:, None]
+    rx, ry = cx[:, None] + c * lx - s * ly, cy[:, None] + s * lx + c * ly
+    # d(rx, ry) / d(cx, cy, th, ll, lw): (n, 4, 2, 5)
+    dlx_dll = _UNIT_RECT[None, :, 0] * _clipped_exp_slope(ll)[:, None]
+    dly_dlw = _UNIT_RECT[None, :, 1] * handedness * _clipped_exp_slope(lw)[:, None]
+    zeros, ones = np.zeros_like(rx), np.ones_like(rx)
+    dr = np.stack([np.stack([ones, zeros, -s * lx - c * ly, c * dlx_dll, -s * dly_dlw], axis=-1),
+                   np.stack([zeros, ones, c * lx - s * ly, s * dlx_dll, c * dly_dlw], axis=-1)], axis=2)
+    a0, a1 = beta * rx + alpha * ry, ry
+    w = 1.0 - l1 * a0 - l2 * a1
+    live = np.abs(w) >= 1e-9
+    w = np.where(live, w, 1e-9)
+    a = np.stack([a0, a1], axis=-1)  # (n, 4, 2)
+    l = np.array([l1, l2])
+    # dp/da = I / w + a l^T / w^2 ; dp/dl = a a^T / w^2 (w held constant where it is guarded)
+    gate = live[..., None, None]
+    dp_da = np.eye(2) / w[..., None, None] + gate * a[..., :, None] * l[None, None, None, :] / (w ** 2)[..., None, None]
+    dp_dl = gate * a[..., :, None] * a[..., None, :] / (w ** 2)[..., None, None]
+    # da/d(alpha, log beta) and da/d(rx, ry)
+    da_dg = np.zeros((n, 4, 2, 2))
+    da_dg[..., 0, 0], da_dg[..., 0, 1] = ry, dbeta * rx
+    da_dr = np.array([[beta, alpha], [0.0, 1.0]])
+    dp_dg = np.concatenate([dp_dl, dp_da @ da_dg], axis=-1)  # (n, 4, 2, 4)
+    dp_dinst = dp_da @ da_dr @ dr  # (n, 4, 2, 5)
+    rows = 8 * n + (n if with_prior else 0)
+    J = np.zeros((rows, 4 + 5 * n))
+    J[:8 * n, :4] = dp_dg.reshape(8 * n, 4)
+    idx = np.arange(n)
+    block = dp_dinst.reshape(n, 8, 5)
+    r_idx = (8 * idx[:, None, None] + np.arange(8)[None, :, None])
+    c_idx = (4 + 5 * idx[:, None, None] + np.arange(5)[None, None, :])
+    J[r_idx, c_idx] = block
+    if with_prior:
+        J[8 * n + idx, 4 + 5 * idx + 3] = 0.01
+        J[8 * n + idx, 4 + 5 * idx + 4] = -0.01
+    return J
 
 
 def _canonical_frame(H: np.ndarray, quads_img: np.ndarray, classes: Sequence[str | None]) -> np.ndarray:

@@ -4,13 +4,23 @@ What it builds, and why this way:
 - Meshes from numpy with foreach_set (no bpy.ops), flat-shaded, one object per RenderObject,
   named as in the description; agents carry pass_index = instance id (Cycles' IndexOB pass) and
   custom properties omnigen_instance_id, omnigen_category, omnigen_dims.
-- One Principled BSDF material, "omnigen_pbr", whose inputs (base colour, roughness, metallic,
-  emission colour and strength) come from per-face attributes (pbr_base, pbr_rme, pbr_emit).
-  The materials stay plain data (scenes/materials.py); a frame that changes colours, wetness or
-  lights rewrites attributes instead of creating hundreds of datablocks, so nothing leaks and a
-  frame update costs milliseconds. A user opening the .blend can still read every value.
-- A physical sky (Sky Texture, MULTIPLE_SCATTERING: Blender 5.0's name for the Nishita model)
-  mixed towards cloud grey by cloud cover, and a sun lamp placed from the description.
+- Two Principled BSDF materials whose inputs (base colour, roughness, metallic, emission colour
+  and strength) come from per-face attributes (pbr_base, pbr_rme, pbr_emit): "omnigen_pbr" for
+  plain parts (car paint with a clear coat) and "omnigen_surface" for the procedural surfaces of
+  materials.Surface (asphalt with the city's road wear, paving, grass, facades, roofs, windows...),
+  the raster shader's surface() as shader nodes over two packed images made once per build (the
+  noise table and the road-wear map); the pattern of each face is an attribute too (pbr_surface,
+  pbr_amp, pbr_cell), written once. The materials stay plain data (scenes/materials.py); a frame
+  that changes colours, wetness or lights rewrites attributes instead of creating hundreds of
+  datablocks, so nothing leaks and a frame update costs milliseconds. A user opening the .blend
+  can still read every value.
+- A physical sky (Sky Texture, MULTIPLE_SCATTERING: Blender 5.0's name for the Nishita model; its
+  sun disc dark, the lamp is the sun) mixed towards an even grey by cloud cover and scaled to the
+  raster's share of the daylight (sky_irradiance, daylight), and a sun lamp placed from the
+  description.
+- The camera of the raster (expose): Cycles writes linear radiance (and depth); the raster's
+  daylight exposure, an automatic exposure metered on the road (ROAD_KEY) and the raster's
+  sRGB and tone curve make the 8-bit frame, so asphalt reads as asphalt, not near white.
 - Fog and haze as a volume: a box (Principled Volume, density = the description's extinction
   coefficient in 1/m) that follows a focus point, like Infinigen's weather that follows the
   camera; `place_weather(focus)` moves it.
@@ -38,7 +48,9 @@ import numpy as np
 from omnigen.camera import Camera
 from omnigen.scenes.cycles_devices import CyclesDevice, DeviceChoice, choose_devices
 from omnigen.scenes.description import Material, Scene
+from omnigen.scenes.materials import NOISE_SIZE, PATTERNS, SURFACE_WEIGHTS, Surface, noise_table, part_surface
 from omnigen.scenes.meshes import RenderObject, compile_scene, lamp_lights
+from omnigen.scenes.road_wear import WEAR_RUBBER, WEAR_STAIN, road_wear_map
 from omnigen.scenes.seeding import frame_streams
 
 
@@ -141,12 +153,162 @@ QUALITY = {  # Cycles settings of --quality (docs/rendering.md, "Speed", has the
 
 
 # ---------------------------------------------------------------------------------------------
+# Light and exposure: the raster's camera (raster_backend.illumination, gl_raster.auto_exposure)
+# ---------------------------------------------------------------------------------------------
+#
+# Cycles' light is made to agree with the raster's: the sun lamp gives Lighting.sun_strength (W/m^2
+# on a face square to it), the sky a share of the daylight on a horizontal face (daylight), so a
+# clear day's shade is deep and an overcast day is lit mostly by the sky. The camera then does what
+# the raster's does, on the linear frame Cycles wrote (BlenderScene.render): a daylight exposure
+# that puts a white horizontal face in the frame's daylight at EXPOSURE_KEY (at most MAX_EXPOSURE:
+# the night stays dark), an automatic exposure that opens up, at most AE_MAX_GAIN, for a frame
+# whose road reads darker than ROAD_KEY, and the raster's output encoding (sRGB, then the tone curve
+# TONE_CONTRAST). Numbers are the raster's, in its units (its radiance is SUN_SCALE times
+# Blender's); raster_backend imports OpenGL, so they are repeated here and
+# tests/scenes/test_cycles_realism.py keeps the two equal.
+SUN_SCALE = 0.9
+CLEAR_SKY_LIGHT, OVERCAST_SKY_LIGHT = 0.10, 0.6  # the sky's light on a horizontal face, of Lighting.sky_strength
+MIN_SKY_STRENGTH = 0.02  # a faint night sky
+EXPOSURE_KEY, MAX_EXPOSURE, MIN_EXPOSURE = 1.3, 5.0, 0.2
+AE_TARGET, AE_MAX_GAIN, AE_STRIDE = 0.18, 4.0, 4
+ROAD_KEY = 0.12
+"""Where Cycles' camera differs from the raster's: its automatic exposure meters the road (the
+pixels within ROAD_BAND of z = 0, the road's top: asphalt and its markings; sidewalks and lots
+stand a kerb higher) and opens up, at most AE_MAX_GAIN past the daylight exposure, until the
+road's median reads ROAD_KEY (linear; about 91 of 255 once encoded: KITTI's asphalt frame, 000001,
+reads 87 on the road ahead), as a road camera exposes for the road. Metered over the whole frame
+(the raster's rule) or over all the ground, the sky, sunlit facades and pale sidewalks held the
+exposure down and the asphalt (albedo 0.077, darker under wear) came out at 40-80 of 255, under
+KITTI's road (bench_realism's road rows); metered to middle grey (0.18) the road read 115 and
+the frames' mean luminance 128-142 against KITTI's 90."""
+ROAD_BAND = 0.05  # m above or below z = 0: the road and its markings (1 cm up), not the kerb (15 cm)
+MIN_ROAD = 0.02  # the least share of the metered pixels that must show road to meter it
+TONE_CONTRAST = 0.5
+CAMERA_SKY_GAIN = 2.0
+"""The sky as camera rays see it, of the sky that lights the scene: the physical sky's clear horizon
+reads about 0.3 of a white sunlit face's light, the raster's (and KITTI's near-white skies) 0.6."""
+# The horizontal irradiance of Blender 5.0's MULTIPLE_SCATTERING sky (no sun disc, or one of
+# intensity 0: the same; strength 1): its luminance on a white plane (pi times the plane's
+# radiance), measured with Cycles (64 samples, a 4 x 4 orthographic view of the plane) by sun
+# elevation (degrees) and aerosol density; test_cycles_realism.py measures one entry again.
+SKY_ELEVATIONS = (-5.0, 0.0, 2.0, 5.0, 10.0, 15.0, 20.0, 30.0, 45.0, 60.0, 90.0)
+SKY_AEROSOLS = (1.0, 3.0, 5.0)
+SKY_IRRADIANCE = (
+    (0.0491, 1.3342, 2.6750, 4.6604, 7.1231, 8.7044, 9.8150, 11.4048, 13.1083, 14.2661, 15.1928),
+    (0.0552, 1.2847, 2.6907, 5.0266, 8.2792, 10.5547, 12.2143, 14.5576, 16.9792, 18.6221, 19.8288),
+    (0.0611, 1.2366, 2.6655, 5.2073, 9.0848, 11.9963, 14.1950, 17.3687, 20.5004, 22.5764, 24.1204),
+)
+
+
+def _luminance(c) -> float:
+    return float(np.dot(np.asarray(c, dtype=np.float64)[:3], (0.2126, 0.7152, 0.0722)))
+
+
+def _sun_color(elevation: float) -> tuple[float, float, float]:
+    """The sun lamp's colour: orange when low (raster_backend._sun_color)."""
+    warm = float(np.clip(1.0 - elevation / 20.0, 0.0, 1.0))
+    return (1.0, 1.0 - 0.25 * warm, 1.0 - 0.55 * warm)
+
+
+def sky_irradiance(elevation: float, aerosol: float) -> float:
+    """SKY_IRRADIANCE at a sun elevation (degrees) and aerosol density, bilinearly."""
+    by_aerosol = [np.interp(elevation, SKY_ELEVATIONS, row) for row in SKY_IRRADIANCE]
+    return float(np.interp(aerosol, SKY_AEROSOLS, by_aerosol))
+
+
+def daylight(scene: Scene) -> tuple[float, float]:
+    """(E_sun, E_sky): the sun lamp's and the sky's light on a horizontal face (luminance, W/m^2 in
+    Blender's units), as raster_backend.daylight has them: a cloudless sky gives CLEAR_SKY_LIGHT of
+    Lighting.sky_strength, an overcast one OVERCAST_SKY_LIGHT."""
+    light, w = scene.lighting, scene.weather
+    sun = max(light.sun_strength, 0.0) if light.sun_elevation > 0 else 0.0
+    e_sun = sun * max(math.sin(math.radians(light.sun_elevation)), 0.0) * _luminance(_sun_color(light.sun_elevation))
+    share = CLEAR_SKY_LIGHT + (OVERCAST_SKY_LIGHT - CLEAR_SKY_LIGHT) * float(w.cloud_cover)
+    return e_sun, math.pi * max(light.sky_strength, MIN_SKY_STRENGTH) * share / SUN_SCALE
+
+
+def exposure(scene: Scene) -> tuple[float, float]:
+    """(gain, max_gain): the daylight exposure (linear Cycles radiance -> the frame's linear value)
+    and how far the automatic exposure may open up past it (raster_backend.illumination). With the
+    sun up it may open the full AE_MAX_GAIN: MAX_EXPOSURE is there to keep the night dark, and
+    under an overcast sky it held a street canyon's road at 50-65 of 255 (the canyon sees a third
+    to a half of the sky that the daylight exposure counts)."""
+    e_sun, e_sky = daylight(scene)
+    white = SUN_SCALE * (e_sun + e_sky) / math.pi  # a white horizontal face's radiance, the raster's units
+    raster = max(min(EXPOSURE_KEY / max(white, 1e-6), MAX_EXPOSURE), MIN_EXPOSURE)
+    day = scene.lighting.sun_elevation > 0.0
+    return SUN_SCALE * raster, AE_MAX_GAIN if day else min(AE_MAX_GAIN, MAX_EXPOSURE / raster)
+
+
+def auto_exposure(linear: np.ndarray, max_gain: float, target: float = AE_TARGET) -> float:
+    """The gain g in [1, max_gain] that brings the mean linear luminance of the metered pixels
+    (every AE_STRIDE-th of every AE_STRIDE-th row; saturated ones count as 1) up to `target`: the
+    raster's rule (gl_raster.auto_exposure), on the exposed linear frame."""
+    y = np.asarray(linear[::AE_STRIDE, ::AE_STRIDE, :3], dtype=np.float64) @ (0.2126, 0.7152, 0.0722)
+    y = np.minimum(y.ravel(), 1.0)
+    if max_gain <= 1.0 or y.size == 0 or y.mean() >= target:
+        return 1.0
+    lo, hi = 1.0, float(max_gain)
+    if np.minimum(y * hi, 1.0).mean() > target:
+        for _ in range(24):  # the mean of min(g y, 1) grows with g: bisect
+            g = 0.5 * (lo + hi)
+            lo, hi = (lo, g) if np.minimum(y * g, 1.0).mean() > target else (g, hi)
+    return hi
+
+
+def road_pixels(camera: Camera, depth: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels whose surface lies within ROAD_BAND of z = 0 (the road and its
+    markings), from the beauty render's depth (camera z)."""
+    v, u = np.mgrid[0:camera.height, 0:camera.width]
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1).astype(np.float64) @ np.linalg.inv(camera.K).T
+    hit = np.isfinite(depth) & (depth < 1e9)
+    z = camera.center[2] + np.where(hit, depth, 0.0) * (rays @ camera.R)[..., 2]  # world z of centre + depth R^T d
+    return hit & (np.abs(z) < ROAD_BAND)
+
+
+def road_exposure(linear: np.ndarray, max_gain: float, road: np.ndarray) -> float:
+    """The gain g in [1, max_gain] that brings the median linear luminance of the road's pixels
+    (every AE_STRIDE-th of every AE_STRIDE-th row) up to ROAD_KEY; where the frame shows too little
+    road to meter (under MIN_ROAD of its metered pixels), the raster's rule (auto_exposure)."""
+    y = np.asarray(linear[::AE_STRIDE, ::AE_STRIDE, :3], dtype=np.float64) @ (0.2126, 0.7152, 0.0722)
+    r = road[::AE_STRIDE, ::AE_STRIDE]
+    if r.mean() < MIN_ROAD:
+        return auto_exposure(linear, max_gain)
+    return float(np.clip(ROAD_KEY / max(float(np.median(np.minimum(y[r], 1.0))), 1e-9), 1.0, max(max_gain, 1.0)))
+
+
+def encode(linear: np.ndarray) -> np.ndarray:
+    """Linear RGB -> 8-bit code values: sRGB (IEC 61966-2-1), then the camera's tone curve
+    v + TONE_CONTRAST (smoothstep(v) - v) (gl_raster.encode)."""
+    c = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    v = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
+    v = v + TONE_CONTRAST * (v * v * (3.0 - 2.0 * v) - v)
+    return np.round(255.0 * v).astype(np.uint8)
+
+
+def expose(linear: np.ndarray, scene: Scene, road: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """A Cycles frame (linear RGB) as the camera records it: uint8 RGB and the total gain applied
+    (the daylight exposure times the automatic one, metered on the `road` pixels when given,
+    else the raster's rule over the whole frame)."""
+    gain, max_gain = exposure(scene)
+    exposed = np.asarray(linear, dtype=np.float32)[..., :3] * np.float32(gain)
+    auto = auto_exposure(exposed, max_gain) if road is None else road_exposure(exposed, max_gain, road)
+    return encode(exposed * np.float32(auto)), gain * auto
+
+
+# ---------------------------------------------------------------------------------------------
 # Low-level helpers
 # ---------------------------------------------------------------------------------------------
 
 
-def _mesh_from_parts(name: str, parts: dict) -> tuple[bpy.types.Mesh, list[tuple[str, int]]]:
-    """One mesh from role -> trimesh parts; returns it and the (role, face count) order."""
+def _mesh_from_parts(name: str, parts: dict, surfaces: dict[str, Surface] | None = None
+                     ) -> tuple[bpy.types.Mesh, list[tuple[str, int]]]:
+    """One mesh from role -> trimesh parts; returns it and the (role, face count) order.
+
+    `surfaces` (role -> materials.Surface) become a per-face attribute the surface materials read
+    (pbr_surface: pattern, scale, variant, spacing), written once: a part's pattern follows the
+    city, not the frame. Faces of a patterned role use their pattern's surface material, the rest
+    omnigen_pbr, so plain parts (most of an agent) pay nothing for the patterns."""
     verts, faces, order, n = [], [], [], 0
     for role, m in parts.items():
         v = np.asarray(m.vertices, dtype=np.float32)
@@ -168,7 +330,28 @@ def _mesh_from_parts(name: str, parts: dict) -> tuple[bpy.types.Mesh, list[tuple
     for attr in ("pbr_base", "pbr_rme", "pbr_emit"):
         mesh.attributes.new(attr, "FLOAT_VECTOR", "FACE")
     mesh.materials.append(_pbr_material())
+    if surfaces is not None:
+        _write_surfaces(mesh, order, surfaces)
     return mesh, order
+
+
+PLAIN_PATTERNS = frozenset({"plain", "car_paint"})  # drawn by omnigen_pbr (car paint: its coat)
+
+
+def _write_surfaces(mesh: bpy.types.Mesh, order: list[tuple[str, int]], surfaces: dict[str, Surface]) -> None:
+    """Each face's surface row (pbr_surface) and material slot: omnigen_pbr for plain parts, the
+    pattern's surface material for the rest (slots in the order the patterns first appear)."""
+    rows = np.concatenate([np.tile(np.asarray(surfaces[role].row(), dtype=np.float32), (count, 1)) for role, count in order])
+    mesh.attributes.new("pbr_surface", "FLOAT_COLOR", "FACE").data.foreach_set("color", rows.ravel())
+    slots = {}
+    for role, _ in order:
+        pattern = surfaces[role].pattern
+        if pattern not in PLAIN_PATTERNS and pattern not in slots:
+            slots[pattern] = len(mesh.materials)
+            mesh.materials.append(_surface_material(pattern))
+    if slots:
+        index = np.concatenate([np.full(count, slots.get(surfaces[role].pattern, 0), dtype=np.int32) for role, count in order])
+        mesh.polygons.foreach_set("material_index", index)
 
 
 def _write_materials(mesh: bpy.types.Mesh, order: list[tuple[str, int]], materials: dict[str, Material]) -> None:
@@ -183,32 +366,304 @@ def _write_materials(mesh: bpy.types.Mesh, order: list[tuple[str, int]], materia
     mesh.attributes["pbr_emit"].data.foreach_set("vector", np.vstack(emit).ravel())
 
 
-def _pbr_material() -> bpy.types.Material:
-    mat = bpy.data.materials.get(PBR)
-    if mat is not None:
-        return mat
-    mat = bpy.data.materials.new(PBR)
+def _pbr_nodes(mat: bpy.types.Material):
+    """A material's Principled BSDF fed by the per-face attributes (base colour, roughness,
+    metallic, emission), and the base colour's attribute node: the part both materials share."""
     nt = mat.node_tree
     nt.nodes.clear()
     out = nt.nodes.new("ShaderNodeOutputMaterial")
     bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
     nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
-
-    def attr(name: str):
-        node = nt.nodes.new("ShaderNodeAttribute")
-        node.attribute_type = "GEOMETRY"
-        node.attribute_name = name
-        return node
-
-    base, rme, emit = attr("pbr_base"), attr("pbr_rme"), attr("pbr_emit")
-    nt.links.new(base.outputs["Color"], bsdf.inputs["Base Color"])
+    base, rme, emit = (_attribute(nt, name) for name in ("pbr_base", "pbr_rme", "pbr_emit"))
     sep = nt.nodes.new("ShaderNodeSeparateXYZ")
     nt.links.new(rme.outputs["Vector"], sep.inputs["Vector"])
     nt.links.new(sep.outputs["X"], bsdf.inputs["Roughness"])
     nt.links.new(sep.outputs["Y"], bsdf.inputs["Metallic"])
     nt.links.new(sep.outputs["Z"], bsdf.inputs["Emission Strength"])
     nt.links.new(emit.outputs["Color"], bsdf.inputs["Emission Color"])
+    return bsdf, base
+
+
+def _attribute(nt, name: str, kind: str = "GEOMETRY"):
+    node = nt.nodes.new("ShaderNodeAttribute")
+    node.attribute_type = kind
+    node.attribute_name = name
+    return node
+
+
+def _material(name: str, finish) -> bpy.types.Material:
+    """The material `name`, made on first use only: the shared PBR nodes, then `finish(graph, bsdf,
+    base)` links its base colour (and whatever else it adds)."""
+    mat = bpy.data.materials.get(name)
+    if mat is None:
+        mat = bpy.data.materials.new(name)
+        bsdf, base = _pbr_nodes(mat)
+        finish(_Graph(mat.node_tree), bsdf, base)
     return mat
+
+
+def _pbr_material() -> bpy.types.Material:
+    """omnigen_pbr: plain parts; car paint (pattern car_paint) gets a clear coat, as the raster's
+    car paint reflects the sky (its Fresnel-weighted coat)."""
+    return _material(PBR, _plain_nodes)
+
+
+def _plain_nodes(g: "_Graph", bsdf, base) -> None:
+    g.nt.links.new(base.outputs["Color"], bsdf.inputs["Base Color"])
+    kind = g.channels(_attribute(g.nt, "pbr_surface").outputs["Color"])[0]
+    g.nt.links.new(g.equals(kind, PATTERNS["car_paint"]), bsdf.inputs["Coat Weight"])
+
+
+class _Graph:
+    """Arithmetic on a node tree's sockets, a Math, Mix or Map Range node an operation: how the
+    raster shader's surface() (gl_raster) is written as Cycles shader nodes. Operands are sockets
+    or numbers; an operation on numbers alone is done here, and one that cannot change its other
+    operand (times 1, plus 0, a mix by 0) makes no node, so a material built for one pattern (its
+    id and weights as numbers) holds only that pattern's terms, as the raster's per-pattern
+    builds do (every node costs each shading point: one material for all patterns doubled a
+    frame's time)."""
+
+    def __init__(self, nt) -> None:
+        self.nt = nt
+
+    def _node(self, kind: str, inputs: dict, **props):
+        node = self.nt.nodes.new(kind)
+        for k, v in props.items():
+            setattr(node, k, v)
+        for key, v in inputs.items():
+            if isinstance(v, (int, float)):
+                node.inputs[key].default_value = float(v)
+            elif isinstance(v, tuple):
+                node.inputs[key].default_value = v
+            else:
+                self.nt.links.new(v, node.inputs[key])
+        return node
+
+    def math(self, op: str, a, b=0.0, c=0.0):
+        return self._node("ShaderNodeMath", {0: a, 1: b, 2: c}, operation=op).outputs[0]
+
+    def add(self, a, b):
+        if _number(a) and _number(b):
+            return a + b
+        return b if a == 0.0 else a if b == 0.0 else self.math("ADD", a, b)
+
+    def sub(self, a, b):
+        if _number(a) and _number(b):
+            return a - b
+        return a if b == 0.0 else self.math("SUBTRACT", a, b)
+
+    def mul(self, *factors):
+        numbers = [float(f) for f in factors if _number(f)]
+        k = float(np.prod(numbers)) if numbers else 1.0
+        sockets = [f for f in factors if not _number(f)]
+        if k == 0.0 or not sockets:
+            return k
+        out = sockets[0]
+        for f in sockets[1:]:
+            out = self.math("MULTIPLY", out, f)
+        return out if k == 1.0 else self.math("MULTIPLY", out, k)
+
+    def mix(self, a, b, t):
+        """a + (b - a) t, t in [0, 1]."""
+        if _number(t) and t in (0.0, 1.0):
+            return a if t == 0.0 else b
+        if _number(a) and _number(b):
+            return a if a == b else self.add(a, self.mul(b - a, t))
+        return self._node("ShaderNodeMix", {0: t, 2: a, 3: b}, data_type="FLOAT").outputs[0]
+
+    def gain(self, amount, t):
+        """1 + (amount - 1) t: a factor that is `amount` where t is 1 and 1 where it is 0."""
+        return self.mix(1.0, amount, t)
+
+    def smooth(self, a: float, b: float, x):
+        """GLSL's smoothstep(a, b, x) (a > b too)."""
+        if _number(x):
+            u = min(max((x - a) / (b - a), 0.0), 1.0)
+            return u * u * (3.0 - 2.0 * u)
+        return self._node("ShaderNodeMapRange", {"Value": x, "From Min": a, "From Max": b},
+                          interpolation_type="SMOOTHSTEP").outputs[0]
+
+    def equals(self, x, value: float):
+        """1 where x (a pattern id) is `value`, else 0."""
+        return self.math("COMPARE", x, float(value), 0.5)
+
+    def less(self, a, b):
+        return float(a < b) if _number(a) and _number(b) else self.math("LESS_THAN", a, b)
+
+    def greater(self, a, b):
+        return float(a > b) if _number(a) and _number(b) else self.math("GREATER_THAN", a, b)
+
+    def fract(self, x):
+        return self.math("FRACT", x)
+
+    def channels(self, color):
+        sep = self._node("ShaderNodeSeparateColor", {0: color})
+        return sep.outputs[0], sep.outputs[1], sep.outputs[2]
+
+    def xyz(self, vector):
+        sep = self._node("ShaderNodeSeparateXYZ", {0: vector})
+        return sep.outputs[0], sep.outputs[1], sep.outputs[2]
+
+    def image(self, image, u, v, interpolation: str = "Linear", extension: str = "REPEAT"):
+        """(r, g) of `image` at (u, v) in texture coordinates."""
+        vec = self._node("ShaderNodeCombineXYZ", {0: u, 1: v})
+        tex = self._node("ShaderNodeTexImage", {"Vector": vec.outputs[0]}, image=image, interpolation=interpolation,
+                         extension=extension)
+        return self.channels(tex.outputs["Color"])[:2]
+
+    def color_mix(self, a, b, t):
+        if _number(t) and t in (0.0, 1.0):
+            return a if t == 0.0 else b
+        return self._node("ShaderNodeMix", {0: t, 6: a, 7: b}, data_type="RGBA").outputs[2]
+
+    def color_scale(self, color, factor):
+        """color times factor (a number, a float socket or a colour)."""
+        if _number(factor) and factor == 1.0:
+            return color
+        if _number(factor):
+            factor = (factor, factor, factor, 1.0)
+        return self._node("ShaderNodeMix", {0: 1.0, 6: color, 7: factor}, data_type="RGBA", blend_type="MULTIPLY").outputs[2]
+
+
+def _number(x) -> bool:
+    return isinstance(x, (int, float))
+
+
+SURFACE = "omnigen_surface"  # the surface materials: omnigen_surface_<pattern>, one a pattern
+NOISE_IMAGE, WEAR_IMAGE = "omnigen_noise", "omnigen_road_wear"
+SNOW_PROPERTY = "omnigen_snow_cover"  # the frame's snow cover, a scene property the surface materials read
+GRANITE = (0.36, 0.355, 0.34)
+
+
+def _surface_material(pattern: str) -> bpy.types.Material:
+    """omnigen_surface_<pattern>: a procedural surface of materials.Surface as the raster shader
+    draws it (gl_raster surface()), from world position and face normal alone: the noise table
+    (materials.noise_table, the same one) in its octaves, tiles and joints, asphalt's resurfaced and
+    worn stretches and the road-wear map (road_wear.py: oil, rubber, gutter grime), worn lane paint,
+    kerb stones, dry grass, facades' storey bands, plinth and grime, roofs by building, yellower
+    foliage, window panes with blinds. One material a pattern, its weights (SURFACE_WEIGHTS) built
+    in; a face's scale, variant and spacing come from its pbr_surface attribute. Made once; the
+    images it reads are made first (_surface_images), the wear map's placement in named Value nodes.
+
+    Where it differs from the raster: joints and storey bands are drawn sharp (a path tracer
+    averages them over a pixel's samples; the raster fades them by the pixel's footprint);
+    reflections are Cycles' own; snow keeps materials.weathered's blend (no patches) and hides the
+    pattern by the frame's snow cover."""
+    return _material(f"{SURFACE}_{pattern}", lambda g, bsdf, base: _surface_nodes(g, bsdf, base, PATTERNS[pattern]))
+
+
+def _surface_nodes(g: "_Graph", bsdf, base, kind: int) -> None:
+    """A surface material's base colour: gl_raster's surface() for pattern `kind`."""
+    nt = g.nt
+    ax, ay, az, aw, cx, cy, cz = (float(w) for w in SURFACE_WEIGHTS[kind])
+    is_ = {name: float(kind == PATTERNS[name]) for name in ("asphalt", "paint", "paving", "grass", "facade", "glass", "roof", "foliage")}
+    geo = nt.nodes.new("ShaderNodeNewGeometry")
+    px, py, pz = g.xyz(geo.outputs["Position"])
+    nx, ny, nz = g.xyz(geo.outputs["Normal"])
+    surface = _attribute(nt, "pbr_surface")
+    _, scale, variant = g.channels(surface.outputs["Color"])
+    spacing = surface.outputs["Alpha"]
+    snow = _attribute(nt, SNOW_PROPERTY, "VIEW_LAYER").outputs["Fac"]
+    up = g.greater(nz, 0.5)
+    # the face's own coordinates: x, y on the ground, (along the face, z) on walls
+    u = g.mix(g.sub(g.mul(py, nx), g.mul(px, ny)), px, up)
+    v = g.mix(pz, py, up)
+    noise = bpy.data.images[NOISE_IMAGE]
+    cell = 1.0 / NOISE_SIZE
+    lo = big = hi = fine = 0.5
+    if ax or aw or is_["grass"] or is_["paint"]:
+        lo, big = g.image(noise, g.mul(u, g.mix(0.8, 0.6, up), cell), g.mul(v, g.mix(0.06, 0.6, up), cell))
+    if ay or az or is_["paint"] or is_["foliage"]:
+        hi, fine = g.image(noise, g.mul(g.add(g.mul(u, 9.0), 31.7), cell), g.mul(g.add(g.mul(v, 9.0), 31.7), cell))
+    lo, hi, fine = g.sub(lo, 0.5), g.sub(hi, 0.5), g.sub(fine, 0.5)
+    m = g.mul(g.add(1.0, g.mul(2.0 * ax, lo)), g.add(1.0, g.mul(2.0 * ay, hi)), g.add(1.0, g.mul(2.0 * az, fine)))
+    # asphalt and roofs: darker resurfaced stretches and lighter worn ones (the 20 m octave)
+    if aw and (is_["asphalt"] or is_["roof"]):
+        patches = g.mul(g.gain(0.55, g.smooth(0.56, 0.6, big)), g.gain(1.3, g.smooth(0.42, 0.22, big)))
+        m = g.mul(m, g.gain(patches, aw))
+    # roofs by building: a dark membrane (3 in 10); flat ones also gravel or a white membrane
+    rv = g.fract(g.mul(variant, 7.31)) if is_["roof"] else 0.0
+    m = g.mul(m, g.gain(0.45, g.mul(g.less(rv, 0.3), is_["roof"], up)))
+    # tiles, kerb stones (1 m) and window panes: a value a cell, dark joints
+    pane = 0.5
+    if cx or cy or is_["glass"]:
+        tile_u = g.mix(spacing if not is_["paving"] else 1.0, scale, up)
+        tu, tv = g.math("DIVIDE", u, tile_u), g.math("DIVIDE", v, scale)
+        pane = g.image(noise, g.mul(g.add(g.math("FLOOR", tu), g.add(g.mul(97.0, variant), 11.0)), cell),
+                       g.mul(g.add(g.math("FLOOR", tv), 0.5), cell), "Closest")[0]
+        if cy:
+            fu, fv = g.fract(tu), g.fract(tv)
+            eu = g.mul(g.math("MINIMUM", fu, g.sub(1.0, fu)), tile_u)
+            ev = g.mul(g.math("MINIMUM", fv, g.sub(1.0, fv)), scale)
+            joint = g.less(g.mix(eu, g.math("MINIMUM", eu, ev), up), cz)
+            m = g.mul(m, g.sub(1.0, g.mul(cy, joint)))
+        m = g.mul(m, g.add(1.0, g.mul(2.0 * cx, g.sub(pane, 0.5))))
+    # facades: a band at each floor slab (lighter or darker by variant), a darker plinth, grime
+    if is_["facade"]:
+        facade = g.mul(g.sub(1.0, up), g.greater(nz, -0.5))
+        band = g.less(g.mul(g.fract(g.math("DIVIDE", pz, scale)), scale), 0.32)
+        storey = g.mul(g.gain(g.mix(1.22, 0.72, g.less(variant, 0.5)), band), g.mix(0.68, 1.0, g.smooth(0.7, 0.9, pz)),
+                       g.add(0.8, g.mul(0.2, g.smooth(0.0, 2.5, pz))))
+        m = g.mul(m, g.gain(storey, facade))
+    if not _number(m):
+        m = g.mix(m, 1.0, g.mul(snow, up))  # snow hides the pattern (its blend is in the base colour)
+    albedo = g.color_scale(base.outputs["Color"], m)
+    if is_["asphalt"]:  # what traffic leaves (road_wear.py's map, placed by the omnigen_wear_* values)
+        x0, y0, sx, sy = (nt.nodes.new("ShaderNodeValue") for _ in range(4))
+        for node, name in zip((x0, y0, sx, sy), ("x0", "y0", "sx", "sy")):
+            node.name = f"omnigen_wear_{name}"
+        stain, tracks = g.image(bpy.data.images[WEAR_IMAGE], g.mul(g.sub(px, x0.outputs[0]), sx.outputs[0]),
+                                g.mul(g.sub(py, y0.outputs[0]), sy.outputs[0]), extension="EXTEND")
+        wear = g.sub(g.add(g.mul(WEAR_STAIN, stain), g.mul(WEAR_RUBBER, tracks)), g.mul(WEAR_STAIN * WEAR_RUBBER, stain, tracks))
+        albedo = g.color_scale(albedo, g.sub(1.0, g.mul(wear, g.sub(1.0, snow))))
+    if is_["roof"]:
+        flat_roof = g.mul(g.greater(nz, 0.98), g.sub(1.0, snow), g.greater(rv, 0.7))
+        roof = g.color_scale(g.color_mix((0.34, 0.33, 0.31, 1.0), (0.62, 0.62, 0.6, 1.0), g.greater(rv, 0.8)), m)
+        albedo = g.color_mix(albedo, roof, flat_roof)
+    if is_["paving"]:  # kerb stones are granite, lighter than the paving
+        albedo = g.color_mix(albedo, g.color_scale((*GRANITE, 1.0), m), g.mul(0.7, g.sub(1.0, up)))
+    if is_["paint"]:  # road paint worn where wheels pass: asphalt shows through
+        worn = g.smooth(0.5, 0.9, g.add(g.mul(0.55, g.add(lo, 0.5)), g.mul(0.45, g.add(hi, 0.5))))
+        albedo = g.color_mix(albedo, (0.09, 0.09, 0.09, 1.0), g.mul(0.6, worn))
+    if is_["grass"]:  # dry patches
+        albedo = g.color_mix(albedo, g.color_scale((0.15, 0.13, 0.06, 1.0), m), g.mul(0.65, g.smooth(0.55, 0.8, big)))
+    if is_["foliage"]:  # some clusters yellower
+        albedo = g.color_mix(albedo, g.color_scale(albedo, (1.5, 1.25, 0.55, 1.0)), g.smooth(0.1, 0.3, hi))
+    if is_["glass"]:  # most rooms dark behind the glass, a few panes with light blinds or curtains
+        albedo = g.color_scale(albedo, g.add(0.15, g.mul(4.0, pane, pane, pane, pane, pane)))
+    nt.links.new(albedo, bsdf.inputs["Base Color"])
+
+
+def _surface_images(city) -> None:
+    """The surface material's images, made once per scene build (never per frame) and packed into
+    the .blend: the noise table (float, repeating) and the city's road-wear map (r stain, g wheel
+    tracks; bytes, as road_wear_map makes it), placed over the city by the material's
+    omnigen_wear_* values. Rebuilding a scene over another city replaces the map's pixels."""
+    table = noise_table()
+    rgba = np.zeros((*table.shape[:2], 4), dtype=np.float32)
+    rgba[..., :2], rgba[..., 3] = table, 1.0
+    _packed_image(NOISE_IMAGE, rgba, float_buffer=True)
+    wear, (x0, y0, sx, sy) = road_wear_map(city)
+    rgba = np.zeros((*wear.shape[:2], 4), dtype=np.float32)
+    rgba[..., :2], rgba[..., 3] = wear / 255.0, 1.0
+    _packed_image(WEAR_IMAGE, rgba, float_buffer=False)
+    nodes = _surface_material("asphalt").node_tree.nodes
+    for name, value in (("x0", x0), ("y0", y0), ("sx", sx), ("sy", sy)):
+        nodes[f"omnigen_wear_{name}"].outputs[0].default_value = float(value)
+
+
+def _packed_image(name: str, rgba: np.ndarray, float_buffer: bool) -> bpy.types.Image:
+    """A (rows bottom-first, columns, 4) array as a packed, non-colour image named `name`."""
+    h, w = rgba.shape[:2]
+    img = bpy.data.images.get(name)
+    if img is None:
+        img = bpy.data.images.new(name, w, h, alpha=False, float_buffer=float_buffer)
+    elif tuple(img.size) != (w, h):
+        img.scale(w, h)  # in place: the material's texture nodes keep pointing at it
+    img.colorspace_settings.name = "Non-Color"
+    img.pixels.foreach_set(np.ascontiguousarray(rgba, dtype=np.float32).ravel())
+    img.pack()
+    return img
 
 
 def _simple_material(name: str, color, roughness: float = 0.5, transmission: float = 0.0, alpha: float = 1.0) -> bpy.types.Material:
@@ -277,6 +732,8 @@ class BlenderScene:
         self.objects: dict[str, RenderObject] = {}
         self.focus = (0.0, 0.0, 0.0)
         self.scene = scene
+        self._buildings = {b.building_id: b for b in scene.city.buildings}
+        _surface_images(scene.city)
         for obj in compile_scene(scene):
             self._add(obj)
         self._environment(scene)
@@ -284,7 +741,9 @@ class BlenderScene:
     # -- objects ----------------------------------------------------------------------------
 
     def _add(self, obj: RenderObject) -> None:
-        mesh, order = _mesh_from_parts(obj.name, obj.parts)
+        building = self._buildings.get(obj.name) if obj.kind == "building" else None
+        surfaces = {role: part_surface(obj.kind, role, self.scene.city, building) for role in obj.parts}
+        mesh, order = _mesh_from_parts(obj.name, obj.parts, surfaces)
         _write_materials(mesh, order, obj.materials)
         bobj = bpy.data.objects.new(obj.name, mesh)
         bobj.matrix_world = _matrix(obj.matrix_world)
@@ -319,40 +778,57 @@ class BlenderScene:
     # -- environment ------------------------------------------------------------------------
 
     def _environment(self, scene: Scene) -> None:
+        self.bscene[SNOW_PROPERTY] = float(scene.weather.snow_cover)  # the surface material reads it
         self._sky(scene)
         self._sun(scene)
         self._lamps(scene)
         self._weather(scene)
 
     def _sky(self, scene: Scene) -> None:
+        """The physical sky (MULTIPLE_SCATTERING, its sun disc dark: the sun lamp is the sun; the disc
+        lit the city a second time, ten times over on a clear day) mixed towards an even grey by cloud
+        cover, both scaled to a horizontal irradiance of one (sky_irradiance) and then set to the
+        frame's skylight (daylight: the raster's share of the daylight), so the sky lights the
+        scene as the raster's does and the exposure knows the light. Camera rays see it
+        CAMERA_SKY_GAIN times brighter."""
         light, w = scene.lighting, scene.weather
         world = bpy.data.worlds.get("omnigen_world") or bpy.data.worlds.new("omnigen_world")
         self.bscene.world = world
         nt = world.node_tree
-        if "omnigen_sky" not in nt.nodes:
+        if "omnigen_sky_strength" not in nt.nodes:
             nt.nodes.clear()
             out = nt.nodes.new("ShaderNodeOutputWorld")
             bg = nt.nodes.new("ShaderNodeBackground")
-            bg.name = "omnigen_background"
             sky = nt.nodes.new("ShaderNodeTexSky")
             sky.name = "omnigen_sky"
             sky.sky_type = "MULTIPLE_SCATTERING"
-            mix = nt.nodes.new("ShaderNodeMix")
+            # No second sun: the disc gives no light (the lamp is the sun). Kept on at intensity 0:
+            # without the disc Cycles took 2.5-3.5 s more to set up each frame's sky (2 cores).
+            sky.sun_disc, sky.sun_intensity = True, 0.0
+            g = _Graph(nt)
+            unit = g._node("ShaderNodeMix", {0: 1.0, 6: sky.outputs["Color"]}, data_type="RGBA", blend_type="MULTIPLY")
+            unit.name = "omnigen_sky_unit"
+            grey = np.array([1.0, 1.02, 1.06]) / (math.pi * _luminance((1.0, 1.02, 1.06)))  # an even sky of irradiance one
+            mix = g._node("ShaderNodeMix", {6: unit.outputs[2], 7: (*grey, 1.0)}, data_type="RGBA")
             mix.name = "omnigen_clouds"
-            mix.data_type = "RGBA"
-            nt.links.new(sky.outputs["Color"], mix.inputs[6])  # A (colour)
-            nt.links.new(mix.outputs[2], bg.inputs["Color"])  # Result (colour)
+            camera = nt.nodes.new("ShaderNodeLightPath").outputs["Is Camera Ray"]
+            strength = g._node("ShaderNodeMath", {0: camera}, operation="MULTIPLY_ADD")
+            strength.name = "omnigen_sky_strength"
+            nt.links.new(mix.outputs[2], bg.inputs["Color"])
+            nt.links.new(strength.outputs[0], bg.inputs["Strength"])
             nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
-        sky, mix, bg = nt.nodes["omnigen_sky"], nt.nodes["omnigen_clouds"], nt.nodes["omnigen_background"]
-        sky.sun_elevation = math.radians(max(light.sun_elevation, -5.0))
+        elevation, aerosol = max(light.sun_elevation, -5.0), 1.0 + 4.0 * min(w.fog_density / 0.01, 1.0)
+        sky = nt.nodes["omnigen_sky"]
+        sky.sun_elevation = math.radians(elevation)
         sky.sun_rotation = sun_rotation_for_azimuth(light.sun_azimuth)
-        sky.sun_disc = w.cloud_cover < 0.6
-        sky.aerosol_density = 1.0 + 4.0 * min(w.fog_density / 0.01, 1.0)
-        grey = 0.35 * max(light.sky_strength, 0.02)
-        mix.inputs[0].default_value = float(w.cloud_cover)  # factor
-        mix.inputs[7].default_value = (grey, grey * 1.02, grey * 1.06, 1.0)  # B (colour)
-        # The physical sky is dark once the sun has set; keep a faint night sky.
-        bg.inputs["Strength"].default_value = float(max(light.sky_strength, 0.02)) * (0.6 if light.sun_elevation > 0 else 1.0)
+        sky.aerosol_density = aerosol
+        k = 1.0 / sky_irradiance(elevation, aerosol)
+        nt.nodes["omnigen_sky_unit"].inputs[7].default_value = (k, k, k, 1.0)
+        nt.nodes["omnigen_clouds"].inputs[0].default_value = float(w.cloud_cover)
+        e_sky = daylight(scene)[1]
+        strength = nt.nodes["omnigen_sky_strength"]
+        strength.inputs[1].default_value = (CAMERA_SKY_GAIN - 1.0) * e_sky
+        strength.inputs[2].default_value = e_sky
 
     def _sun(self, scene: Scene) -> None:
         light, w = scene.lighting, scene.weather
@@ -365,8 +841,7 @@ class BlenderScene:
         obj.matrix_world = _matrix(_look_along(-d))
         obj.data.energy = float(light.sun_strength) if light.sun_elevation > 0 else 0.0
         obj.data.angle = math.radians(0.53 + 25.0 * float(w.cloud_cover))
-        warm = float(np.clip(1.0 - light.sun_elevation / 20.0, 0.0, 1.0))
-        obj.data.color = (1.0, 1.0 - 0.25 * warm, 1.0 - 0.55 * warm)
+        obj.data.color = _sun_color(light.sun_elevation)
 
     def _lamps(self, scene: Scene) -> None:
         for obj in [o for o in _collection(WEATHER).objects if o.get("omnigen_lamp")]:
@@ -497,17 +972,23 @@ class BlenderScene:
         self._tmp = tempfile.mkdtemp(prefix="omnigen-cycles-")
         if not hasattr(self, "quality"):
             self.set_quality("fast")
-        # beauty: Image -> PNG through the view transform
+        # beauty: Image -> a linear float EXR, which render() exposes and encodes (expose)
         ng = bpy.data.node_groups.new("omnigen_beauty", "CompositorNodeTree")
         rl = ng.nodes.new("CompositorNodeRLayers")
         fo = ng.nodes.new("CompositorNodeOutputFile")
         fo.format.media_type = "IMAGE"
-        fo.format.file_format = "PNG"
+        fo.format.file_format = "OPEN_EXR"
         fo.format.color_mode = "RGB"
-        fo.format.color_depth = "8"
+        fo.format.color_depth = "32"
+        fo.format.exr_codec = "NONE"
         item = fo.file_output_items.new("RGBA", "rgb")
-        item.save_as_render = True
+        item.save_as_render = False
         ng.links.new(rl.outputs["Image"], fo.inputs["rgb"])
+        fo.file_output_items.new("FLOAT", "depth")  # where the road is: what the exposure meters (road_pixels)
+        ng.links.new(rl.outputs["Depth"], fo.inputs["depth"])
+        # A user's own render of a saved .blend: the Standard view transform at the frame's exposure
+        # (render() sets it), close to what omnigen wrote but for the tone curve.
+        sc.view_settings.view_transform, sc.view_settings.look = "Standard", "None"
         fo.directory, fo.file_name = self._tmp, "beauty_"
         self._beauty_tree = ng
         # labels: Depth and Object Index -> float32 EXRs
@@ -541,12 +1022,11 @@ class BlenderScene:
             bpy.ops.render.render(write_still=False)
 
     def render(self, camera: Camera, labels: bool = True) -> dict:
-        """Cycles RGB (uint8 sRGB through the view transform) plus the label pass's depth (camera z,
-        inf where nothing was hit) and instance ids (None with labels=False: the caller draws them
-        another way); `seconds` is the beauty render's time."""
+        """Cycles RGB (uint8, exposed and encoded as the raster's camera does: expose) plus the label
+        pass's depth (camera z, inf where nothing was hit) and instance ids (None with
+        labels=False: the caller draws them another way); `seconds` is the beauty render's time,
+        `gain` the exposure applied to Cycles' linear radiance."""
         import time as _time
-
-        from PIL import Image
 
         self._set_camera(camera)
         self.place_weather(tuple(float(v) for v in camera.center))
@@ -559,8 +1039,9 @@ class BlenderScene:
         try:
             self._run(self._beauty_tree)
             seconds = _time.perf_counter() - t0
-            with Image.open(self._single("beauty_")) as img:
-                rgb = np.asarray(img.convert("RGB")).copy()
+            road = road_pixels(camera, _read_exr_channel(self._single("beauty_", "depth")))
+            rgb, gain = expose(_read_exr_rgb(self._single("beauty_", "rgb")), self.scene, road)
+            self.bscene.view_settings.exposure = float(math.log2(gain))
             # The label pass runs before the fog comes back: with the same objects visible as in
             # the beauty render, Cycles (persistent data) reuses the beauty render's BVH instead
             # of building the city's again (about 2 s at 640 x 640 on the 2-core machine).
@@ -568,7 +1049,7 @@ class BlenderScene:
         finally:
             if skip_fog:
                 fog.hide_render = False
-        return {"rgb": rgb, "depth": depth, "instance": instance, "seconds": seconds}
+        return {"rgb": rgb, "depth": depth, "instance": instance, "seconds": seconds, "gain": gain}
 
     def _apply_quality(self) -> None:
         c, q = self.bscene.cycles, self.quality
@@ -597,8 +1078,6 @@ class BlenderScene:
         return os.path.join(self._tmp, files[0])
 
     def _labels(self, only_ids: set[int] | None) -> tuple[np.ndarray, np.ndarray]:
-        import OpenEXR
-
         c = self.bscene.cycles
         saved = (c.samples, c.use_denoising, c.max_bounces, c.filter_width, c.use_adaptive_sampling, c.use_light_tree)
         c.samples, c.use_denoising, c.max_bounces, c.filter_width, c.use_adaptive_sampling = 1, False, 0, 0.01, False
@@ -625,13 +1104,7 @@ class BlenderScene:
             for obj in hidden:
                 obj.hide_render = False
             c.samples, c.use_denoising, c.max_bounces, c.filter_width, c.use_adaptive_sampling, c.use_light_tree = saved
-        out = []
-        for name in ("depth", "index"):
-            with OpenEXR.File(self._single("labels_", name), separate_channels=True) as f:
-                ch = f.channels()
-                key = "R" if "R" in ch else ("V" if "V" in ch else next(iter(ch)))
-                out.append(np.asarray(ch[key].pixels, dtype=np.float32).copy())
-        depth, index = out
+        depth, index = (_read_exr_channel(self._single("labels_", name)) for name in ("depth", "index"))
         depth[depth >= 1e9] = np.inf
         return depth, np.rint(index).astype(np.uint16)
 
@@ -673,6 +1146,25 @@ class BlenderScene:
         path.parent.mkdir(parents=True, exist_ok=True)
         bpy.ops.wm.save_as_mainfile(filepath=str(path), check_existing=False, compress=True, copy=True)
         return path
+
+
+def _read_exr_rgb(path: str) -> np.ndarray:
+    """(H, W, 3) float32 of an RGB EXR, top row first (as Blender's File Output writes it)."""
+    import OpenEXR
+
+    with OpenEXR.File(path, separate_channels=True) as f:
+        ch = f.channels()
+        return np.stack([np.asarray(ch[c].pixels, dtype=np.float32) for c in "RGB"], axis=-1)
+
+
+def _read_exr_channel(path: str) -> np.ndarray:
+    """(H, W) float32 of a one-channel EXR (R, V or whichever it has)."""
+    import OpenEXR
+
+    with OpenEXR.File(path, separate_channels=True) as f:
+        ch = f.channels()
+        key = "R" if "R" in ch else ("V" if "V" in ch else next(iter(ch)))
+        return np.asarray(ch[key].pixels, dtype=np.float32).copy()
 
 
 def sun_rotation_for_azimuth(azimuth_deg: float) -> float:

@@ -38,7 +38,8 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 from OpenGL import GL as gl  # noqa: E402
 
-from omnigen.scenes.materials import SNOW, SNOW_BLEND  # noqa: E402
+from omnigen.scenes.materials import NOISE_SIZE, SNOW, SNOW_BLEND, SURFACE_WEIGHTS, noise_table  # noqa: E402
+from omnigen.scenes.road_wear import WEAR_CLEARED, WEAR_RUBBER, WEAR_STAIN  # noqa: E402
 
 ZNEAR, ZFAR = 0.25, 3000.0
 MSAA_SAMPLES = 4
@@ -46,17 +47,9 @@ SLOTS_PER_ROW = 1024  # material texture: slot s at (s % 1024, 2 * (s // 1024)) 
 AGENT_KINDS = -1  # the colour shader's build for agents (their parts are plain or car paint)
 MAX_LAMPS = 16  # street lamps lighting a frame (the nearest to the view)
 SHADOW_SIZE = 1024  # the sun's shadow map, texels a side
-NOISE_SIZE = 256  # the value-noise table, cells a side (it repeats)
-NOISE_SEED = 26  # fixed: the same surfaces on every machine and every run
 AE_TARGET = 0.18  # auto exposure: the frame's mean linear luminance it aims at (18% grey)
 AE_STRIDE = 4  # it meters every 4th pixel of every 4th row (a camera meters a coarse grid)
-# What traffic leaves on asphalt (the road-wear map, scenes/road_wear.py), at the map's full value:
-# an oil-soaked queue zone before a stop line is about half as bright as the lane around it (the
-# dark smudges of junction approaches), a lane's middle elsewhere about a fifth darker (OIL_BASE),
-# the rubber of the wheel paths a little darker; in snow, wheels clear 90% of it off their tracks.
-WEAR_STAIN = 0.45
-WEAR_RUBBER = 0.12
-WEAR_CLEARED = 0.9
+# What traffic leaves on asphalt: road_wear.WEAR_STAIN, WEAR_RUBBER and WEAR_CLEARED (shared with Cycles).
 # A lane's bands run along it, and a camera sees the road at a grazing angle: a pixel's footprint is
 # long along the view and narrow across it, so the map is filtered anisotropically (wear() in the
 # shader: as many lookups as the footprint is longer than wide, WEAR_TAPS at most, along its long
@@ -199,23 +192,7 @@ void main() {
 # same four noise octaves (two fetches) and one value per tile cell, and a pattern is a row of
 # weights (SURFACE_WEIGHTS, per vertex: indexing a constant array per pixel is a chain of selects
 # on llvmpipe) plus a few masked terms.
-# Per pattern (materials.PATTERNS order): amplitudes of the octaves at 0.6, 9 and 0.75 cells a
-# metre and of the 20 m patches (asphalt repairs, dry grass); a tile cell's tint amplitude, its
-# joints' darkness and their half width (m).
-SURFACE_WEIGHTS = np.array([
-    # amp: lo,  hi,   mid,  big    cell: tint, joint, half width
-    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # plain
-    [0.22, 0.22, 0.2, 1.0, 0.0, 0.0, 0.0],  # asphalt
-    [0.0, 0.05, 0.05, 0.0, 0.0, 0.0, 0.0],  # paint
-    [0.2, 0.0, 0.06, 0.0, 0.14, 0.45, 0.01],  # paving (kerb stones on its sides)
-    [0.4, 0.2, 0.1, 1.0, 0.0, 0.0, 0.0],  # grass
-    [0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # facade
-    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # glass
-    [0.2, 0.15, 0.0, 1.0, 0.0, 0.0, 0.0],  # roof
-    [0.55, 0.3, 0.0, 0.0, 0.0, 0.0, 0.0],  # foliage
-    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # car paint
-    [0.2, 0.0, 0.05, 0.0, 0.12, 0.4, 0.008],  # concrete
-], dtype=np.float32)
+# Per pattern: materials.SURFACE_WEIGHTS, shared with Cycles' surface material.
 
 
 def surface_attributes(rows: np.ndarray) -> np.ndarray:
@@ -837,14 +814,7 @@ class GLRaster:
     @staticmethod
     def _noise_texture() -> int:
         """The value-noise table as a repeating, mipmapped single-channel float texture."""
-        rng = np.random.default_rng(NOISE_SEED)
-        fine = rng.random((NOISE_SIZE, NOISE_SIZE))
-        # a periodic Gaussian blur (sigma 4 cells) of another table, ranked back to uniform [0, 1)
-        k = np.fft.fftfreq(NOISE_SIZE)
-        blur = np.exp(-2.0 * (np.pi * 4.0) ** 2 * (k[:, None] ** 2 + k[None, :] ** 2))
-        coarse = np.fft.ifft2(np.fft.fft2(rng.random((NOISE_SIZE, NOISE_SIZE))) * blur).real
-        coarse = np.argsort(np.argsort(coarse, axis=None, kind="stable"), kind="stable").reshape(coarse.shape) / coarse.size
-        values = np.ascontiguousarray(np.stack([fine, coarse], axis=-1), dtype=np.float32)
+        values = noise_table()
         tex = gl.glGenTextures(1)
         gl.glBindTexture(gl.GL_TEXTURE_2D, tex)
         gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_RG32F, NOISE_SIZE, NOISE_SIZE, 0, gl.GL_RG, gl.GL_FLOAT, values.tobytes())

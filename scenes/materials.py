@@ -8,13 +8,16 @@ Weather on surfaces: wetness darkens a surface (water fills its pores: up to 40%
 makes it glossy (roughness down to 20%); snow cover blends upward-facing surfaces (roads,
 sidewalks, lawns, roofs, ground) towards snow white (SNOW_BLEND * snow_cover). The raster shader
 undoes that blend on the ground's roles and lays the snow in patches instead, snow_cover of the
-area, with wheel tracks cleared (scenes/road_wear.py); Cycles keeps the blend. Night: lit windows, street lamps, vehicle
-head- and taillights and bus signs emit; traffic signals always do.
+area, with wheel tracks cleared (scenes/road_wear.py); Cycles keeps the blend and hides the
+surface pattern under it. Night: lit windows, street lamps, vehicle head- and taillights and bus
+signs emit; traffic signals always do.
 
 Surfaces: beside its Material, a part's role names a procedural surface pattern (Surface):
 asphalt, worn paint, paving with kerb stones, grass, facades with storey bands, window glass,
-roofs, foliage, car paint, concrete. The raster shader draws them from world position alone
-(scenes/gl_raster.py), so a surface looks the same from every camera and every frame. Asphalt's
+roofs, foliage, car paint, concrete. Both backends draw them from world position alone, from the
+same data (SURFACE_WEIGHTS, noise_table, road_wear.py's map): the raster shader
+(scenes/gl_raster.py) and Cycles' surface material (scenes/blender_backend.py), so a surface
+looks the same from every camera, every frame and in both backends. Asphalt's
 albedo is that of aged asphalt (about 0.077, 1.7 times a fresh surface's 0.045; the shader adds
 darker resurfaced stretches and lighter worn ones): roads people drive on are worn grey, not
 black; both backends get it from ground_material.
@@ -246,3 +249,50 @@ def furniture_surface(role: str) -> Surface:
 
 def agent_surface(role: str) -> Surface:
     return Surface("car_paint") if role == "paint" else Surface()
+
+
+# What each pattern reads of the shared noise and tile terms, materials.PATTERNS order: amplitudes
+# of the noise octaves at 0.6, 9 and 0.75 cells a metre and of the 20 m patches (asphalt repairs,
+# dry grass); a tile cell's tint amplitude, its joints' darkness and their half width (m). Both
+# backends draw surfaces from it: the raster shader (gl_raster.surface_attributes and its per-pattern
+# builds) and Cycles' surface material (blender_backend), so a road has the same grain in both.
+SURFACE_WEIGHTS = np.array([
+    # amp: lo,  hi,   mid,  big    cell: tint, joint, half width
+    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # plain
+    [0.22, 0.22, 0.2, 1.0, 0.0, 0.0, 0.0],  # asphalt
+    [0.0, 0.05, 0.05, 0.0, 0.0, 0.0, 0.0],  # paint
+    [0.2, 0.0, 0.06, 0.0, 0.14, 0.45, 0.01],  # paving (kerb stones on its sides)
+    [0.4, 0.2, 0.1, 1.0, 0.0, 0.0, 0.0],  # grass
+    [0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # facade
+    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # glass
+    [0.2, 0.15, 0.0, 1.0, 0.0, 0.0, 0.0],  # roof
+    [0.55, 0.3, 0.0, 0.0, 0.0, 0.0, 0.0],  # foliage
+    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],  # car paint
+    [0.2, 0.0, 0.05, 0.0, 0.12, 0.4, 0.008],  # concrete
+], dtype=np.float32)
+NOISE_SIZE = 256  # the value-noise table, cells a side (it repeats)
+NOISE_SEED = 26  # fixed: the same surfaces on every machine, every run and in both backends
+
+
+def noise_table() -> np.ndarray:
+    """The surfaces' value-noise table, (NOISE_SIZE, NOISE_SIZE, 2) float32 in [0, 1): a fine
+    channel (white noise, one value a cell) and a coarse one (a periodic Gaussian blur, sigma 4
+    cells, of another table, ranked back to uniform). Made from NOISE_SEED alone, nothing
+    downloaded; sampled bilinearly as a repeating texture, so N(p * f) is noise with f cells a metre."""
+    rng = np.random.default_rng(NOISE_SEED)
+    fine = rng.random((NOISE_SIZE, NOISE_SIZE))
+    k = np.fft.fftfreq(NOISE_SIZE)
+    blur = np.exp(-2.0 * (np.pi * 4.0) ** 2 * (k[:, None] ** 2 + k[None, :] ** 2))
+    coarse = np.fft.ifft2(np.fft.fft2(rng.random((NOISE_SIZE, NOISE_SIZE))) * blur).real
+    coarse = np.argsort(np.argsort(coarse, axis=None, kind="stable"), kind="stable").reshape(coarse.shape) / coarse.size
+    return np.ascontiguousarray(np.stack([fine, coarse], axis=-1), dtype=np.float32)
+
+
+def part_surface(kind: str, role: str, city: City, building: Building | None = None) -> Surface:
+    """The procedural surface of a part: an object of `kind` (ground, markings, building,
+    furniture, agent), its `role`, and the building it belongs to for kind "building"."""
+    if kind in ("ground", "markings"):
+        return ground_surface(role, city)
+    if kind == "building":
+        return building_surface(role, building)
+    return agent_surface(role) if kind == "agent" else furniture_surface(role)

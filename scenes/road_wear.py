@@ -1,4 +1,4 @@
-"""What traffic leaves on a road, as a map over the city that the raster shader reads for asphalt.
+"""What traffic leaves on a road, as a map over the city that both backends read for asphalt.
 
 A real road is not one grey. Vehicles drip oil, coolant and brake dust between their wheels, so
 each driving lane has a darker band along its middle, darkest over the last tens of metres before
@@ -8,16 +8,16 @@ gutter along a kerb collects grit, leaves and standing water. After a snowfall t
 wheel paths down to wet asphalt long before the rest of the road: dark tracks through white.
 
 Made once per city from its lanes, stop lines, roads and junctions (pure geometry: the same map on
-every machine and every run, no random draw), on a WEAR_CELL grid; the shader (gl_raster surface(),
-asphalt only) reads two channels:
+every machine and every run, no random draw), on a WEAR_CELL grid; the raster shader (gl_raster
+surface(), asphalt only) and Cycles (blender_backend's surface material, an image) read two channels:
 - r, stain: the lane-middle band (a Gaussian across the lane, OIL_SD) at OIL_BASE of full strength
   along the lane, rising to full over the QUEUE_REACH metres before a stop line (decaying
   upstream, as the queue thins), and the gutter (GUTTER_WIDTH from each kerb, not across junctions);
 - g, wheel tracks: two Gaussians (TRACK_SD) at +-TRACK_HALF from each driving lane's middle (half
   a car's track width), and at least JUNCTION_CHURN over a junction's box, where turning
   vehicles cross every part of it (in snow: churned slush, not a grid of tracks).
-How dark each makes the asphalt, and how much snow the tracks clear, is the shader's (gl_raster
-WEAR_*).
+How dark each makes the asphalt, and how much snow the tracks clear: WEAR_* below, which the raster
+shader (gl_raster) and Cycles' surface material (blender_backend) apply alike.
 """
 
 from __future__ import annotations
@@ -35,6 +35,14 @@ TRACK_HALF = 0.8  # m: half a car's track width (1.5-1.6 m)
 TRACK_SD = 0.18  # m: the spread of the wheel paths (tyre width and lateral wander)
 GUTTER_WIDTH = 0.45  # m: the grimy band along each kerb
 JUNCTION_CHURN = 0.6  # the wheel-track value all over a junction's box: turning traffic runs everywhere there
+# What the map does to asphalt, at its full value (both backends: gl_raster's shader and Cycles'
+# surface material): an oil-soaked queue zone before a stop line is about half as bright as the lane
+# around it (the dark smudges of junction approaches), a lane's middle elsewhere about a fifth
+# darker (OIL_BASE), the rubber of the wheel paths a little darker; in snow, wheels clear 90% of
+# it off their tracks (the raster's snow patches). On albedo a: a (1 - STAIN s - RUBBER t + STAIN RUBBER s t).
+WEAR_STAIN = 0.45
+WEAR_RUBBER = 0.12
+WEAR_CLEARED = 0.9
 
 
 def _frame(shape: tuple[int, int], x0: float, y0: float, cell: float):

@@ -11,6 +11,7 @@ Agg canvas only. Each figure is written as a PNG beside index.html.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any, Callable
 
@@ -19,6 +20,7 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
+from omnigen.files import atomic_write_bytes
 from omnigen.stats.compute import OCCLUSION_LEVEL_NAMES
 
 DPI = 80
@@ -35,8 +37,11 @@ def _fig(w: float, h: float, ncols: int = 1, nrows: int = 1, left: float = 0.7, 
 
 
 def _save(fig: Figure, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, format="png")
+    """Drawn into memory, then written by temporary name and rename: savefig(path) would write
+    through whatever file the name already is, a hard link into another tree included."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    atomic_write_bytes(path, buf.getvalue(), durable=False)  # stats.json, written last, is the durable one
 
 
 def _log_x(ax) -> None:
@@ -53,6 +58,17 @@ def _bars_from_hist(ax, h: dict[str, Any], color: str = BLUE, log_x: bool = Fals
     if log_x:
         _log_x(ax)
     ax.set_ylabel("count")
+
+
+def _hist_or_value(ax, h: dict[str, Any], label: str, color: str = BLUE) -> None:
+    """A histogram, or, where every value is the same (a rig's fixed roll, fog off in every frame),
+    that value written out: a single bar of a unit-wide axis read as an empty plot."""
+    s = h.get("summary") or {}
+    if s.get("n") and s.get("min") == s.get("max"):
+        _empty(ax, f"{label}:\nall {s['n']} values {s['min']:g}")
+        return
+    _bars_from_hist(ax, h, color=color)
+    ax.set_xlabel(label)
 
 
 def _empty(ax, text: str = "no data") -> None:
@@ -212,8 +228,7 @@ def plot_camera(sec: dict[str, Any], stats: dict[str, Any], path: Path) -> None:
     cam = sec["camera"]
     for a, key in zip(ax.flat, CAMERA_LABELS):
         if cam[key]["summary"]["n"]:
-            _bars_from_hist(a, cam[key], color=BLUE)
-            a.set_xlabel(CAMERA_LABELS[key])
+            _hist_or_value(a, cam[key], CAMERA_LABELS[key])
         else:
             _empty(a, f"{CAMERA_LABELS[key]}:\nnot recorded")
     a = ax[1, 2]
@@ -269,7 +284,7 @@ def plot_conditions(sec: dict[str, Any], stats: dict[str, Any], path: Path) -> N
             a.bar(list(v["counts"]), list(v["counts"].values()), color=BLUE)
             a.tick_params(axis="x", labelsize=7, rotation=30)
         else:
-            _bars_from_hist(a, v, color=BLUE)
+            _hist_or_value(a, v, "value")
         a.set_title(title, fontsize=9)
     if not items:
         ax[0, 0].set_visible(True)

@@ -148,7 +148,7 @@ def _egl_or_skip():
 def test_scripts_end_to_end_at_tiny_size(tmp_path, capsys):
     _egl_or_skip()
     work, out = tmp_path / "work", tmp_path / "realism.json"
-    args = ["--frames", "2", "--size", "96", "--work", str(work), "--no-classes", "--scene", "tiny"]
+    args = ["--frames", "2", "--size", "96", "--work", str(work), "--no-classes", "--scene", "tiny", "--cycles-frames", "0"]
     assert br.main(args + ["--realdata", str(tmp_path / "none"), "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "KITTI comparison skipped" in text and "DAIR-V2X comparison skipped" in text
@@ -177,3 +177,63 @@ def test_scripts_end_to_end_at_tiny_size(tmp_path, capsys):
     for name in ("realism-ego.png", "realism-pole.png"):
         assert 0 < (figs / name).stat().st_size < 400 * 1024
     assert image.stat().st_mtime_ns == before
+
+
+def test_road_mask_keeps_background_pixels_on_the_ground_plane():
+    """A level camera 1.5 m up over flat ground (plane n = (0, -1, 0), offset 1.5 in its frame):
+    pixels below the horizon whose depth meets the ground are road; a kerb-high (0.15 m) point, an
+    agent's pixel and the sky are not."""
+    K = np.array([[50.0, 0.0, 31.5], [0.0, 50.0, 23.5], [0.0, 0.0, 1.0]])
+    v = np.mgrid[0:48, 0:64][0].astype(np.float64)
+    down = (v - 23.5) / 50.0
+    depth = np.where(down > 0, 1.5 / np.where(down > 0, down, 1.0), np.inf)  # the ground's camera z
+    instance = np.zeros((48, 64), np.uint16)
+    instance[40:, :8] = 3
+    depth[30, 10] = (1.5 - 0.15) / down[30, 10]  # a sidewalk's top
+    mask = br.road_mask(depth, instance, K, (0.0, -1.0, 0.0), 1.5)
+    assert mask[24:].sum() == 24 * 64 - 8 * 8 - 1 and not mask[:24].any()
+    assert not mask[30, 10] and not mask[45, 3]
+
+
+def test_ground_strip_is_the_lane_ahead():
+    """KITTI's stand-in road: pixels whose ray meets the ground 5-20 m ahead, within 2 m of the axis."""
+    K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 10.0], [0.0, 0.0, 1.0]])
+    m = br.ground_strip(K, 101, 60, camera_height=1.65, ahead=(5.1, 20.0), half_width=2.0)
+    # on the axis (column 50): rows 10 + 100 * 1.65 / d for d in [5.1, 20]: 18.25 .. 42.35
+    assert np.nonzero(m[:, 50])[0].tolist() == list(range(19, 43))
+    # row 26 meets the ground 1.65 / 0.16 = 10.3 m ahead, where +-2 m is +-19.4 px
+    assert np.nonzero(m[26])[0].tolist() == list(range(31, 70))
+
+
+def test_road_summary_counts_frames_in_kittis_range():
+    r = br.road_summary([60.0, 90.0, 240.0], (78.6, 231.6))
+    assert r["median"] == 90.0 and r["in_range"] == 1 and r["in_span"] and r["per_frame"] == [60.0, 90.0, 240.0]
+    assert not br.road_summary([60.0, 70.0], (78.6, 231.6))["in_span"]
+    assert br.road_summary([], None) == {"frames": 0, "per_frame": [], "median": None, "in_range": None, "in_span": None}
+    line = br.road_line({"ego (cycles)": br.road_summary([250.0], (78.6, 231.6))}, (78.6, 231.6), ["ego (cycles)"])
+    assert line == "realism: ego (cycles) road median 250.0 OUT of range (KITTI's road p10-p90 78.6-231.6)"
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_cycles_rows_end_to_end_at_tiny_size(tmp_path, capsys):
+    """The Cycles rows: one ego frame through `omnigen render --backend cycles`, its road median
+    and seconds per frame printed, in the JSON, and the render reused on a second run."""
+    pytest.importorskip("bpy", reason="bpy not installed")
+    _egl_or_skip()
+    work, out = tmp_path / "work", tmp_path / "realism.json"
+    args = ["--frames", "1", "--size", "48", "--work", str(work), "--no-classes", "--scene", "tiny",
+            "--cycles-frames", "1", "--cycles-size", "64", "--cycles-rigs", "ego", "--realdata", str(REALDATA), "--out", str(out)]
+    assert br.main(args) == 0
+    text = capsys.readouterr().out
+    assert "cycles rows: 1 frames a rig at 64x64" in text and "ego (cycles)" in text
+    res = json.loads(out.read_text())
+    road = res["road_luminance"]
+    assert road["sets"]["ego (cycles)"]["frames"] == 1 and road["cycles_seconds_per_frame"]["ego (cycles)"] > 0
+    assert set(res["images"]) >= {"ego", "pole", "drone", "ego (cycles)"}
+    if road["kitti_p10_p90"] is not None:
+        lo, hi = road["kitti_p10_p90"]
+        assert 0 < lo < hi <= 255 and "road median" in text.strip().splitlines()[-2]
+    image = next((work / "cycles-ego-1-64-s0-tiny" / "images").glob("*.png"))
+    before = image.stat().st_mtime_ns
+    assert br.main(args) == 0
+    assert image.stat().st_mtime_ns == before  # reused

@@ -489,3 +489,19 @@ def test_image_check_reports_a_fifo_instead_of_waiting_on_it(tmp_path):
     assert result, "the image check waited on a FIFO"
     unreadable = next(c for c in result[0] if c["name"] == "images_unreadable")
     assert unreadable["count"] == 1 and unreadable["examples"][0]["frame_id"] == ds.table.frame_id[1]
+
+
+def test_a_single_valued_field_is_written_out_not_drawn_as_an_empty_axis():
+    """Fog off in every frame drew one thin bar on a unit-wide axis, read as an empty plot."""
+    from matplotlib.figure import Figure
+
+    from omnigen.stats.compute import histogram, linear_edges, summary
+    from omnigen.stats.plots import _hist_or_value
+
+    constant, spread = np.zeros(5), np.array([0.0, 0.1, 0.2, 0.3, 0.4])
+    for values, drawn in ((constant, False), (spread, True)):
+        ax = Figure().subplots()
+        _hist_or_value(ax, {**histogram(values, linear_edges(values, bins=12)), "summary": summary(values)}, "fog")
+        texts = [t.get_text() for t in ax.texts]
+        assert bool(ax.patches) == drawn
+        assert (texts == ["fog:\nall 5 values 0"]) != drawn
