@@ -45,6 +45,7 @@ class Detection:
     score: float
     bbox: np.ndarray | None  # (4,) xywh
     keypoints: np.ndarray | None  # (8, 3)
+    file_name: str | None = None  # the image's file name, as `omnigen predict` writes it beside each detection
 
     @property
     def has_ground(self) -> bool:
@@ -72,7 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("predictions", type=Path, help="COCO-results JSON (image_id, category_id, keypoints, bbox, score)")
     parser.add_argument("--out", type=Path, required=True,
                         help="new or empty folder (or one of an earlier bev) for <image_id>.json and <image_id>.png")
-    parser.add_argument("--images", type=Path, default=None, help="folder holding <image_id>.png/.jpg to draw under")
+    parser.add_argument("--images", type=Path, default=None,
+                        help="folder of the pictures to draw under: the files the predictions name (file_name, as "
+                             "omnigen predict writes it), else <image_id>.png/.jpg")
     parser.add_argument("--score-thr", type=fraction(), default=0.25,
                         help="drop detections scoring below, in [0, 1] (default 0.25)")
     parser.add_argument("--taxonomy", default="fine", help="taxonomy whose classes category_id counts (default fine)")
@@ -116,16 +119,24 @@ def load_predictions(path: Path, n_classes: int) -> list[Detection]:
             raise ValueError(f"{path}: entry {i}: field 'bbox': width and height must be positive, got {bbox.tolist()}")
         if bbox is None and (kp is None or not (kp[:, 2] > 0).any()):
             raise ValueError(f"{path}: entry {i}: field 'bbox' is missing and there are no keypoints to place it by")
-        out.append(Detection(i, image_id, cid, float(score), bbox, kp))
+        file_name = entry.get("file_name")
+        if file_name is not None and (not isinstance(file_name, str) or not Path(file_name).name):
+            raise ValueError(f"{path}: entry {i}: field 'file_name': expected a file name, got {str(file_name)[:80]!r}")
+        out.append(Detection(i, image_id, cid, float(score), bbox, kp, file_name))
     return out
 
 
-def find_image(folder: Path | None, image_id: int | str) -> Path | None:
+def find_image(folder: Path | None, image_id: int | str, file_name: str | None = None) -> Path | None:
+    """The picture of one image in `folder` (--images): by the name of the file the predictions
+    were made from (`omnigen predict` writes it beside each detection; its ids are numbers), else
+    named by its image id. Only `folder` is searched, by a base name: a path in a predictions file
+    is never opened as it stands (a file names nothing outside the inputs it was given)."""
     if folder is None:
         return None
-    for suffix in IMAGE_SUFFIXES:
-        p = folder / f"{image_id}{suffix}"
-        if p.exists():
+    names = ([Path(file_name).name] if file_name else []) + [f"{image_id}{suffix}" for suffix in IMAGE_SUFFIXES]
+    for name in names:
+        p = folder / name
+        if p.is_file():
             return p
     return None
 
@@ -174,14 +185,18 @@ def placeholder_size(points: np.ndarray) -> tuple[int, int]:
     return tuple(int(min(max(v, 1), PLACEHOLDER_MAX_SIDE)) for v in far)
 
 
-def draw_image(out: dict[str, Any], image_id: int | str, images: Path | None) -> tuple[Any, str | None]:
+def draw_image(out: dict[str, Any], image_id: int | str, images: Path | None,
+               file_name: str | None = None) -> tuple[Any, str | None]:
     """One image's BEV figure (a PIL image), and why its picture is not under it (None when it is,
     or when there is none to draw). Raises ValueError when the figure would be too large to draw."""
     from omnigen.detector.bev_draw import BevScene, render_bev_figure
     from omnigen.images import ImageError, read_rgb
 
-    path = find_image(images, image_id)
+    path = find_image(images, image_id, file_name)
     image, problem = None, None
+    if path is None and images is not None:
+        wanted = Path(file_name).name if file_name else f"{image_id}.png"
+        problem = f"image {image_id}: no {wanted} in {images}; the BEV is drawn on a grey canvas"
     if path is not None:
         try:
             image = read_rgb(path)  # size-capped before decoding (omnigen.images)
@@ -217,7 +232,7 @@ def run(args: argparse.Namespace) -> int:
         res = out["result"]
         if not args.no_draw:
             try:
-                figure, problem = draw_image(out, image_id, args.images)
+                figure, problem = draw_image(out, image_id, args.images, group[0].file_name)
                 save_image(figure, args.out / f"{image_id}.png", "bev")
             except ValueError as exc:  # too large a figure: the JSON stands, the picture is not drawn
                 problem = f"{exc}; not drawn"
@@ -234,4 +249,7 @@ def run(args: argparse.Namespace) -> int:
                 shown + ([("...", "", "", "", "", "")] if len(rows) > 20 else []) +
                 [("all", footprints, sum(r[2] for r in rows),
                   "", f"{sum(r[4] == 'yes' for r in rows)} of {len(rows)}", skipped)])
+    if args.images is None and not args.no_draw:
+        print("no --images: the BEVs are drawn on grey; pass the folder the predictions were made from to draw them "
+              "under their pictures")
     return 1 if skipped else 0

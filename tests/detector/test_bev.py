@@ -253,3 +253,24 @@ def test_the_bev_caption_wraps_whole_words_to_the_panel():
     assert " ".join(lines) == " ".join(words) and len(lines) > 1
     assert all(draw.textlength(line, font=font(11)) <= 200 for line in lines)
     assert wrap_words(draw, words, font(11), 10_000) == [" ".join(words)]
+
+
+def test_bev_finds_the_pictures_predict_read_by_their_file_names(tmp_path, capsys):
+    """`omnigen predict` numbers its images and names each detection's file: bev looked for
+    <image_id>.png and drew every picture on grey ("[no image]") without a word on the console."""
+    from PIL import Image
+
+    f = synthetic_frame(np.random.default_rng(33), n=4, classes=("car",))
+    path, preds = _write_predictions(tmp_path, f, n_2d=0)
+    for entry in preds:
+        entry["image_id"], entry["file_name"] = 1, str(tmp_path / "elsewhere" / "frame-a.jpg")
+    path.write_text(json.dumps(preds + [dict(preds[0], image_id=2, file_name="missing.png")]))
+    images = tmp_path / "images"
+    images.mkdir()
+    Image.new("RGB", (1280, 720), (200, 30, 30)).save(images / "frame-a.jpg")
+    code = _run_bev([str(path), "--out", str(tmp_path / "bev"), "--images", str(images)])
+    with Image.open(tmp_path / "bev" / "1.png") as im:
+        assert (np.asarray(im.convert("RGB"))[:, :, 0] > 150).mean() > 0.2  # drawn over its own red picture
+    err = capsys.readouterr().err
+    assert "image 2: no missing.png in" in err and "frame-a" not in err
+    assert code == 1  # a picture asked for and not found is reported
