@@ -26,6 +26,7 @@ from omnigen.files import LINK_MODES, atomic_write_bytes, link_file
 from omnigen.images import ImageError, check_image
 from omnigen.index import IndexRows
 from omnigen.options import integer
+from omnigen.outputs import refuse_inputs
 from omnigen.ownership import claim_output, manifest_of
 from omnigen.progress import print_table, progress
 from omnigen.record import FrameRecord, RecordError
@@ -180,8 +181,12 @@ def run_conversion(
     manifest_extra: dict[str, Any] | None = None,
     workers: int = 1,
     durable: bool = True,
+    inputs: Sequence[str | os.PathLike] = (),
 ) -> ConversionReport:
     """Convert every key, write the dataset, and return the report (skips included).
+
+    `inputs` are the source tree (and image folder) read: `out` may not be one of them, lie inside
+    one, or hold one (omnigen.outputs.refuse_inputs), since a rerun deletes what it no longer holds.
 
     With strict=True the first SourceError or RecordError propagates and nothing is finalized.
 
@@ -204,6 +209,7 @@ def run_conversion(
     start = time.perf_counter()
     converter = (manifest_extra or {}).get("conversion", {}).get("converter", "")
     job = f"convert {converter}".strip()
+    refuse_inputs(out, inputs, job)
     # an output from before the marker is recognised by its converter's name, never by a missing one
     claim_output(out, job, lambda folder: bool(converter)
                  and manifest_of(folder).get("conversion", {}).get("converter") == converter)

@@ -890,6 +890,7 @@ def run(args: argparse.Namespace) -> int:
     conversion = {"converter": "dair", "source": converter.source, "label": o.label,
                   "fallback_virtuallidar": o.fallback_virtuallidar, "group_by": o.group_by, "group_gap_s": o.group_gap_s}
     report = run_conversion(keys, converter.convert, args.out, link=args.link, strict=args.strict,
+                            inputs=[args.src] + ([args.images] if args.images else []),
                             desc=f"dair {converter.source}", manifest_extra={"conversion": conversion},
                             workers=args.workers, durable=args.durable)
     code = print_report(f"convert dair ({converter.source}) -> {args.out}", report)

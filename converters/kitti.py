@@ -502,7 +502,7 @@ def run(args: argparse.Namespace) -> int:
     converter = KittiConverter(source, args.split)
     keys = select_keys(converter.keys(), args.limit, args.src, f"{args.split} frames")
     report = run_conversion(keys, converter.convert_one, args.out, link=args.link, strict=args.strict,
-                            desc=f"kitti {args.split}",
+                            inputs=[args.src], desc=f"kitti {args.split}",
                             manifest_extra={"conversion": {"converter": "kitti", "split": args.split}},
                             workers=args.workers, durable=args.durable)
     s = report.stats

@@ -24,10 +24,10 @@ import numpy as np
 from omnigen.detector.results_file import read_results
 from omnigen.conventions import FINE_CLASSES, NUM_KEYPOINTS
 from omnigen.dataset import Dataset
-from omnigen.files import atomic_write_bytes, atomic_write_text
+from omnigen.files import atomic_write_bytes
 from omnigen.formats.checks import naming_frame
 from omnigen.formats.kitti import kitti_file_names, label_text
-from omnigen.outputs import MARK_KEY, check_output_file, json_made_by
+from omnigen.outputs import MARK_KEY, check_output_file, json_made_by, write_output_file
 from omnigen.progress import print_table
 from omnigen.splits import TRAIN, read_split, split_names
 from omnigen.taxonomy import Taxonomy, load_taxonomy
@@ -325,8 +325,8 @@ def keypoint_metrics_of(args: argparse.Namespace, ds: Dataset, taxonomy: Taxonom
 
 
 def run(args: argparse.Namespace) -> int:
+    inputs = [args.predictions, args.dataset] + ([args.priors] if args.priors is not None else [])
     if args.out is not None:  # before the lifts: a refused --out costs nothing
-        inputs = [args.predictions, args.dataset] + ([args.priors] if args.priors is not None else [])
         check_output_file(args.out, JOB, json_made_by(JOB), inputs)
     ds = Dataset.open(args.dataset)
     priors, priors_from = load_priors(ds, args.priors)
@@ -359,11 +359,11 @@ def run(args: argparse.Namespace) -> int:
           "to the true ground plane.\nKeypoint metrics (OKS mAP50:95 and the rest) are identical in every row: "
           "the 2D predictions do not change, only the K they are lifted with.")
     if args.out is not None:
-        atomic_write_text(args.out, json.dumps({
+        write_output_file(args.out, (json.dumps({
             MARK_KEY: JOB, "dataset": str(args.dataset), "predictions": str(args.predictions), "split": args.split,
             "views": args.views, "sources": args.sources, "frames": len(frames), "priors_from": priors_from,
             "priors": priors.to_dict(), "perturbations": results,
             "keypoint_metrics": keypoint_metrics,
             "keypoint_metrics_note": "identical in every row by construction: the same 2D predictions",
-        }, indent=2, allow_nan=False) + "\n")
+        }, indent=2, allow_nan=False) + "\n").encode(), JOB, json_made_by(JOB), inputs)
     return 0

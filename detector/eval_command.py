@@ -25,7 +25,6 @@ from typing import TYPE_CHECKING, Any
 import orjson
 
 from omnigen.detector.predict_command import BATCH_MAX, IMGSZ_STEP, input_size
-from omnigen.files import atomic_write_bytes
 from omnigen.options import integer
 
 if TYPE_CHECKING:
@@ -77,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     from omnigen.detector.box_template import evaluate_with_baseline, fit_box_template, training_frames
     from omnigen.detector.oks_eval import evaluate
     from omnigen.dataset import Dataset, DatasetError
-    from omnigen.outputs import check_output_file, json_made_by
+    from omnigen.outputs import check_output_file, json_made_by, write_output_file
     from omnigen.progress import print_table
     from omnigen.taxonomy import load_taxonomy
 
@@ -149,7 +148,8 @@ def run(args: argparse.Namespace) -> int:
         if baseline is not None:
             doc["baseline"] = baseline.to_dict()
             doc["baseline_template"] = template.to_dict()
-        atomic_write_bytes(args.out, orjson.dumps(doc, option=orjson.OPT_INDENT_2) + b"\n")
+        write_output_file(args.out, orjson.dumps(doc, option=orjson.OPT_INDENT_2) + b"\n", "eval", json_made_by("eval"),
+                          inputs=[args.predictions, args.dataset])
         print(f"wrote {args.out} ({wall:.1f} s)")
     return 0
 

@@ -29,8 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from omnigen.detector.kitti_eval import CLASSES, DIFFICULTIES, METRICS, evaluate, read_folders, read_ids
-    from omnigen.files import atomic_write_text
-    from omnigen.outputs import MARK_KEY, check_output_file, json_made_by
+    from omnigen.outputs import MARK_KEY, check_output_file, json_made_by, write_output_file
     from omnigen.progress import print_table
 
     for what, folder in (("--gt", args.gt), ("--pred", args.pred)):
@@ -40,8 +39,8 @@ def run(args: argparse.Namespace) -> int:
     if args.ids is not None and not args.ids.is_file():
         print(f"omnigen eval-kitti: --ids {args.ids} not found", file=sys.stderr)
         return 2
+    inputs = [args.gt, args.pred] + ([args.ids] if args.ids is not None else [])
     if args.out is not None:  # before the evaluation: a refused --out costs nothing
-        inputs = [args.gt, args.pred] + ([args.ids] if args.ids is not None else [])
         check_output_file(args.out, JOB, json_made_by(JOB), inputs)
     start = time.perf_counter()
     ids, gts, preds = read_folders(args.gt, args.pred, read_ids(args.ids) if args.ids else None)
@@ -53,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
         print_table(f"KITTI {kind} (%): {len(ids):,} frames, {sum(len(p) for p in preds):,} detections "
                     f"({seconds:.1f} s)", columns, rows)
     if args.out is not None:
-        atomic_write_text(args.out, json.dumps({MARK_KEY: JOB, **result}, indent=2, allow_nan=False) + "\n")
+        write_output_file(args.out, (json.dumps({MARK_KEY: JOB, **result}, indent=2, allow_nan=False) + "\n").encode(),
+                          JOB, json_made_by(JOB), inputs)
         print(f"wrote {args.out}")
     return 0

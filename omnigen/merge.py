@@ -36,6 +36,7 @@ from omnigen.conventions import FINE_CLASSES
 from omnigen.dataset import MANIFEST, Dataset, DatasetError, read_manifest, read_record_bytes, record_path
 from omnigen.files import dumps_json, link_file
 from omnigen.images import MAX_IMAGE_BYTES
+from omnigen.outputs import refuse_inputs
 from omnigen.ownership import claim_output, manifest_of, output_lock
 from omnigen.progress import progress
 from omnigen.splits import (SPLITS_DIR, SourceShare, assign_test_split, read_assignments, read_id_list, split_shares,
@@ -190,6 +191,7 @@ def merge(
     The whole merge holds the lock on `out`: a second merge into it at the same time fails at once.
     """
     out = Path(out)
+    refuse_inputs(out, [*sources, *(split_files or [])], "merge")  # a rerun deletes what it no longer holds
     claim_output(out, "merge", _made_by_merge, mark=False)  # a folder not ours is refused before the lock makes it
     with output_lock(out, "merge"):
         return _merge(sources, out, taxonomy, test_fraction, seed, split_files, update, link)

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 from omnigen.files import atomic_write_bytes
+from omnigen.untrusted import UntrustedFileError, open_regular
 
 MARK_KEY = "omnigen"  # the PNG text chunk and ONNX metadata key that name the job which wrote a file
 MARK_PREFIX_BYTES = 1 << 16  # how much of an existing file is read to find its mark
@@ -103,18 +104,21 @@ def check_output_file(out: str | os.PathLike, job: str, made_by_job: Callable[[P
 
 
 def read_prefix(path: Path, size: int = MARK_PREFIX_BYTES) -> bytes:
-    """The first `size` bytes of a regular file (b"" for anything unreadable): what a mark is
-    looked for in, so a check never reads a large file whole."""
+    """The first `size` bytes of a regular file (b"" for anything else or unreadable): what a mark
+    is looked for in, so a check never reads a large file whole, nor waits on a FIFO."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-    except OSError:
+        with open_regular(path, max_bytes=1 << 62) as fh:
+            return fh.read(size)
+    except (OSError, UntrustedFileError):
         return b""
-    try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
-            return b""
-        return os.read(fd, size)
-    finally:
-        os.close(fd)
+
+
+def write_output_file(out: str | os.PathLike, data: bytes, job: str, made_by_job: Callable[[Path], bool],
+                      inputs: Iterable[str | os.PathLike] = ()) -> None:
+    """Write a single-file output, checked again just before the rename: a command checks its
+    output before its work (a refusal costs nothing), and an evaluation can take hours, in which a
+    file of the user's may have appeared at that name."""
+    atomic_write_bytes(check_output_file(out, job, made_by_job, inputs), data)
 
 
 # -- marks in the file formats omnigen writes -----------------------------------------------------
@@ -169,9 +173,16 @@ def json_made_by(job: str) -> Callable[[Path], bool]:
     return check
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+"""What save_image writes: the two formats that carry a job's mark (a PNG text chunk, a JPEG comment)."""
+
+
 def save_image(image, path: str | os.PathLike, job: str, **options) -> None:
-    """Save a PIL image atomically, with `job`'s mark: PNG or JPEG by the file's suffix."""
+    """Save a PIL image atomically, with `job`'s mark: PNG or JPEG by the file's suffix (anything
+    else is refused: it would be PNG bytes under another format's name)."""
     path = Path(path)
+    if path.suffix.lower() not in IMAGE_SUFFIXES:
+        raise OutputError(f"{path}: 'omnigen {job}' writes PNG or JPEG pictures; name the file .png or .jpg")
     fmt = "JPEG" if path.suffix.lower() in (".jpg", ".jpeg") else "PNG"
     buf = io.BytesIO()
     if fmt == "PNG":

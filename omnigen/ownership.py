@@ -20,8 +20,10 @@ from typing import Any, Callable, Iterator
 
 from omnigen.dataset import DatasetError, read_manifest
 from omnigen.files import atomic_write_text
+from omnigen.untrusted import UntrustedFileError, read_regular
 
 JOB_MARKER = ".omnigen-job"
+MARKER_MAX_BYTES = 4096  # a job's name and a newline
 
 
 def manifest_of(folder: Path) -> dict[str, Any]:
@@ -47,8 +49,12 @@ def claim_output(out: str | Path, job: str, made_by_job: Callable[[Path], bool],
         raise DatasetError(f"{out}: is a file, not a folder; 'omnigen {job}' writes a folder here (choose another "
                            "--out)")
     marker = out / JOB_MARKER
-    if marker.exists():
-        owner = marker.read_text().strip()
+    if marker.exists() or marker.is_symlink():
+        try:  # a regular file of a few bytes: a FIFO put there would block every job for ever
+            owner = read_regular(marker, MARKER_MAX_BYTES).decode("utf-8", "replace").strip()
+        except (OSError, UntrustedFileError) as exc:
+            raise DatasetError(f"{marker}: cannot be read as a job marker ({exc}); refusing the folder (choose a "
+                               "new or empty folder)") from None
         if owner != job:
             raise DatasetError(f"{out}: made by 'omnigen {owner}' ({JOB_MARKER}), not 'omnigen {job}'; "
                                "refusing to overwrite it (choose a new or empty folder)")

@@ -7,6 +7,8 @@ was overwritten and the command exited 0. docs/untrusted-inputs.md states the pr
 
 from __future__ import annotations
 
+import io
+
 import json
 from pathlib import Path
 
@@ -54,7 +56,9 @@ def test_show_reruns_onto_its_own_picture_and_refuses_any_other_file(linked, tmp
     out = tmp_path / "pictures" / "frame.png"
     assert main(["show", str(ds), FRAME, "--out", str(out)]) == 0
     assert png_made_by("show")(out)
+    alone = out.read_bytes()
     assert main(["show", str(ds), FRAME, "--out", str(out), "--bev"]) == 0  # its own: replaced
+    assert out.read_bytes() != alone and Image.open(out).width > Image.open(io.BytesIO(alone)).width  # the BEV beside
     theirs = tmp_path / "theirs.png"
     Image.new("RGB", (4, 4)).save(theirs)
     kept = theirs.read_bytes()
@@ -62,6 +66,8 @@ def test_show_reruns_onto_its_own_picture_and_refuses_any_other_file(linked, tmp
     assert "was not written by 'omnigen show'" in capsys.readouterr().err and theirs.read_bytes() == kept
     assert main(["show", str(ds), FRAME, "--out", str(out.parent)]) == 1  # a folder
     assert "is a folder" in capsys.readouterr().err
+    assert main(["show", str(ds), FRAME, "--out", str(tmp_path / "frame.webp")]) == 1  # PNG bytes under .webp
+    assert "name the file .png or .jpg" in capsys.readouterr().err and not (tmp_path / "frame.webp").exists()
 
 
 def test_a_record_claiming_a_huge_image_is_refused_before_it_is_drawn(linked, tmp_path, capsys):
