@@ -24,6 +24,10 @@ RESOLUTION_RANGE = (8, 8192)
 """Image widths and heights a rig's `resolution` and `omnigen render --width/--height` accept:
 fewer than 8 pixels hold no object worth a label; 8192 a side (67 megapixels) is the most rig
 files have ever been allowed."""
+NEAR_DISTANCE_MAX = 10.0
+"""The most metres a rig's near_distance may say: it is for what blocks the view close by, and every
+ray is tested against the geometry within it, at every draw of a pose (a tenth of a second a draw
+at 10 m, growing with the square of the reach; rigs/sampling.py's near_share)."""
 NAME_MAX_CHARS = 64
 """A rig's name is part of every frame id and file name (`synthetic-<rig>-s<seed>-<index>`): at
 most this long, so that the names stay under the file system's 255 bytes with any seed and index."""
@@ -40,14 +44,18 @@ class Rig:
     """A camera distribution (all ranges [lo, hi], uniform).
 
     anchor: where the camera stands, with weights: `traffic` (in the lane behind one of the
-    frame's moving vehicles, 4-30 m back, looking along its heading: a dashcam in traffic),
-    `lane` (over a driving lane's centreline, looking along the traffic), `intersection` (at a
+    frame's moving vehicles, 4-30 m back, looking along the lane: a dashcam in traffic),
+    `lane` (over a driving lane's centreline, looking along the traffic; both keep the car that
+    carries the camera inside its lane, rigs/sampling.py's lane_problem), `intersection` (at a
     corner of an intersection, looking at its centre), `roadside` (at the kerb, looking along the
     road and in towards it), `anywhere` (uniform over the city's bounds, any heading).
     height: metres above the road surface (world z = 0). pitch: degrees below the horizon.
     yaw_jitter: degrees added to the anchor's heading. hfov: horizontal field of view, degrees.
     resolution: default (width, height). min_objects: fewest annotated objects a frame must
     have, else the pose is redrawn (max_tries times, then the last pose is kept and said so).
+    near_distance, max_near_share: a pose is redrawn when more than max_near_share of its image
+    sees geometry nearer than near_distance metres (its own pole, a signal arm, a crown beside
+    it); 0 m: not checked (a dashcam sees its road and the cars beside it close by).
     """
 
     name: str
@@ -60,6 +68,8 @@ class Rig:
     resolution: tuple[int, int]
     min_objects: int = 1
     max_tries: int = 60
+    near_distance: float = 0.0
+    max_near_share: float = 0.02
     description: str = ""
     source: str = field(default="", compare=False)
 
@@ -107,6 +117,14 @@ def _int(data: dict, key: str, file: str, default: int, lo: int, hi: int) -> int
     return v
 
 
+def _number(data: dict, key: str, file: str, default: float, hi: float) -> float:
+    """A finite number in [0, hi] (NaN and infinities fail the range), `default` when the key is absent."""
+    v = data.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= hi:
+        raise RigError(file, key, f"expected a number in [0, {hi:g}], got {v!r}")
+    return float(v)
+
+
 def _name(data: dict[str, Any], stem: str, file: str) -> str:
     """The rig's name (the file's stem unless the file sets one) as frame ids and file names take
     it, checked here: a name the record refuses (a space, a slash) failed only after the first
@@ -121,7 +139,7 @@ def _name(data: dict[str, Any], stem: str, file: str) -> str:
 
 def rig_from_dict(data: dict[str, Any], name: str, file: str = "<rig>") -> Rig:
     known = {"view", "anchor", "height", "pitch", "yaw_jitter", "hfov", "resolution", "min_objects",
-             "max_tries", "description", "name"}
+             "max_tries", "near_distance", "max_near_share", "description", "name"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise RigError(file, unknown[0], f"unknown key (known: {', '.join(sorted(known))})")
@@ -155,6 +173,8 @@ def rig_from_dict(data: dict[str, Any], name: str, file: str = "<rig>") -> Rig:
         resolution=(res[0], res[1]),
         min_objects=_int(data, "min_objects", file, 1, 0, 10_000),
         max_tries=_int(data, "max_tries", file, 60, 1, 10_000),
+        near_distance=_number(data, "near_distance", file, 0.0, NEAR_DISTANCE_MAX),
+        max_near_share=_number(data, "max_near_share", file, 0.02, 1.0),
         description=str(data.get("description", "")),
         source=file,
     )

@@ -7,14 +7,19 @@ the horizon, positive down), no roll:
 R's rows are (right, down, forward). Pitch 90 degrees looks straight down, the heading then sets
 which way is "up" in the image.
 
-Rejection (`pose_problem`): a pose is redrawn when the camera stands inside or within 0.5 m of
-a building, an agent's cuboid or a furniture footprint (below its top; 1.5 m of a tree's crown
+Placement (`placement_problem`): a pose is redrawn when the camera stands inside or within 0.5 m
+of a building, an agent's cuboid or a furniture footprint (below its top; 1.5 m of a tree's crown
 between the crown's base and the tree's top), when something taller than the camera stands
-within 3 m in front of it, or when fewer than the
-rig's `min_objects` agents would be annotated by a cheap geometric estimate (cuboid in front, in
-the image, at least MIN_BOX_PIXELS tall and wide, nearer than MAX_DISTANCE). The renderer checks
-the real count after annotation and redraws again if the estimate was optimistic (buildings hide
-agents); see rigs/render.py.
+within 3 m in front of it, when a `traffic` or `lane` camera is not over a driving lane looking
+along it (`lane_problem`: the anchors draw inside the lane, this holds them to it), or when more
+of its image than the rig's `max_near_share` sees geometry nearer than its `near_distance`
+(`view_problem`, rays against the render meshes: a pole camera looking into a signal arm). These
+never give up before a pose passes them (PLACEMENT_TRIES past max_tries). Objects: a pose is
+also redrawn when fewer than the rig's `min_objects` agents would be annotated by a cheap
+geometric estimate (cuboid in front, in the image, at least MIN_BOX_PIXELS tall and wide, nearer
+than MAX_DISTANCE); after max_tries the last placed pose is kept. The renderer checks the real
+count after annotation and redraws again if the estimate was optimistic (buildings hide agents);
+see rigs/render.py.
 
 Randomness: only the generator passed in (the frame's rig stream, `rig_rng(seed, index)`).
 """
@@ -31,7 +36,8 @@ from shapely.geometry import Point, Polygon
 from omnigen.camera import Camera, frozen_array, intrinsics_from_fov
 from omnigen.geometry import Box3D, Plane, cuboid_corners, project_boxes, rot_z
 from omnigen.rigs.rig import Rig
-from omnigen.scenes.description import Scene
+from omnigen.scenes.description import Lane, Scene
+from omnigen.scenes.seeding import choice_index
 
 _RIG_SPAWN_KEY = (0x0416,)
 MIN_BOX_PIXELS = 6.0
@@ -124,26 +130,122 @@ def corner_pole(city, inter, sx: float, sy: float):
     return next((f for f in city.furniture if f.furniture_id == want), None)
 
 
+@dataclass(frozen=True)
+class _Lanes:
+    """A city's driving lanes as arrays, so a point (or many) is located in all of them at once."""
+
+    lanes: tuple[Lane, ...]
+    start: np.ndarray  # (n, 2)
+    along: np.ndarray  # (n, 2) unit vectors in the driving direction
+    length: np.ndarray  # (n,)
+    half_width: np.ndarray  # (n,)
+    heading: np.ndarray  # (n,)
+
+    @staticmethod
+    def of(city) -> _Lanes:
+        lanes = tuple(ln for r in city.roads for ln in r.lanes if ln.kind == "driving")
+        start = np.array([ln.start for ln in lanes], dtype=np.float64).reshape(-1, 2)
+        end = np.array([ln.end for ln in lanes], dtype=np.float64).reshape(-1, 2)
+        length = np.array([ln.length for ln in lanes], dtype=np.float64)  # Lane.length's own float
+        return _Lanes(lanes, start, (end - start) / np.maximum(length, 1e-12)[:, None], length,
+                      np.array([ln.width / 2 for ln in lanes], dtype=np.float64), np.array([ln.heading for ln in lanes]))
+
+    def coordinates(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(m, n) distance along each lane from its start and offset to its left, of m points."""
+        rel = np.asarray(xy, dtype=np.float64).reshape(-1, 1, 2) - self.start[None]
+        along = (rel * self.along[None]).sum(-1)
+        across = rel[..., 1] * self.along[None, :, 0] - rel[..., 0] * self.along[None, :, 1]
+        return along, across
+
+    def under(self, xy: np.ndarray, yaw: np.ndarray, tolerance: float, side: float = 0.0, ends: float = 0.0) -> np.ndarray:
+        """(m,) index of the first lane holding each point `side` metres in from its edges and
+        `ends` in from its ends, heading within `tolerance` (radians) of its `yaw`; -1: none."""
+        along, across = self.coordinates(xy)
+        turn = np.abs(np.remainder(np.asarray(yaw, dtype=np.float64).reshape(-1, 1) - self.heading[None] + math.pi,
+                                   2 * math.pi) - math.pi)
+        inside = ((along >= ends - 1e-9) & (along <= self.length[None] - ends + 1e-9)
+                  & (np.abs(across) <= self.half_width[None] - side + 1e-9) & (turn <= tolerance + 1e-9))
+        return np.where(inside.any(axis=1), inside.argmax(axis=1), -1)
+
+
+def driving_lanes(city) -> _Lanes:
+    """The city's driving lanes as arrays (once per city)."""
+    return _per_city(city, "lanes", _Lanes.of)
+
+
+EGO_HALF_WIDTH = 0.9
+"""Metres from a `traffic` or `lane` camera to its lane's side edges at least: half a car's width,
+so the car that carries the camera stands inside its lane, not over the kerb."""
+EGO_LANE_END = 3.0
+"""Metres from a lane camera to its lane's ends at least (lanes run from city bound to bound:
+the car behind the camera stays on the road)."""
+LATERAL_SD = 0.2
+"""Metres: the spread of a lane camera across its lane (clipped to the lane less EGO_HALF_WIDTH)."""
+LEADER_TURN = math.radians(10.0)
+"""How far a followed vehicle's heading may turn from its lane's (placement draws at most 6 degrees)."""
+
+
+def lane_problem(rig: Rig, city, cam: DrawnCamera) -> str | None:
+    """Why a `traffic` or `lane` camera does not stand over a driving lane, looking along it (its
+    car within the lane, EGO_HALF_WIDTH from the lane's edges, EGO_LANE_END from its ends; its
+    heading within the rig's yaw_jitter of the lane's), or None; other anchors have no lane."""
+    if cam.anchor not in ("traffic", "lane"):
+        return None
+    turn = math.radians(max(abs(rig.yaw_jitter[0]), abs(rig.yaw_jitter[1])))
+    if driving_lanes(city).under(cam.position[:2], cam.yaw, turn, EGO_HALF_WIDTH, EGO_LANE_END)[0] < 0:
+        return "not over a driving lane, looking along it"
+    return None
+
+
+def _in_lane(lanes: _Lanes, k: int, along: float, across: float, rng: np.random.Generator) -> np.ndarray:
+    """The point `along` lane k and `across` plus the lateral spread, kept EGO_HALF_WIDTH in."""
+    room = max(float(lanes.half_width[k]) - EGO_HALF_WIDTH, 0.0)
+    across = min(max(across + float(rng.normal(0.0, LATERAL_SD)), -room), room)
+    d = lanes.along[k]
+    return lanes.start[k] + along * d + across * np.array([-d[1], d[0]])
+
+
+def _behind_leader(scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, float] | None:
+    """A camera 4-30 m behind one of the frame's moving vehicles, in the same lane, looking along
+    it; None when no vehicle has room behind it in its lane (a camera further back stood past the
+    lane's start, off the city, or off the lane where the leader's heading turns from it).
+
+    The leader is drawn among those with at least TRAFFIC_GAP[0] of lane behind them, the gap up
+    to what the lane leaves, so every draw lands in the leader's lane."""
+    lead = leaders(scene)
+    if not lead:
+        return None
+    lanes = driving_lanes(scene.city)
+    centers = np.array([a.center[:2] for a in lead], dtype=np.float64)
+    k = lanes.under(centers, np.array([a.yaw for a in lead]), LEADER_TURN)
+    along, across = lanes.coordinates(centers)
+    rows = np.arange(len(lead))
+    behind = along[rows, k] - np.array([a.dims[0] / 2 for a in lead]) - EGO_LANE_END
+    room = np.where(k >= 0, behind, -math.inf)
+    ok = np.nonzero(room >= TRAFFIC_GAP[0])[0]
+    if not len(ok):
+        return None
+    i = int(ok[int(rng.integers(len(ok)))])
+    gap = rng.uniform(TRAFFIC_GAP[0], min(TRAFFIC_GAP[1], float(room[i])))
+    lane = int(k[i])
+    p = _in_lane(lanes, lane, float(along[i, lane]) - lead[i].dims[0] / 2 - gap, float(across[i, lane]), rng)
+    return p, float(lanes.heading[lane])
+
+
 def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, float, str]:
-    """(x, y), a base heading and the anchor kind used: `traffic` without moving vehicles in the
-    frame falls back to `lane` (a camera in an empty lane), and the record then says so."""
+    """(x, y), a base heading and the anchor kind used: `traffic` without a moving vehicle to
+    follow in the frame falls back to `lane` (a camera in an empty lane), and the record then says so."""
     city = scene.city
     if anchor == "traffic":
-        lead = leaders(scene)
-        if lead:
-            a = lead[int(rng.integers(len(lead)))]
-            d = np.array([math.cos(a.yaw), math.sin(a.yaw)])
-            back = a.dims[0] / 2 + rng.uniform(*TRAFFIC_GAP)
-            p = np.asarray(a.center[:2]) - back * d + np.array([-d[1], d[0]]) * rng.normal(0.0, 0.2)
-            return p, a.yaw, anchor
+        follow = _behind_leader(scene, rng)
+        if follow is not None:
+            return follow[0], follow[1], anchor
         anchor = "lane"
     if anchor == "lane":
-        lanes = [ln for r in city.roads for ln in r.lanes if ln.kind == "driving"]
-        lane = _weighted(rng, lanes, [ln.length for ln in lanes])
-        s = rng.uniform(0.05, 0.95)
-        d = np.subtract(lane.end, lane.start) / lane.length
-        p = np.asarray(lane.start) + s * lane.length * d + np.array([-d[1], d[0]]) * rng.normal(0.0, 0.2)
-        return p, lane.heading, anchor
+        lanes = driving_lanes(city)
+        k = choice_index(rng, lanes.length / lanes.length.sum())
+        p = _in_lane(lanes, k, rng.uniform(0.05, 0.95) * float(lanes.length[k]), 0.0, rng)
+        return p, float(lanes.heading[k]), anchor
     if anchor == "intersection":
         inter = city.intersections[int(rng.integers(len(city.intersections)))]
         sx, sy = rng.choice([-1.0, 1.0], size=2)
@@ -190,16 +292,32 @@ class _Layer:
                       shapely.STRtree(arr))
 
 
-_CITY_LAYERS: dict[int, tuple[object, _Layer]] = {}  # id(city) -> (city, its layer); the city held, so ids stay unique
-_CITY_LAYERS_SIZE = 4
+_CITY_CACHE: dict[int, tuple[object, dict[str, object]]] = {}  # id(city) -> (city, what was built from it)
+_CITY_CACHE_SIZE = 4
+
+
+def _per_city(city, key: str, build):
+    """`build(city)`, made once per city object and kept for its later frames: a fixed city's
+    obstacles, lanes and triangles are the same in every frame, only its agents change. The
+    entry holds the city, so an id is never taken for another city's."""
+    hit = _CITY_CACHE.get(id(city))
+    if hit is None or hit[0] is not city:
+        _CITY_CACHE.pop(id(city), None)
+        while len(_CITY_CACHE) >= _CITY_CACHE_SIZE:
+            _CITY_CACHE.pop(next(iter(_CITY_CACHE)))
+        hit = _CITY_CACHE[id(city)] = (city, {})
+    made = hit[1]
+    if key not in made:
+        made[key] = build(city)
+    return made[key]
 
 
 def _city_layer(city) -> _Layer:
-    """The static city's obstacles (buildings, furniture, tree crowns): built once per city, since
-    every frame of a fixed city has the same ones and only its agents change."""
-    hit = _CITY_LAYERS.get(id(city))
-    if hit is not None and hit[0] is city:
-        return hit[1]
+    """The static city's obstacles (buildings, furniture, tree crowns), once per city."""
+    return _per_city(city, "layer", _build_city_layer)
+
+
+def _build_city_layer(city) -> _Layer:
     polys, tops, bottoms = [], [], []
     for b in city.buildings:
         for part in b.parts:
@@ -218,12 +336,7 @@ def _city_layer(city) -> _Layer:
             tops.append(top)
             # below the crown (a dashcam under a street tree) the view is open
             bottoms.append(f.center[2] - f.dims[2] / 2 + float(f.params.get("clearance", 0.0)) - CLEARANCE)
-    layer = _Layer.of(polys, tops, bottoms)
-    _CITY_LAYERS.pop(id(city), None)
-    while len(_CITY_LAYERS) >= _CITY_LAYERS_SIZE:
-        _CITY_LAYERS.pop(next(iter(_CITY_LAYERS)))
-    _CITY_LAYERS[id(city)] = (city, layer)
-    return layer
+    return _Layer.of(polys, tops, bottoms)
 
 
 def _agent_layer(agents) -> _Layer:
@@ -283,6 +396,122 @@ class Obstacles:
         return False
 
 
+NEAR_GRID = 64
+"""Rays across the image's width that `near_share` casts (rows in proportion): a 64 x 48 grid at
+4:3, each ray 1/3072 of the image, fine enough to measure a 2% limit."""
+
+
+@dataclass(frozen=True)
+class _Triangles:
+    """World triangles with their bounding boxes, to keep those near a camera by one array test."""
+
+    corners: np.ndarray  # (m, 3, 3)
+    lo: np.ndarray  # (m, 3)
+    hi: np.ndarray  # (m, 3)
+
+    @staticmethod
+    def of(meshes: list[tuple[dict, np.ndarray]]) -> _Triangles:
+        """The triangles of (parts, object-to-world 4x4) pairs, as the renderers place them."""
+        tris = [np.zeros((0, 3, 3))]
+        for parts, matrix in meshes:
+            for m in parts.values():
+                v = np.asarray(m.vertices, dtype=np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
+                tris.append(v[np.asarray(m.faces, dtype=np.int64)])
+        corners = np.concatenate(tris)
+        return _Triangles(corners, corners.min(axis=1), corners.max(axis=1))
+
+    def near(self, point: np.ndarray, within: float) -> np.ndarray:
+        """(k, 3, 3) the triangles whose bounding box comes within `within` metres of `point`."""
+        gap = np.maximum(np.maximum(self.lo - point, point - self.hi), 0.0)
+        return self.corners[(gap * gap).sum(axis=1) <= within * within]
+
+
+def _static_triangles(city) -> _Triangles:
+    """The city's render geometry (ground, markings, buildings, furniture: scenes/meshes.py's, which
+    both backends draw), once per city."""
+    from omnigen.scenes.meshes import static_objects
+
+    return _per_city(city, "triangles", lambda c: _Triangles.of([(o.parts, o.matrix_world) for o in static_objects(c)]))
+
+
+def _near_agent_triangles(scene: Scene, point: np.ndarray, within: float) -> np.ndarray:
+    """The triangles of the agents near `point`, as `_Triangles.near` keeps them (an agent's mesh
+    is fitted to its cuboid, so no part of it lies further than half its diagonal from its centre)."""
+    from omnigen.scenes.assets.build import agent_parts
+    from omnigen.scenes.meshes import pose_matrix
+
+    near = [a for a in scene.agents
+            if math.dist(a.center, point) <= within + 0.5 * math.hypot(*a.dims)]
+    if not near:
+        return np.zeros((0, 3, 3))
+    return _Triangles.of([(agent_parts(a.asset, a.dims)[0], pose_matrix(a.center, a.yaw)) for a in near]).near(point, within)
+
+
+def _hits_within(origin: np.ndarray, dirs: np.ndarray, tris: np.ndarray, t_max: float, chunk: int = 1 << 20) -> np.ndarray:
+    """(n,) whether each ray origin + t dirs meets any triangle at 0 < t < t_max (Moller-Trumbore,
+    all rays against all triangles, in chunks of about `chunk` pairs)."""
+    hit = np.zeros(len(dirs), dtype=bool)
+    step = max(1, chunk // max(len(dirs), 1))
+    for s in range(0, len(tris), step):
+        t = tris[s:s + step]
+        e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]  # (k, 3)
+        pv = np.cross(dirs[:, None, :], e2[None])  # (n, k, 3)
+        det = (pv * e1[None]).sum(-1)
+        ok = np.abs(det) > 1e-12
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        tv = origin - t[:, 0]  # (k, 3)
+        u = (pv * tv[None]).sum(-1) * inv
+        qv = np.cross(tv, e1)  # (k, 3)
+        v = (dirs @ qv.T) * inv
+        dist = (qv * e2).sum(-1)[None] * inv
+        hit |= (ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (dist > 0) & (dist < t_max)).any(axis=1)
+    return hit
+
+
+def _in_view(tris: np.ndarray, cam: Camera, rays: np.ndarray, within: float) -> np.ndarray:
+    """The triangles not wholly outside one side of the pyramid the camera-frame `rays` (z = 1)
+    span between depth 0 and `within`: only those can meet a ray there."""
+    c = tris @ cam.R.T + cam.t  # (k, 3, 3) camera frame
+    x, y, z = c[..., 0], c[..., 1], c[..., 2]
+    lo, hi = rays.min(axis=0), rays.max(axis=0)
+    out = ((z <= 0).all(1) | (z >= within).all(1) | (x < lo[0] * z).all(1) | (x > hi[0] * z).all(1)
+           | (y < lo[1] * z).all(1) | (y > hi[1] * z).all(1))
+    return tris[~out]
+
+
+def near_share(scene: Scene, cam: Camera, within: float, grid: int = NEAR_GRID) -> float:
+    """The share of the image that sees geometry nearer than `within` metres (camera depth, as in
+    the depth EXR): rays through a `grid`-wide lattice of pixel centres against the render meshes
+    of the city and the agents near the camera. A pole camera's own pole, a signal arm or a crown
+    beside it fills the image's edge with a blur the detector cannot use."""
+    gw = max(2, int(grid))
+    gh = max(2, int(round(gw * cam.height / cam.width)))
+    u = (np.arange(gw) + 0.5) * cam.width / gw - 0.5
+    v = (np.arange(gh) + 0.5) * cam.height / gh - 0.5
+    uu, vv = np.meshgrid(u, v)
+    rays = np.linalg.solve(cam.K, np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)])).T  # camera frame, z = 1
+    dirs = rays @ cam.R  # in the world: a hit's ray parameter is its camera depth
+    origin = -cam.R.T @ cam.t
+    # a point nearer than `within` in depth lies at most `within` times the longest ray's length away
+    reach = within * float(np.linalg.norm(rays, axis=1).max())
+    tris = np.concatenate([_static_triangles(scene.city).near(origin, reach), _near_agent_triangles(scene, origin, reach)])
+    tris = _in_view(tris, cam, rays, within)
+    if not len(tris):
+        return 0.0
+    return float(_hits_within(origin, dirs, tris, within).mean())
+
+
+def view_problem(rig: Rig, scene: Scene, cam: Camera) -> str | None:
+    """Why a camera's view is blocked close by (more than the rig's max_near_share of the image
+    nearer than its near_distance), or None; rigs without a near_distance are not checked."""
+    if rig.near_distance <= 0:
+        return None
+    share = near_share(scene, cam, rig.near_distance)
+    if share > rig.max_near_share:
+        return f"{share:.1%} of the image within {rig.near_distance:g} m"
+    return None
+
+
 def projected_agents(scene: Scene, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
     """(N,) camera depth of each agent's centre and (N, 4) its projected cuboid's box (NaN rows
     where nothing is in the image): project_box over all agents at once (project_boxes), since
@@ -320,26 +549,43 @@ def draw_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, he
     return DrawnCamera(K, R, -R @ pos, width, height, pos, math.atan2(math.sin(yaw), math.cos(yaw)), pitch, hfov, anchor)
 
 
+PLACEMENT_TRIES = 240
+"""Draws after rig.max_tries that a frame may still take while none of its poses passed the
+placement checks (`placement_problem`): the object count may give up, where the camera stands
+may not (a pole camera looking into its own arm is no frame)."""
+
+
+def placement_problem(rig: Rig, scene: Scene, cam: DrawnCamera, obstacles: Obstacles) -> str | None:
+    """Why a pose may not be kept whatever it sees, or None: it stands in or at an obstacle, a
+    wall stands right in front of it, a `traffic` or `lane` camera is not over a driving lane
+    looking along it (`lane_problem`), or too much of the view lies close by (`view_problem`).
+    The cheap tests first: the view's rays only for poses that pass the rest."""
+    if obstacles.blocked(cam.position):
+        return "inside or at an obstacle"
+    if obstacles.wall_ahead(cam.position, cam.yaw):
+        return "a wall right ahead"
+    return lane_problem(rig, scene.city, cam) or view_problem(rig, scene, cam)
+
+
 def sample_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, height: int,
                   obstacles: Obstacles | None = None, start_try: int = 0) -> DrawnCamera:
-    """Draw until a pose is clear of geometry and expects at least rig.min_objects objects.
+    """Draw until a pose passes the placement checks and expects at least rig.min_objects objects.
 
-    After rig.max_tries the last clear pose (or the last one) is returned; `tries` says how many
-    draws it took, counting from `start_try` (the renderer continues the count when it redraws).
+    After rig.max_tries the last pose that passed the placement checks is returned; while there
+    is none, up to PLACEMENT_TRIES more draws look for one (then the first pose drawn is kept).
+    `tries` says how many draws it took, counting from `start_try` (the renderer continues the
+    count when it redraws).
     """
     obstacles = obstacles or Obstacles(scene)
-    fallback = None
+    placed = first = None
     tries = start_try
-    while tries < rig.max_tries:
+    while tries < rig.max_tries or (placed is None and tries < rig.max_tries + PLACEMENT_TRIES):
         tries += 1
-        cam = draw_camera(rig, scene, rng, width, height)
-        if obstacles.blocked(cam.position) or obstacles.wall_ahead(cam.position, cam.yaw):
-            fallback = fallback or cam
+        cam = replace(draw_camera(rig, scene, rng, width, height), tries=tries)
+        first = first or cam
+        if placement_problem(rig, scene, cam, obstacles):
             continue
-        cam = replace(cam, tries=tries)
-        fallback = cam
+        placed = cam
         if expected_objects(scene, cam) >= rig.min_objects:
             return cam
-    if fallback is None:
-        fallback = draw_camera(rig, scene, rng, width, height)
-    return replace(fallback, tries=tries)
+    return replace(placed or first or draw_camera(rig, scene, rng, width, height), tries=tries)

@@ -121,13 +121,19 @@ def test_traffic_anchor_follows_a_moving_vehicle():
         cam = sample_camera(rig, scene, rig_rng(2, i), 160, 120, obstacles)
         assert cam.anchor == "traffic"
         followed = []
-        for a in lead:  # the vehicle it stands behind: ahead along its heading, in its lane, same heading
-            d = np.array([math.cos(a.yaw), math.sin(a.yaw)])
-            rel = np.asarray(a.center[:2]) - cam.position[:2]
-            gap = rel @ d - a.dims[0] / 2
-            if TRAFFIC_GAP[0] - 1e-9 <= gap <= TRAFFIC_GAP[1] + 1e-9 and abs(rel @ [-d[1], d[0]]) < 1.0 \
-                    and abs(math.remainder(cam.yaw - a.yaw, math.tau)) < 1e-9:
-                followed.append(a)
+        # the vehicle it stands behind: ahead along the lane they share, the camera looking along the
+        # lane (not along the vehicle's own yaw, which placement turns up to 6 degrees from it)
+        lanes = [ln for r in scene.city.roads for ln in r.lanes if ln.kind == "driving"
+                 and abs(math.remainder(cam.yaw - ln.heading, math.tau)) < 1e-9]
+        for a in lead:
+            for ln in lanes:
+                d = np.array([math.cos(ln.heading), math.sin(ln.heading)])
+                rel = np.asarray(a.center[:2]) - cam.position[:2]
+                gap = rel @ d - a.dims[0] / 2
+                lateral = (np.asarray(a.center[:2]) - ln.start) @ [-d[1], d[0]]
+                if TRAFFIC_GAP[0] - 1e-9 <= gap <= TRAFFIC_GAP[1] + 1e-9 and abs(rel @ [-d[1], d[0]]) < 1.0 \
+                        and abs(lateral) < ln.width / 2:
+                    followed.append(a)
         assert followed, f"camera {i} follows no moving vehicle"
     empty = replace(scene, agents=tuple(a for a in scene.agents if a not in lead))
     assert sample_camera(rig, empty, rig_rng(2, 0), 160, 120).anchor == "lane"  # nothing to follow
