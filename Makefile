@@ -60,7 +60,8 @@ demo: $(STAMP) system
 	$(OMNIGEN) show "$(DEMO)/uov" synthetic-drone-s1-000000 --bev --out "$(DEMO)/synthetic-drone-s1-000000.png"; \
 	$(OMNIGEN) export coco "$(DEMO)/uov" --out "$(DEMO)/uov-coco.json"; \
 	$(OMNIGEN) export yolo "$(DEMO)/uov" --out "$(DEMO)/uov-yolo"; \
-	$(OMNIGEN) train "$(DEMO)/uov" --out "$(DEMO)/run" --imgsz 320 --epochs $(DEMO_EPOCHS) --batch 8 --workers 0; \
+	$(OMNIGEN) train "$(DEMO)/uov" --out "$(DEMO)/run" --epochs $(DEMO_EPOCHS) --workers 0 model.imgsz=320 optim.batch=8 \
+	  crop_stage.steps=100 crop_stage.batch=16; \
 	$(OMNIGEN) eval "$(DEMO)/run/best.pt" "$(DEMO)/uov" --split test --imgsz 320 --out "$(DEMO)/eval.json"; \
 	echo; echo "demo: UrbanOmniView in $(DEMO)/uov; open $(DEMO)/report/index.html in a browser;"; \
 	echo "      frames drawn in $(DEMO)/*.png; COCO and YOLO exports beside them;"; \

@@ -25,54 +25,10 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from omnigen.detector.oks_eval import evaluate  # noqa: E402
+from benchmarks.common import floor_rows  # noqa: E402  (common.py holds it: validate.py scores the same floor)
 from omnigen.dataset import Dataset  # noqa: E402
-from omnigen.splits import read_split  # noqa: E402
-from omnigen.taxonomy import Taxonomy, recorded_taxonomy  # noqa: E402
-
-
-def truth_as_predictions(ds: Dataset, split: str | None, noise_px: float, rng: np.random.Generator,
-                         taxonomy: Taxonomy) -> list[dict]:
-    """COCO-results predictions made of the ground truth's projected corners, plus N(0, noise_px)
-    on each coordinate; score 1. Classes the taxonomy drops are left out, as to_coco does."""
-    keep = None if split is None else set(read_split(ds.root, split))
-    t = ds.objects
-    class_ids = taxonomy.fine_class_ids()[t.category]
-    defined = np.isfinite(t.keypoints).all(axis=(1, 2)) & ~t.behind_camera.any(axis=1) & (class_ids >= 0)
-    noisy = t.keypoints + rng.normal(0.0, noise_px, t.keypoints.shape) if noise_px > 0 else t.keypoints
-    preds = []
-    for i, frame_id in enumerate(ds.table.frame_id):
-        if keep is not None and frame_id not in keep:
-            continue
-        for j in range(int(ds.offsets[i]), int(ds.offsets[i + 1])):
-            if not defined[j]:
-                continue
-            kp = np.concatenate([noisy[j], np.full((8, 1), 2.0)], axis=1)
-            preds.append({"frame_id": frame_id, "category_id": int(class_ids[j]) + 1,
-                          "keypoints": kp.ravel().tolist(), "score": 1.0})
-    return preds
-
-
-def floor_rows(ds: Dataset, split: str | None, noises: list[float], seed: int) -> list[dict]:
-    """One row per (noise, group): the evaluation's OKS mAP50:95 and adherence of the truth's corners,
-    on the synthetic frames (the targets' rows) and per view."""
-    taxonomy = recorded_taxonomy(ds.manifest)
-    rows = []
-    for noise in noises:
-        # one generator per level, seeded by the level itself: its draw does not depend on the others listed
-        rng = np.random.default_rng([seed, round(noise * 1000)])
-        preds = truth_as_predictions(ds, split, noise, rng, taxonomy)
-        report = evaluate(ds, preds, split=split, taxonomy=taxonomy, sizes=False)
-        for r in report.rows:
-            if r.group == "source=synthetic" or r.group.startswith("view="):
-                rows.append({"noise_px": noise, "group": r.group, "oks_map50_95": r.oks_map50_95,
-                             "adherence_deg": r.ground_adherence_deg, "adherence_objects": r.adherence_objects,
-                             "lift_failures": report.lift_failures})
-    return rows
 
 
 def main(argv: list[str] | None = None) -> int:

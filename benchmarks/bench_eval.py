@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from benchmarks.fixtures import fake_dataset  # noqa: E402
+from benchmarks.common import fake_dataset  # noqa: E402
 from omnigen.detector.oks_eval import evaluate  # noqa: E402
 from omnigen.formats.coco import to_coco  # noqa: E402
 from omnigen.dataset import Dataset  # noqa: E402

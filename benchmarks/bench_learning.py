@@ -2,7 +2,11 @@
 synthetic test split against the box-template baseline.
 
     .venv/bin/python benchmarks/bench_learning.py runs/validate/uov --steps 2000
-    .venv/bin/python benchmarks/bench_learning.py runs/validate/uov --steps 400 --kpt-mode box --kpt-l1 2
+    .venv/bin/python benchmarks/bench_learning.py runs/validate/uov loss.kpt_l1=1 crop_stage.steps=0 --steps 400
+
+What is trained is `omnigen train`'s recipe (detector/recipe.py, make validate's), its crop phase
+included; a change to compare is given as its KEY=VALUE keys right after the dataset (or a recipe
+file, --recipe), as `omnigen train` takes them.
 
 Why a fixed number of steps and not minutes: on a shared 2-core machine the time a step takes
 varies with what else runs, the steps do not, so two recipes trained for the same steps compare
@@ -24,7 +28,6 @@ Last line: `learning: mAP50:95 X (baseline Y), corner error rel A (baseline B)`.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -34,9 +37,6 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-RECIPE = {"imgsz": 640, "crop": 320, "batch": 16, "lr0": 2e-3, "kpt_sigma_end": 0.25, "amp": "bf16"}
-"""make validate's CPU recipe (benchmarks/validate.py), the point every change is compared from."""
-
 FIELDS = ("oks_map50_95", "ap_oks50", "ground_adherence_deg", "corner_error_px", "corner_error_rel", "corner_spread",
           "layout_error_rel",
           "corner_objects")
@@ -45,29 +45,14 @@ FIELDS = ("oks_map50_95", "ap_oks50", "ground_adherence_deg", "corner_error_px",
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dataset", type=Path, help="a merged dataset with train and test splits (make validate's uov)")
+    ap.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="recipe keys to change (omnigen train's)")
+    ap.add_argument("--recipe", type=Path, default=None, help="start from this recipe file (omnigen train --recipe)")
     ap.add_argument("--steps", type=int, default=2000, help="optimiser steps (rounded up to whole epochs)")
     ap.add_argument("--work", type=Path, default=Path("runs/learning"), help="where the run folder goes")
-    ap.add_argument("--name", default=None, help="run folder name (default: from the recipe's arguments)")
+    ap.add_argument("--name", default=None, help="run folder name (default: from the keys changed)")
     ap.add_argument("--out", type=Path, default=None, help="write the numbers as JSON here")
-    ap.add_argument("--imgsz", type=int, default=RECIPE["imgsz"])
-    ap.add_argument("--crop", type=int, default=RECIPE["crop"], help="0: whole images")
-    ap.add_argument("--crop-focus", type=float, default=0.0, help="with --crop: share of the windows centred class-balanced (train --crop-focus)")
-    ap.add_argument("--repeat-thresh", type=float, default=0.0, help="repeat-factor sampling threshold (train --repeat-thresh); 0: off")
-    ap.add_argument("--batch", type=int, default=RECIPE["batch"])
-    ap.add_argument("--lr0", type=float, default=RECIPE["lr0"])
-    ap.add_argument("--kpt-sigma-end", type=float, default=RECIPE["kpt_sigma_end"])
-    ap.add_argument("--kpt-mode", default="anchor", choices=["anchor", "box"])
-    ap.add_argument("--kpt-l1", type=float, default=0.0)
-    ap.add_argument("--kpt-turn", action="store_true", help="corners up to the 180-degree turn plus a turn class")
-    ap.add_argument("--kpt-hidden", type=int, default=None, help="keypoint-branch width (train --kpt-hidden)")
-    ap.add_argument("--kpt-heading", action="store_true", help="corners up to the turn, the front from a regressed heading")
-    ap.add_argument("--heading-gain", type=float, default=1.0, help="with --kpt-heading: the heading term's gain")
-    ap.add_argument("--heading-crop", type=int, default=0, help="crop side of the second stage that places corners and reads the front (train --heading-crop); 0: none")
-    ap.add_argument("--kpt-labelled", type=float, default=0.0, help="with --kpt-turn: the labelled-order OKS gain")
-    ap.add_argument("--kpt-turn-start", type=float, default=0.0,
-                    help="with --kpt-turn: fraction of the run compared as labelled only (train --kpt-turn-start)")
-    ap.add_argument("--amp", default=RECIPE["amp"], choices=["auto", "bf16", "fp16", "off"])
-    ap.add_argument("--model", default="n")
+    ap.add_argument("--amp", default="bf16", choices=["auto", "bf16", "fp16", "off"],
+                    help="precision of the steps (bf16: make validate's on a CPU that runs it natively)")
     ap.add_argument("--width", type=float, default=None, help="override the scale's width (tiny test models)")
     ap.add_argument("--depth", type=float, default=None)
     ap.add_argument("--workers", type=int, default=1)
@@ -122,6 +107,15 @@ def finished(run: Path, cfg: Any, epochs: int) -> dict[str, Any] | None:
     return state["history"][-1]
 
 
+def run_name(args: argparse.Namespace, recipe: Any) -> str:
+    """A run folder's name from what sets it apart: the recipe file, the keys changed, the steps, the seed."""
+    import re
+
+    keys = "-".join(re.sub(r"[^\w.=,-]", "_", k) for k in args.overrides)
+    base = f"{Path(args.recipe).stem}-" if args.recipe else ""
+    return f"{recipe.model.scale}-{base}{keys or 'recipe'}-s{args.steps}-seed{args.seed}"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     from benchmarks.validate import fmt
@@ -133,31 +127,26 @@ def main(argv: list[str] | None = None) -> int:
     from omnigen.dataset import Dataset
     from omnigen.splits import read_split
 
+    from omnigen.detector.recipe import RECIPE, read_recipe, train_fields, with_overrides
+
+    recipe = with_overrides(read_recipe(args.recipe) if args.recipe else RECIPE, args.overrides)
+    fields = train_fields(recipe)
     frames = len(read_split(args.dataset, "train"))
-    if args.repeat_thresh:  # an epoch draws more frames: count them as train does, so --steps stays the steps trained
+    if fields["repeat_thresh"]:  # an epoch draws more frames: count them as train does, so --steps stays the steps trained
         from omnigen.detector.balance import epoch_frames
         from omnigen.detector.data import KeypointDataset, split_frames
         from omnigen.detector.train import frame_repeats
         from omnigen.taxonomy import load_taxonomy
 
-        taxonomy = load_taxonomy(TrainConfig.taxonomy)  # the taxonomy the runs below train with
-        split = KeypointDataset(args.dataset, taxonomy, args.imgsz, split_frames(str(args.dataset), "train"))
-        frames = epoch_frames(frame_repeats(TrainConfig(dataset=str(args.dataset), out="-", repeat_thresh=args.repeat_thresh),
-                                            split))
-    per_epoch = math.ceil(frames / args.batch)
+        split = KeypointDataset(args.dataset, load_taxonomy(fields["taxonomy"]), fields["imgsz"],
+                                split_frames(str(args.dataset), "train"))
+        frames = epoch_frames(frame_repeats(TrainConfig(dataset=str(args.dataset), out="-", **fields), split))
+    per_epoch = math.ceil(frames / fields["batch"])
     epochs = max(1, math.ceil(args.steps / per_epoch))
-    name = args.name or (f"{args.model}-{args.kpt_mode}{'-turn' if args.kpt_turn else ''}{'-heading' if args.kpt_heading else ''}{f'-hg{args.heading_gain:g}' if args.heading_gain != 1.0 else ''}{f'-h{args.kpt_hidden}' if args.kpt_hidden else ''}{f'-crop{args.heading_crop}' if args.heading_crop else ''}"
-                         f"{f'-lab{args.kpt_labelled:g}' if args.kpt_labelled else ''}"
-                         f"{f'-ts{args.kpt_turn_start:g}' if args.kpt_turn_start else ''}-l1{args.kpt_l1:g}-s{args.steps}"
-                         f"-c{args.crop}{f'-f{args.crop_focus:g}' if args.crop_focus else ''}{f'-r{args.repeat_thresh:g}' if args.repeat_thresh else ''}"
-                         f"-lr{args.lr0:g}-seed{args.seed}")
+    name = args.name or run_name(args, recipe)
     run = args.work / name
-    cfg = TrainConfig(dataset=str(args.dataset), out=str(run), model=args.model, width=args.width, depth=args.depth,
-                      imgsz=args.imgsz, crop=args.crop or None, crop_focus=args.crop_focus,
-                      repeat_thresh=args.repeat_thresh, epochs=epochs, batch=args.batch, lr0=args.lr0,
-                      kpt_sigma_end=args.kpt_sigma_end, kpt_mode=args.kpt_mode, kpt_l1=args.kpt_l1,
-                      kpt_turn=args.kpt_turn, kpt_hidden=args.kpt_hidden,
-                      kpt_labelled=args.kpt_labelled, kpt_turn_start=args.kpt_turn_start, kpt_heading=args.kpt_heading, heading_crop=args.heading_crop, heading_gain=args.heading_gain, amp=args.amp, workers=args.workers, seed=args.seed, device=args.device,
+    cfg = TrainConfig(dataset=str(args.dataset), out=str(run), **fields, width=args.width, depth=args.depth,
+                      epochs=epochs, amp=args.amp, workers=args.workers, seed=args.seed, device=args.device,
                       val_every=0)  # no validation while training: the test split is scored below, once
     t0 = time.perf_counter()
     last = finished(run, cfg, epochs)
@@ -167,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{run}: trained before with these arguments; scoring its last.pt")
     train_s = time.perf_counter() - t0 if last.get("time") is None else float(last["time"])
     # the network's own corners (vertical="off"), as the rows written down before the snap
-    preds = predict_dataset(run / "last.pt", args.dataset, split="test", imgsz=args.imgsz, batch=8, device=args.device,
+    preds = predict_dataset(run / "last.pt", args.dataset, split="test", imgsz=cfg.imgsz, batch=8, device=args.device,
                             multi_label=not args.single_label, vertical="off")
     ds = Dataset.open(args.dataset, show_progress=False)
     report, baseline = evaluate_with_baseline(ds, preds, split="test", taxonomy=cfg.taxonomy)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.fixtures import fake_dataset  # noqa: E402
+from benchmarks.common import fake_dataset  # noqa: E402
 from omnigen.dataset import Dataset  # noqa: E402
 from omnigen.index import INDEX_FILE  # noqa: E402
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.fixtures import CACHE, fake_dataset  # noqa: E402
+from benchmarks.common import CACHE, fake_dataset  # noqa: E402
 from omnigen.formats.coco import export_coco  # noqa: E402
 from omnigen.dataset import Dataset  # noqa: E402
 from omnigen.merge import merge  # noqa: E402

@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.fixtures import CACHE, fake_dataset  # noqa: E402
+from benchmarks.common import CACHE, fake_dataset  # noqa: E402
 from omnigen.dataset import Dataset  # noqa: E402
 from omnigen.stats.gallery import write_gallery  # noqa: E402
 from omnigen.stats.health import image_checks  # noqa: E402

@@ -10,14 +10,15 @@ pyproject pins Python 3.11, numpy<2 and a CPU torch, so `pip install -e .` is no
 installs from this folder, with `--no-index --no-deps`, only the distributions it cannot import.
 
 What is fetched, and why exactly this:
-- NEEDS: the distributions that the commands gpu_validate runs (render --backend raster, convert
-  kitti, merge, train, eval) import, read off the code (ENTRY_MODULES; tests/benchmarks/test_gpu_validate.py
-  imports them and checks that NEEDS and the image's packages cover every distribution they load,
-  and that NEEDS holds nothing they do not), less what the machine's image already has (IMAGE_HAS,
-  or --have). Versions are constraints.txt's (those the tests ran with), except PyOpenGL: the
-  3.1.0 that pyrender pins has no wheel, its sources do not byte-compile on Python >= 3.7, and it
-  finds libEGL through ldconfig alone; 3.1.10 dlopens `libEGL.so.1`, so LD_LIBRARY_PATH reaches it.
-  pyrender's metadata pins 3.1.0, hence `--no-deps` at install time.
+- NEEDS (in benchmarks/common.py): the distributions that the commands gpu_validate runs (render
+  --backend raster, convert kitti, merge, train, eval) import, read off the code (ENTRY_MODULES;
+  tests/benchmarks/test_gpu_validate.py imports them and checks that NEEDS and the image's packages
+  cover every distribution they load, and that NEEDS holds nothing they do not), less what the
+  machine's image already has (IMAGE_HAS, or --have). Versions are constraints.txt's (those the
+  tests ran with), except PyOpenGL: the 3.1.0 that pyrender pins has no wheel, its sources do not
+  byte-compile on Python >= 3.7, and it finds libEGL through ldconfig alone; 3.1.10 dlopens
+  `libEGL.so.1`, so LD_LIBRARY_PATH reaches it. pyrender's metadata pins 3.1.0, hence `--no-deps` at
+  install time.
 - The wheels are cp312 manylinux x86_64 (or pure Python), whatever this machine is.
 - EGL's loaders (Debian packages, `apt-get download`): the GPU image has the NVIDIA driver's EGL
   (libEGL_nvidia) but not glvnd's libEGL.so.1 / libOpenGL.so.0 that PyOpenGL opens; the lent
@@ -37,31 +38,15 @@ import shutil
 import subprocess
 import sys
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.common import NEEDS, Need  # noqa: E402  (the list gpu_validate.py installs from)
+
 MB = 10**6  # the limit is in megabytes, as the issue states it
 
-
-@dataclass(frozen=True)
-class Need:
-    dist: str  # the distribution's name on the registry
-    module: str  # what gpu_validate tries to import to know whether it is there
-    why: str  # which of our modules (or of the needed ones) imports it
-
-
-NEEDS: tuple[Need, ...] = (
-    Need("orjson", "orjson", "omnigen/files.py, omnigen/formats/coco.py, detector/eval_command.py"),
-    Need("shapely", "shapely", "omnigen/geometry.py, scenes/layout.py, rigs/sampling.py"),
-    Need("pycocotools", "pycocotools", "detector/oks_eval.py"),
-    Need("trimesh", "trimesh", "scenes/meshes.py, scenes/assets"),
-    Need("OpenEXR", "OpenEXR", "rigs/render.py: depth images"),
-    Need("PyOpenGL", "OpenGL", "scenes/gl_raster.py: every GL call"),
-    Need("pyrender", "pyrender", "scenes/gl_raster.py: the headless EGL context (pyrender.platforms.egl)"),
-    Need("pyglet", "pyglet", "pyrender's package import (pyrender/viewer.py)"),
-    Need("freetype-py", "freetype", "pyrender's package import (pyrender/font.py)"),
-)
 
 # Newer than constraints.txt, with the reason in the module docstring.
 VERSION_OVERRIDES = {"pyopengl": "3.1.10"}

@@ -2,7 +2,8 @@
 
     python3 benchmarks/gpu_validate.py --work /tmp/gv --wheels /path/to/gpu-wheels    # docs/gpu.md
     .venv/bin/python benchmarks/gpu_validate.py --work runs/gv --device cpu --frames 6 --cities 2 \\
-        --city-frames 2 --scene tiny --size 128 --imgsz 64 --batch 4 --minutes 0.1 --results /tmp/r   # the tiny test
+        --city-frames 2 --scene tiny --size 128 --batch 4 --minutes 0.1 --results /tmp/r \\
+        --train-args "model.imgsz=64 optim.batch=4"                                           # the tiny test
 
 For a fresh single-GPU Linux x86_64 machine without network that has Python 3.12, PyTorch with CUDA,
 numpy 2 and OpenCV and nothing of ours: the code runs from this checkout through sys.path (and
@@ -24,8 +25,9 @@ skipped, so an interrupted run resumes; benchmarks/validate.py's Runner and trai
   from more cities, for training only.
 - data: KITTI converted; the `make validate` renders merged with it to draw the test split, then
   everything merged with that split pinned (`--split-file`, the rest train).
-- train: `omnigen train --time --minutes` (its schedule fitted to the budget), nano+P2, whole images,
-  --cache, amp auto.
+- train: `omnigen train --time --minutes`, the recipe as make validate trains it (detector/recipe.py:
+  nano+P2, its windows, its crop stage's second phase; --train-args changes keys), both phases fitted
+  to the budget, --cache, amp auto.
 - eval: `omnigen eval last.pt --baseline` on the test split (the corner errors beside the
   box-template baseline's, docs/metric-3d.md).
 - --peer: benchmarks/peer_ultralytics.py on the same data for the same minutes (outside the budget).
@@ -273,20 +275,21 @@ def data_stage(run, work: Path, base: list[Path], extra: list[Path], args: argpa
     return uov, ran > 0
 
 
-RECIPE = ("--kpt-mode box --kpt-l1 2.0 --kpt-labelled 1.0 --kpt-turn-start 0.3 --kpt-heading --heading-crop 64 --crop-classes "
-          "--repeat-thresh 0.3")
-"""The keypoint recipe trained by default: make validate's (benchmarks/validate.py keypoint_recipe),
-the first the learning benchmark showed ahead of the box template (docs/detector-training.md)."""
-
-
 def train_arguments(uov: Path, out: Path, args: argparse.Namespace) -> list[str]:
-    """`omnigen train`: nano with P2 on whole images, its schedule fitted to --minutes (--time)."""
+    """`omnigen train`: the recipe (detector/recipe.py: make validate's, windows and crop stage
+    included; --train-args' KEY=VALUE changes it) on the data, its schedule fitted to --minutes
+    (--time, both phases), the images cached; nothing of the recipe's own values."""
     budget = ["--time", f"{args.minutes:g}", "--epochs", str(MAX_EPOCHS)]
-    return ["train", str(uov), "--out", str(out), "--model", "n", "--p2", "--imgsz", str(args.imgsz),
-            "--batch", str(args.batch), "--workers", str(args.workers), "--seed", str(args.seed),
-            "--optimizer", "adamw", "--lr0", str(args.lr0), "--val-every", str(args.val_every),
-            "--kpt-sigma-end", "0.25", "--amp", "auto", "--cache", "--device", args.device, *budget,
-            *shlex.split(getattr(args, "train_args", "") or "")]
+    return ["train", str(uov), *shlex.split(getattr(args, "train_args", "") or ""), "--out", str(out),
+            "--workers", str(args.workers), "--seed", str(args.seed), "--val-every", str(args.val_every),
+            "--amp", "auto", "--cache", "--device", args.device, *budget]
+
+
+def trained_recipe(args: argparse.Namespace) -> Any:
+    """The recipe train_arguments trains (for the report's input size and batch, and the peer's)."""
+    from omnigen.detector.recipe import RECIPE, with_overrides
+
+    return with_overrides(RECIPE, shlex.split(getattr(args, "train_args", "") or ""))
 
 
 def training_speed(run_dir: Path, train_frames: int) -> dict[str, Any]:
@@ -358,14 +361,14 @@ def section_markdown(r: dict[str, Any]) -> str:
              f"- device: {r['device']}; GL renderer of the raster backend: {r['gl_renderer']}",
              f"- frames: {r['frames']['total']} ({', '.join(f'{k} {v}' for k, v in r['frames']['by_source'].items())}); "
              f"train {r['frames']['train']}, test {r['frames']['test']}",
-             f"- training: {t['epochs']} epochs of {t['train_frames']} frames at {a['imgsz']} px, batch {a['batch']}, "
+             f"- training: {t['epochs']} epochs of {t['train_frames']} frames at {t['imgsz']} px, batch {t['batch']}, "
              f"{t['step_seconds']} s of steps ({t['seconds']} s with validation): "
              f"{fmt(t['images_per_s'], 1)} training images/s",
              "",
              "| stage | seconds | budget (s) |", "|---|---|---|",
              *[f"| {k} | {v} | {fmt(r['stage_budgets'].get(k), 0)} |" for k, v in r["stage_seconds"].items()],
              f"| total | {r['total_seconds']} | {BUDGET_SECONDS} |",
-             "", made, "",
+             "",
              "| synthetic test split | this run |" + (" make validate (CPU) |" if cpu else ""),
              "|---|---|" + ("---|" if cpu else "")]
     rows = [("OKS mAP50:95", "oks_map50_95", 3), ("AP at OKS 0.50", "ap_oks50", 3), ("F1 at OKS 0.5", "f1", 3),
@@ -380,7 +383,7 @@ def section_markdown(r: dict[str, Any]) -> str:
     lines.append(f"| test frames (synthetic) | {s.get('images')} |" + (f" {cpu['synthetic'].get('images')} |" if cpu else ""))
     if cpu:
         crop = f" (crop {cpu['crop']})" if cpu.get("crop") else ""
-        lines.append(f"| training | {t['seconds']} s, {t['epochs']} epochs, {a['imgsz']} px |"
+        lines.append(f"| training | {t['seconds']} s, {t['epochs']} epochs, {t['imgsz']} px |"
                      f" {cpu['train_seconds']} s, {cpu['epochs']} epochs, {cpu['imgsz']} px{crop}; {cpu['machine']} |")
     peer = r.get("peer")
     if peer:
@@ -415,9 +418,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--scene", default="downtown,suburban,arterial,intersection",
                     help="city preset or mix (default: make validate's mix, benchmarks/validate.py SCENE_MIX)")
     ap.add_argument("--minutes", type=float, default=7.0, help="training's wall-clock budget (train --time)")
-    ap.add_argument("--imgsz", type=int, default=640)
-    ap.add_argument("--batch", type=int, default=64)
-    ap.add_argument("--lr0", type=float, default=2e-3, help="peak learning rate (make validate's)")
+    ap.add_argument("--batch", type=int, default=64, help="images a batch of the evaluation")
     ap.add_argument("--val-every", type=int, default=10, help="validate every N epochs (train stretches it under --time)")
     ap.add_argument("--jobs", type=int, default=cores, help="concurrent render processes")
     ap.add_argument("--workers", type=int, default=max(0, cores - 2), help="training's data loader processes")
@@ -425,9 +426,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--kitti", type=Path, default=default_kitti(), help="KITTI tree to merge (default: the shared sample)")
     ap.add_argument("--no-kitti", action="store_true", help="synthetic frames alone")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--train-args", default=RECIPE,
-                    help="more `omnigen train` arguments, one string; default: make validate's keypoint recipe, "
-                         f"'{RECIPE}' ('' for the design's plain branch)")
+    ap.add_argument("--train-args", default="",
+                    help="recipe keys to change, one string of KEY=VALUE (omnigen train's; e.g. a recipe from "
+                         "bench_learning.py tried on the GPU); default: none, make validate's recipe as it is")
     ap.add_argument("--results", type=Path, default=ROOT / "docs", help="folder of RESULTS.md (its section) and gpu_results.json")
     ap.add_argument("--peer", action="store_true", help="also train Ultralytics' YOLO11n-pose (peer_ultralytics.py)")
     args = ap.parse_args(argv)
@@ -487,10 +488,11 @@ def main(argv: list[str] | None = None) -> int:
     stages.done("eval", time.perf_counter() - t, ran, STAGE_BUDGETS["eval"])
     report = json.loads(report_path.read_text())
 
+    recipe = trained_recipe(args)
     peer = None
     if args.peer:
         cmd = [sys.executable, str(ROOT / "benchmarks" / "peer_ultralytics.py"), "--work", str(work), "--minutes",
-               f"{args.minutes:g}", "--imgsz", str(args.imgsz), "--batch", str(args.batch), "--workers",
+               f"{args.minutes:g}", "--imgsz", str(recipe.model.imgsz), "--batch", str(recipe.optim.batch), "--workers",
                str(args.workers), "--device", args.device]
         print(f"[peer] {shlex.join(cmd)}", flush=True)
         # one process trains there, as here: the thread caps of the renders are lifted
@@ -511,7 +513,8 @@ def main(argv: list[str] | None = None) -> int:
                    "test": splits.get("test", {}).get("frames")},
         "stage_seconds": dict(stages.seconds), "stage_budgets": {**STAGE_BUDGETS, "train": args.minutes * 60 + 30},
         "total_seconds": round(sum(stages.seconds.values()), 1), "budget_seconds": BUDGET_SECONDS,
-        "training": training_speed(out, train_frames),
+        "training": {**training_speed(out, train_frames), "imgsz": recipe.model.imgsz, "batch": recipe.optim.batch,
+                     "window": recipe.data.window if 0 < recipe.data.window < recipe.model.imgsz else None},
         "synthetic": metric_row(synthetic_row(report)), "overall": metric_row(report["report"]["rows"][0]),
         "baseline": metric_row(synthetic_row({"report": report["baseline"]})) if "baseline" in report else None,
         "arguments": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},

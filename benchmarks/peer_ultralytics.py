@@ -32,7 +32,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.gpu_validate import metric_row, usable_cores, use_site  # noqa: E402  (the standard library alone)
+# the standard library alone: ultralytics and omnigen are imported once use_site has run
+from benchmarks.common import Runner, fmt, metric_row, stale, synthetic_row, usable_cores, use_site  # noqa: E402
 
 MODEL_YAML = "yolo11n-pose.yaml"
 MODEL = "YOLO11n-pose"
@@ -111,7 +112,6 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     import torch
 
-    from benchmarks.validate import Runner, fmt, stale, synthetic_row
     from omnigen.dataset import Dataset
     from omnigen.files import atomic_write_json, atomic_write_text
     from omnigen.splits import read_split
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"peer_ultralytics: {uov} is no merged dataset: run benchmarks/gpu_validate.py --work {work} first")
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     peer.mkdir(parents=True, exist_ok=True)
-    run = Runner(peer)
+    run = Runner(peer, "peer_ultralytics")
     yolo = peer / "yolo"
     run(["export", "yolo", str(uov), "--out", str(yolo)], yolo / "data.yaml")
 

@@ -1,8 +1,8 @@
-"""End-to-end validation: render, merge, train nano+P2 and its crop stage, evaluate, BEV; writes docs/RESULTS.md and docs/results.json.
+"""End-to-end validation: render, merge, train the recipe (nano+P2 and its crop stage), evaluate, BEV; writes docs/RESULTS.md and docs/results.json.
 
     make validate                                   # the default below, sized for a 2-core machine
     .venv/bin/python benchmarks/validate.py --kitti ../shared/realdata/kitti --ablations no-p2
-    .venv/bin/python benchmarks/validate.py --frames 2000 --crop 0 --epochs 100 --scales n s m --device cuda
+    .venv/bin/python benchmarks/validate.py --frames 2000 --set data.window=0 --epochs 100 --scales n s m --device cuda
 
 Every stage is a command of the toolkit, run in this process and recorded with its wall time; a
 stage whose output already exists is skipped, so an interrupted run resumes, and a training cut off
@@ -10,24 +10,24 @@ midway (a kill, a time-boxed job) goes on from its last checkpoint, the time of 
 counted (`--fresh` starts over; a working folder rendered with other data arguments is refused
 rather than silently reused).
 
-The default fits a 2-core CPU: 600 raster frames at 640 x 640, and training on random 320 x 320
-windows of the 640-pixel input (`--crop 320`): a step costs what a 320-pixel input costs while
-every object keeps the scale it has when the model predicts on the whole 640-pixel image.
-Training is time-boxed (`--minutes 100`, train --time): the schedule is planned over the epochs
-that fit, at most `--epochs`. Then the detector's crop stage (each detection's corners, front
-and class from its own crop) is trained again apart from it on clean crops, `--crop-steps 7000`
-(`omnigen train-crop`, about 16 minutes on 2 cores in bf16), and the test split is predicted with
-that checkpoint; the whole run stays within 2 hours on 2 cores that run bfloat16 (RESULTS.md lists
-each stage's time; without bf16 the 100 minutes are used to the end, and the crop stage takes half
-as long again, so the run takes longer). On a CPU that runs bfloat16 natively the steps run in bf16
-(`--amp`, about 0.65 of a float32 step by benchmarks/bench_train_step.py; train-crop's too,
-`--amp bf16`, 0.65 of its float32 time by benchmarks/crop_apart.py). Training uses AdamW at 2e-3 (docs/detector-training.md says why).
-`--cache` keeps the decoded images in memory (565 MiB here; a few seconds of CPU an epoch by
-benchmarks/bench_cache.py); it trains the same weights, so runs done without it are kept.
-Scaling up: more frames per rig (`--frames`), whole images (`--crop 0`), more epochs, Cycles
-instead of the raster preview (`--backend cycles`), the ablations of the design's Table 8
-(`--ablations`: without synthetic data, without P2, a 1.5x larger input) and the other scales
-(`--scales n s m`) where a GPU makes them affordable; see docs/RESULTS.md for what ran here.
+What is trained is `omnigen train`'s own recipe (detector/recipe.py): this script passes the data
+and the budget, never a recipe value (`--recipe FILE` and `--set KEY=VALUE` change it, as they do
+train's). Its defaults fit a 2-core CPU: 600 raster frames at 640 x 640, training on random
+320 x 320 windows of the 640-pixel input (data.window: a step costs what a 320-pixel input costs
+while every object keeps the scale it has when the model predicts on the whole image), then the
+crop stage (each detection's corners, front and class from its own crop) trained again apart on
+clean crops for 7000 steps, the run's second phase (about 16 minutes on 2 cores in bf16). Training
+is time-boxed (`--minutes 125`, train --time): the detector's schedule is planned over the epochs
+that fit in 100 minutes, at most `--epochs`, and the crop phase has the rest; the whole run stays
+within 2 hours on 2 cores that run bfloat16 (RESULTS.md lists each stage's time). On a CPU that runs
+bfloat16 natively the steps run in bf16 (`--amp`, about 0.65 of a float32 step by
+benchmarks/bench_train_speed.py; the crop phase's too). `--cache` keeps the decoded images in memory (565 MiB here; a few
+seconds of CPU an epoch by benchmarks/bench_train_speed.py cache); it trains the same weights, so runs done
+without it are kept. Scaling up: more frames per rig (`--frames`), whole images
+(`--set data.window=0`), more epochs, Cycles instead of the raster preview (`--backend cycles`),
+the ablations of the design's Table 8 (`--ablations`: without synthetic data, without P2, a 1.5x
+larger input) and the other scales (`--scales n s m`) where a GPU makes them affordable; see
+docs/RESULTS.md for what ran here.
 """
 
 from __future__ import annotations
@@ -37,7 +37,6 @@ import csv
 import datetime
 import hashlib
 import json
-import math
 import os
 import platform
 import re
@@ -52,9 +51,10 @@ from typing import TYPE_CHECKING, Any, Callable
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench_adherence_floor import floor_rows  # noqa: E402
+from benchmarks import common  # noqa: E402
+from benchmarks.common import floor_rows, fmt, mentions, stale, synthetic_row  # noqa: E402, F401  (tests read mentions here)
 from omnigen.detector.oks_eval import SIZE_BINS  # noqa: E402
-from omnigen.cli import main as omnigen  # noqa: E402
+from omnigen.detector.recipe import RECIPE, RUN, Recipe, read_recipe, train_fields, with_overrides  # noqa: E402
 from omnigen.files import atomic_write_json, atomic_write_text, file_digest  # noqa: E402
 
 if TYPE_CHECKING:
@@ -67,63 +67,23 @@ FLOOR_NOISE_PX = [0.0, 1.0, 2.0]
 BASELINE_FIELDS = ("oks_map50_95", "ap_oks50", "ground_adherence_deg", "corner_error_px", "corner_error_rel")  # corner noise of the "what the truth's own corners score" rows
 
 
-class Runner:
+class Runner(common.Runner):
     """Runs omnigen commands, records each with its wall time (in WORK/commands.json, so that a
-    resumed run reports the stages an earlier invocation did), and stops on failure."""
+    resumed run reports the stages an earlier invocation did), and stops on failure; a training is
+    keyed by its train_stamp (--cache or not: the same weights)."""
 
     def __init__(self, work: Path) -> None:
-        self.path = work / "commands.json"
-        self.log: list[dict[str, Any]] = json.loads(self.path.read_text()) if self.path.exists() else []
+        super().__init__(work, who="validate")
 
-    def record(self, command: str, seconds: float) -> None:
-        """Log a finished command; one run again (its output deleted to redo it) replaces its record."""
-        self.log = [c for c in self.log if c["command"] != command]
-        self.log.append({"command": command, "seconds": round(seconds, 1)})
-        atomic_write_json(self.path, self.log, indent=1)
-
-    def seconds(self, prefix: str) -> float:
-        """Wall time of the recorded commands that start with `prefix`, --cache or not (see train_stamp)."""
-        prefix = train_stamp(prefix)
-        return sum(c["seconds"] for c in self.log if train_stamp(c["command"]).startswith(prefix))
-
-    def drop(self, prefix: str) -> None:
-        """Drop the records of commands that start with `prefix` (redone in another form)."""
-        self.log = [c for c in self.log if not c["command"].startswith(prefix)]
-        atomic_write_json(self.path, self.log, indent=1)
+    def key(self, command: str) -> str:
+        return train_stamp(command)
 
     def forget_trainings(self, out: Path, but: str | None = None) -> None:
         """Drop the records of trainings into `out` (trains_into), but those of the training `but`
         (--cache or not, train_stamp): a folder trained again, or moved back from another run."""
         keep = None if but is None else train_stamp(but)
         self.log = [c for c in self.log if not trains_into(c["command"], out) or train_stamp(c["command"]) == keep]
-        atomic_write_json(self.path, self.log, indent=1)
-
-    def forget(self, folder: Path) -> None:
-        """Drop the records of commands that wrote into or read from `folder` (it is being redone)."""
-        self.log = [c for c in self.log if not mentions(c["command"], folder)]
-        atomic_write_json(self.path, self.log, indent=1)
-
-    def __call__(self, argv: list[str], done: Path | None = None, resume_from: float | None = None) -> float:
-        """Run `omnigen ARGV` unless `done` exists; `resume_from` (a training's seconds before it was
-        cut off) runs it with --resume and records it under ARGV with those seconds added."""
-        cmd = "omnigen " + shlex.join(argv)
-        if done is not None and done.exists():
-            print(f"[skip, done] {cmd}", flush=True)
-            return 0.0
-        invoked = argv if resume_from is None else [*argv, "--resume"]
-        print(f"[run] omnigen {shlex.join(invoked)}", flush=True)
-        t = time.perf_counter()
-        rc = omnigen(invoked)
-        dt = time.perf_counter() - t
-        if rc != 0:
-            raise SystemExit(f"validate: 'omnigen {shlex.join(invoked)}' exited with {rc}")
-        self.record(cmd, (resume_from or 0.0) + dt)
-        return dt
-
-
-def mentions(command: str, folder: Path) -> bool:
-    """Whether a recorded command names `folder` or a file in it (not a sibling sharing its prefix)."""
-    return re.search(re.escape(str(folder)) + r"(?=[/ ,)]|$)", command) is not None
+        self.save()
 
 
 # train flags that change how fast a run learns, not what it learns (tests/detector/test_detector_train.py
@@ -134,11 +94,6 @@ SAME_WEIGHTS = ("--cache",)
 def train_stamp(command: str) -> str:
     """A training command without the flags that leave its weights alone: what its done-marker holds."""
     return " ".join(t for t in command.split(" ") if t not in SAME_WEIGHTS)
-
-
-def stale(marker: Path, stamp: str) -> bool:
-    """A done-marker left by a run with other arguments (or other inputs): its work is redone."""
-    return marker.exists() and marker.read_text().strip() != stamp
 
 
 def stale_or_missing(marker: Path, stamp: str) -> bool:
@@ -203,27 +158,6 @@ def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
     return run.seconds("omnigen " + shlex.join(train_cmd))
 
 
-def crop_stage(run: Runner, cmd: list[str], out: Path) -> Path:
-    """OUT/crop.pt, the run's last.pt with its crop stage trained apart (`omnigen train-crop`, the
-    command `cmd`), unless OUT/crop-done says it was trained so; returns it. One trained with other
-    arguments, left by a run before the marker, or deleted since, is trained again; a partial state
-    (crop.pt.partial) goes on only where OUT/crop-started says it is of these arguments."""
-    weights, marker, started = out / "crop.pt", out / "crop-done", out / "crop-started"
-    partial = weights.with_name(weights.name + ".partial")
-    stamp = shlex.join(cmd)
-    if stale(marker, stamp) or (weights.exists() != marker.exists()) or stale(started, stamp):
-        print(f"[stale] {weights} was trained with other arguments, or is missing: training it again", flush=True)
-        if marker.exists():
-            run.drop("omnigen " + marker.read_text().strip())  # the old training's record, its seconds
-        for path in (weights, partial, marker, started):  # a partial run of other arguments too
-            path.unlink(missing_ok=True)
-    if not marker.exists():
-        atomic_write_text(started, stamp + "\n")  # what a partial state left beside crop.pt belongs to
-    run(cmd, marker)
-    atomic_write_text(marker, stamp + "\n")
-    return weights
-
-
 def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
                   predict: Callable[[bool], list[dict[str, Any]]], weights: Path | None = None,
                   vertical: str = "lines") -> Path:
@@ -276,13 +210,6 @@ def default_amp(device: str | None) -> str:
 
     on_cpu = device == "cpu" if device else not torch.cuda.is_available()
     return "bf16" if on_cpu and fast_bf16(torch.device("cpu")) else "auto"
-
-
-def crop_amp(amp: str) -> list[str]:
-    """train-crop's precision flag for training's resolved `amp`: bf16 where the detector trains in
-    bf16 (train-crop runs on the CPU, where it takes about 0.65 of float32's time for the same
-    corners, benchmarks/crop_apart.py), else none (float32)."""
-    return ["--amp", "bf16"] if amp == "bf16" else []
 
 
 DATA_ARGUMENTS = ("frames", "cities", "size", "backend", "seed", "scene", "kitti", "dair")
@@ -363,32 +290,6 @@ def run_renders(run: Runner, todo: list[list[str]], jobs: int, env: dict[str, st
             run.record(f"omnigen {shlex.join(argv)}", time.perf_counter() - t)
 
 
-def synthetic_row(report: dict[str, Any]) -> dict[str, Any]:
-    for row in report["report"]["rows"]:
-        if row["group"] == "source=synthetic":
-            return row
-    raise SystemExit("validate: the evaluation has no synthetic test frames")
-
-
-def keypoint_recipe(args: argparse.Namespace) -> list[str]:
-    """The keypoint branch's `omnigen train` arguments of the recipe. --kpt-heading is on unless
-    asked off or --kpt-turn is given (the two answer the same question; train refuses both)."""
-    heading = not args.kpt_turn if args.kpt_heading is None else args.kpt_heading
-    return (["--kpt-mode", args.kpt_mode, "--kpt-l1", str(args.kpt_l1), "--kpt-labelled", str(args.kpt_labelled),
-             "--kpt-turn-start", str(args.kpt_turn_start)] + (["--kpt-turn"] if args.kpt_turn else [])
-            + (["--kpt-heading"] if heading else [])
-            + (["--heading-gain", str(args.heading_gain)] if args.heading_gain is not None else [])
-            + (["--kpt-hidden", str(args.kpt_hidden)] if args.kpt_hidden else [])
-            + (["--heading-crop", str(args.heading_crop)] if args.heading_crop else [])
-            + (["--crop-classes"] if args.heading_crop and args.crop_classes else []))
-
-
-def frame_sampling(args: argparse.Namespace) -> list[str]:
-    """`omnigen train --repeat-thresh` from --repeat-thresh (none for 0): frames holding rare classes
-    drawn more often (detector/balance.py); the GPU script's recipe carries it too."""
-    return ["--repeat-thresh", str(args.repeat_thresh)] if args.repeat_thresh else []
-
-
 def time_box(args: argparse.Namespace) -> list[str]:
     """`omnigen train --time MINUTES` from --minutes (none for 0): the trainer plans the epochs that
     fit, so the 2-hour figure of the default run is a budget kept, not a projection."""
@@ -407,68 +308,29 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--size", type=int, default=640, help="rendered image width and height")
     ap.add_argument("--backend", default="raster", choices=["raster", "cycles"])
     ap.add_argument("--jobs", type=int, default=2, help="concurrent render processes")
-    ap.add_argument("--imgsz", type=int, default=640, help="network input: images are letterboxed to it")
-    ap.add_argument("--crop", type=int, default=320,
-                    help="train on random CROP x CROP windows of the input (objects keep their scale, a step "
-                         "costs what a CROP-pixel input costs); 0: whole images")
-    ap.add_argument("--crop-focus", type=float, default=0.5,
-                    help="share of the crop windows centred on an object drawn class-balanced (train --crop-focus); 0: none")
-    ap.add_argument("--repeat-thresh", type=float, default=0.3,
-                    help="repeat-factor sampling threshold: frames holding classes rarer than this are repeated "
-                         "(train --repeat-thresh); 0: off")
-    ap.add_argument("--epochs", type=int, default=150, help="epochs at most (--minutes may plan fewer)")
-    ap.add_argument("--minutes", type=float, default=100.0,
-                    help="training's wall-clock budget per model (train --time): the schedule is fitted to the "
-                         "epochs that fit, so the whole default run stays within 2 hours on 2 cores; 0: none")
-    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--epochs", type=int, default=RUN.epochs, help="epochs at most (--minutes may plan fewer)")
+    ap.add_argument("--minutes", type=float, default=125.0,
+                    help="training's wall-clock budget per model, both phases (train --time): the detector's schedule "
+                         "is fitted to the epochs that fit in its 100 minutes, the crop stage's to the rest, so the "
+                         "whole default run stays within 2 hours on 2 cores; 0: none")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--cache", action="store_true", help="train with the images decoded once, in memory (train --cache)")
-    ap.add_argument("--optimizer", default="adamw", choices=["adamw", "adam"])
-    ap.add_argument("--lr0", type=float, default=2e-3, help="peak learning rate")
     ap.add_argument("--device", default=None)
-    ap.add_argument("--kpt-sigma-end", type=float, default=0.25,
-                    help="keypoint-loss sigma after the anneal: 0.25 trains on the kernel of the OKS metric "
-                         "reported here (pycocotools, sigma 0.125); 0.125 is the design's formula read literally")
-    # The default recipe is the one that first put the corners ahead of the box template on the
-    # learning benchmark (docs/detector-training.md, "The front from the object's own pixels")
-    ap.add_argument("--kpt-mode", default="box", choices=["anchor", "box"],
-                    help="how the keypoint branch places corners (omnigen train --kpt-mode)")
-    ap.add_argument("--kpt-l1", type=float, default=2.0, help="gain of the L1 corner term (omnigen train --kpt-l1)")
-    ap.add_argument("--kpt-turn", action="store_true", help="corners up to the 180-degree turn (omnigen train --kpt-turn)")
-    ap.add_argument("--kpt-labelled", type=float, default=1.0, help="omnigen train --kpt-labelled")
-    ap.add_argument("--kpt-turn-start", type=float, default=0.3, help="omnigen train --kpt-turn-start")
-    ap.add_argument("--kpt-heading", action=argparse.BooleanOptionalAction, default=None,
-                    help="the front from a regressed image heading (omnigen train --kpt-heading); default: on "
-                         "unless --kpt-turn, which answers the same question")
-    ap.add_argument("--heading-gain", type=float, default=None, help="omnigen train --heading-gain")
-    ap.add_argument("--kpt-hidden", type=int, default=None, help="keypoint-branch width (omnigen train --kpt-hidden)")
-    ap.add_argument("--heading-crop", type=int, default=64, help="crop side of the second stage that places corners and reads the front (omnigen train --heading-crop); 0: none")
-    ap.add_argument("--crop-classes", action=argparse.BooleanOptionalAction, default=True,
-                    help="the crop stage names each crop's class and rescores the detections it refines "
-                         "(omnigen train --crop-classes; docs/detector-training.md); ignored without --heading-crop")
-    ap.add_argument("--crop-steps", type=int, default=7000,
-                    help="train the crop stage again apart from the detector for this many steps, on clean crops "
-                         "(omnigen train-crop), and predict with it; 0: predict with the stage trained with the "
-                         "detector. Ignored without --heading-crop")
-    ap.add_argument("--crop-position", action=argparse.BooleanOptionalAction, default=True,
-                    help="the crop stage trained apart is told where each crop was cut (omnigen train-crop "
-                         "--position: the direction of an object's vertical edges depends on it); ignored without "
-                         "--heading-crop or with --crop-steps 0")
-    ap.add_argument("--crop-offset-gain", type=float, default=0.3,
-                    help="gain of the crop stage's L1 term on the bottom face's offset from the top face "
-                         "(omnigen train-crop --offset-gain); ignored without --heading-crop or with --crop-steps 0")
-    ap.add_argument("--vertical", default="lines", choices=["lines", "off"],
+    ap.add_argument("--recipe", type=Path, default=None,
+                    help="train this recipe file instead of the validated one (omnigen train --recipe)")
+    ap.add_argument("--set", nargs="+", action="extend", default=[], metavar="KEY=VALUE",
+                    help="recipe keys to change for every run (omnigen train KEY=VALUE; data.window=0: whole images)")
+    ap.add_argument("--vertical", default=RECIPE.predict.vertical, choices=["lines", "off"],
                     help="prediction turns each test image's detections' vertical edges to its vertical vanishing "
-                         "point, found from them and the image's line segments (omnigen predict --vertical; "
-                         "benchmarks/vertical_snap.py); off: the corners as the network placed them")
+                         "point, found from them and the image's line segments (omnigen predict --vertical); "
+                         "off: the corners as the network placed them")
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
-                         "natively, a step in about 0.65 of the time by benchmarks/bench_train_step.py; else auto)")
+                         "natively, else auto)")
     ap.add_argument("--val-every", type=int, default=50,
                     help="validate every N epochs (and at the end): the curve in results.csv; the test split is "
-                         "evaluated with the last weights, never the best-validated ones. 50: each validation "
-                         "refines 300 detections a test frame with the crop stage (benchmarks/bench_crop_stage.py), "
-                         "about a minute of the 2-hour budget")
+                         "evaluated with the last weights, never the best-validated ones; each validation refines "
+                         "the test frames' detections with the crop stage, so fewer validations leave more budget")
     ap.add_argument("--scales", nargs="+", default=["n"], help="model scales to train with P2 (n first)")
     ap.add_argument("--ablations", nargs="*", default=[], choices=["no-p2", "hires", "no-synthetic"],
                     help="also train: without P2, at 1.5x the input size (same crop), on the real sources alone")
@@ -480,21 +342,36 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def check_recipe(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Refuse, before any data stage, the keypoint and sampling flags `omnigen train` would refuse
-    at training."""
-    if args.kpt_turn and args.kpt_heading:
-        ap.error("--kpt-turn and --kpt-heading both say which face is the front; give one (--no-kpt-heading)")
-    heading = not args.kpt_turn if args.kpt_heading is None else args.kpt_heading
-    if args.heading_gain is not None and not heading:
-        ap.error("--heading-gain weighs the heading of --kpt-heading, which is off here")
-    from omnigen.detector.train import TrainConfig, check_sampling
+def run_recipe(args: argparse.Namespace, keys: list[str] = ()) -> Recipe:
+    """The recipe a run trains: --recipe's (else the validated one) with --set's keys and the run's
+    own (`keys`: an ablation's), as `omnigen train` resolves them."""
+    return with_overrides(read_recipe(args.recipe) if args.recipe else RECIPE, [*args.set, *keys])
 
-    try:  # train's own check of the sampling flags, as train_stage will pass them
-        check_sampling(TrainConfig(dataset=str(args.work), out=str(args.work), crop=args.crop or None,
-                                   crop_focus=args.crop_focus if args.crop else 0.0, repeat_thresh=args.repeat_thresh))
+
+def check_recipe(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse, before any data stage, a recipe `omnigen train` would refuse at training: an unknown
+    key, a value of the wrong type or range, sampling settings train's own check refuses."""
+    from omnigen.detector.train import TrainConfig, check_sampling, check_sizes
+
+    try:
+        fields = train_fields(run_recipe(args))
+        cfg = TrainConfig(dataset=str(args.work), out=str(args.work), **fields)
+        check_sizes(cfg)
+        check_sampling(cfg)
     except ValueError as e:
-        ap.error(f"--crop-focus / --repeat-thresh: {e}")
+        ap.error(f"the recipe: {e}")
+
+
+def train_command(args: argparse.Namespace, dataset: Path, out: Path, keys: list[str] = (),
+                  options: list[str] = ()) -> list[str]:
+    """`omnigen train` of one run: the dataset, the recipe (--recipe, --set and the run's `keys`),
+    and validate's budget and machine settings; nothing of the recipe's own values, which train
+    takes from detector/recipe.py."""
+    recipe = ["--recipe", str(args.recipe)] if args.recipe else []
+    return ["train", str(dataset), *args.set, *keys, "--out", str(out), *recipe, "--epochs", str(args.epochs),
+            "--workers", str(args.workers), "--seed", str(args.seed), "--val-every", str(args.val_every),
+            "--amp", args.amp, *time_box(args), *(["--device", args.device] if args.device else []),
+            *(["--cache"] if args.cache else []), *options]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -528,37 +405,24 @@ def main(argv: list[str] | None = None) -> int:
     from omnigen.dataset import Dataset
 
     uov_ds = Dataset.open(uov, show_progress=False)  # read once: the heading table and the object sizes
-    crop = ["--crop", str(args.crop)] + (["--crop-focus", str(args.crop_focus)] if args.crop_focus else []) \
-        if args.crop else []
-    common = ["--imgsz", str(args.imgsz), "--epochs", str(args.epochs), "--batch", str(args.batch),
-              "--workers", str(args.workers), "--seed", str(args.seed),
-              "--optimizer", args.optimizer, "--lr0", str(args.lr0), "--val-every", str(args.val_every),
-              "--kpt-sigma-end", str(args.kpt_sigma_end), "--amp", args.amp] + keypoint_recipe(args)
-    common += frame_sampling(args)
-    common += time_box(args)
-    common += (["--device", args.device] if args.device else []) + (["--cache"] if args.cache else [])
     runs: list[dict[str, Any]] = []
 
-    def train_eval(name: str, extra: list[str], dataset: Path = uov, imgsz: int | None = None) -> dict[str, Any]:
+    def train_eval(name: str, keys: list[str], dataset: Path = uov, options: list[str] = ()) -> dict[str, Any]:
         out = work / "runs" / name
-        opts = common if imgsz is None else ["--imgsz", str(imgsz), *common[2:]]  # common starts with --imgsz
-        t = train_stage(run, ["train", str(dataset), "--out", str(out), *opts, *crop, *extra], out)
+        t = train_stage(run, train_command(args, dataset, out, keys, options), out)
         from omnigen.detector.checkpoint import load_checkpoint
         from omnigen.detector.data import split_frames
         from omnigen.detector.predict import EVAL_MAX_DET, EVAL_MULTI_LABEL, predict_dataset
 
         # last.pt, not best.pt: without a val split, train validates on the test split, and
-        # choosing the checkpoint by its test score would flatter the number reported here
-        weights, stage = out / "last.pt", None
-        if args.heading_crop and args.crop_steps:  # the crop stage trained again, apart (omnigen train-crop)
-            weights = crop_stage(run, ["train-crop", str(dataset), "--weights", str(out / "last.pt"),
-                                       "--out", str(out / "crop.pt"), "--steps", str(args.crop_steps),
-                                       "--seed", str(args.seed), *crop_amp(args.amp),
-                                       "--position" if args.crop_position else "--no-position",
-                                       "--offset-gain", str(args.crop_offset_gain)], out)
-            stage = load_checkpoint(weights).get("crop_stage")
+        # choosing the checkpoint by its test score would flatter the number reported here. It
+        # holds the crop stage of the run's second phase (trained again apart on clean crops).
+        weights = out / "last.pt"
+        stage = load_checkpoint(weights).get("crop_stage")
+        recipe = run_recipe(args, keys)
+        imgsz = recipe.model.imgsz
         preds = predict_stage(run, out, uov, EVAL_MULTI_LABEL, lambda multi_label: predict_dataset(
-            weights, uov, split="test", imgsz=imgsz or args.imgsz, batch=args.batch, device=args.device,
+            weights, uov, split="test", imgsz=imgsz, batch=recipe.optim.batch, device=args.device,
             multi_label=multi_label, vertical=args.vertical), weights=weights, vertical=args.vertical)
         report_path = out / "eval.json"
         run(["eval", str(preds), str(uov), "--split", "test", "--baseline", "--out", str(report_path)], report_path)
@@ -570,33 +434,35 @@ def main(argv: list[str] | None = None) -> int:
         hist = list(csv.DictReader((out / "results.csv").read_text().splitlines()))
         curve = [{"epoch": int(float(h["epoch"])), "oks_map50_95": float(h["oks_map50_95"]), "ap_oks50": float(h["ap_oks50"])}
                  for h in hist if h.get("oks_map50_95") not in (None, "", "nan")]
-        entry = {"name": name, "train_args": extra, "imgsz": imgsz or args.imgsz, "crop": args.crop or None,
+        entry = {"name": name, "train_args": [*keys, *options], "imgsz": imgsz,
+                 "crop": recipe.data.window if 0 < recipe.data.window < imgsz else None,
                  "train_seconds": round(t, 1),
                  # robust to a busy machine where the total is not: the training part of an epoch
                  "median_epoch_seconds": round(statistics.median(float(h["seconds"]) for h in hist), 1),
                  "synthetic_test": row, "overall_test": report["report"]["rows"][0], "epochs_logged": len(hist),
                  "baseline_synthetic_test": baseline,
-                 "curve": curve, "validated_on": validated_on(dataset, extra, uov),
+                 "curve": curve, "validated_on": validated_on(dataset, list(options), uov),
                  "predicted": (out / "predicted").read_text().strip(),
                  **detection_cap_counts(predictions, len(split_frames(uov, "test") or []), EVAL_MAX_DET),
                  "report_rows": report["report"]["rows"], "corner_order": orders, "crop_stage": stage}
         runs.append(entry)
         return entry
 
-    main_run = train_eval("n-p2", ["--model", "n", "--p2"])
+    main_run = train_eval("n-p2", [])  # the recipe: nano with P2
     for scale in args.scales[1:]:
-        train_eval(f"{scale}-p2", ["--model", scale, "--p2"])
+        train_eval(f"{scale}-p2", [f"model.scale={scale}"])
     if "no-p2" in args.ablations:
-        train_eval("n-no-p2", ["--model", "n", "--no-p2"])
+        train_eval("n-no-p2", ["model.p2=false"])
     if "hires" in args.ablations:
-        train_eval(f"n-p2-{int(args.imgsz * 1.5)}", ["--model", "n", "--p2"], imgsz=int(args.imgsz * 1.5) // 32 * 32)
+        hires = int(run_recipe(args).model.imgsz * 1.5) // 32 * 32
+        train_eval(f"n-p2-{hires}", [f"model.imgsz={hires}"])
     if "no-synthetic" in args.ablations:
         if not real:
             raise SystemExit("validate: the no-synthetic ablation needs --kitti or --dair")
         merged_real = work / "uov-real"
         run(["merge", *map(str, real), "--out", str(merged_real), "--test-fraction", "0.0"],
             merged_real / "manifest.json")
-        train_eval("n-p2-no-synthetic", ["--model", "n", "--p2", "--val-split", "train"], dataset=merged_real)
+        train_eval("n-p2-no-synthetic", [], dataset=merged_real, options=["--val-split", "train"])
 
     bev_dir = work / "bev"
     # one detection a box: the evaluation's class copies would stand twice on the map
@@ -673,14 +539,7 @@ def object_sizes(ds: Dataset, split: str = "test") -> dict[str, dict[str, float]
     return out
 
 
-def fmt(v: Any, digits: int = 3) -> str:
-    """A figure for a table: '-' where there is none (None, or NaN: nothing was matched)."""
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return "-"
-    return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
-
-
-def baseline_table(r: dict[str, Any], made: str) -> list[str]:
+def baseline_table(r: dict[str, Any]) -> list[str]:
     """The model beside the box-template baseline (each predicted box's corners placed by the mean
     layout of its class and view, learned from the train split): whether the corners carry more
     than the 2D box does. Empty for results written before the baseline existed."""
@@ -697,7 +556,7 @@ def baseline_table(r: dict[str, Any], made: str) -> list[str]:
             "carry no more than its 2D boxes.", "",
             "| synthetic test split | model | box-template baseline |", "|---|---|---|",
             *[f"| {name} | {fmt(v, d)} | {fmt(b.get(k), d)} |" for name, k, v, d in rows],
-            "", made, ""]
+            ""]
 
 
 def _view_line(g: dict[str, Any], sizes: dict[str, Any]) -> str:
@@ -795,7 +654,7 @@ def window_note(r: dict[str, Any]) -> list[str]:
             ""]
 
 
-def floor_table(r: dict[str, Any], made: str) -> list[str]:
+def floor_table(r: dict[str, Any]) -> list[str]:
     """The adherence floor section (benchmarks/bench_adherence_floor.py), when results.json has it."""
     rows = r.get("adherence_floor")
     if not rows:
@@ -814,7 +673,7 @@ def floor_table(r: dict[str, Any], made: str) -> list[str]:
         lines.append(f"| {noise:g} | " + " | ".join(
             f"{fmt(cell[noise, g]['oks_map50_95'])} / {fmt(cell[noise, g]['adherence_deg'], 2)}"
             if (noise, g) in cell else "-" for g in groups) + " |")
-    return lines + ["", made, ""]
+    return lines + [""]
 
 
 # Sections of RESULTS.md that other scripts write (benchmarks/gpu_validate.py): each between its
@@ -837,21 +696,14 @@ def with_section(text: str, name: str, body: str) -> str:
     return text + gap + block
 
 
-NEGATABLE = ("crop_classes", "kpt_heading")
-"""Arguments on by default (or by another one), asked off with --no-X: the printed command must say so."""
-
-
 def command_line(a: dict[str, Any]) -> str:
-    """The validate command that `a` (results.json's arguments) stand for; a switch that is on
-    unless asked off (NEGATABLE) is written --no-X when it was."""
+    """The validate command that `a` (results.json's arguments) stand for."""
     def opt(k: str, v: Any) -> str:
         flag = f"--{k.replace('_', '-')}"
-        if v is False:
-            return f"--no-{k.replace('_', '-')}"
         return flag if v is True else f"{flag} {' '.join(map(str, v))}" if isinstance(v, list) else f"{flag} {v}"
 
     def said(k: str, v: Any) -> bool:  # identity, not equality: 0 and 0.0 are values to print (0 == False)
-        return k != "fresh" and v is not None and not (isinstance(v, list) and not v) and (v is not False or k in NEGATABLE)
+        return k != "fresh" and v is not None and not (isinstance(v, list) and not v) and v is not False
 
     return "python benchmarks/validate.py " + " ".join(opt(k, v) for k, v in a.items() if said(k, v))
 
@@ -888,9 +740,10 @@ def protocol_line(r: dict[str, Any]) -> list[str]:
         told = ", told where each crop was cut (--position)" if stage.get("position") else ""
         gain = stage.get("config", {}).get("offset_gain")
         told += f", an L1 term on the faces' offset (--offset-gain {gain:g})" if gain else ""
-        lines.append(f"- crop stage: trained again apart from the detector (`omnigen train-crop`, "
-                     f"{stage['steps_done']} steps, {stage['seconds']} s{told}) and predicted with (crop.pt: last.pt's "
-                     f"other tensors); on its {stage.get('score_split')} crops about moved boxes: corner error rel "
+        how = "the run's second phase" if stage.get("by") == "omnigen train" else "`omnigen train-crop`"
+        lines.append(f"- crop stage: trained again apart from the detector ({how}, "
+                     f"{stage['steps_done']} steps, {stage['seconds']} s{told}) and predicted with (the detector's "
+                     f"other tensors unchanged); on its {stage.get('score_split')} crops about moved boxes: corner error rel "
                      f"{fmt(sc.get('corner_rel'))}, front right {fmt(sc.get('front'))}, class accuracy "
                      f"{fmt(sc.get('class_acc'))}")
     return lines
@@ -900,7 +753,6 @@ def results_markdown(r: dict[str, Any]) -> str:
     """RESULTS.md: every number below is read from results.json, written by this script."""
     a = r["arguments"]
     cmd = command_line(a)
-    made = f"Made by `{cmd}` on {r['machine']}, {r['date']}."  # under every table: the issue asks each to say
     lines = [
         "# Results: the data, validated end to end",
         "",
@@ -924,8 +776,8 @@ def results_markdown(r: dict[str, Any]) -> str:
         f"| AP at OKS 0.50 | {fmt(r['ap_oks50'])} | |",
         f"| precision / recall / F1 at OKS 0.5 (best-F1 confidence) | {fmt(r['precision'])} / {fmt(r['recall'])} / {fmt(r['f1'])} | |",
         f"| ground-plane adherence of predicted corners (deg) | {fmt(r['bev_adherence_deg'], 2)} | <= {r['targets']['bev_adherence_deg']} |",
-        "", made, "",
-        *baseline_table(r, made),
+        "",
+        *baseline_table(r),
         "## By view, and how large the test objects are",
         "",
         "OKS measures a corner's error against the object's scale (sqrt of its box area), so small",
@@ -936,8 +788,8 @@ def results_markdown(r: dict[str, Any]) -> str:
         "| view | mAP50:95 | AP50 | F1 | adherence, deg (matches) | test objects | sqrt(area) px: 10th / median / 90th percentile | median distance (m) |",
         "|---|---|---|---|---|---|---|---|",
         *[_view_line(g, r["test_object_sizes"].get(g["group"][5:], {})) for g in r.get("by_view", [])],
-        "", made, "",
-        *floor_table(r, made),
+        "",
+        *floor_table(r),
         "## By class",
         "",
         "Over the whole test split (synthetic and real frames). mAP50:95 above is the mean of these",
@@ -947,7 +799,7 @@ def results_markdown(r: dict[str, Any]) -> str:
         "|---|---|---|---|---|---|---|",
         *[f"| {g['group'][6:]} | {g['objects']} | {fmt(g['oks_map50_95'])} | {fmt(g['ap_oks50'])} | "
           f"{fmt(g['precision'])} | {fmt(g['recall'])} | {fmt(g['f1'])} |" for g in r.get("by_class", [])],
-        "", made, "",
+        "",
         "## Every run (the design's Tables 2 and 8, as far as this machine allowed)",
         "",
         f"Scales trained: {', '.join(a['scales'])}; ablations: {', '.join(a['ablations']) or 'none in this run'} "
@@ -969,17 +821,18 @@ def results_markdown(r: dict[str, Any]) -> str:
     for run in r["runs"]:
         s, o = run["synthetic_test"], run["overall_test"]
         size = f"{run['imgsz']} ({run['crop']})" if run.get("crop") else str(run["imgsz"])
-        lines.append(f"| {run['name']} | `{' '.join(run['train_args'])}` | {size} | {run['train_seconds']} | "
+        args = f"`{' '.join(run['train_args'])}`" if run["train_args"] else "the recipe"
+        lines.append(f"| {run['name']} | {args} | {size} | {run['train_seconds']} | "
                      f"{run.get('median_epoch_seconds', '-')} | "
                      f"{fmt(s['oks_map50_95'])} | {fmt(s['ap_oks50'])} | {fmt(s['f1'])} | {fmt(s['ground_adherence_deg'], 2)} | "
                      f"{fmt(o['oks_map50_95'])} |")
     sizes = size_table(r)
     if sizes:
-        lines += ["", made, "", *sizes]
+        lines += ["", *sizes]
     curves = curve_table(r)
     if curves:
-        lines += ["", made, "", *curves]
-    lines += ["", made, "", "## Front or back: which corner order fits the predictions",
+        lines += ["", *curves]
+    lines += ["", "## Front or back: which corner order fits the predictions",
               "",
               "Each test object is matched to the best-scoring prediction (score >= 0.2) whose 2D box",
               "overlaps its own by IoU >= 0.5, blind to the corners; then the order of the eight corners",
@@ -995,9 +848,9 @@ def results_markdown(r: dict[str, Any]) -> str:
             lines.append(f"| {run['name']} | {c['matched']} | {c['unmatched']} | "
                          + " | ".join(share(n) for n in ("as labelled", "turned 180", "mirrored", "turned +90", "turned -90"))
                          + " |")
-    lines += ["", made, "", "## Commands and their wall times", "", "| command | seconds |", "|---|---|"]
+    lines += ["", "## Commands and their wall times", "", "| command | seconds |", "|---|---|"]
     lines += [f"| `{c['command']}` | {c['seconds']} |" for c in r["commands"]]
-    lines += ["", made, ""]
+    lines += [""]
     return "\n".join(lines)
 
 

@@ -179,9 +179,71 @@ def check_state(path: str | Path, state: Any) -> dict[str, Any]:
     return state
 
 
+SCHEMA = 2
+"""The version of what a checkpoint records (state["schema"]). 1, unmarked: written before the
+recipe (detector/recipe.py) gave `omnigen train` its defaults; its records may lack fields that
+were added later, and a field it lacks is read as what the code did then (V1_DEFAULTS). 2: every
+record complete."""
+
+V1_DEFAULTS: dict[str, dict[str, Any]] = {
+    # TrainConfig as it stood before schema 2: the design's plain branch, Adam before the optimizer
+    # was a choice, no crop phase (omnigen train-crop was a command of its own)
+    "train_config": {
+        "model": "n", "backbone": "c3k2", "p2": True, "p6": False, "width": None, "depth": None, "imgsz": 640,
+        "crop": None, "crop_focus": 0.0, "repeat_thresh": 0.0, "cache": False, "epochs": 100, "batch": 16,
+        "optimizer": "adam", "lr0": 2e-3, "lrf": 0.01, "weight_decay": 5e-4, "warmup_iters": 100,
+        "ema_decay": 0.9999, "ema_tau": 2000.0, "kpt_sigma_start": 0.5, "kpt_sigma_anneal": 0.3,
+        "kpt_sigma_end": 0.125, "kpt_mode": "anchor", "kpt_l1": 0.0, "kpt_turn": False, "kpt_hidden": None,
+        "kpt_labelled": 0.0, "kpt_turn_start": 0.0, "kpt_heading": False, "heading_gain": 1.0, "heading_crop": 0,
+        "crop_classes": False, "crop_split": False, "crop_phase": {"steps": 0}, "taxonomy": "fine",
+        "train_split": "train", "val_split": None, "out_of_image": "learn",
+        "augment": {"flip": 0.5, "scale": 0.5, "translate": 0.1, "hsv": [0.015, 0.7, 0.4]}, "workers": 2,
+        "seed": 0, "val_every": 1, "save_interval": 60.0, "device": None, "amp": "auto", "channels_last": None,
+        "time_minutes": None, "weights": None},
+    # omnigen train-crop's record of the stage it trained: no position before --position, no
+    # offset term before --offset-gain
+    "crop_stage": {"position": False},
+    "crop_stage.config": {"offset_gain": 0.0},
+}
+
+
+def plain_branch() -> dict[str, Any]:
+    """TrainConfig's recipe fields as the design's plain branch (V1_DEFAULTS, AdamW): what the
+    trainer's mechanics are measured and tested with, apart from the validated recipe (no heading,
+    no crop stage, no crop phase)."""
+    from omnigen.detector.recipe import field_key
+
+    return {**{k: v for k, v in V1_DEFAULTS["train_config"].items() if field_key(k) or k == "crop_phase"},
+            "optimizer": "adamw"}
+
+
+def upgraded(state: dict[str, Any]) -> dict[str, Any]:
+    """A schema-1 checkpoint's records completed with what it was trained with (V1_DEFAULTS),
+    marked schema 2; a newer one as it is. One table for every field added later, where each
+    reader kept its own."""
+    if state.get("schema", 1) != 1:
+        return state
+    out = dict(state)
+    if isinstance(state.get("train_config"), dict):
+        out["train_config"] = {**V1_DEFAULTS["train_config"], **state["train_config"]}
+    if isinstance(state.get("crop_stage"), dict):
+        stage = {**V1_DEFAULTS["crop_stage"], **state["crop_stage"]}
+        if isinstance(stage.get("config"), dict):
+            stage["config"] = {**V1_DEFAULTS["crop_stage.config"], **stage["config"]}
+        out["crop_stage"] = stage
+    out["schema"] = SCHEMA
+    return out
+
+
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """A checkpoint file, checked (check_state): every error one line naming the file."""
-    return check_state(path, load_plain(path))
+    """A checkpoint file, checked (check_state) and read as the current schema (upgraded): every
+    error one line naming the file."""
+    state = check_state(path, load_plain(path))
+    if not isinstance(state.get("schema", 1), int) or isinstance(state.get("schema"), bool) \
+            or not 1 <= state.get("schema", 1) <= SCHEMA:
+        raise ValueError(f"{path}: schema is {_shown(state.get('schema'))}, not one this omnigen reads "
+                         f"(1 to {SCHEMA}; a newer omnigen wrote it?)")
+    return upgraded(state)
 
 
 def load_weights(module: torch.nn.Module, tensors: dict[str, torch.Tensor], path: str | Path,

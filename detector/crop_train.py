@@ -1,13 +1,13 @@
 """The crop stage trained apart from the detector, on clean crops of the labelled objects.
 
 Why apart. Top-down pose estimation trains its keypoint network on crops of the labelled people,
-not inside the person detector. Trained with the detector (`omnigen train --heading-crop`), our
+not inside the person detector. Trained with the detector (the recipe's crop_stage.side), our
 stage sees crops of augmented 320-pixel windows (zoomed, shifted, colour-jittered), shares the
 detector's learning-rate schedule and EMA, and gets at most MAX_CROPS objects a step. At
 prediction it crops the clean letterboxed input instead. On the same test crops, the stage of make
 validate's 150-epoch detector placed corners 0.213 of sqrt(box area) from the truth about moved boxes,
 where the same network trained alone for under four minutes placed them 0.189, and 0.163 after 5000
-steps (benchmarks/crop_layout.py; docs/detector-training.md).
+steps (docs/detector-training.md).
 
 What it trains. A fresh stage of the detector's crop side and classes, on the train split's
 objects as prediction sees them: each frame letterboxed to the detector's input size, unaugmented,
@@ -18,9 +18,9 @@ mirrors each with probability one half (the corners renumbered by FLIP_IDX, the 
 the joint training's crop terms: L1 of the corners in crop units, 1 - cosine of the image heading
 (times heading_gain), cross-entropy of the classes (times class_gain); and an L1 term of the
 bottom face's offset from the top face (times offset_gain, `offset_loss`), the part of the corners
-that tilts a lifted box most. AdamW with a one-cycle schedule, as benchmarks/crop_layout.py trains.
+that tilts a lifted box most. AdamW with a one-cycle schedule.
 
-The defaults are what benchmarks/crop_apart.py measured on make validate's data: the joint
+The defaults are what was measured on make validate's data (docs/detector-training.md): the joint
 training's class-balanced draws and heading gain cost the corners, so draws are uniform and the
 heading's gain is a tenth of the joint one; and in one small net the class term costs the corners
 too, so the stage that names classes is a SplitCropNet, its classes from a net of their own
@@ -36,7 +36,7 @@ run never stopped.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -109,7 +109,7 @@ def split_crops(dataset: str | Path, taxonomy, imgsz: int, frames: str | None, s
                 generator: torch.Generator, label: str | None = None) -> CropSet:
     """`cut_crops` of the frames of split `frames` of `dataset` (None: every frame), letterboxed to
     `imgsz` and unaugmented as prediction sees them, each object cut `copies` times about moved
-    boxes: what train-crop trains and scores on, and benchmarks/crop_apart.py too. With `label`, a
+    boxes: what train-crop trains and scores on. With `label`, a
     progress bar of that name counts the frames."""
     from omnigen.detector.data import KeypointDataset, split_frames
     from omnigen.progress import progress
@@ -133,7 +133,7 @@ def detector_stage(state: dict[str, Any], path: str | Path = "checkpoint") -> Cr
     model = KeypointDetector(detector_config(path, state))
     load_weights(model, state["model"], path)
     if model.crop_net is None:
-        raise ValueError("detector_stage: the checkpoint has no crop stage (trained without --heading-crop)")
+        raise ValueError("detector_stage: the checkpoint has no crop stage (trained with crop_stage.side=0)")
     return model.crop_net
 
 
@@ -176,7 +176,7 @@ def mirror_batch(x: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor, hea
 
 def face_offset(k: torch.Tensor) -> torch.Tensor:
     """(N, 2) the bottom face's offset from the top face of corners (N, 8, 2): the mean of corners
-    4-7 less that of 0-3, what tilts a lifted box most (benchmarks/adherence_sources.py)."""
+    4-7 less that of 0-3, what tilts a lifted box most."""
     return k[:, 4:].mean(1) - k[:, :4].mean(1)
 
 
@@ -319,7 +319,6 @@ class StageScore:
     objects: int
     # median distance of the placed bottom face's centre from the top face's, against the labelled
     # corners' (objects with all eight labelled), / sqrt(box area): what tilts a lifted box most
-    # (benchmarks/adherence_sources.py)
     vertical_rel: float = float("nan")
 
 
@@ -372,6 +371,8 @@ def attach_stage(state: dict[str, Any], net: CropNet | SplitCropNet, size: int, 
     config["crop_classes"] = net.num_classes > 0
     config["crop_split"] = isinstance(net, SplitCropNet)
     config["crop_position"] = bool(net.position)
+    from omnigen.detector.checkpoint import SCHEMA
+
     tensors = {f"crop_net.{k}": v.detach().clone() for k, v in net.state_dict().items()}
     out = dict(state)
     out["config"] = config
@@ -380,4 +381,138 @@ def attach_stage(state: dict[str, Any], net: CropNet | SplitCropNet, size: int, 
             kept = {k: v for k, v in state[key].items() if not k.startswith("crop_net.")}
             out[key] = {**kept, **tensors}
     out["crop_stage"] = record
+    out["schema"] = SCHEMA
     return out
+
+
+# -- the stage's training as a whole: train-crop's and `omnigen train`'s second phase ---------------------
+
+def cut_sets(dataset: str | Path, taxonomy, imgsz: int, train_split: str, val_split: str | None, size: int,
+             copies: int, seed: int) -> dict[str, CropSet]:
+    """The crops a stage trains on (`train_split`, `copies` an object) and is scored on (`val_split`,
+    one each; None: every frame), cut with one generator seeded with `seed`, the training crops
+    first: so train-crop and the run's crop phase cut the same crops from the same arguments."""
+    gen = torch.Generator().manual_seed(seed)
+    return {name: split_crops(dataset, taxonomy, imgsz, frames, size, n, gen, label=f"crop {frames}")
+            for name, frames, n in (("train", train_split, copies), ("val", val_split, 1))}
+
+
+PROBE_STEPS = 5
+"""Steps a throwaway copy of the stage is trained to time one, when a time budget must fit the steps."""
+
+
+def step_seconds(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig, steps: int = PROBE_STEPS) -> float:
+    """Seconds a training step of `net` on `data` takes, timed on a throwaway copy (its first steps
+    pay for the kernels' first calls: the estimate errs long, the budget's safe side). Every
+    generator is left as it was."""
+    import copy
+
+    from omnigen.detector import time_budget
+
+    with torch.random.fork_rng(devices=[]):
+        start = time_budget.clock()
+        train_stage(data, copy.deepcopy(net), replace(cfg, steps=steps))
+        return (time_budget.clock() - start) / steps
+
+
+def partial_steps(partial: Path) -> int | None:
+    """The steps a partial state of the stage was planned for (its config), None without a readable one."""
+    try:
+        state = read_partial(partial, 10**9) if partial.exists() else None
+    except ValueError:
+        return None
+    steps = state["config"].get("steps") if state else None
+    return steps if isinstance(steps, int) and not isinstance(steps, bool) else None
+
+
+def stage_record(call: dict[str, Any], history: list[dict[str, float]], seconds: float, score: StageScore,
+                 split: str | None) -> dict[str, Any]:
+    """What a checkpoint records of how its crop stage was trained ("crop_stage"): the arguments,
+    the steps, the seconds, the score on the held-out crops and the last step's losses."""
+    return {**call, "steps_done": len(history), "seconds": round(seconds, 1), "score": asdict(score),
+            "score_split": split or "all", "last_losses": history[-1] if history else {}}
+
+
+def stage_progress(steps: int, label: str) -> Callable[[int, dict[str, float]], None]:
+    """An on_step for train_stage: a progress bar of `label`, and every 500 steps (and the last) a
+    line of the step's losses on stderr."""
+    import sys
+
+    from omnigen.progress import progress
+
+    bar = iter(progress(range(steps), label, total=steps, unit="step"))
+    t0 = time.perf_counter()
+
+    def report(step: int, parts: dict[str, float]) -> None:
+        next(bar, None)
+        if step % 500 == 0 or step == steps:
+            terms = " ".join(f"{k}={v:.4f}" for k, v in parts.items())
+            print(f"step {step}/{steps}: {terms} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+
+    return report
+
+
+def stage_config(cfg: Any) -> tuple[CropTrainConfig, bool, bool]:
+    """How the run's crop phase trains its stage, from the run's TrainConfig: its crop_phase (the
+    recipe's crop_stage keys), the run's seed, bf16 where the detector trains in bf16 (train-crop
+    knows only off and bf16: a GPU's 'auto' is neither); and whether the stage names its classes
+    with a net of their own (split) and is told where its crops were cut (position)."""
+    phase = cfg.crop_phase
+    stage = CropTrainConfig(**{k: phase[k] for k in ("steps", "batch", "lr", "weight_decay", "copies", "balance",
+                                                     "heading_gain", "class_gain", "offset_gain")},
+                            seed=cfg.seed, amp="bf16" if cfg.amp == "bf16" else "off")
+    return stage, bool(cfg.crop_classes and phase["split"]), bool(phase["position"])
+
+
+@dataclass
+class PhaseResult:
+    """What the run's crop phase did: the trained stage and its record (None where it kept the
+    stage trained with the detector, `why` says why), and both stages' scores on held-out crops."""
+
+    net: CropNet | SplitCropNet | None
+    record: dict[str, Any] | None
+    why: str
+    scores: dict[str, StageScore]
+
+
+def crop_phase(cfg: Any, taxonomy, val_split: str | None, joint: CropNet | SplitCropNet | None, partial: Path,
+               left: float | None, say: Callable[[str], None]) -> PhaseResult:
+    """`omnigen train`'s second phase: the crop stage trained again apart from the detector on
+    clean crops, as `omnigen train-crop` trains it (the same crops, net and steps from the same
+    arguments), from the run's TrainConfig `cfg` (its crop_phase, crop side, classes, seed; bf16
+    where the detector trained in bf16), scored on `val_split` (None: every frame). `joint` is the stage trained with the detector, scored
+    beside the new one. With `left` (seconds of the run's --time budget left) the steps are those
+    that fit (time_budget.fit_steps, one step timed on a throwaway copy; a partial state's own
+    plan where one is there), and too few to train keep the joint stage. The state goes to
+    `partial` as train_stage saves it: a killed phase goes on from it."""
+    from omnigen.detector import time_budget
+
+    classes = bool(cfg.crop_classes)
+    stage_cfg, split, position = stage_config(cfg)
+    start, budget_start = time.perf_counter(), time_budget.clock()
+    sets = cut_sets(cfg.dataset, taxonomy, cfg.imgsz, cfg.train_split, val_split, cfg.heading_crop,
+                    stage_cfg.copies, stage_cfg.seed)
+    net = new_stage(cfg.heading_crop, len(taxonomy.classes) if classes else 0, stage_cfg.seed, split, position)
+    scores = {"trained with the detector": score_stage(joint, sets["val"])} if joint is not None else {}
+    if left is not None:
+        planned = partial_steps(partial)
+        if planned is None:
+            step_s = step_seconds(sets["train"], net, stage_cfg)
+            planned = time_budget.fit_steps(stage_cfg.steps, step_s, left - (time_budget.clock() - budget_start))
+            if planned < stage_cfg.steps:
+                say(f"the crop phase's {stage_cfg.steps} steps take {stage_cfg.steps * step_s / 60:.1f} min, "
+                    f"{max(left, 0) / 60:.1f} min of --time are left: {planned} steps")
+        if planned == 0:
+            why = (f"too few of the crop phase's {stage_cfg.steps} steps fit in what is left of --time "
+                   "(a tenth at least): the stage trained with the detector is kept")
+            return PhaseResult(None, None, why, scores)
+        stage_cfg = replace(stage_cfg, steps=planned)
+    call = {"trained": "apart", "by": "omnigen train", "dataset": str(cfg.dataset), "train_split": cfg.train_split,
+            "crop": cfg.heading_crop, "classes": classes, "split": split, "position": position, "imgsz": cfg.imgsz}
+    history = train_stage(sets["train"], net, stage_cfg, partial=partial,
+                          on_step=stage_progress(stage_cfg.steps, "crop stage"), identity=call)
+    new = score_stage(net, sets["val"])
+    scores["trained apart"] = new
+    record = stage_record({**call, "config": asdict(stage_cfg)}, history, time.perf_counter() - start, new,
+                          val_split)
+    return PhaseResult(net, record, "", scores)

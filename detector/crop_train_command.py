@@ -2,7 +2,9 @@
 
     omnigen train-crop runs/uov --weights runs/n-p2/last.pt --out runs/n-p2/crop.pt
 
-OUT is the detector's checkpoint with its crop stage (corners, front and, by default, classes)
+`omnigen train` does this as its second phase, with the recipe's crop_stage keys (detector/recipe.py,
+whose values are these options' defaults); this command runs that phase alone, again. OUT is the
+detector's checkpoint with its crop stage (corners, front and, by default, classes)
 replaced by one trained here: `omnigen predict`, `eval` and `bev` take it as they take the
 detector's own. The input checkpoint is never written. A rerun of the same arguments whose OUT
 exists does nothing; one that was stopped goes on from OUT.partial.
@@ -18,14 +20,9 @@ from pathlib import Path
 from omnigen.options import fraction, integer, number, seed
 
 
-ADDED_LATER = {"position": False}
-"""Record fields that a stage written before they existed lacks, with the value it was trained with."""
-CONFIG_ADDED_LATER = {"offset_gain": 0.0}
-"""The same for the fields of its record's CropTrainConfig."""
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from omnigen.detector.crop_train_config import CropTrainConfig  # plain data: no torch for --help
+    from omnigen.detector.recipe import RECIPE
 
     p.add_argument("dataset", help="UrbanOmniView dataset folder (splits from omnigen merge)")
     p.add_argument("--weights", required=True, help="the detector's checkpoint (best.pt or last.pt of omnigen train)")
@@ -42,25 +39,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--classes", action=argparse.BooleanOptionalAction, default=None,
                    help="the stage names each crop's class, and prediction rescores by it "
                         "(default: as the checkpoint's stage does; on for a checkpoint without one)")
-    p.add_argument("--split", action=argparse.BooleanOptionalAction, default=True,
+    p.add_argument("--split", action=argparse.BooleanOptionalAction, default=RECIPE.crop_stage.split,
                    help="with classes: name them with a crop net of their own, not the corners' "
-                        "(crop_stage.SplitCropNet: in one small net the class term costs the corners)")
-    p.add_argument("--position", action=argparse.BooleanOptionalAction, default=True,
+                        "(crop_stage.SplitCropNet)")
+    p.add_argument("--position", action=argparse.BooleanOptionalAction, default=RECIPE.crop_stage.position,
                    help="tell the corners' net where each crop was cut from its input (crop_stage.crop_position): "
-                        "the direction of an object's vertical edges depends on it (make validate: adherence "
-                        "7.26 -> 5.84 deg, docs/detector-training.md)")
+                        "the direction of an object's vertical edges depends on it")
     p.add_argument("--heading-gain", type=number(0.0, 1000.0), default=CropTrainConfig.heading_gain,
-                   help="gain of the heading term beside the corners' (benchmarks/crop_apart.py measured 1, 0.3, "
-                        "0.1 and 0.03)")
+                   help="gain of the heading term beside the corners'")
     p.add_argument("--offset-gain", type=number(0.0, 1000.0), default=CropTrainConfig.offset_gain,
-                   help="gain of an L1 term on the bottom face's offset from the top face (0: none; "
-                        "docs/detector-training.md measured 0.3, 1 and 4)")
+                   help="gain of an L1 term on the bottom face's offset from the top face (0: none)")
     p.add_argument("--amp", default=CropTrainConfig.amp, choices=["off", "bf16"],
-                   help="bf16: the forward pass under CPU bfloat16 autocast (docs/detector-training.md has its "
-                        "speed and its corners against float32)")
+                   help="bf16: the forward pass under CPU bfloat16 autocast")
     p.add_argument("--train-split", default="train")
     p.add_argument("--val-split", default=None, help="scored at the end (default: val if present, else test)")
-    p.add_argument("--seed", type=seed(), default=0)
+    p.add_argument("--seed", type=seed(), default=CropTrainConfig.seed)
     p.add_argument("--threads", type=integer(0, 1024), default=0, help="torch threads (0: torch's default)")
 
 
@@ -70,13 +63,13 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from omnigen.detector.checkpoint import checkpoint_taxonomy, detector_config, load_checkpoint, save_checkpoint
-    from omnigen.detector.crop_train import (attach_stage, detector_stage, new_stage, score_stage, split_crops,
-                                             train_stage)
+    from omnigen.detector.crop_train import (attach_stage, cut_sets, detector_stage, new_stage, score_stage,
+                                             stage_progress, stage_record, train_stage)
     from omnigen.detector.crop_train_config import CropTrainConfig
     from omnigen.detector.predict import trained_imgsz
     from omnigen.detector.train import resolve_val_split
     from omnigen.files import file_digest
-    from omnigen.progress import print_table, progress
+    from omnigen.progress import print_table
 
     weights, out = Path(args.weights), Path(args.out)
     if out.resolve() == weights.resolve():
@@ -99,10 +92,8 @@ def run(args: argparse.Namespace) -> int:
             "dataset": str(args.dataset), "train_split": args.train_split, "crop": size, "classes": classes,
             "split": split, "position": args.position, "imgsz": imgsz, "config": asdict(cfg)}
     if out.exists():
-        recorded = load_checkpoint(out).get("crop_stage")
-        done = {**ADDED_LATER, **(recorded if isinstance(recorded, dict) else {})}
-        if isinstance(done.get("config"), dict):
-            done["config"] = {**CONFIG_ADDED_LATER, **done["config"]}
+        recorded = load_checkpoint(out).get("crop_stage")  # read as the current schema: every field there
+        done = recorded if isinstance(recorded, dict) else {}
         if {k: done.get(k) for k in call} == call:
             print(f"{out}: already trained with these arguments; delete it to train again")
             return 0
@@ -113,25 +104,13 @@ def run(args: argparse.Namespace) -> int:
     val_name = args.val_split or resolve_val_split(str(args.dataset), None)
     scored_on = f"the {val_name} split" if val_name else "all frames, the training ones too (no val or test split)"
     start = time.perf_counter()
-    gen = torch.Generator().manual_seed(cfg.seed)
-    sets = {}
-    for name, frames, copies in (("train", args.train_split, cfg.copies), ("val", val_name, 1)):
-        sets[name] = split_crops(args.dataset, taxonomy, imgsz, frames, size, copies, gen, label=f"crop {frames}")
+    sets = cut_sets(args.dataset, taxonomy, imgsz, args.train_split, val_name, size, cfg.copies, cfg.seed)
     print(f"crops: train {len(sets['train'])} ({cfg.copies} an object, split {args.train_split}), "
           f"{val_name} {len(sets['val'])} ({time.perf_counter() - start:.1f} s)", file=sys.stderr, flush=True)
 
     net = new_stage(size, len(taxonomy.classes) if classes else 0, cfg.seed, split, args.position)
-    bar = iter(progress(range(cfg.steps), "train-crop", total=cfg.steps, unit="step"))
-    t0 = time.perf_counter()
-
-    def report(step: int, parts: dict[str, float]) -> None:
-        next(bar, None)
-        if step % 500 == 0 or step == cfg.steps:
-            terms = " ".join(f"{k}={v:.4f}" for k, v in parts.items())
-            print(f"step {step}/{cfg.steps}: {terms} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
-
     partial = out.with_name(out.name + ".partial")
-    history = train_stage(sets["train"], net, cfg, partial=partial, on_step=report,
+    history = train_stage(sets["train"], net, cfg, partial=partial, on_step=stage_progress(cfg.steps, "train-crop"),
                           identity={k: v for k, v in call.items() if k != "config"})
     seconds = time.perf_counter() - start
     rows = []
@@ -139,8 +118,7 @@ def run(args: argparse.Namespace) -> int:
         rows.append(("trained with the detector", score_stage(detector_stage(state, weights), sets["val"])))
     new = score_stage(net, sets["val"])
     rows.append(("trained apart", new))
-    record = {**call, "steps_done": len(history), "seconds": round(seconds, 1), "score": asdict(new),
-              "score_split": val_name or "all", "last_losses": history[-1] if history else {}}
+    record = stage_record(call, history, seconds, new, val_name)
     save_checkpoint(out, attach_stage(state, net, size, record))
     partial.unlink(missing_ok=True)
     print_table(f"omnigen train-crop: {out} (crops about moved boxes of {scored_on})",

@@ -5,28 +5,31 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from omnigen.detector.recipe import RECIPE, RUN
+
+_STAGE = RECIPE.crop_stage
+
 
 @dataclass(frozen=True)
 class CropTrainConfig:
-    """How the stage is trained. `balance` 0 draws crops uniformly, 1 gives every class an equal
-    share of the draws."""
+    """How the stage is trained: the recipe's crop stage (detector/recipe.py, whose defaults are
+    what make validate measured: uniform draws, a tenth of the joint
+    training's heading gain, the offset term at 0.3, docs/detector-training.md). `balance` 0 draws
+    crops uniformly, 1 gives every class an equal share of the draws."""
 
-    steps: int = 4000
-    batch: int = 64
-    lr: float = 2e-3
-    weight_decay: float = 1e-4
-    copies: int = 4  # crops per training object, each about its own moved box
-    # uniform draws and a tenth of the joint training's heading gain (loss.LossGains.heading_crop): at
-    # 2000 steps both placed the corners better than the joint training's balance and gains
-    # (benchmarks/crop_apart.py, docs/detector-training.md)
-    balance: float = 0.0
-    heading_gain: float = 0.1
-    class_gain: float = 0.5  # the joint training's (loss.LossGains.crop_cls)
+    steps: int = _STAGE.steps
+    batch: int = _STAGE.batch
+    lr: float = _STAGE.lr
+    weight_decay: float = _STAGE.weight_decay
+    copies: int = _STAGE.copies  # crops per training object, each about its own moved box
+    balance: float = _STAGE.balance
+    heading_gain: float = _STAGE.heading_gain
+    class_gain: float = _STAGE.class_gain
     # an L1 term on the bottom face's offset from the top face (crop_train.stage_loss), what tilts a
-    # lifted box most: make validate's adherence 5.07 -> 4.9 with 0.3 (docs/detector-training.md)
-    offset_gain: float = 0.3
-    seed: int = 0
-    amp: str = "off"  # "bf16": the forward pass under CPU bfloat16 autocast (benchmarks/crop_apart.py measures it)
+    # lifted box most
+    offset_gain: float = _STAGE.offset_gain
+    seed: int = RUN.seed
+    amp: str = "off"  # "bf16": the forward pass under CPU bfloat16 autocast (a machine setting, not the recipe's)
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch", "copies"):

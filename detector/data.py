@@ -266,7 +266,7 @@ class KeypointDataset(torch.utils.data.Dataset):
         """Decode and letterbox every image once and keep it in memory; returns the bytes held.
 
         Why: every epoch decodes every image again, and on a machine with few cores the loader's
-        work takes CPU from the training step (benchmarks/bench_cache.py measures it). Call it before the loader starts its worker
+        work takes CPU from the training step (benchmarks/bench_train_speed.py cache measures it). Call it before the loader starts its worker
         processes, which then share the cache (fork, copy-on-write). The arrays are read-only,
         so an augmentation that wrote into its input would fail instead of corrupting the cache.
         Refuses, naming the sizes, when the cache would not fit in the memory now available.

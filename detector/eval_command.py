@@ -26,6 +26,7 @@ import orjson
 
 from omnigen.detector.predict_command import BATCH_MAX, IMGSZ_STEP, input_size
 from omnigen.options import integer
+from omnigen.detector.recipe import RECIPE
 
 if TYPE_CHECKING:
     from omnigen.detector.oks_eval import EvalReport
@@ -43,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--imgsz", type=input_size, default=None,
                    help=f"network input size, a multiple of {IMGSZ_STEP}, with a checkpoint (default: its training size)")
     p.add_argument("--batch", type=integer(1, BATCH_MAX), default=8, help="images per batch, with a checkpoint")
-    p.add_argument("--vertical", choices=("lines", "off"), default="lines",
+    p.add_argument("--vertical", choices=("lines", "off"), default=RECIPE.predict.vertical,
                    help="with a checkpoint: turn each image's vertical edges to its vertical vanishing point "
                         "(lines, as omnigen predict does) or keep the network's corners (off)")
     p.add_argument("--device", default=None, help="where a checkpoint predicts: cpu, cuda, cuda:1 (default: cuda when present)")

@@ -507,7 +507,7 @@ class Matched:
 def match_predictions(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | None = None,
                       taxonomy: Taxonomy | str = "fine", source: str = "<predictions>") -> Matched:
     """COCO-results predictions normalised and matched to `split` of `ds` by OKS (evaluate's first
-    step; benchmarks/adherence_sources.py reads the matches to put the truth in their place)."""
+    step; public so that a caller can read the matches)."""
     taxonomy = load_taxonomy(taxonomy) if isinstance(taxonomy, str) else taxonomy
     gt_dict = to_coco(ds, split, taxonomy)
     image_ids = {im["id"] for im in gt_dict["images"]}

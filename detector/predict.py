@@ -53,7 +53,7 @@ class PredictOptions:
     batch: int = 8
     multi_label: bool = False  # every class above conf per anchor (evaluation), not only the best
     # a crop stage that names classes rescores the detections it refines (crop_stage.rescore);
-    # False keeps the head's scores (benchmarks/crop_stage_ablation.py measures the difference)
+    # False keeps the head's scores (docs/detector-training.md gives the difference)
     crop_classes: bool = True
     crop_score_by: str = "class"  # which head score the crop's class probability rescores (crop_stage.SCORE_BY)
     # "lines": each image's detections get their vertical edges turned to its vertical vanishing
@@ -229,7 +229,7 @@ def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: 
     """Detections of a loaded model (load_for_prediction) on a dataset split, ready for `omnigen
     eval`, at the training input size unless `imgsz` says otherwise. A caller that predicts twice
     with one model (with and without its crop stage: `model.crop_net = None` keeps the head's own
-    corners, benchmarks/crop_stage_ablation.py), or reads the checkpoint's taxonomy first, loads it
+    corners), or reads the checkpoint's taxonomy first, loads it
     once. `multi_label=False` keeps one class an anchor, as `omnigen predict` does
     (EVAL_MULTI_LABEL). `crop_classes=False` keeps the head's scores where the crop stage names classes;
     `crop_score_by` and `vertical` are PredictOptions'.

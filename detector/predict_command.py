@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 from omnigen.options import fraction, integer
+from omnigen.detector.recipe import RECIPE
 
 IMGSZ_STEP = 32
 """--imgsz must be a multiple of this, the largest stride of a model without P6 (a P6 model's 64 is
@@ -50,7 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-det", type=integer(1, MAX_DET_MAX), default=300, help="detections kept an image")
     p.add_argument("--batch", type=integer(1, BATCH_MAX), default=8, help="images per batch")
     p.add_argument("--no-overlays", action="store_true", help="write predictions.json only")
-    p.add_argument("--vertical", choices=("lines", "off"), default="lines",
+    p.add_argument("--vertical", choices=("lines", "off"), default=RECIPE.predict.vertical,
                    help="lines (default): turn each image's detections' vertical edges to its vertical vanishing "
                         "point, fitted from them and refined with the image's line segments; off: the corners as "
                         "the network placed them")

@@ -4,13 +4,21 @@ One process trains on the CPU or one GPU; under torchrun (WORLD_SIZE > 1) each p
 shard of every epoch (DistributedSampler) and DistributedDataParallel averages the gradients, with
 NCCL on CUDA and gloo on the CPU. Only rank 0 validates and writes checkpoints.
 
+What a run learns is its recipe (detector/recipe.py; TrainConfig's defaults are the validated
+one), in two phases: the detector's epochs, then, where the recipe has a crop stage and steps for
+it, that stage trained again apart on clean crops (crop_train.crop_phase, what `omnigen train-crop`
+does) and put into best.pt and last.pt, so that `omnigen predict RUN/best.pt` uses it. A --time
+budget covers both (time_budget.CROP_SHARE).
+
 A run folder holds `last.pt` (written atomically after an epoch when `save_interval` seconds have
 passed since the last write, after every validation and at the end: a kill loses at most that
 much work; tiny datasets have sub-second epochs, whose every checkpoint would cost more than the
-epoch), `best.pt` (the best validation OKS mAP so far), `args.json` and `results.csv`.
+epoch), `best.pt` (the best validation OKS mAP so far), `recipe.json` (the resolved recipe, for
+`--recipe`), `args.json`, `results.csv`, and while the crop phase trains its partial state.
 `--resume` continues from `last.pt` with the optimiser, EMA, schedule and history, and gives the
 same weights as an uninterrupted run on the CPU (each sample's augmentation is seeded from
-(seed, epoch, frame), the shuffling from (seed, epoch)).
+(seed, epoch, frame), the shuffling from (seed, epoch)); a run killed in its crop phase goes on
+with that phase, from its partial state.
 
 A run folder is claimed as render claims its folders (`claim_run`, `resumed_config`): a new run
 refuses a folder that holds a run's weights or results unless told `--fresh` (which deletes the
@@ -51,86 +59,115 @@ import torch.distributed as dist
 
 from omnigen.detector.balance import describe as describe_repeat
 from omnigen.detector.balance import check_crop_focus, check_repeat_thresh, repeat_factors
-from omnigen.detector.checkpoint import (a_kind, check_tensors, checked_fields, checkpoint_taxonomy, config_difference,
+from omnigen.detector.checkpoint import (SCHEMA, a_kind, check_tensors, checked_fields, checkpoint_taxonomy, config_difference,
                                          detector_config, load_checkpoint, load_part, load_pretrained, load_weights,
                                          save_checkpoint)
 from omnigen.detector.data import Augment, KeypointDataset, split_frames
 from omnigen.detector.ema import ModelEMA
-from omnigen.detector.loss import OKS_SIGMA as KPT_SIGMA
 from omnigen.detector.loss import DetectionLoss, LossGains
 from omnigen.detector.model import DetectorConfig, KeypointDetector
+from omnigen.detector.recipe import JOB as RECIPE_JOB
+from omnigen.detector.recipe import RECIPE, RECIPE_FILE, RUN, field_key, from_dict, recipe_json, recipe_of, train_fields
 from omnigen.detector.predict import EVAL_CONF, EVAL_MAX_DET, EVAL_MULTI_LABEL, PredictOptions, predict_frames
 from omnigen.detector import time_budget
 from omnigen.detector.time_budget import TimeBudget
 from omnigen.detector.train_loader import EpochBatches, collate_uint8, make_loader
 from omnigen.detector.train_step import FiniteWatch, PartSums, TrainStep, finite_weights, to_device, use_channels_last
 from omnigen.files import TMP_PREFIX, atomic_write_bytes, atomic_write_text, dumps_json
-from omnigen.outputs import read_prefix
+from omnigen.outputs import json_made_by, read_prefix, same_file
 from omnigen.ownership import output_lock
 from omnigen.splits import TEST, split_names
 from omnigen.taxonomy import load_taxonomy
 
 
+_TRAIN = train_fields(RECIPE)
+"""The TrainConfig fields of the validated recipe (detector/recipe.py): the defaults below."""
+
+
 @dataclass
 class TrainConfig:
-    """Everything a run depends on; stored in the checkpoint and in args.json."""
+    """Everything a run depends on; stored in the checkpoint and in args.json.
+
+    The fields a recipe key fills (detector/recipe.py: recipe.field_key names it) take their
+    defaults from the recipe, the run's settings theirs from recipe.RunSettings: nothing here
+    declares a value of its own but what only experiments and tests reach (marked below)."""
 
     dataset: str
     out: str
-    model: str = "n"
-    backbone: str = "c3k2"
-    p2: bool = True
-    p6: bool = False
-    width: float | None = None  # overrides of the scale's width and depth (tiny models for tests)
+    model: str = _TRAIN["model"]
+    backbone: str = _TRAIN["backbone"]
+    p2: bool = _TRAIN["p2"]
+    p6: bool = _TRAIN["p6"]
+    width: float | None = None  # tests: overrides of the scale's width and depth (tiny models)
     depth: float | None = None
-    imgsz: int = 640
-    crop: int | None = None  # train on random crop x crop windows of the imgsz input (data.random_crop)
-    crop_focus: float = 0.0  # share of the crop windows centred on an object drawn class-balanced (detector/balance.py)
-    repeat_thresh: float = 0.0  # LVIS repeat-factor sampling threshold (balance.repeat_factors); 0: off
-    cache: bool = False  # decode and letterbox every image once, into memory (KeypointDataset.cache_images)
-    epochs: int = 100
-    batch: int = 16
-    optimizer: str = "adamw"  # adamw (decoupled weight decay) or adam (L2 decay in the gradient)
-    lr0: float = 2e-3
-    lrf: float = 0.01  # final learning rate = lr0 * lrf (cosine)
-    weight_decay: float = 5e-4
-    warmup_iters: int = 100
-    ema_decay: float = 0.9999
-    ema_tau: float = 2000.0  # EMA ramp: decay * (1 - exp(-updates / tau)) lets early weights move
-    kpt_sigma_start: float = 0.5  # keypoint-loss sigma annealed to kpt_sigma_end (see kpt_sigma)
-    kpt_sigma_anneal: float = 0.3  # fraction of the iterations over which it is annealed
-    kpt_sigma_end: float = KPT_SIGMA  # the design's 0.125; 0.25 is the kernel of the OKS metric itself
-    kpt_mode: str = "anchor"  # corners as offsets from the anchor, or in units of the anchor's box (outputs.py)
-    kpt_l1: float = 0.0  # gain of the scale-free L1 corner term beside the OKS loss (loss.keypoint_l1_loss)
-    kpt_turn: bool = False  # corners up to the 180-degree turn plus a turn class (loss.turn_targets)
-    kpt_hidden: int | None = None  # keypoint-branch width (DetectorConfig.kpt_hidden)
-    kpt_labelled: float = 0.0  # gain of the labelled-order OKS term beside the turn-aware one (LossGains)
-    kpt_turn_start: float = 0.0  # fraction of the run before a turn-aware loss may choose the order (loss.turn_free)
-    kpt_heading: bool = False  # corners up to the turn, the front from a regressed image heading (detector/heading.py)
-    heading_gain: float = 1.0  # gain of a heading-aware head's heading term (LossGains.heading)
-    heading_crop: int = 0  # crop side of a second stage that places each object's corners and front (DetectorConfig.heading_crop)
-    crop_classes: bool = False  # that stage names each crop's class too, and prediction rescores by it (DetectorConfig.crop_classes)
-    crop_split: bool = False  # ...from a crop net of their own (DetectorConfig.crop_split)
-    taxonomy: str = "fine"
+    imgsz: int = _TRAIN["imgsz"]
+    # train on random crop x crop windows of the imgsz input (data.random_crop); None, or a window
+    # as large as the input, trains on whole images (window())
+    crop: int | None = _TRAIN["crop"]
+    crop_focus: float = _TRAIN["crop_focus"]  # share of the windows centred on an object drawn class-balanced
+    repeat_thresh: float = _TRAIN["repeat_thresh"]  # LVIS repeat-factor sampling threshold; 0: off
+    cache: bool = RUN.cache  # decode and letterbox every image once, into memory (KeypointDataset.cache_images)
+    epochs: int = RUN.epochs
+    batch: int = _TRAIN["batch"]
+    optimizer: str = _TRAIN["optimizer"]  # adamw (decoupled weight decay) or adam (L2 decay in the gradient)
+    lr0: float = _TRAIN["lr0"]
+    lrf: float = _TRAIN["lrf"]  # final learning rate = lr0 * lrf (cosine)
+    weight_decay: float = _TRAIN["weight_decay"]
+    warmup_iters: int = _TRAIN["warmup_iters"]
+    ema_decay: float = _TRAIN["ema_decay"]
+    ema_tau: float = _TRAIN["ema_tau"]  # EMA ramp: decay * (1 - exp(-updates / tau)) lets early weights move
+    kpt_sigma_start: float = _TRAIN["kpt_sigma_start"]  # keypoint-loss sigma annealed to kpt_sigma_end (see kpt_sigma)
+    kpt_sigma_anneal: float = _TRAIN["kpt_sigma_anneal"]  # fraction of the iterations over which it is annealed
+    kpt_sigma_end: float = _TRAIN["kpt_sigma_end"]  # 0.25: the OKS metric's kernel; the design's 0.125 (loss.OKS_SIGMA)
+    kpt_mode: str = _TRAIN["kpt_mode"]  # corners as offsets from the anchor, or in units of the anchor's box (outputs.py)
+    kpt_l1: float = _TRAIN["kpt_l1"]  # gain of the scale-free L1 corner term beside the OKS loss (loss.keypoint_l1_loss)
+    kpt_turn: bool = False  # experiments: corners up to the 180-degree turn plus a turn class (loss.turn_targets)
+    kpt_hidden: int | None = None  # experiments: keypoint-branch width (DetectorConfig.kpt_hidden)
+    kpt_labelled: float = _TRAIN["kpt_labelled"]  # gain of the labelled-order OKS term beside the turn-aware one
+    kpt_turn_start: float = _TRAIN["kpt_turn_start"]  # fraction of the run before a turn-aware loss may turn corners
+    kpt_heading: bool = _TRAIN["kpt_heading"]  # corners up to the turn, the front from a regressed image heading
+    heading_gain: float = _TRAIN["heading_gain"]  # gain of a heading-aware head's heading term (LossGains.heading)
+    heading_crop: int = _TRAIN["heading_crop"]  # crop side of the second stage (DetectorConfig.heading_crop); 0: none
+    crop_classes: bool = _TRAIN["crop_classes"]  # that stage names each crop's class too (DetectorConfig.crop_classes)
+    crop_split: bool = False  # experiments: the joint stage's classes from a crop net of their own
+    # the crop stage trained again apart as the run's second phase (recipe.CropStage, crop_train.crop_phase);
+    # steps 0: the stage trained with the detector is kept
+    crop_phase: dict[str, Any] = field(default_factory=lambda: dict(_TRAIN["crop_phase"]))
+    taxonomy: str = _TRAIN["taxonomy"]
     train_split: str = "train"
     val_split: str | None = None  # None: 'val' if the dataset has it, else 'test', else all frames
-    out_of_image: str = "learn"
-    augment: dict[str, Any] = field(default_factory=lambda: asdict(Augment()))
-    workers: int = 2
-    seed: int = 0
-    val_every: int = 1  # validate every N epochs and after the last; 0: never
+    out_of_image: str = _TRAIN["out_of_image"]
+    augment: dict[str, Any] = field(default_factory=lambda: dict(_TRAIN["augment"]))
+    workers: int = RUN.workers
+    seed: int = RUN.seed
+    val_every: int = RUN.val_every  # validate every N epochs and after the last; 0: never
     save_interval: float = 60.0  # seconds between last.pt writes (also written after validation and at the end)
-    device: str | None = None
-    amp: str = "auto"  # mixed precision: auto (fp16 on CUDA, off on the CPU), bf16, fp16 or off
-    channels_last: bool | None = None  # NHWC activations; None: on for CUDA, off on the CPU (train_step)
-    time_minutes: float | None = None  # wall-clock budget of the whole run; epochs is then an upper bound
+    device: str | None = RUN.device
+    amp: str = RUN.amp  # mixed precision: auto (fp16 on CUDA, off on the CPU), bf16, fp16 or off
+    channels_last: bool | None = RUN.channels_last  # NHWC activations; None: on for CUDA, off on the CPU
+    time_minutes: float | None = RUN.time_minutes  # wall-clock budget of the whole run; epochs is then an upper bound
     weights: str | None = None  # start from this checkpoint's (EMA) weights: a new run, not a resume
+
+    def __post_init__(self) -> None:
+        if isinstance(self.augment, dict) and isinstance(self.augment.get("hsv"), list):
+            self.augment = {**self.augment, "hsv": tuple(self.augment["hsv"])}  # as JSON (args.json) spells it
+
+    def window(self) -> int | None:
+        """The side of the training windows, None for whole images (no window, or one as large as
+        the input: the recipe's 320 is whole images for an input of 320 or less)."""
+        return self.crop if self.crop and self.crop < self.imgsz else None
+
+    def focus(self) -> float:
+        """The share of windows centred on an object: the recipe's where there are windows, else none."""
+        return self.crop_focus if self.window() else 0.0
 
     def model_config(self, num_classes: int) -> DetectorConfig:
         # never crop_position: joint training crops its augmented windows (--crop), where a crop's
-        # place in the window is not its place in the image; omnigen train-crop gives the position
+        # place in the window is not its place in the image; the crop phase gives the position
         return DetectorConfig(scale=self.model, backbone=self.backbone, p2=self.p2, p6=self.p6, kpt_mode=self.kpt_mode,
-                              kpt_turn=self.kpt_turn, kpt_hidden=self.kpt_hidden, kpt_heading=self.kpt_heading, heading_crop=self.heading_crop, crop_classes=self.crop_classes, crop_split=self.crop_split, num_classes=num_classes, width=self.width, depth=self.depth)
+                              kpt_turn=self.kpt_turn, kpt_hidden=self.kpt_hidden, kpt_heading=self.kpt_heading,
+                              heading_crop=self.heading_crop, crop_classes=self.crop_classes and self.heading_crop > 0,
+                              crop_split=self.crop_split, num_classes=num_classes, width=self.width, depth=self.depth)
 
 
 def param_groups(model: torch.nn.Module, weight_decay: float) -> list[dict[str, Any]]:
@@ -176,10 +213,10 @@ def kpt_sigma(cfg: TrainConfig, it: int, total: int) -> float:
     predicted where a fresh head puts it (at the anchor, about 0.7 sqrt(a) away) gets a gradient
     scaled by exp(-16): far corners would never move. A wider sigma early gives them a slope; from
     kpt_sigma_anneal of the run on, the loss is the design's formula with sigma = kpt_sigma_end.
-    The default end is the design's 0.125. pycocotools' OKS, which `omnigen eval` reports, reads
+    The design's end is 0.125. pycocotools' OKS, which `omnigen eval` reports, reads
     the same sigma as exp(-d / (8 sigma^2 a)): the loss's kernel with sigma 0.25 (what
     Ultralytics' keypoint loss uses), twice as wide as the design's in distance. End there
-    (`--kpt-sigma-end 0.25`) to train on the metric's own kernel.
+    (schedule.kpt_sigma_end=0.25, the recipe's) to train on the metric's own kernel.
     """
     end = cfg.kpt_sigma_anneal * total
     if it >= end or cfg.kpt_sigma_start <= cfg.kpt_sigma_end:
@@ -208,7 +245,7 @@ def autocast_dtype(amp: str, device: torch.device) -> torch.dtype | None:
     bf16 is a choice, not the CPU default: on a 2-core CPU with AVX512-BF16 a step of the nano P2
     model at batch 16 and 320 px takes about 0.65 of a float32 one, but bf16 keeps 8 bits of
     mantissa, and the four-frame overfit run ends well short of float32's fit
-    (benchmarks/bench_train_step.py --overfit prints both). For runs far from that precision (any
+    (benchmarks/bench_train_speed.py step --overfit prints both). For runs far from that precision (any
     run short of convergence) the speed is worth it. The loss always runs in float32
     (DetectionLoss casts the head's outputs).
     """
@@ -230,23 +267,28 @@ def autocast_dtype(amp: str, device: torch.device) -> torch.dtype | None:
 
 def check_sizes(cfg: TrainConfig) -> None:
     """The input and the crop window must be multiples of the largest stride (the feature maps of
-    the levels must line up in the neck), and the window no larger than the input."""
+    the levels must line up in the neck; a window as large as the input or larger is whole images,
+    TrainConfig.window), the crop stage's side one of 16 (0: none). Each named by its recipe key."""
     stride = 64 if cfg.p6 else 32
-    for name in ("imgsz", "crop"):
+    for name, step in (("imgsz", stride), ("crop", stride), ("heading_crop", 16)):  # the crop net halves it 4 times
         value = getattr(cfg, name)
-        if value is not None and (value <= 0 or value % stride):
-            raise ValueError(f"TrainConfig.{name}: {value} is not a positive multiple of {stride}")
-    if cfg.crop is not None and cfg.crop > cfg.imgsz:
-        raise ValueError(f"TrainConfig.crop: {cfg.crop} is larger than imgsz {cfg.imgsz}")
+        if value is not None and (value < 0 or value % step or (value == 0 and name != "heading_crop")):
+            raise ValueError(f"TrainConfig.{name} ({field_key(name)}): {value} is not a positive multiple of {step}")
 
 
 def check_sampling(cfg: TrainConfig) -> None:
-    """Class-balanced sampling's settings (balance's checks), refused before any data is read."""
+    """Class-balanced sampling's settings (balance's checks), refused before any data is read. The
+    focus share is checked as a probability whether or not there are windows to centre."""
     try:
-        check_crop_focus(cfg.crop_focus, cfg.crop)
+        check_crop_focus(cfg.crop_focus, cfg.window() or cfg.imgsz)
         check_repeat_thresh(cfg.repeat_thresh)
     except ValueError as e:
         raise ValueError(f"TrainConfig.{e}") from None
+
+
+def augment_of(cfg: TrainConfig) -> Augment:
+    """The data's augmentation of cfg.augment (recipe.Augment's keys)."""
+    return Augment(**cfg.augment)
 
 
 def frame_repeats(cfg: TrainConfig, data: KeypointDataset) -> np.ndarray | None:
@@ -288,28 +330,38 @@ def validate(model: KeypointDetector, data: KeypointDataset, split: str | None, 
             "corner_error_rel": row.corner_error_rel}
 
 
-RUN_FILES = ("last.pt", "best.pt", "results.csv", "args.json")
+CROP_PARTIAL = "crop-phase.partial.pt"
+"""The crop phase's state while it trains (crop_train.train_stage's partial), removed at its end."""
+RUN_FILES = ("last.pt", "best.pt", "results.csv", "args.json", RECIPE_FILE, CROP_PARTIAL)
 """What `omnigen train` writes into its run folder, besides its temporary files."""
 
 RESUMABLE = ("out", "device", "workers", "cache")
 """The settings a resumed run may change: where the folder and the run are, its loader processes
 and its image cache; they give the same weights. Every other one is the run's."""
 
-FLAGS = {"dataset": "DATASET", "time_minutes": "--time", "augment": "--no-augment"}
-"""The command-line names of the TrainConfig fields not spelled as their field (`--lr0` is lr0)."""
-NOT_ON_THE_COMMAND_LINE = ("width", "depth", "weight_decay", "warmup_iters", "ema_decay", "ema_tau", "save_interval")
+FLAGS = {"dataset": "DATASET", "time_minutes": "--time", "epochs": "--epochs", "val_every": "--val-every",
+         "seed": "--seed", "amp": "--amp", "channels_last": "--channels-last", "weights": "--weights",
+         "train_split": "--train-split", "val_split": "--val-split"}
+"""How the run's settings are named to a user: their flags. Recipe fields are named by their key
+(recipe.field_key: 'optim.lr0'), the rest (tests' and experiments' fields) as TrainConfig's."""
 
 
 def flag_of(name: str) -> str:
-    """How a TrainConfig field is named to a user: its flag, else the field."""
-    if name in NOT_ON_THE_COMMAND_LINE:
-        return f"TrainConfig.{name}"
-    return FLAGS.get(name, "--" + name.replace("_", "-"))
+    """How a TrainConfig field is named to a user: its flag, its recipe key, else the field."""
+    return FLAGS.get(name) or field_key(name) or f"TrainConfig.{name}"
 
 
-def _shown(name: str, value: Any) -> str:
-    if name == "augment":
-        return "given" if value == asdict(Augment.off()) else "not given" if value == asdict(Augment()) else f"{value}"
+def differences(name: str, was: Any, now: Any) -> list[str]:
+    """'KEY: X there, Y now' for each part of a setting that differs: a dict (augment, crop_phase)
+    key by key, named by its recipe key."""
+    if name in ("augment", "crop_phase") and isinstance(was, dict) and isinstance(now, dict):
+        section = "augment" if name == "augment" else "crop_stage"
+        return [f"{section}.{k}: {_shown(was.get(k))} there, {_shown(now.get(k))} now"
+                for k in dict.fromkeys([*was, *now]) if was.get(k) != now.get(k)]
+    return [f"{flag_of(name)}: {_shown(was)} there, {_shown(now)} now"]
+
+
+def _shown(value: Any) -> str:
     return "unset" if value is None else str(value)
 
 
@@ -322,13 +374,15 @@ def _same_setting(name: str, was: Any, now: Any) -> bool:
 
 def is_run_file(path: Path) -> bool:
     """Whether `path`, named as one of RUN_FILES, is what `omnigen train` writes there (by its first
-    bytes: a torch archive, results.csv's header, a JSON object of TrainConfig fields): all that
-    --fresh deletes."""
+    bytes: a torch archive, results.csv's header, a JSON object of TrainConfig fields, a recipe file
+    marked as train's): all that --fresh deletes."""
     head = read_prefix(path)
     if path.suffix == ".pt":
         return head.startswith(b"PK\x03\x04") and b"/data.pkl" in head[:200]
     if path.name == "results.csv":
         return head.startswith(b"epoch,")
+    if path.name == RECIPE_FILE:
+        return json_made_by(RECIPE_JOB)(path)
     try:
         recorded = json.loads(head)
     except ValueError:
@@ -336,25 +390,36 @@ def is_run_file(path: Path) -> bool:
     return isinstance(recorded, dict) and {"dataset", "out", "epochs", "imgsz"} <= set(recorded)
 
 
-def claim_run(out: Path, fresh: bool, delete: bool) -> None:
-    """Make `out` the folder of a new run, or refuse it, before anything is read or written.
+def claim_run(out: Path, fresh: bool, weights: str | None = None) -> None:
+    """Check that `out` may be the folder of a new run, before anything is read or written; with
+    `fresh`, that its run may be deleted (`delete_run`, called once the run's inputs have loaded,
+    so that a run refused for a missing dataset or a bad --weights deletes nothing).
 
     A folder holding a run's weights or results (last.pt, best.pt, results.csv) is refused: a new
-    run would replace them. `fresh` deletes them first (where `delete`: rank 0 of several), and
-    only from a folder that holds nothing but a run's own files, each recognised as train's
-    (is_run_file). Files of others beside no run are left alone (benchmarks/validate.py keeps its
-    markers in the run folder); an args.json not written by train is refused, as it would be
-    overwritten.
+    run would replace them. `fresh` may delete them only from a folder that holds nothing but a
+    run's own files, each recognised as train's (is_run_file), and whose args.json says it is
+    omnigen train's run: a .pt is any torch archive, so without that an Ultralytics weights/ folder
+    (best.pt, last.pt) would pass. --weights may not name a file --fresh would delete. Files of
+    others beside no run are left alone (benchmarks/validate.py keeps its markers in the run
+    folder); an args.json or recipe.json not written by train is refused, as it would be overwritten.
     """
     if not out.is_dir():
         return
+    for name in ("args.json", RECIPE_FILE):
+        if (out / name).exists() and not is_run_file(out / name):
+            raise ValueError(f"{out / name}: was not written by 'omnigen train'; refusing to overwrite it "
+                             "(choose another --out)")
     held = [name for name in RUN_FILES[:3] if (out / name).exists()]
+    ours = (out / "args.json").is_file() and is_run_file(out / "args.json")
+    if held and not ours:
+        raise ValueError(f"{out}: holds {', '.join(held)} but no args.json of 'omnigen train'; it is not a run this "
+                         "command made, and nothing in it is replaced or deleted: choose another --out")
     if held and not fresh:
         raise ValueError(f"{out}: holds a training run ({', '.join(held)}); add --resume to continue it, --fresh "
                          "to delete its files and start over, or choose another --out")
-    if (out / "args.json").exists() and not is_run_file(out / "args.json"):
-        raise ValueError(f"{out / 'args.json'}: was not written by 'omnigen train'; refusing to overwrite it "
-                         "(choose another --out)")
+    if fresh and weights and any(same_file(weights, out / name) for name in RUN_FILES):
+        raise ValueError(f"--weights {weights}: is a file of the run in {out}, which --fresh deletes; copy it "
+                         "elsewhere first, or train into another --out")
     if not fresh:
         return
     theirs = sorted(p.name for p in out.iterdir()
@@ -364,9 +429,13 @@ def claim_run(out: Path, fresh: bool, delete: bool) -> None:
         raise ValueError(f"{out}: --fresh deletes only a run's own files ({', '.join(RUN_FILES)}), and this folder "
                          f"also holds {', '.join(theirs[:5])}{more}, which 'omnigen train' did not make; choose "
                          "another --out")
-    if delete:
-        for name in RUN_FILES:  # last.pt first: a kill midway leaves no run that --resume would take up
-            (out / name).unlink(missing_ok=True)
+
+
+def delete_run(out: Path) -> None:
+    """--fresh's deletion of the run's own files (claim_run checked them), last.pt first: a kill
+    midway leaves no run that --resume would take up."""
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
 
 
 RESUME_FIELDS = {"train_config": dict, "raw_model": dict, "optimizer": dict, "ema_updates": int, "epoch": int,
@@ -389,17 +458,18 @@ def resumed_config(cfg: TrainConfig, state: dict[str, Any], path: Path) -> Train
     if not all(isinstance(row, dict) for row in state["history"]):
         raise ValueError(f"{path}: history holds something other than rows of numbers")
     check_tensors(path, "raw_model", state["raw_model"])
-    # checkpoints from before the optimizer was a choice trained with Adam
-    recorded = checked_fields(path, "train_config", {"optimizer": "adam", **state["train_config"]}, TrainConfig)
+    # a checkpoint of schema 1 was read with the fields it lacks filled in (checkpoint.upgraded)
+    recorded = checked_fields(path, "train_config", state["train_config"], TrainConfig)
     checked_fields(path, "train_config.augment", recorded.augment, Augment)
+    from_dict({"crop_stage": recorded.crop_phase}, f"{path}: train_config.crop_phase")
     differ = [f.name for f in fields(TrainConfig) if f.name not in RESUMABLE
               and not _same_setting(f.name, getattr(recorded, f.name), getattr(cfg, f.name))]
     if differ:
-        said = "; ".join(f"{flag_of(k)}: {_shown(k, getattr(recorded, k))} there, {_shown(k, getattr(cfg, k))} now"
-                         for k in differ)
+        said = "; ".join(d for k in differ for d in differences(k, getattr(recorded, k), getattr(cfg, k)))
         raise ValueError(f"{cfg.out}: was trained with other settings ({said}; recorded in {path}); --resume goes on "
-                         "with the run's own (only --device, --workers and --cache may change): give its settings, "
-                         "or train a new run into another --out (--weights starts one from its weights)")
+                         "with the run's own (only --device, --workers and --cache may change): give its settings "
+                         f"(its recipe is {Path(cfg.out) / RECIPE_FILE}: --recipe), or train a new run into another "
+                         "--out (--weights starts one from its weights)")
     return replace(recorded, **{k: getattr(cfg, k) for k in RESUMABLE})
 
 
@@ -445,6 +515,8 @@ def _train(cfg: TrainConfig, resume: bool, fresh: bool, on_epoch: Callable[[int,
     """train() inside the run folder's lock."""
     clock = time_budget.clock  # seconds of the run's epochs and budget (tests may replace it)
     entered = clock()  # a time budget counts the setup (dataset, image cache) too
+    check_sizes(cfg)  # before the folder is claimed: a refused run deletes nothing (--fresh)
+    check_sampling(cfg)
     rank, local_rank, world = distributed()
     device = pick_device(cfg, local_rank)
     if world > 1 and not dist.is_initialized():
@@ -458,18 +530,19 @@ def _train(cfg: TrainConfig, resume: bool, fresh: bool, on_epoch: Callable[[int,
         cfg = resumed_config(cfg, state, out / "last.pt")
         taxonomy = checkpoint_taxonomy(state)
     else:
-        claim_run(out, fresh, delete=rank == 0)
+        claim_run(out, fresh, cfg.weights)
         taxonomy = load_taxonomy(cfg.taxonomy)
     if rank == 0 and (resume or fresh or (out / "args.json").exists()):
         tidy_run(out, state)
+    if state is not None and run_finished(cfg, state):  # its crop phase too: last.pt is the run's result
+        return {**state["history"][-1], **phase_summary(state.get("crop_stage"), state.get("crop_phase"))} \
+            if state["history"] else {}
     torch.manual_seed(cfg.seed)
 
     train_ids = split_frames(cfg.dataset, cfg.train_split)
     val_name = resolve_val_split(cfg.dataset, cfg.val_split)
-    check_sizes(cfg)
-    check_sampling(cfg)
-    data = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, train_ids, Augment(**cfg.augment),
-                           cfg.out_of_image, cfg.seed, crop=cfg.crop, crop_focus=cfg.crop_focus)
+    data = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, train_ids, augment_of(cfg),
+                           cfg.out_of_image, cfg.seed, crop=cfg.window(), crop_focus=cfg.focus())
     if len(data) == 0:
         raise ValueError(f"{cfg.dataset}: split {cfg.train_split!r} has no frames")
     val = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, split_frames(cfg.dataset, val_name))
@@ -518,12 +591,16 @@ def _train(cfg: TrainConfig, resume: bool, fresh: bool, on_epoch: Callable[[int,
     sampler = EpochBatches(len(data), per_step, cfg.seed, start_epoch, shard, repeat)
     batches = iter(make_loader(data, sampler, cfg.workers, pin=device.type == "cuda", collate_fn=collate_uint8))
     if rank == 0:
+        if fresh and state is None:  # now that the dataset, the sizes and --weights have loaded
+            delete_run(out)
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / "args.json", dumps_json(asdict(cfg)))
+        atomic_write_text(out / RECIPE_FILE, recipe_json(recipe_of(asdict(cfg))))
     iters_per_epoch = sampler.per_epoch()
     from tqdm import tqdm
 
-    budget = TimeBudget(cfg.time_minutes * 60, cfg.epochs) if cfg.time_minutes is not None else None
+    budget = TimeBudget(time_budget.detector_seconds(cfg.time_minutes, crop_phase_due(cfg)), cfg.epochs) \
+        if cfg.time_minutes is not None else None
     end = cfg.epochs  # the run's last epoch (exclusive): with a time budget, planned as it goes
     validates = len(val) > 0 and cfg.val_every > 0  # val_every 0: never (a benchmark scores on its own)
     last_validated = max((int(r["epoch"]) for r in history if "oks_map50_95" in r), default=0)
@@ -598,7 +675,8 @@ def _train(cfg: TrainConfig, resume: bool, fresh: bool, on_epoch: Callable[[int,
                 on_epoch(epoch, row)
             if due:
                 last_save = time.perf_counter()
-                ckpt = {"config": model.cfg.to_dict(), "classes": taxonomy.classes, "taxonomy": taxonomy.to_dict(),
+                ckpt = {"schema": SCHEMA, "config": model.cfg.to_dict(), "classes": taxonomy.classes,
+                        "taxonomy": taxonomy.to_dict(),
                         "model": ema.ema.state_dict(), "raw_model": model.state_dict(), "ema_updates": ema.updates,
                         "optimizer": optimizer.state_dict(), "scaler": scaler.state_dict(),
                         "epoch": epoch, "best_fitness": max(best, fitness), "planned_epochs": end,
@@ -612,7 +690,67 @@ def _train(cfg: TrainConfig, resume: bool, fresh: bool, on_epoch: Callable[[int,
         if world > 1:
             dist.barrier(device_ids=[torch.cuda.current_device()] if device.type == "cuda" else None)
         epoch += 1
-    return history[-1] if history else {}
+    final = history[-1] if history else {}
+    if rank == 0 and epoch == end and crop_phase_due(cfg):  # the detector's schedule ended: the second phase
+        left = cfg.time_minutes * 60 - used() if cfg.time_minutes is not None else None
+        final = {**final, **run_crop_phase(cfg, taxonomy, val_name, ema.ema.crop_net, out, left)}
+    return final
+
+
+def crop_phase_due(cfg: TrainConfig) -> bool:
+    """Whether the run has a second phase: a crop stage, and steps to train it apart."""
+    return cfg.heading_crop > 0 and int(cfg.crop_phase.get("steps", 0)) > 0
+
+
+def run_finished(cfg: TrainConfig, state: dict[str, Any]) -> bool:
+    """Whether last.pt's `state` ends the run: the detector's planned epochs done, and its crop
+    phase where it has one (its mark, "crop_phase", is written into last.pt last)."""
+    detector_done = int(state["epoch"]) + 1 >= int(state.get("planned_epochs") or cfg.epochs)
+    return detector_done and (not crop_phase_due(cfg) or isinstance(state.get("crop_phase"), str))
+
+
+def run_crop_phase(cfg: TrainConfig, taxonomy: Any, val_name: str | None, joint: torch.nn.Module | None, out: Path,
+                   left: float | None) -> dict[str, Any]:
+    """The run's second phase (crop_train.crop_phase: the crop stage trained again apart, within
+    `left` seconds of the --time budget where there is one), its stage put into best.pt and then
+    last.pt (crop_train.attach_stage; the detector's tensors untouched), each marked "crop_phase":
+    last.pt last, so a kill before leaves a run whose --resume does the phase again, from its
+    partial state. Returns the phase's figures for the summary."""
+    import copy
+
+    from omnigen.detector.crop_train import attach_stage, crop_phase
+
+    def say(text: str) -> None:
+        print(f"note: {text}", file=sys.stderr, flush=True)
+
+    if joint is not None:  # scored on the CPU beside the new stage, as prediction's weights hold it
+        joint = copy.deepcopy(joint).to("cpu", memory_format=torch.contiguous_format).float()
+    result = crop_phase(cfg, taxonomy, val_name, joint, out / CROP_PARTIAL, left, say)
+    if result.net is None:
+        say(result.why)
+    for name in ("best.pt", "last.pt"):
+        if (out / name).exists():
+            state = load_checkpoint(out / name)
+            if result.net is not None:
+                state = attach_stage(state, result.net, cfg.heading_crop, result.record)
+            state["crop_phase"] = result.why or "trained"
+            save_checkpoint(out / name, state)
+    (out / CROP_PARTIAL).unlink(missing_ok=True)
+    return phase_summary(result.record, result.why, result.scores.get("trained with the detector"))
+
+
+def phase_summary(record: dict[str, Any] | None, why: str | None, joint: Any = None) -> dict[str, Any]:
+    """The crop phase's figures for the run's summary: its steps, seconds and score on held-out
+    crops (and the stage trained with the detector's), or why it kept that stage."""
+    if not isinstance(record, dict):
+        return {"crop_phase": why} if why else {}
+    score = record.get("score") or {}
+    out = {"crop_steps": record.get("steps_done"), "crop_seconds": record.get("seconds"),
+           "crop_corner_rel": score.get("corner_rel"), "crop_front": score.get("front"),
+           "crop_class_acc": score.get("class_acc")}
+    if joint is not None:
+        out["joint_corner_rel"] = joint.corner_rel
+    return out
 
 
 class NonFiniteLoss(RuntimeError):

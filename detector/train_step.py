@@ -21,7 +21,7 @@ from omnigen.detector.crop_stage import jitter_boxes, training_rois
 def use_channels_last(setting: bool | None, device: torch.device) -> bool:
     """channels_last memory format: None means on for CUDA (tensor cores read NHWC without a
     transpose) and off on the CPU, where oneDNN's default layout was as fast
-    (benchmarks/bench_train_step.py prints both)."""
+    (benchmarks/bench_train_speed.py step prints both)."""
     return device.type == "cuda" if setting is None else setting
 
 

@@ -4,14 +4,14 @@ Why. Every upright edge of a frame (a box's four vertical edges, corner i to i +
 through one point: the image of the ground's downward direction. Where that point lies depends
 on the camera's pitch and focal length, which the crop stage cannot see: a drone's is below the
 image centre or inside the image, an upright car camera's at infinity. Edges that miss it are
-what tilts a lifted box most (benchmarks/adherence_sources.py: make validate's vertical edges
+what tilts a lifted box most (make validate's vertical edges
 turned to the true point took its adherence from 5.84 to 4.76 deg). The detector is never given
 calibration, so the point is found in the image:
 
 - first from the detections themselves (`fit_vertical_vanishing_point`). That alone helps little:
   the crop stage's errors lean the same way across an image (it guesses the camera from where
   the crop lies), so their common point inherits the lean (7.2 deg off on 120 of make
-  validate's train frames from the drone, median; benchmarks/vertical_snap.py);
+  validate's train frames from the drone, median);
 - then from the image's own straight lines (`refine_with_segments`). A city is full of upright
   edges far longer and straighter than a box's: buildings' corners, poles, window columns. The
   detections' point picks which family of line segments is the vertical one, and those segments
@@ -120,7 +120,7 @@ def vertical_edges(kp: np.ndarray, width: float, height: float) -> Edges:
 @dataclass(frozen=True)
 class SnapOptions:
     """How `snap_vertical` finds the image's vertical vanishing point; the defaults are
-    benchmarks/vertical_snap.py's, measured on make validate's train frames."""
+    chosen on make validate's train frames (docs/detector-training.md)."""
 
     score_thr: float = 0.3  # detections scored at least this fit the first guess
     min_segment: float = 20.0  # line segments shorter than this (pixels) are not used

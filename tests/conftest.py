@@ -36,8 +36,7 @@ def detector_checkpoint():
 @pytest.fixture
 def split_fake_dataset(tmp_path):
     """A fake merged dataset of 12 frames, 6 objects each, its first 9 frames the train split and
-    the last 3 the test split: what the crop benchmarks (crop_layout, heading_visibility,
-    crop_classes) and omnigen train-crop read."""
+    the last 3 the test split: what the crop-stage tests and omnigen train-crop read."""
     from omnigen.fakes import write_fake_dataset
     from omnigen.splits import write_split
 

@@ -1,4 +1,4 @@
-"""benchmarks/bench_adherence_floor.py: the truth handed to the evaluation scores as the truth should."""
+"""benchmarks/common.py floor_rows (bench_adherence_floor.py, validate.py): the truth handed to the evaluation scores as the truth should."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from benchmarks.bench_adherence_floor import floor_rows, truth_as_predictions  # noqa: E402
+from benchmarks.common import floor_rows, truth_as_predictions  # noqa: E402
 from omnigen.fakes import write_fake_dataset  # noqa: E402
 from omnigen.taxonomy import recorded_taxonomy  # noqa: E402
 

@@ -10,6 +10,7 @@ import pytest
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
 from benchmarks.bench_learning import main  # noqa: E402
+from omnigen.detector.checkpoint import load_checkpoint  # noqa: E402
 from omnigen.fakes import write_fake_dataset  # noqa: E402
 from omnigen.splits import write_split  # noqa: E402
 
@@ -20,18 +21,20 @@ def test_bench_learning_prints_model_and_baseline(tmp_path, capsys):
     write_split(ds.root, "train", ids[:6])
     write_split(ds.root, "test", ids[6:])
     out = tmp_path / "result.json"
-    argv = [str(ds.root), "--steps", "2", "--batch", "3", "--imgsz", "64", "--crop", "0", "--amp", "off",
-            "--width", "0.125", "--depth", "0.34", "--workers", "0", "--kpt-mode", "box", "--kpt-l1", "1",
-            "--kpt-turn", "--kpt-hidden", "16",
+    argv = [str(ds.root), "optim.batch=3", "model.imgsz=64", "data.window=0", "data.repeat_thresh=0",
+            "loss.kpt_l1=1", "crop_stage.steps=2", "crop_stage.batch=4", "crop_stage.copies=1",
+            "--steps", "2", "--amp", "off", "--width", "0.125", "--depth", "0.34", "--workers", "0",
             "--work", str(tmp_path / "runs"), "--out", str(out)]
     assert main(argv) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[-1].startswith("learning: mAP50:95 ") and "(baseline " in lines[-1]
     assert "corner error rel" in lines[-1]
     result = json.loads(out.read_text())
+    # the recipe (make validate's) with the keys given: its crop phase too
     assert result["steps"] == 2 and result["config"]["kpt_mode"] == "box" and result["config"]["kpt_l1"] == 1.0
-    assert result["config"]["kpt_turn"] is True and result["config"]["kpt_hidden"] == 16
-    assert "turn" in result["final_losses"] and any(line.startswith("box-matched objects (") for line in lines)
+    assert result["config"]["kpt_heading"] is True and result["config"]["crop_phase"]["steps"] == 2
+    assert load_checkpoint(tmp_path / "runs" / result["name"] / "last.pt")["crop_stage"]["steps_done"] == 2
+    assert "heading" in result["final_losses"] and any(line.startswith("box-matched objects (") for line in lines)
     assert set(result["corner_order"]) >= {"matched", "as labelled", "turned 180"}
     assert set(result["model"]) == set(result["baseline"]) and "synthetic" in result["model"]
     for row in (*result["model"].values(), *result["baseline"].values()):
@@ -47,28 +50,5 @@ def test_bench_learning_prints_model_and_baseline(tmp_path, capsys):
     # another recipe into the same folder is refused, the finished run left as it was
     before = (tmp_path / "runs" / result["name"] / "last.pt").read_bytes()
     with pytest.raises(SystemExit, match="other arguments.*lr0"):
-        main(argv + ["--lr0", "0.01", "--name", result["name"]])
+        main([*argv[:1], "optim.lr0=0.01", *argv[1:], "--name", result["name"]])
     assert (tmp_path / "runs" / result["name"] / "last.pt").read_bytes() == before
-
-
-def test_turn_targets_reads_a_turn_aware_checkpoint(tmp_path, capsys):
-    """benchmarks/turn_targets.py prints the share of turned targets of a turn-aware run and
-    refuses a model without the turn."""
-    from benchmarks.turn_targets import main as turn_main
-
-    ds = write_fake_dataset(tmp_path / "uov", 6, objects_per_frame=4, seed=3)
-    ids = [ds.table.frame_id[i] for i in range(len(ds))]
-    write_split(ds.root, "train", ids[:4])
-    write_split(ds.root, "test", ids[4:])
-    common = [str(ds.root), "--steps", "1", "--batch", "2", "--imgsz", "64", "--crop", "0", "--amp", "off",
-              "--width", "0.125", "--depth", "0.34", "--workers", "0", "--kpt-mode", "box",
-              "--work", str(tmp_path / "runs")]
-    assert main([*common, "--kpt-turn", "--name", "turn"]) == 0
-    capsys.readouterr()
-    assert turn_main([str(tmp_path / "runs" / "turn" / "last.pt"), "--batches", "2", "--batch", "2"]) == 0
-    last = capsys.readouterr().out.strip().splitlines()[-1]
-    share = float(last.split("turned ")[1].split(" ")[0])
-    assert last.startswith("turn targets: turned ") and 0.0 <= share <= 1.0 and "turn loss" in last
-    assert main([*common, "--name", "plain"]) == 0
-    with pytest.raises(SystemExit, match="not a turn-aware model"):
-        turn_main([str(tmp_path / "runs" / "plain" / "last.pt")])

@@ -1,6 +1,6 @@
-"""benchmarks/bench_realism.py and realism_figure.py: the statistics on arrays whose answer is known
-(luminance std, edge density, histogram distances), the object readers on the real sample labels,
-the class figure's targets, and both scripts end to end at a tiny size (skipped without EGL)."""
+"""benchmarks/bench_realism.py: the statistics on arrays whose answer is known (luminance std, edge
+density, histogram distances), the object readers on the real sample labels, the class figure's
+targets, and the tables and --figures end to end at a tiny size (skipped without EGL)."""
 
 from __future__ import annotations
 
@@ -78,14 +78,12 @@ def test_bin_centres_lie_in_their_own_bins():
 
 
 def test_the_figure_shows_the_frame_nearest_the_median_std_and_the_json_rounds_it():
-    from benchmarks.realism_figure import representative
-
     half = np.zeros((10, 20), np.uint8)
     half[:, 10:] = 200  # std 100
     third = np.zeros((9, 20), np.uint8)
     third[:3] = 100  # std 100 * sqrt(2) / 3, not a round number
     s = br.set_stats("x", [grey(np.full((10, 20), 50)), grey(half), grey(third)])
-    assert representative(s) == 2 and s.lum_std == s.lum_std_per_frame[2]
+    assert br.representative(s) == 2 and s.lum_std == s.lum_std_per_frame[2]
     assert s.to_dict()["lum_std_per_frame"] == [0.0, 100.0, round(100 * 2 ** 0.5 / 3, 3)]
 
 
@@ -145,7 +143,7 @@ def _egl_or_skip():
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
-def test_scripts_end_to_end_at_tiny_size(tmp_path, capsys):
+def test_tables_and_figures_end_to_end_at_tiny_size(tmp_path, capsys):
     _egl_or_skip()
     work, out = tmp_path / "work", tmp_path / "realism.json"
     args = ["--frames", "2", "--size", "96", "--work", str(work), "--no-classes", "--scene", "tiny", "--cycles-frames", "0"]
@@ -169,11 +167,9 @@ def test_scripts_end_to_end_at_tiny_size(tmp_path, capsys):
         assert 0 < res["histogram_distances_to_kitti"]["ego"]["lum_intersection"] <= 1
         assert res["objects"]["dair-v2x"]["car length"]["n"] == 4
 
-    from benchmarks import realism_figure
-
     figs = tmp_path / "figs"
-    assert realism_figure.main(["--frames", "2", "--size", "96", "--work", str(work), "--out-dir", str(figs),
-                                "--realdata", str(REALDATA), "--scene", "tiny"]) == 0
+    assert br.main(["--frames", "2", "--size", "96", "--work", str(work), "--figures", str(figs),
+                    "--realdata", str(REALDATA), "--scene", "tiny"]) == 0
     for name in ("realism-ego.png", "realism-pole.png"):
         assert 0 < (figs / name).stat().st_size < 400 * 1024
     assert image.stat().st_mtime_ns == before

@@ -25,8 +25,8 @@ from benchmarks import fetch_gpu_wheels, gpu_validate, peer_ultralytics  # noqa:
 
 LAST_LINE = re.compile(r"^gpu_validate: synthetic mAP50:95 \d\.\d{3}, adherence (-|\d+\.\d{2}) deg, \d+\.\d img/s$")
 TINY = ["--device", "cpu", "--frames", "4", "--cities", "2", "--city-frames", "1", "--test-fraction", "0.5",
-        "--scene", "tiny", "--size", "128", "--imgsz", "64", "--batch", "4", "--minutes", "0.1", "--jobs", "2",
-        "--workers", "0"]
+        "--scene", "tiny", "--size", "128", "--batch", "4", "--minutes", "0.1", "--jobs", "2",
+        "--workers", "0", "--train-args", "model.imgsz=64 optim.batch=4"]
 
 
 @pytest.fixture(scope="module")
@@ -239,34 +239,33 @@ def test_make_validate_keeps_the_gpu_section_when_it_rewrites_results_md():
     assert kept_sections("# Results\n\nno sections\n") == ""
 
 
-def test_training_takes_more_arguments_and_renders_make_validates_mix():
-    """--train-args reach `omnigen train` (a recipe from bench_learning tried on the GPU), and the
-    default scene is make validate's preset mix, kept in one place."""
+def test_training_takes_recipe_keys_and_renders_make_validates_mix():
+    """--train-args' KEY=VALUE reach `omnigen train` right after the dataset (a recipe from
+    bench_learning tried on the GPU), and the default scene is make validate's preset mix, kept in
+    one place."""
     import argparse
     from pathlib import Path
 
     from benchmarks import gpu_validate
     from benchmarks.validate import SCENE_MIX
 
-    args = argparse.Namespace(minutes=5.0, imgsz=640, batch=64, workers=2, seed=0, lr0=2e-3, val_every=10,
-                              device="cuda", train_args="--kpt-mode box --kpt-turn")
+    args = argparse.Namespace(minutes=5.0, workers=2, seed=0, val_every=10, device="cuda",
+                              train_args="model.kpt_mode=anchor loss.kpt_l1=1")
     argv = gpu_validate.train_arguments(Path("uov"), Path("run"), args)
-    assert argv[0] == "train" and argv[-3:] == ["--kpt-mode", "box", "--kpt-turn"]
-    assert gpu_validate.train_arguments(Path("uov"), Path("run"), argparse.Namespace(**{**vars(args), "train_args": ""}))[-1] != "--kpt-turn"
+    assert argv[:4] == ["train", "uov", "model.kpt_mode=anchor", "loss.kpt_l1=1"] and argv[4] == "--out"
+    assert gpu_validate.trained_recipe(args).loss.kpt_l1 == 1.0
     assert gpu_validate.parse_args(["--work", "w"]).scene == SCENE_MIX
-    # and the default recipe is make validate's, written once in each script and kept equal here
-    import shlex
-
-    from benchmarks.validate import build_parser, frame_sampling, keypoint_recipe
-
-    assert gpu_validate.parse_args(["--work", "w"]).train_args == shlex.join(keypoint_recipe(build_parser().parse_args([]))
-                                                                                    + frame_sampling(build_parser().parse_args([])))
 
 
 def test_the_gpu_recipe_is_make_validates():
-    """The GPU run trains the recipe make validate keeps (validate.py's keypoint recipe and its
-    class balance): one kept change must not reach one of them only."""
-    from benchmarks import validate
+    """The GPU run trains `omnigen train`'s own recipe, as make validate does: neither script passes
+    a recipe value, so one kept change reaches both."""
+    import argparse
+    from pathlib import Path
 
-    defaults = validate.build_parser().parse_args([])
-    assert gpu_validate.RECIPE.split() == [*validate.keypoint_recipe(defaults), "--repeat-thresh", str(defaults.repeat_thresh)]
+    args = gpu_validate.parse_args(["--work", "w", "--device", "cuda"])
+    argv = gpu_validate.train_arguments(Path("uov"), Path("run"), args)
+    assert argv[:3] == ["train", "uov", "--out"] and not any("=" in a for a in argv)
+    from omnigen.detector.recipe import RECIPE
+
+    assert gpu_validate.trained_recipe(argparse.Namespace(train_args="")) == RECIPE

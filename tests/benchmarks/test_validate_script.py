@@ -78,7 +78,7 @@ class FakeTrain:
 
 def test_a_training_cut_off_midway_goes_on_from_its_checkpoint_and_counts_its_time(tmp_path, monkeypatch):
     fake = FakeTrain()
-    monkeypatch.setattr(validate, "omnigen", fake)
+    monkeypatch.setattr(validate.Runner, "omnigen", staticmethod(fake))
     run, out = Runner(tmp_path), tmp_path / "runs" / "s-p2"
     cmd = ["train", "uov", "--out", str(out), "--epochs", "150"]
     fake.kill = True
@@ -98,7 +98,7 @@ def test_a_trained_folder_moved_back_is_reported_as_its_own_training(tmp_path, m
     log drops that other training and records this one with its epochs' seconds, so RESULTS.md
     neither lists a training that is not there nor a train time of 0."""
     fake = FakeTrain()
-    monkeypatch.setattr(validate, "omnigen", fake)
+    monkeypatch.setattr(validate.Runner, "omnigen", staticmethod(fake))
     run, out = Runner(tmp_path), tmp_path / "runs" / "n-p2"
     cmd = ["train", "uov", "--out", str(out), "--imgsz", "640"]
     train_stage(run, cmd, out)
@@ -115,7 +115,7 @@ def test_a_trained_folder_moved_back_is_reported_as_its_own_training(tmp_path, m
 
 def test_a_training_cut_off_with_other_arguments_starts_over(tmp_path, monkeypatch):
     fake = FakeTrain()
-    monkeypatch.setattr(validate, "omnigen", fake)
+    monkeypatch.setattr(validate.Runner, "omnigen", staticmethod(fake))
     run, out = Runner(tmp_path), tmp_path / "runs" / "n-p2"
     fake.kill = True
     with pytest.raises(KeyboardInterrupt):
@@ -190,9 +190,9 @@ def test_results_markdown_names_the_command_and_every_class_row():
     assert "| ego | 0.250 | 0.500 | 0.400 | 2.00 (0) | 7 | 5.0 / 9.0 / 20.0 | 17.5 |" in md
     assert "| n-p2 | `--model n` | 640 (320) | 60.0 | 0.4 | 0.250 |" in md
     assert "| n-p2 | 10 | 2 | 6 (60%) | 4 (40%) | 0 (0%) | 0 (0%) | 0 (0%) |" in md
-    # every table says what made it, where and when
+    # the command is said once, at the top, not under each of the six tables (issue 47)
     tables = sum(line.startswith("|---") for line in md.splitlines())
-    assert tables == 6 and md.count("on x86_64, 2 CPUs, 2026-11-21 12:00 UTC.") == tables
+    assert tables == 6 and md.count("python benchmarks/validate.py --kitti") == 1 and "Made by" not in md
     assert "upsampled" not in md  # no run's input exceeds the renders
     assert "share of the input" not in md  # one run: no windows to compare
     assert "By object size" not in md  # no run has size rows
@@ -204,11 +204,11 @@ def test_results_markdown_shows_what_the_truths_own_corners_score():
     rows = [{"noise_px": n, "group": g, "oks_map50_95": m, "adherence_deg": a, "adherence_objects": 5, "lift_failures": 0}
             for n, g, m, a in [(0.0, "source=synthetic", 0.99, 0.78), (0.0, "view=aerial", 1.0, 1.28),
                                (2.0, "source=synthetic", 0.54, 4.63), (2.0, "view=aerial", 0.5, 6.74)]]
-    lines = floor_table({"adherence_floor": rows}, "Made by X.")
+    lines = floor_table({"adherence_floor": rows})
     assert "| noise (px) | synthetic | aerial |" in lines
     assert "| 0 | 0.990 / 0.78 | 1.000 / 1.28 |" in lines and "| 2 | 0.540 / 4.63 | 0.500 / 6.74 |" in lines
-    assert lines[-2] == "Made by X."
-    assert floor_table({}, "Made by X.") == []  # results.json from before the floor rows
+    assert "Made by" not in "\n".join(lines)
+    assert floor_table({}) == []  # results.json from before the floor rows
 
 
 def test_results_markdown_compares_every_run_by_object_size():
@@ -237,7 +237,7 @@ def test_results_markdown_says_a_larger_input_is_upsampled_and_its_training_wind
          "targets": {"oks_map50_95": 0.55, "bev_adherence_deg": 3.57}, "test_object_sizes": {}, "runs": runs,
          "commands": []}
     md = results_markdown(r)
-    assert "rendered at 640 x 640; n-p2-960 letterboxed them" in md and "| n-p2-960 | `` | 960 (320) | 1.0 | - |" in md
+    assert "rendered at 640 x 640; n-p2-960 letterboxed them" in md and "| n-p2-960 | the recipe | 960 (320) | 1.0 | - |" in md
     # the same 320 window holds a quarter of the 640 input, a ninth of the 960 one
     assert "the share of the input a window holds: n-p2: 25%; n-p2-960: 11%." in md
     for run in runs:
@@ -280,11 +280,11 @@ def test_results_markdown_puts_the_model_beside_the_box_template_baseline():
          "corner_error_rel": 0.081,
          "baseline": {"oks_map50_95": 0.02, "ap_oks50": 0.06, "ground_adherence_deg": None, "corner_error_px": 7.5,
                       "corner_error_rel": 0.2}}
-    md = "\n".join(baseline_table(r, "Made by X."))
+    md = "\n".join(baseline_table(r))
     assert "| OKS mAP50:95 | 0.120 | 0.020 |" in md
     assert "| ground-plane adherence (deg) | 4.50 | - |" in md
-    assert "| the same, relative to sqrt(box area) | 0.081 | 0.200 |" in md and "Made by X." in md
-    assert baseline_table({"oks_map50_95": 0.1}, "Made by X.") == []  # results from before the baseline
+    assert "| the same, relative to sqrt(box area) | 0.081 | 0.200 |" in md and "Made by" not in md
+    assert baseline_table({"oks_map50_95": 0.1}) == []  # results from before the baseline
 
 
 def test_data_only_stops_at_the_merged_dataset(tmp_path, monkeypatch):
@@ -298,7 +298,7 @@ def test_data_only_stops_at_the_merged_dataset(tmp_path, monkeypatch):
         (out / "manifest.json").write_text("{}")
         return 0
 
-    monkeypatch.setattr(validate, "omnigen", fake)
+    monkeypatch.setattr(validate.Runner, "omnigen", staticmethod(fake))
     for folder in ("render-ego-s0", "render-pole-s100", "render-drone-s200"):
         (tmp_path / folder).mkdir()
         (tmp_path / folder / "manifest.json").write_text("{}")
@@ -306,48 +306,81 @@ def test_data_only_stops_at_the_merged_dataset(tmp_path, monkeypatch):
     assert [c[0] for c in calls] == ["merge"]
 
 
-def test_default_recipe_is_the_crop_heading_one():
-    """make validate trains the recipe that beat the box template on the learning benchmark; with
-    --kpt-turn the heading head is left out (train refuses both), and each part can be turned off."""
-    recipe = validate.keypoint_recipe(validate.build_parser().parse_args([]))
-    assert recipe == ["--kpt-mode", "box", "--kpt-l1", "2.0", "--kpt-labelled", "1.0", "--kpt-turn-start", "0.3",
-                      "--kpt-heading", "--heading-crop", "64", "--crop-classes"]
-    assert "--crop-classes" not in validate.keypoint_recipe(validate.build_parser().parse_args(["--no-crop-classes"]))
-    turn = validate.keypoint_recipe(validate.build_parser().parse_args(["--kpt-turn"]))
-    assert "--kpt-turn" in turn and "--kpt-heading" not in turn
-    plain = validate.keypoint_recipe(validate.build_parser().parse_args(
-        ["--no-kpt-heading", "--heading-crop", "0", "--kpt-mode", "anchor", "--kpt-l1", "0", "--kpt-labelled", "0",
-         "--kpt-turn-start", "0"]))
-    assert plain == ["--kpt-mode", "anchor", "--kpt-l1", "0.0", "--kpt-labelled", "0.0", "--kpt-turn-start", "0.0"]
+VALIDATED_TRAIN_CONFIG = {
+    # TrainConfig as docs/RESULTS.md's make validate resolved it from its 24 `omnigen train` flags
+    # (docs/results.json, the command of runs/validate/runs/n-p2), before the recipe was train's own
+    "model": "n", "backbone": "c3k2", "p2": True, "p6": False, "width": None, "depth": None, "imgsz": 640, "crop": 320,
+    "crop_focus": 0.5, "repeat_thresh": 0.3, "cache": False, "epochs": 150, "batch": 16, "optimizer": "adamw",
+    "lr0": 0.002, "lrf": 0.01, "weight_decay": 5e-4, "warmup_iters": 100, "ema_decay": 0.9999, "ema_tau": 2000.0,
+    "kpt_sigma_start": 0.5, "kpt_sigma_anneal": 0.3, "kpt_sigma_end": 0.25, "kpt_mode": "box", "kpt_l1": 2.0,
+    "kpt_turn": False, "kpt_hidden": None, "kpt_labelled": 1.0, "kpt_turn_start": 0.3, "kpt_heading": True,
+    "heading_gain": 1.0, "heading_crop": 64, "crop_classes": True, "crop_split": False, "taxonomy": "fine",
+    "train_split": "train", "val_split": None, "out_of_image": "learn",
+    "augment": {"flip": 0.5, "scale": 0.5, "translate": 0.1, "hsv": (0.015, 0.7, 0.4)}, "workers": 1, "seed": 0,
+    "val_every": 50, "save_interval": 60.0, "device": None, "amp": "bf16", "channels_last": None, "weights": None}
+VALIDATED_CROP_STAGE = {
+    # `omnigen train-crop ... --steps 7000 --seed 0 --amp bf16 --position --offset-gain 0.3` with its
+    # defaults then: what the crop stage of docs/RESULTS.md was trained with
+    "config": {"steps": 7000, "batch": 64, "lr": 2e-3, "weight_decay": 1e-4, "copies": 4, "balance": 0.0,
+               "heading_gain": 0.1, "class_gain": 0.5, "offset_gain": 0.3, "seed": 0, "amp": "bf16"},
+    "crop": 64, "classes": True, "split": True, "position": True}
+
+
+def test_make_validate_trains_exactly_the_validated_model_from_train_s_own_recipe():
+    """Issue 47: validate passes `omnigen train` the data and the budget only; what train resolves
+    from that command line is the TrainConfig of docs/RESULTS.md's run (its 100 minutes for the
+    detector) and, for the second phase, train-crop's settings of that run."""
+    from dataclasses import asdict
+
+    from omnigen.cli import build_parser
+    from omnigen.detector.crop_train import stage_config
+    from omnigen.detector.time_budget import detector_seconds
+    from omnigen.detector.train import crop_phase_due
+    from omnigen.detector.train_command import config_of
+
+    ap = validate.build_parser()
+    args = ap.parse_args(["--work", "runs/validate"])
+    args.amp = "bf16"  # default_amp's choice on the 2-core CPU that runs bfloat16 natively
+    argv = validate.train_command(args, Path("runs/validate/uov"), Path("runs/validate/runs/n-p2"))
+    cfg = config_of(build_parser().parse_args(argv))
+    resolved = asdict(cfg)
+    assert detector_seconds(resolved.pop("time_minutes"), crop_phase_due(cfg)) == pytest.approx(100.0 * 60, abs=1e-9)
+    phase = resolved.pop("crop_phase")
+    assert {k: resolved[k] for k in VALIDATED_TRAIN_CONFIG} == VALIDATED_TRAIN_CONFIG
+    assert set(resolved) - set(VALIDATED_TRAIN_CONFIG) == {"dataset", "out"}
+    stage, split, position = stage_config(cfg)
+    assert {"config": asdict(stage), "crop": cfg.heading_crop, "classes": cfg.crop_classes, "split": split,
+            "position": position} == VALIDATED_CROP_STAGE and phase["steps"] == 7000
+    # none of the recipe's values is on the command line: train takes them from detector/recipe.py
+    assert not [a for a in argv if a.startswith("--") and a.lstrip("-").replace("-", "_") in RECIPE_FLAGS]
+
+
+RECIPE_FLAGS = {"imgsz", "crop", "crop_focus", "repeat_thresh", "batch", "optimizer", "lr0", "kpt_sigma_end",
+                "kpt_mode", "kpt_l1", "kpt_labelled", "kpt_turn_start", "kpt_heading", "heading_crop", "crop_classes",
+                "model", "p2", "no_p2", "steps", "offset_gain", "position"}
 
 
 def test_training_is_time_boxed_by_default_and_can_be_left_unboxed():
     ap = validate.build_parser()
-    assert validate.time_box(ap.parse_args([])) == ["--time", "100.0"]
+    assert validate.time_box(ap.parse_args([])) == ["--time", "125.0"]
     assert validate.time_box(ap.parse_args(["--minutes", "30"])) == ["--time", "30.0"]
     assert validate.time_box(ap.parse_args(["--minutes", "0"])) == []
 
 
-@pytest.mark.parametrize("argv", [["--kpt-turn", "--kpt-heading"], ["--kpt-turn", "--heading-gain", "2"],
-                                  ["--no-kpt-heading", "--heading-gain", "2"]])
-def test_recipes_train_would_refuse_are_refused_first(argv, capsys):
-    ap = validate.build_parser()
-    with pytest.raises(SystemExit):
-        validate.check_recipe(ap, ap.parse_args(argv))
-    assert "--kpt-" in capsys.readouterr().err
-    validate.check_recipe(ap, ap.parse_args(["--heading-gain", "2"]))  # the default heading takes a gain
-
-
-@pytest.mark.parametrize("argv, message", [(["--crop-focus", "1.5"], "crop_focus: 1.5"),
-                                           (["--repeat-thresh", "-1"], "repeat_thresh")])
-def test_sampling_flags_train_would_refuse_are_refused_first(argv, message, capsys):
+@pytest.mark.parametrize("argv, message", [(["--set", "data.focus=1.5"], "data.focus: 1.5 is outside [0, 1]"),
+                                           (["--set", "loss.nope=1"], "loss.nope: no such recipe key"),
+                                           (["--set", "data.window=48"], "crop (data.window): 48 is not a positive multiple of 32")])
+def test_a_recipe_train_would_refuse_is_refused_before_any_data_stage(argv, message, capsys):
     ap = validate.build_parser()
     with pytest.raises(SystemExit):
         validate.check_recipe(ap, ap.parse_args(argv))
     assert message in capsys.readouterr().err
-    validate.check_recipe(ap, ap.parse_args(["--crop", "0", "--crop-focus", "0.5"]))  # whole images: no windows to centre
-    assert validate.frame_sampling(ap.parse_args([])) == ["--repeat-thresh", "0.3"]
-    assert validate.frame_sampling(ap.parse_args(["--repeat-thresh", "0"])) == []
+    validate.check_recipe(ap, ap.parse_args(["--set", "data.window=0", "loss.kpt_l1=1"]))  # whole images: fine
+    args = ap.parse_args(["--set", "data.window=0", "--scales", "n", "s"])
+    args.amp = "auto"
+    argv = validate.train_command(args, Path("uov"), Path("out"), ["model.scale=s"])
+    assert argv[:5] == ["train", "uov", "data.window=0", "model.scale=s", "--out"]  # keys right after the dataset
+    assert "--set data.window=0" in validate.command_line(vars(args))
 
 
 def test_predictions_made_another_way_are_made_again_with_their_evaluation(tmp_path):
@@ -403,74 +436,11 @@ def test_the_results_say_how_many_frames_reached_the_detection_cap():
     assert validate.protocol_line(made)[0].endswith("; 1 of 4 frames reached the cap of 3 detections")
 
 
-def test_the_printed_command_says_which_default_switches_were_turned_off():
-    line = validate.command_line(vars(validate.build_parser().parse_args(["--no-crop-classes", "--no-kpt-heading"])))
-    assert "--no-crop-classes" in line and "--crop-classes" not in line.replace("--no-crop-classes", "")
-    assert "--no-kpt-heading" in line
-    assert "--crop-classes" in validate.command_line(vars(validate.build_parser().parse_args([])))
-    assert "--kpt-heading" not in validate.command_line(vars(validate.build_parser().parse_args([])))  # None: unsaid
-    assert "--heading-crop 0" in validate.command_line(vars(validate.build_parser().parse_args(["--heading-crop", "0"])))
-
-
 def test_trains_into_reads_the_out_folder_not_a_mention():
     out = Path("runs/n-p2")
     assert validate.trains_into("omnigen train uov --out runs/n-p2 --epochs 3", out)
     assert not validate.trains_into("omnigen train uov --out runs/other --weights runs/n-p2/last.pt", out)
     assert not validate.trains_into("omnigen eval runs/n-p2/last.pt uov --out runs/n-p2/eval.json", out)
-
-
-def test_the_crop_stage_is_trained_once_and_again_when_its_arguments_change(tmp_path, monkeypatch):
-    calls = []
-
-    def fake(argv):  # stands in for `omnigen train-crop`: writes --out
-        calls.append(argv)
-        Path(argv[argv.index("--out") + 1]).write_bytes(b"stage")
-        return 0
-
-    monkeypatch.setattr(validate, "omnigen", fake)
-    run, out = Runner(tmp_path), tmp_path / "runs" / "n-p2"
-    out.mkdir(parents=True)
-    cmd = ["train-crop", "uov", "--weights", str(out / "last.pt"), "--out", str(out / "crop.pt"), "--steps", "60"]
-    assert validate.crop_stage(run, cmd, out) == out / "crop.pt" and len(calls) == 1
-    assert validate.crop_stage(run, cmd, out) == out / "crop.pt" and len(calls) == 1  # done: skipped
-    assert [c["command"] for c in run.log] == ["omnigen " + " ".join(cmd)]
-    (out / "crop.pt.partial").write_bytes(b"a partial run of 60 steps")
-    other = [*cmd[:-1], "90"]
-    validate.crop_stage(run, other, out)  # other arguments: trained again, its old record and partial state gone
-    assert len(calls) == 2 and not (out / "crop.pt.partial").exists()
-    assert [c["command"] for c in run.log] == ["omnigen " + " ".join(other)]
-    (out / "crop-done").unlink()  # a crop.pt from before the marker: trained again too
-    validate.crop_stage(run, other, out)
-    assert len(calls) == 3
-    (out / "crop.pt").unlink()  # deleted since: trained again, not read missing
-    validate.crop_stage(run, other, out)
-    assert len(calls) == 4 and (out / "crop.pt").exists()
-
-
-def test_a_partial_crop_stage_of_other_arguments_is_dropped_and_one_of_these_is_kept(tmp_path, monkeypatch):
-    seen = []
-
-    def killed(argv):  # train-crop cut off midway: its partial state left, no crop.pt
-        seen.append((out / "crop.pt.partial").exists())
-        if len(seen) == 1:
-            (out / "crop.pt.partial").write_bytes(b"half a run")
-            raise KeyboardInterrupt
-        Path(argv[argv.index("--out") + 1]).write_bytes(b"stage")
-        return 0
-
-    monkeypatch.setattr(validate, "omnigen", killed)
-    run, out = Runner(tmp_path), tmp_path / "runs" / "n-p2"
-    out.mkdir(parents=True)
-    cmd = ["train-crop", "uov", "--out", str(out / "crop.pt"), "--steps", "60"]
-    with pytest.raises(KeyboardInterrupt):
-        validate.crop_stage(run, cmd, out)
-    validate.crop_stage(run, [*cmd[:-1], "90"], out)  # other arguments: the partial state is not theirs
-    assert seen == [False, False]
-    (out / "crop.pt").unlink()
-    (out / "crop-done").unlink()
-    (out / "crop.pt.partial").write_bytes(b"half a run of 90 steps")
-    validate.crop_stage(run, [*cmd[:-1], "90"], out)  # the same arguments: it goes on from it
-    assert seen == [False, False, True]
 
 
 def test_predictions_name_the_checkpoint_they_were_made_with(tmp_path):
@@ -501,6 +471,8 @@ def test_the_results_say_when_the_crop_stage_was_trained_apart():
     assert "812.5 s, told where each crop was cut (--position))" in validate.protocol_line(made)[1]
     made["runs"][0]["crop_stage"]["config"] = {"offset_gain": 0.3}
     assert "(--position), an L1 term on the faces' offset (--offset-gain 0.3))" in validate.protocol_line(made)[1]
+    made["runs"][0]["crop_stage"]["by"] = "omnigen train"  # the run's own second phase
+    assert "trained again apart from the detector (the run's second phase, 4000 steps" in validate.protocol_line(made)[1]
 
 
 def test_predictions_of_a_checkpoint_rewritten_in_place_are_made_again(tmp_path):
@@ -523,13 +495,5 @@ def test_predictions_of_a_checkpoint_rewritten_in_place_are_made_again(tmp_path)
     assert calls == [True, True] and validate.file_digest(weights) in (out / "predicted").read_text()
 
 
-def test_the_crop_stage_trains_7000_steps_told_where_its_crops_were_and_in_bf16_where_the_detector_does():
-    """train-crop takes --amp bf16 where training's resolved precision is bf16 (a CPU that runs it
-    natively) and float32 otherwise: its --amp knows only off and bf16, a GPU's 'auto' among neither."""
-    assert validate.crop_amp("bf16") == ["--amp", "bf16"]
-    for other in ("auto", "off", "fp16"):
-        assert validate.crop_amp(other) == []
-    assert validate.build_parser().parse_args([]).crop_steps == 7000
-    assert validate.build_parser().parse_args([]).crop_position is True  # train-crop --position
-    assert validate.build_parser().parse_args([]).crop_offset_gain == 0.3  # train-crop --offset-gain
-    assert validate.build_parser().parse_args([]).vertical == "lines"  # predict --vertical
+def test_prediction_snaps_vertical_edges_as_the_recipe_says():
+    assert validate.build_parser().parse_args([]).vertical == "lines"  # predict --vertical, recipe.predict.vertical

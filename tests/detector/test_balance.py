@@ -180,9 +180,13 @@ def test_focused_crops_show_the_rarest_class_more_often(fake):
     assert sum(focused.values()) > 1.5 * sum(plain.values()) > 0
 
 
-def test_a_focus_share_needs_crop_windows_and_is_a_probability():
-    with pytest.raises(ValueError, match="crop_focus.*crop is not set"):
-        check_sampling(TrainConfig(dataset="x", out="y", crop_focus=0.5))
+def test_a_focus_share_is_a_probability_and_centres_only_windows_there_are():
+    # the recipe's focus with whole images (no window, or one as large as the input) centres nothing
+    assert TrainConfig(dataset="x", out="y", crop=None, crop_focus=0.5).focus() == 0.0
+    assert TrainConfig(dataset="x", out="y", imgsz=320, crop=320, crop_focus=0.5).focus() == 0.0
+    check_sampling(TrainConfig(dataset="x", out="y", crop=None, crop_focus=0.5))
+    with pytest.raises(ValueError, match="crop_focus: 1.5"):
+        check_sampling(TrainConfig(dataset="x", out="y", crop=None, crop_focus=1.5))
     with pytest.raises(ValueError, match="crop_focus: 1.5"):
         check_sampling(TrainConfig(dataset="x", out="y", crop=320, crop_focus=1.5))
     for bad in (-0.1, float("nan"), float("inf")):
@@ -193,15 +197,15 @@ def test_a_focus_share_needs_crop_windows_and_is_a_probability():
     check_sampling(TrainConfig(dataset="x", out="y", crop=320, crop_focus=0.5, repeat_thresh=0.3))
 
 
-def test_the_train_command_carries_the_sampling_flags(fake, tmp_path, monkeypatch):
+def test_the_train_command_carries_the_sampling_keys(fake, tmp_path, monkeypatch):
     from omnigen.cli import main
     from omnigen.detector import train as train_module
 
     seen = {}
     monkeypatch.setattr(train_module, "train", lambda cfg, **kw: seen.setdefault("cfg", cfg) and {})
-    assert main(["train", str(fake), "--out", str(tmp_path / "run"), "--crop", "320", "--crop-focus", "0.5",
-                 "--repeat-thresh", "0.3"]) == 0
-    assert (seen["cfg"].crop_focus, seen["cfg"].repeat_thresh) == (0.5, 0.3)
+    assert main(["train", str(fake), "data.window=256", "data.focus=0.25", "data.repeat_thresh=0.5",
+                 "--out", str(tmp_path / "run")]) == 0
+    assert (seen["cfg"].crop, seen["cfg"].crop_focus, seen["cfg"].repeat_thresh) == (256, 0.25, 0.5)
 
 
 def test_a_dataset_refuses_a_focus_share_without_windows(fake):

@@ -349,7 +349,7 @@ def test_weights_without_a_crop_stage_fine_tune_with_one(tmp_path):
 
 
 def test_predicting_without_the_crop_stage_keeps_the_detections_and_the_heads_corners(tmp_path):
-    """crop_net = None (benchmarks/crop_stage_ablation.py): the same boxes and scores, the head's
+    """crop_net = None : the same boxes and scores, the head's
     corners; with the stage (a constant crop net) the corners are the crop's."""
     from omnigen.detector.checkpoint import save_checkpoint
     from omnigen.detector.predict import load_for_prediction, predict_split

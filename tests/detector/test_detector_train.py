@@ -21,7 +21,7 @@ import torch
 
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
-from omnigen.detector.checkpoint import load_checkpoint, load_model, load_pretrained, save_checkpoint
+from omnigen.detector.checkpoint import load_checkpoint, plain_branch, load_model, load_pretrained, save_checkpoint
 from omnigen.detector.predict import trained_imgsz
 from omnigen.detector.data import Augment, KeypointDataset, collate, split_frames
 from omnigen.detector.loss import DetectionLoss
@@ -33,6 +33,9 @@ from omnigen.fakes import write_fake_dataset
 from omnigen.taxonomy import load_taxonomy
 
 TINY = {"model": "n", "width": 0.125, "depth": 0.34}
+# the design's plain branch (TrainConfig's defaults before the recipe, with AdamW): what these tests
+# of the trainer's mechanics train; tests/detector/test_recipe.py trains the recipe itself
+PLAIN = plain_branch()
 
 
 @pytest.fixture(scope="module")
@@ -42,8 +45,17 @@ def fake(tmp_path_factory):
     return root
 
 
+def plain(**kw) -> TrainConfig:
+    """A TrainConfig of the plain branch with `kw`."""
+    return TrainConfig(**{**PLAIN, **kw})
+
+
+NO_AUGMENT = ["augment.flip=0", "augment.scale=0", "augment.translate=0", "augment.hsv=0,0,0"]
+"""The recipe keys that turn augmentation off (letterbox only)."""
+
+
 def _cfg(root, out, **kw) -> TrainConfig:
-    base = dict(dataset=str(root), out=str(out), imgsz=64, epochs=2, batch=3, workers=0,
+    base = dict(PLAIN, dataset=str(root), out=str(out), imgsz=64, epochs=2, batch=3, workers=0, val_every=1,
                 augment=asdict(Augment.off()), warmup_iters=2, **TINY)
     base.update(kw)
     return TrainConfig(**base)
@@ -102,9 +114,12 @@ def test_crop_trains_on_windows_and_validates_on_the_whole_input(fake, tmp_path,
     assert seen and set(seen) == {(64, 64, 3)} and sizes == [96]
     assert np.isfinite(last["oks_map50_95"])
     assert trained_imgsz(load_checkpoint(tmp_path / "run" / "best.pt")) == 96  # predictions see the whole input
-    for bad in (dict(crop=128), dict(crop=48), dict(imgsz=100)):
+    for bad in (dict(crop=48), dict(imgsz=100)):
         with pytest.raises(ValueError, match="crop|imgsz"):
             train(_cfg(fake, tmp_path / "bad", **bad))
+    # a window as large as the input, or larger (the recipe's 320 at a smaller input), is whole images
+    assert _cfg(fake, tmp_path / "w", imgsz=96, crop=128).window() is None and _cfg(fake, "w", crop=64).window() is None
+    assert _cfg(fake, tmp_path / "w", imgsz=96, crop=128, crop_focus=0.5).focus() == 0.0
 
 
 def test_a_log_gets_the_progress_bar_rarely_not_a_line_per_step(fake, tmp_path, capsys):
@@ -146,10 +161,11 @@ def test_cached_images_train_the_same_weights(fake, tmp_path):
 def test_resuming_a_checkpoint_from_before_the_optimizer_choice_keeps_adam(fake, tmp_path):
     train(_cfg(fake, tmp_path / "run", epochs=2, val_every=100, optimizer="adam"), stop_after=1)
     state = load_checkpoint(tmp_path / "run" / "last.pt")
-    del state["train_config"]["optimizer"]  # as checkpoints written before it existed
+    del state["train_config"]["optimizer"]  # as checkpoints written before it existed (schema 1)
+    del state["schema"]
     save_checkpoint(tmp_path / "run" / "last.pt", state)
     # the checkpoint's run was Adam's: resumed as one, and resuming it as AdamW is refused
-    with pytest.raises(ValueError, match="--optimizer: adam there, adamw now"):
+    with pytest.raises(ValueError, match="optim.optimizer: adam there, adamw now"):
         train(_cfg(fake, tmp_path / "run", epochs=2, val_every=100), resume=True)
     train(_cfg(fake, tmp_path / "run", epochs=2, val_every=100, optimizer="adam"), resume=True)
     assert json.loads((tmp_path / "run" / "args.json").read_text())["optimizer"] == "adam"
@@ -171,7 +187,7 @@ def test_bf16_training_learns_and_keeps_float32_weights(rendered, tmp_path):
     # steps; the summed loss must fall as it does in float32, and the saved weights stay float32.
     runs = {}
     for amp in ("off", "bf16"):
-        cfg = TrainConfig(dataset=str(rendered), out=str(tmp_path / amp), imgsz=OVERFIT_SIZE[0], batch=4, workers=0,
+        cfg = plain(dataset=str(rendered), out=str(tmp_path / amp), imgsz=OVERFIT_SIZE[0], batch=4, workers=0,
                           augment=asdict(Augment.off()), epochs=40, val_every=1000, warmup_iters=10, optimizer="adam", lr0=2e-2,
                           amp=amp, **TINY)
         train(cfg)
@@ -208,8 +224,8 @@ def test_bad_checkpoint_is_named(tmp_path):
 
 def test_cli_train_predict_export(fake, tmp_path, capsys):
     run = tmp_path / "run"
-    assert main(["train", str(fake), "--out", str(run), "--imgsz", "64", "--epochs", "1", "--batch", "3",
-                 "--workers", "0", "--no-augment", "--no-p2"]) == 0
+    assert main(["train", str(fake), "model.imgsz=64", "optim.batch=3", "model.p2=false", "model.heading=false",
+                 "crop_stage.side=0", *NO_AUGMENT, "--out", str(run), "--epochs", "1", "--workers", "0"]) == 0
     assert load_checkpoint(run / "last.pt")["config"]["p2"] is False
     images = sorted((fake / "images").iterdir())[:2]
     out = tmp_path / "pred"
@@ -318,7 +334,7 @@ def test_tiny_model_overfits_four_rendered_frames(rendered, tmp_path):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     start = time.perf_counter()
-    cfg = TrainConfig(dataset=str(rendered), out=str(tmp_path / "run"), imgsz=OVERFIT_SIZE[0], batch=4, workers=0,
+    cfg = plain(dataset=str(rendered), out=str(tmp_path / "run"), imgsz=OVERFIT_SIZE[0], batch=4, workers=0,
                       augment=asdict(Augment.off()), epochs=OVERFIT_EPOCHS, val_every=OVERFIT_EPOCHS,
                       warmup_iters=20, optimizer="adam", lr0=2e-2, amp="off", **TINY)
     try:
@@ -460,7 +476,7 @@ def test_a_resumed_time_boxed_run_spends_what_is_left_of_its_budget(fake, tmp_pa
 
 def test_fine_tuning_starts_from_the_checkpoints_weights_with_a_fresh_schedule(fake, source, tmp_path):
     src = load_checkpoint(source)["model"]
-    model = KeypointDetector(TrainConfig(dataset="d", out="o", **TINY).model_config(12))
+    model = KeypointDetector(plain(dataset="d", out="o", **TINY).model_config(12))
     assert load_pretrained(model, source, load_taxonomy("fine")) == []  # same classes: nothing to say
     for name, p in model.named_parameters():
         torch.testing.assert_close(p.detach(), src[name], rtol=0, atol=0, msg=name)
@@ -475,7 +491,7 @@ def test_fine_tuning_starts_from_the_checkpoints_weights_with_a_fresh_schedule(f
 def test_another_taxonomy_reinitialises_only_the_class_heads_last_layers(fake, source, tmp_path, capsys):
     src = load_checkpoint(source)["model"]
     coarse = load_taxonomy("coarse")
-    model = KeypointDetector(TrainConfig(dataset="d", out="o", **TINY).model_config(len(coarse.classes)))
+    model = KeypointDetector(plain(dataset="d", out="o", **TINY).model_config(len(coarse.classes)))
     notes = load_pretrained(model, source, coarse)
     last_layers = {f"head.cls.{i}.{len(b) - 1}.{n}" for i, b in enumerate(model.head.cls) for n in ("weight", "bias")}
     assert any("re-initialised" in n and all(k in n for k in last_layers) for n in notes), notes
@@ -557,32 +573,40 @@ def test_loader_workers_augment_each_sample_by_its_epoch(fake):
     assert any(not np.array_equal(got[0, i].image, got[1, i].image) for i in range(len(data)))
 
 
-def test_the_train_command_carries_the_corner_order_flags_into_the_run(fake, tmp_path, monkeypatch):
-    """--kpt-heading, --heading-gain, --kpt-labelled and --kpt-turn-start reach the TrainConfig and
-    the model it builds (the loss reads its gains from the TrainConfig)."""
+def test_the_train_command_carries_recipe_keys_into_the_run_and_has_no_flags_for_experiments(fake, tmp_path, monkeypatch,
+                                                                                            capsys):
+    """loss.heading, loss.kpt_labelled and schedule.kpt_turn_start reach the TrainConfig and the
+    model it builds (the loss reads its gains from the TrainConfig); what only experiments reached
+    (--kpt-turn, --kpt-hidden, --heading-gain, --crop-split, --kpt-labelled) is no option."""
     from omnigen.cli import main
     from omnigen.detector import train as train_module
 
     seen = {}
     monkeypatch.setattr(train_module, "train", lambda cfg, **kw: seen.setdefault("cfg", cfg) and {})
-    assert main(["train", str(fake), "--out", str(tmp_path / "run"), "--kpt-heading", "--heading-gain", "3",
-                 "--kpt-labelled", "1", "--kpt-turn-start", "0.3"]) == 0
+    assert main(["train", str(fake), "loss.heading=3", "loss.kpt_labelled=1", "schedule.kpt_turn_start=0.3",
+                 "--out", str(tmp_path / "run")]) == 0
     cfg = seen["cfg"]
     assert (cfg.kpt_heading, cfg.heading_gain, cfg.kpt_labelled, cfg.kpt_turn_start, cfg.kpt_turn) == (True, 3.0, 1.0, 0.3, False)
     assert cfg.model_config(3).kpt_heading and not cfg.model_config(3).kpt_turn
+    for gone in ("--kpt-turn", "--kpt-hidden", "--heading-gain", "--crop-split", "--kpt-labelled", "--kpt-mode", "--crop"):
+        with pytest.raises(SystemExit) as exc:
+            main(["train", str(fake), "--out", str(tmp_path / "x"), gone, "1"])
+        assert exc.value.code == 2 and gone in capsys.readouterr().err
 
 
-def test_one_answer_to_which_face_is_the_front_and_no_gain_without_a_heading(fake, tmp_path, monkeypatch, capsys):
-    """--kpt-turn and --kpt-heading exclude each other at parse time (exit 2, before any data is
-    read); --heading-gain without --kpt-heading is refused before training starts."""
+@pytest.mark.parametrize("argv, said", [
+    (["loss.kpt_l2=1"], "loss.kpt_l2: no such recipe key; loss has kpt_l1, kpt_labelled, heading"),
+    (["nope.x=1"], "nope.x: no such recipe key (sections: model, data"),
+    (["model.heading=maybe"], "model.heading: 'maybe' is not true or false"),
+    (["optim.lr0=0"], "optim.lr0: 0 is outside (0, 1]"),
+    (["loss.kpt_l1"], "'loss.kpt_l1': not KEY=VALUE"),
+])
+def test_a_wrong_recipe_key_or_value_is_one_line_naming_it_before_anything_is_written(fake, tmp_path, monkeypatch,
+                                                                                      capsys, argv, said):
     from omnigen.cli import main
     from omnigen.detector import train as train_module
 
     monkeypatch.setattr(train_module, "train", lambda *a, **k: pytest.fail("training must not start"))
-    with pytest.raises(SystemExit) as exc:
-        main(["train", str(fake), "--out", str(tmp_path / "a"), "--kpt-turn", "--kpt-heading"])
-    assert exc.value.code == 2 and "not allowed with argument" in capsys.readouterr().err
-    assert main(["train", str(fake), "--out", str(tmp_path / "b"), "--heading-gain", "3"]) == 1
-    assert "--heading-gain" in capsys.readouterr().err
-    assert main(["train", str(fake), "--out", str(tmp_path / "c"), "--crop-classes"]) == 1
-    assert "--crop-classes" in capsys.readouterr().err and not (tmp_path / "c").exists()
+    assert main(["train", str(fake), *argv, "--out", str(tmp_path / "run")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert said in err and "\n" not in err and not (tmp_path / "run").exists()

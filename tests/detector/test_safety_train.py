@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import pickle
 import shutil
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +19,7 @@ pytest.importorskip("cv2", reason="opencv-python-headless is part of the train e
 
 from omnigen.cli import main as omnigen
 from omnigen.detector import train as train_module
-from omnigen.detector.checkpoint import load_checkpoint, load_model, save_checkpoint
+from omnigen.detector.checkpoint import load_checkpoint, plain_branch, load_model, save_checkpoint
 from omnigen.detector.crop_train import CropSet, new_stage, train_stage
 from omnigen.detector.crop_train_config import CropTrainConfig
 from omnigen.detector.data import Augment, split_frames
@@ -27,11 +27,14 @@ from omnigen.detector.train import NonFiniteLoss, TrainConfig, train
 from omnigen.detector.train_loader import EpochBatches
 
 TINY = {"model": "n", "width": 0.125, "depth": 0.34}
+# the design's plain branch (TrainConfig's defaults before the recipe, with AdamW): the trainer's
+# mechanics, quickly; tests/detector/test_recipe.py trains the recipe itself
+PLAIN = plain_branch()
 
 
 def _run(dataset, out: Path, **settings) -> TrainConfig:
     """A tiny run of `dataset` (the shared split_fake_dataset: 9 train frames, so 3 steps an epoch)."""
-    return TrainConfig(**{"dataset": str(dataset.root), "out": str(out), "imgsz": 64, "epochs": 1, "batch": 3,
+    return TrainConfig(**{**PLAIN, "dataset": str(dataset.root), "out": str(out), "imgsz": 64, "epochs": 1, "batch": 3,
                           "workers": 0, "augment": asdict(Augment.off()), "warmup_iters": 2, "val_every": 0,
                           **TINY, **settings})
 
@@ -63,7 +66,7 @@ def test_a_run_folder_is_claimed_and_resume_refuses_other_settings(split_fake_da
     shutil.copytree(split_fake_dataset.root, other)
     with pytest.raises(ValueError) as exc:
         train(_run(split_fake_dataset, run, epochs=6, lr0=0.1), resume=True)
-    _one_line(exc, "--lr0: 0.002 there, 0.1 now", "--epochs: 1 there, 6 now", run / "last.pt")
+    _one_line(exc, "optim.lr0: 0.002 there, 0.1 now", "--epochs: 1 there, 6 now", run / "last.pt", run / "recipe.json")
     with pytest.raises(ValueError) as exc:
         train(TrainConfig(**{**asdict(_run(split_fake_dataset, run)), "dataset": str(other)}), resume=True)
     _one_line(exc, "DATASET:", str(other))
@@ -72,8 +75,8 @@ def test_a_run_folder_is_claimed_and_resume_refuses_other_settings(split_fake_da
     train(_run(split_fake_dataset, run, workers=1, device="cpu"), resume=True)
 
     # the command line: --resume and --fresh exclude each other; a second run is refused in one line
-    args = ["train", str(split_fake_dataset.root), "--out", str(run), "--imgsz", "64", "--epochs", "1", "--batch",
-            "3", "--workers", "0", "--no-augment", "--val-every", "0"]
+    args = ["train", str(split_fake_dataset.root), "model.imgsz=64", "optim.batch=3", "--out", str(run), "--epochs",
+            "1", "--workers", "0", "--val-every", "0"]
     with pytest.raises(SystemExit) as stop:
         omnigen(args + ["--resume", "--fresh"])
     assert stop.value.code == 2
@@ -93,14 +96,47 @@ def test_fresh_deletes_only_a_runs_own_files_and_refuses_a_folder_with_others(sp
     assert {p.name: p.read_bytes() for p in run.iterdir()} == before  # nothing deleted
 
     (run / "notes.txt").unlink()
+    args = (run / "args.json").read_bytes()
     (run / "args.json").write_text('{"who": "someone else"}')  # a file of the run's name, not train's
     with pytest.raises(ValueError, match="args.json"):
         train(_run(split_fake_dataset, run), fresh=True)
     (run / "args.json").unlink()
+    (run / "recipe.json").write_text('{"model": {"imgsz": 64}}')  # a user's recipe file, not train's mark
+    with pytest.raises(ValueError, match="recipe.json: was not written by 'omnigen train'"):
+        train(_run(split_fake_dataset, run), fresh=True)
+    (run / "recipe.json").unlink()
+    (run / "args.json").write_bytes(args)  # the run's own again: --fresh may delete it
     old = load_checkpoint(run / "last.pt")["model"]
     train(_run(split_fake_dataset, run, lr0=1e-2), fresh=True)
     new = load_checkpoint(run / "last.pt")
     assert new["train_config"]["lr0"] == 1e-2 and any(not torch.equal(old[k], new["model"][k]) for k in old)
+
+
+def test_fresh_deletes_nothing_when_the_run_is_refused_and_never_someone_elses_weights(split_fake_dataset, tmp_path):
+    """--fresh deleted the run before its inputs were checked: a missing dataset, a bad split or
+    --weights RUN/last.pt left an empty folder; and any torch archive named last.pt passed as the
+    run's own, so an Ultralytics weights/ folder was deleted by --fresh."""
+    run = tmp_path / "run"
+    train(_run(split_fake_dataset, run))
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    missing = replace(_run(split_fake_dataset, run), dataset=str(tmp_path / "no-such-dataset"))
+    for broken in (missing, _run(split_fake_dataset, run, train_split="nope")):
+        with pytest.raises(Exception):
+            train(broken, fresh=True)
+        assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+    with pytest.raises(ValueError, match="--weights .*which --fresh deletes"):
+        train(_run(split_fake_dataset, run, weights=str(run / "last.pt")), fresh=True)
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+
+    weights = tmp_path / "weights"  # another tool's run: torch archives named as ours, no args.json
+    weights.mkdir()
+    for name in ("best.pt", "last.pt"):
+        torch.save({"model": {"w": torch.zeros(2)}}, weights / name)
+    kept = {p.name: p.read_bytes() for p in weights.iterdir()}
+    for fresh in (False, True):
+        with pytest.raises(ValueError, match="no args.json of 'omnigen train'"):
+            train(_run(split_fake_dataset, weights), fresh=fresh)
+    assert {p.name: p.read_bytes() for p in weights.iterdir()} == kept
 
 
 def test_a_folder_of_other_files_without_a_run_is_trained_into_beside_them(split_fake_dataset, tmp_path):
@@ -183,11 +219,9 @@ def test_a_non_finite_loss_stops_the_run_naming_epoch_step_and_frames(split_fake
 # -- hole 8: numeric options ------------------------------------------------------------------------
 
 @pytest.mark.parametrize("option, value, said", [
-    ("--epochs", "0", "outside [1, 100000]"), ("--batch", "0", "outside [1, 4096]"),
-    ("--time", "inf", "not a finite number"), ("--lrf", "nan", "not a finite number"),
-    ("--lr0", "0", "outside (0, 1]"), ("--seed", "-1", "outside [0, 4294967295]"),
-    ("--imgsz", "0", "outside [32, 8192]"), ("--workers", "-1", "outside [0, 256]"),
-    ("--kpt-sigma-end", "0", "outside (0, 10]"), ("--crop-focus", "2", "outside [0, 1]"),
+    ("--epochs", "0", "outside [1, 100000]"), ("--time", "inf", "not a finite number"),
+    ("--seed", "-1", "outside [0, 4294967295]"), ("--workers", "-1", "outside [0, 256]"),
+    ("--val-every", "-1", "outside [0, 100000]"),
 ])
 def test_train_refuses_numbers_out_of_range_as_it_parses_them(tmp_path, monkeypatch, capsys, option, value, said):
     monkeypatch.setattr(train_module, "train", lambda *a, **k: pytest.fail("training must not start"))
@@ -195,6 +229,20 @@ def test_train_refuses_numbers_out_of_range_as_it_parses_them(tmp_path, monkeypa
         omnigen(["train", str(tmp_path), "--out", str(tmp_path / "run"), option, value])
     assert stop.value.code == 2
     assert option in (err := capsys.readouterr().err) and said in err
+
+
+@pytest.mark.parametrize("key, value, said", [
+    ("optim.batch", "0", "outside [1, 4096]"), ("optim.lrf", "nan", "not a finite number"),
+    ("optim.lr0", "0", "outside (0, 1]"), ("model.imgsz", "0", "outside [32, 8192]"),
+    ("schedule.kpt_sigma_end", "0", "outside (0, 10]"), ("data.focus", "2", "outside [0, 1]"),
+    ("crop_stage.steps", "-1", "outside [0, 10000000]"), ("model.imgsz", "64.0", "not a whole number"),
+])
+def test_train_refuses_recipe_values_out_of_range_in_one_line_naming_the_key(tmp_path, monkeypatch, capsys, key,
+                                                                             value, said):
+    monkeypatch.setattr(train_module, "train", lambda *a, **k: pytest.fail("training must not start"))
+    assert omnigen(["train", str(tmp_path), f"{key}={value}", "--out", str(tmp_path / "run")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert f"{key}: " in err and said in err and "\n" not in err
 
 
 @pytest.mark.parametrize("option, value, said", [
