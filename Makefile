@@ -40,7 +40,7 @@ $(STAMP): pyproject.toml constraints.txt
 # KITTI-format tree the project generates) and a generated DAIR-V2X-C tree, converted, merged into
 # UrbanOmniView, validated, reported on, drawn and exported. DEMO_FRAMES and DEMO_SIZE scale it.
 DEMO_FRAMES ?= 2
-DEMO_EPOCHS ?= 3
+DEMO_EPOCHS ?= 2
 DEMO_SIZE   ?= --width 320 --height 240
 OMNIGEN := $(BIN)/omnigen
 demo: $(STAMP) system
@@ -61,7 +61,7 @@ demo: $(STAMP) system
 	$(OMNIGEN) export coco "$(DEMO)/uov" --out "$(DEMO)/uov-coco.json"; \
 	$(OMNIGEN) export yolo "$(DEMO)/uov" --out "$(DEMO)/uov-yolo"; \
 	$(OMNIGEN) train "$(DEMO)/uov" --out "$(DEMO)/run" --epochs $(DEMO_EPOCHS) --workers 0 model.imgsz=320 optim.batch=8 \
-	  crop_stage.steps=100 crop_stage.batch=16; \
+	  crop_stage.steps=30 crop_stage.batch=16; \
 	$(OMNIGEN) eval "$(DEMO)/run/best.pt" "$(DEMO)/uov" --split test --imgsz 320 --out "$(DEMO)/eval.json"; \
 	echo; echo "demo: UrbanOmniView in $(DEMO)/uov; open $(DEMO)/report/index.html in a browser;"; \
 	echo "      frames drawn in $(DEMO)/*.png; COCO and YOLO exports beside them;"; \

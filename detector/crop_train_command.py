@@ -69,11 +69,12 @@ def run(args: argparse.Namespace) -> int:
     from omnigen.detector.predict import trained_imgsz
     from omnigen.detector.train import resolve_val_split
     from omnigen.files import file_digest
+    from omnigen.outputs import refuse_inputs
     from omnigen.progress import print_table
 
     weights, out = Path(args.weights), Path(args.out)
-    if out.resolve() == weights.resolve():
-        raise ValueError(f"--out {out}: is the input checkpoint; the detector's own file is never written")
+    refuse_inputs(out, [weights, args.dataset], "train-crop")  # by inode: a hard link to the weights counts
+    refuse_inputs(out.with_name(out.name + ".partial"), [weights, args.dataset], "train-crop")
     if out.suffix != ".pt":
         raise ValueError(f"--out {out}: a checkpoint file name ending in .pt")
     state = load_checkpoint(weights)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 from dataclasses import asdict
 
 import numpy as np
@@ -226,7 +228,10 @@ def test_train_crop_command_writes_a_checkpoint_predict_reads_and_guards_its_fil
     assert str(out) in capsys.readouterr().err
     # the input checkpoint as the output, and a name that is no checkpoint's: refused
     assert omnigen(args[:4] + ["--out", str(weights)] + args[6:]) == 1
-    assert "never written" in capsys.readouterr().err
+    assert "refusing to write onto an input" in capsys.readouterr().err
+    os.link(weights, tmp_path / "same-weights.pt")  # the weights under another name: the same file
+    assert omnigen(args[:4] + ["--out", str(tmp_path / "same-weights.pt")] + args[6:]) == 1
+    assert "refusing to write onto an input" in capsys.readouterr().err
     assert omnigen(args[:4] + ["--out", str(tmp_path / "crop.txt")] + args[6:]) == 1
     assert ".pt" in capsys.readouterr().err
     # predict reads the written checkpoint as it reads the detector's
