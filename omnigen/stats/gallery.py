@@ -22,17 +22,30 @@ JOB = "stats"
 GALLERY_WIDTH = 720
 """Image panels wider than this are scaled down in the gallery (`omnigen show` keeps full size)."""
 
+GALLERY_MIN_SIDE = 64
+"""Frames whose image is narrower or shorter than this many pixels are not shown: a thumbnail or a
+generated stand-in (the 96x54 DAIR-V2X-C and 124x38 KITTI trees omnigen.converters' fixtures make
+for tests and the demo) drawn beside camera frames reads as data it is not. The page counts them."""
+
+
+def too_small(ds: Dataset) -> np.ndarray:
+    """Per frame, whether its image is under GALLERY_MIN_SIDE on a side."""
+    return np.minimum(np.asarray(ds.table.width), np.asarray(ds.table.height)) < GALLERY_MIN_SIDE
+
 
 def pick_gallery(ds: Dataset, n: int, seed: int = 0) -> list[int]:
-    """Indices of up to `n` frames, one per (source, view) group in turn."""
+    """Indices of up to `n` frames, one per (source, view) group in turn (frames of images too
+    small to look at left out: `too_small`)."""
     if n <= 0 or len(ds) == 0:
         return []
     rng = np.random.default_rng(seed)
     counts = np.diff(ds.offsets)
     order = {s: i for i, s in enumerate(SOURCES)}, {v: i for i, v in enumerate(VIEWS)}
+    small = too_small(ds)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, key in enumerate(zip(ds.table.source, ds.table.view)):
-        groups.setdefault(key, []).append(i)
+        if not small[i]:
+            groups.setdefault(key, []).append(i)
     queues = []
     for key in sorted(groups, key=lambda k: (order[0].get(k[0], 99), k[0], order[1].get(k[1], 99), k[1])):
         idx = np.asarray(groups[key])

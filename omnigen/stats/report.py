@@ -32,7 +32,7 @@ from omnigen.outputs import refuse_inputs
 from omnigen.ownership import claim_output
 from omnigen.priors import FAR_SIGMA
 from omnigen.stats.compute import OCCLUSION_LEVEL_NAMES, compute_stats, derive
-from omnigen.stats.gallery import JOB, write_gallery
+from omnigen.stats.gallery import GALLERY_MIN_SIDE, JOB, too_small, write_gallery
 from omnigen.stats.health import check_health
 from omnigen.stats.plots import CAMERA_LABELS, FIGURES, figures_for, plot_section
 
@@ -184,6 +184,7 @@ def write_report(ds: Dataset, out: str | Path, gallery: int = 6, check_images: b
 
     t = time.perf_counter()
     stats["gallery"] = write_gallery(ds, out, gallery, seed) if gallery > 0 else []
+    stats["gallery_too_small"] = {"frames": int(too_small(ds).sum()), "min_side": GALLERY_MIN_SIDE}
     timings["gallery"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -505,3 +505,23 @@ def test_a_single_valued_field_is_written_out_not_drawn_as_an_empty_axis():
         texts = [t.get_text() for t in ax.texts]
         assert bool(ax.patches) == drawn
         assert (texts == ["fog:\nall 5 values 0"]) != drawn
+
+
+def test_the_gallery_leaves_out_stand_ins_too_small_to_look_at_and_says_so(tmp_path):
+    """The demo's report showed the 96x54 generated DAIR-V2X-C stand-in beside camera frames as if
+    it were data: images under GALLERY_MIN_SIDE on a side are not drawn, and the page counts them."""
+    from omnigen.converters.dair_fixture import write_dair_tree
+    from omnigen.fakes import write_fake_dataset
+    from omnigen.stats.gallery import GALLERY_MIN_SIDE
+
+    write_fake_dataset(tmp_path / "syn", 4)
+    write_dair_tree(tmp_path / "dair-src", 4, seed=0, variant="c")
+    assert main(["convert", "dair", str(tmp_path / "dair-src"), "--out", str(tmp_path / "dair")]) == 0
+    assert main(["merge", str(tmp_path / "syn"), str(tmp_path / "dair"), "--out", str(tmp_path / "uov")]) == 0
+    ds = Dataset.open(tmp_path / "uov", show_progress=False)
+    small = sum(min(ds[i].width, ds[i].height) < GALLERY_MIN_SIDE for i in range(len(ds)))
+    assert small == 4
+    report = write_report(ds, tmp_path / "report", gallery=8, jobs=1, show_progress=False)
+    assert report.stats["gallery"] and all(g["source"] == "synthetic" for g in report.stats["gallery"])
+    assert report.stats["gallery_too_small"] == {"frames": 4, "min_side": GALLERY_MIN_SIDE}
+    assert '<span class="num">4</span> frames whose images are under 64 px' in (tmp_path / "report" / "index.html").read_text()
