@@ -299,7 +299,7 @@ def test_every_checkpoint_error_is_one_line_naming_the_file(detector_checkpoint,
     _one_line(exc, tmp_path / "cut.pt", "not an omnigen checkpoint")
 
     # through a command: exit 1 and one line
-    assert omnigen(["train-crop", str(tmp_path), "--weights", str(tmp_path / "five.pt"),
+    assert omnigen(["train-crop", str(tmp_path / "dataset"), "--weights", str(tmp_path / "five.pt"),
                     "--out", str(tmp_path / "crop.pt")]) == 1
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "five.pt" in err and "Traceback" not in err
