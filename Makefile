@@ -86,7 +86,6 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_eval.py
 	$(BIN)/python benchmarks/bench_eval_kitti.py
 	$(BIN)/python benchmarks/bench_bev.py
-	$(BIN)/python benchmarks/bench_calib.py
 
 # End to end on a 2-core machine (under 2 hours): render all three rigs, merge with the real KITTI
 # sample frames, train nano+P2, evaluate, run the BEV head; writes docs/RESULTS.md and

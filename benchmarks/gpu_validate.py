@@ -59,7 +59,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.fetch_gpu_wheels import NEEDS  # noqa: E402  (the standard library alone)
+from benchmarks.common import NEEDS, metric_row, usable_cores, use_site  # noqa: E402  (the standard library alone)
 
 BUDGET_SECONDS = 12 * 60
 SECTION = "gpu-validate"
@@ -76,13 +76,6 @@ MAX_EPOCHS = 2000
 # ---------------------------------------------------------------------------------------------
 # setup: packages, EGL, the GL probe (standard library only until install_missing has run)
 # ---------------------------------------------------------------------------------------------
-
-
-def use_site(site: Path) -> None:
-    """Put WORK/site on this process's path, after the checkout and before the interpreter's own."""
-    if site.is_dir() and str(site) not in sys.path:
-        sys.path.insert(1, str(site))
-        importlib.invalidate_caches()
 
 
 def missing_modules() -> list[str]:
@@ -320,12 +313,6 @@ def git_commit() -> str | None:
     return (r.stdout.strip() or None) if r.returncode == 0 else None
 
 
-def metric_row(row: dict[str, Any]) -> dict[str, Any]:
-    keys = ("images", "objects", "oks_map50_95", "ap_oks50", "precision", "recall", "f1", "ground_adherence_deg",
-            "corner_error_px", "corner_error_rel")
-    return {k: row.get(k) for k in keys}
-
-
 def cpu_reference(results_dir: Path) -> dict[str, Any] | None:
     """make validate's main row from results.json beside RESULTS.md, for the table's CPU column."""
     path = results_dir / "results.json"
@@ -398,11 +385,6 @@ def section_markdown(r: dict[str, Any]) -> str:
 # ---------------------------------------------------------------------------------------------
 # main
 # ---------------------------------------------------------------------------------------------
-
-
-def usable_cores() -> int:
-    """The cores this process may run on (a container's share, not the host's count)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
