@@ -68,8 +68,11 @@ demo: $(STAMP) system
 	echo "      a detector smoke run in $(DEMO)/run and its evaluation in $(DEMO)/eval.json ($(DEMO_EPOCHS) epochs:"; \
 	echo "      the pipeline runs end to end; a useful model needs make validate or a GPU, docs/detector-training.md)"
 
+# One pytest worker per core (pytest-xdist), each test file on one worker so that its module
+# fixtures are built once; TEST_JOBS=0 runs them in this process.
+TEST_JOBS ?= auto
 test: $(STAMP) system
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist loadfile
 
 # Every figure quoted in the docs; each script prints its own (slow: generates large fake datasets).
 bench: $(STAMP)

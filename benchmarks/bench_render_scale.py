@@ -3,7 +3,7 @@
 1. Overhead (issue 7's target: ratio <= 1.15). The same raster frames (default: 20, drone rig,
    city `downtown` seed 0, 256 x 256) rendered end to end (building the city and the backend,
    every frame, the index and the manifest) by the local executor (`Renderer(job).run()`, one
-   process) and by the Ray executor with one worker (one actor: the same single render process,
+   process: no scenes drawn ahead in a second one) and by the Ray executor with one worker (one actor: the same single render process,
    plus Ray's scheduling, the actor's start and the driver's bookkeeping), on a local Ray started
    before the clock (a running cluster, as with `--ray-address`); `ray.init` is timed apart.
    Each is run `--repeats` times into a fresh folder; the medians are compared:
@@ -35,8 +35,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def _job(out: Path, frames: int, size: int, scene: str, seed: int, backend: str = "raster", quality: str = "fast"):
     from omnigen.rigs.render import RenderJob
 
+    # ahead=False: every scene drawn in the render process, as a Ray actor draws them
     return RenderJob(rig="drone", frames=frames, out=out, seed=seed, scene=scene, width=size, height=size,
-                     backend=backend, quality=quality)
+                     backend=backend, quality=quality, ahead=False)
 
 
 def time_local(frames: int, size: int, scene: str, seed: int) -> float:

@@ -37,8 +37,8 @@ single-label prediction (omnigen predict) keeps each anchor's every class score 
 (postprocess(class_scores=True)), floored at conf^2, the least a rescored score above conf needs;
 each refined detection then takes the class whose rescored score is best, so the crop can change
 a box's class too, and the caller drops what falls under conf (predict.infer_batch). Detections
-past MAX_REFINE keep the head's scores, on the head's scale. SCORE_BY names the other rescorings
-were compared (docs/detector-training.md): by the anchor's best score of any class (the head
+past MAX_REFINE keep the head's scores, on the head's scale. Two other rescorings were compared
+and not kept (docs/detector-training.md): by the anchor's best score of any class (the head
 finds, the crop names), and that with a detection of every class for each refined box.
 
 Trained apart. `omnigen train-crop` (detector/crop_train.py) trains the stage again after the
@@ -69,7 +69,7 @@ import torch.onnx.operators
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
 from omnigen.detector.boxes import box_area
 from omnigen.detector.heading import HEADING_CHANNELS, image_heading, orient
-from omnigen.detector.nms import Detections, concat
+from omnigen.detector.nms import Detections
 
 MARGIN = 0.1
 """Context around the box on each side, as a share of its longer side (that of the crops a small CNN told the front from)."""
@@ -360,17 +360,6 @@ def refine(net: CropNet, size: int, images: torch.Tensor, batch_index: torch.Ten
     return orient(kpts, box_area(boxes), h), probs
 
 
-SCORE_BY = ("class", "object", "every")
-"""How a class-naming crop stage rescores a detection of class c: sqrt(s * p_c), s the head's score
-of that class at the detection's anchor (`class`) or the anchor's best score of any class, its
-evidence that an object is there at all (`object`: the head finds, the crop names, as a two-stage
-detector's proposal score and classifier). `every` scores as `object` and gives a multi-label
-prediction's refined box one detection of every class, also those the head rated under the
-floor or whose copies the candidate cap (nms.postprocess) cut: where the head calls a bus a car
-at 0.5 and a bus at 0.0005, the bus copy exists only so. A single-label prediction names one
-class a box either way, so there `every` is `object`."""
-
-
 def rescore(scores: torch.Tensor, classes: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
     """Scores (n,) of detections of `classes` (n,) with the crop's class probabilities (n, nc):
     sqrt(score * p[class]), the geometric mean of the head's score and the crop's belief in the
@@ -399,8 +388,7 @@ def distinct_boxes(boxes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[Detections],
-                      max_refine: int = MAX_REFINE, rescore_classes: bool = True, score_by: str = "class"
-                      ) -> list[Detections]:
+                      max_refine: int = MAX_REFINE, rescore_classes: bool = True) -> list[Detections]:
     """Per-image detections (in `images`' coordinates, best score first) with the corners of the
     first `max_refine` distinct boxes placed by their crops (`refine`): what prediction does after
     NMS for a crop-stage model. A box that multi-label prediction gave several classes is cropped
@@ -408,12 +396,7 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
     class copies do not push other objects out of the crop stage. With a net that names classes
     (and `rescore_classes`), each refined detection's score is rescored by its crop (`rescore`) and
     the detections sorted again, best first; a single-label detection that carries its anchor's
-    every class score (Detections.class_scores) takes the class whose rescored score is best.
-    `score_by` (SCORE_BY) says which head score the crop's probability is combined with, and
-    whether a refined box gets a detection of every class (then more than the detections given
-    may come back; the caller caps them)."""
-    if score_by not in SCORE_BY:
-        raise ValueError(f"refine_detections: score_by {score_by!r} is not one of {', '.join(SCORE_BY)}")
+    every class score (Detections.class_scores) takes the class whose rescored score is best."""
     picked = [distinct_boxes(d.boxes) for d in dets]
     n = [min(len(first), max_refine) for first, _ in picked]
     if not sum(n):
@@ -426,7 +409,7 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
     kpts = kpts.split(n)
     probs = probs.split(n) if probs is not None and rescore_classes else [None] * len(dets)
     out = []
-    for d, (first, rank), k, p in zip(dets, picked, kpts, probs):
+    for d, (_, rank), k, p in zip(dets, picked, kpts, probs):
         refined = rank < len(k)
         keypoints = d.keypoints.clone()
         keypoints[refined] = k.to(d.keypoints.dtype)[rank[refined]]
@@ -434,24 +417,13 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
         if p is not None and refined.any():
             if d.class_scores is not None:  # single-label: each detection takes its best class, rescored
                 head = d.class_scores[refined]
-                if score_by != "class":
-                    head = head.amax(1, keepdim=True)
                 best = (head * p[rank[refined]].to(head.dtype)).clamp(min=0).sqrt().max(1)
                 scores, classes = d.scores.clone(), d.classes.clone()
                 scores[refined], classes[refined] = best.values.to(scores.dtype), best.indices.to(classes.dtype)
                 d = replace(d, scores=scores, classes=classes)
-            elif score_by == "every":  # each refined box once per class, its copies replaced
-                boxes_at = first[:len(k)]  # each refined box's best-scoring detection (score order)
-                nc = p.shape[1]
-                every = d.take(boxes_at.repeat_interleave(nc))
-                cls = torch.arange(nc, device=d.classes.device).repeat(len(boxes_at)).to(d.classes.dtype)
-                every = replace(every, classes=cls,
-                                scores=(d.scores[boxes_at, None] * p.to(d.scores.dtype)).clamp(min=0).sqrt().flatten())
-                d = concat([every, d.take(~refined)])
-            else:  # a box's first detection is its best-scoring class (the detections are in score order)
-                head = d.scores[first][rank[refined]] if score_by == "object" else d.scores[refined]
+            else:  # each detection by its own class's head score
                 scores = d.scores.clone()
-                scores[refined] = rescore(head, d.classes[refined], p[rank[refined]])
+                scores[refined] = rescore(d.scores[refined], d.classes[refined], p[rank[refined]])
                 d = replace(d, scores=scores)
             d = d.take(d.scores.argsort(descending=True, stable=True))
         out.append(d)

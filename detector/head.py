@@ -37,33 +37,26 @@ class KeypointHead(nn.Module):
     """Per-level box / class / keypoint branches over the neck outputs (finest level first)."""
 
     def __init__(self, in_channels: list[int], strides: list[int], num_classes: int, ref_channels: int,
-                 reg_max: int = REG_MAX, kpt_mode: str = "anchor", kpt_turn: bool = False,
-                 kpt_hidden: int | None = None, kpt_heading: bool = False):
+                 reg_max: int = REG_MAX, kpt_mode: str = "anchor", kpt_heading: bool = False):
         super().__init__()
         if len(in_channels) != len(strides):
             raise ValueError(f"head: {len(in_channels)} input levels but {len(strides)} strides")
         if kpt_mode not in KPT_MODES:
             raise ValueError(f"head: kpt_mode {kpt_mode!r} is not one of {', '.join(KPT_MODES)}")
         self.kpt_mode = kpt_mode
-        if kpt_turn and kpt_heading:
-            raise ValueError("head: kpt_turn and kpt_heading are two answers to one question; choose one")
-        self.kpt_turn = kpt_turn
         self.kpt_heading = kpt_heading
         self.num_classes = num_classes
         self.reg_max = reg_max
         self.strides = list(strides)
         c_box = max(16, ref_channels // 4, 4 * reg_max)
         c_cls = max(ref_channels, min(num_classes, 100))
-        # Ultralytics' pose head width by default; `kpt_hidden` widens it (the corners of a cuboid
-        # depend on heading, size and viewpoint: more to regress than a box from 24 channels)
-        c_kpt = kpt_hidden or max(ref_channels // 4, KPT_OUTPUTS)
+        c_kpt = max(ref_channels // 4, KPT_OUTPUTS)  # Ultralytics' pose head width
         light = [s in LIGHT_STRIDES for s in strides]
         self.box = nn.ModuleList(_branch(c, c_box, 4 * reg_max, lt) for c, lt in zip(in_channels, light))
         self.cls = nn.ModuleList(_branch(c, c_cls, num_classes, lt) for c, lt in zip(in_channels, light))
-        # a turn-aware head adds one channel to the keypoint branch: the logit that its corners are
-        # those of the object turned 180 degrees (loss.py says why)
-        # a heading-aware one adds three: the direction of the object's image heading (heading.py)
-        self.kpt_channels = KPT_OUTPUTS + int(kpt_turn) + HEADING_CHANNELS * int(kpt_heading)
+        # a heading-aware head adds three channels to the keypoint branch: the direction of the
+        # object's image heading (heading.py)
+        self.kpt_channels = KPT_OUTPUTS + HEADING_CHANNELS * int(kpt_heading)
         self.kpt = nn.ModuleList(_branch(c, c_kpt, self.kpt_channels, lt) for c, lt in zip(in_channels, light))
         self.reset_bias()
 
@@ -80,9 +73,8 @@ class KeypointHead(nn.Module):
         box = torch.cat([m(x).view(b, 4 * self.reg_max, -1) for m, x in zip(self.box, feats)], 2)
         cls = torch.cat([m(x).view(b, self.num_classes, -1) for m, x in zip(self.cls, feats)], 2)
         kpt = torch.cat([m(x).view(b, self.kpt_channels, -1) for m, x in zip(self.kpt, feats)], 2)
-        turn = kpt[:, KPT_OUTPUTS] if self.kpt_turn else None
         heading = kpt[:, KPT_OUTPUTS:KPT_OUTPUTS + HEADING_CHANNELS] if self.kpt_heading else None
         shapes = [(x.shape[2], x.shape[3]) for x in feats]
         anchors, strides = make_anchors(shapes, self.strides, device=box.device, dtype=box.dtype)
         return HeadOutput(box=box, cls=cls, kpt=kpt[:, :KPT_OUTPUTS], anchors=anchors, strides=strides,
-                          kpt_mode=self.kpt_mode, turn=turn, heading=heading)
+                          kpt_mode=self.kpt_mode, heading=heading)

@@ -2,14 +2,14 @@
 
 A cuboid turned 180 degrees about its vertical axis projects to the same eight points with front
 and rear swapped (conventions.TURN_IDX), so corners alone cannot say which face is the front; the
-image can (hood against boot, lights, where the cabin sits: a small CNN on 64x64 crops tells facing left from right at 0.85 balanced accuracy;
-measures how well a small CNN tells them apart on a dataset's crops).
+image can (hood against boot, lights, where the cabin sits: a small CNN on 64x64 crops tells facing
+left from right at 0.85 balanced accuracy, docs/detector-training.md).
 
 A heading-aware detector (DetectorConfig.kpt_heading) therefore splits the two questions. Its
 keypoint branch learns the corner layout up to the turn (loss.turn_targets picks, per object, the
 order its prediction is nearer to). A three-channel branch beside it regresses the direction of the
 object's *image heading*, a property of the labelled corners alone, fixed whatever the branch
-predicts (unlike a turn logit's target, which depends on the branch's own choice of order):
+predicts (unlike a turn class's target, measured and not kept, which is the branch's own choice):
 
     h = ((front centre - rear centre) / sqrt(box area),  (A_front - A_rear) / (A_front + A_rear))
 

@@ -46,10 +46,9 @@ class LossGains:
     kpt: float = 6.0
     kvis: float = 1.0
     kpt_l1: float = 0.0  # the scale-free L1 corner term (keypoint_l1_loss); 0 leaves the design's loss alone
-    turn: float = 1.0  # BCE of a turn-aware head's turn logit (turn_targets); no term without one
-    # a turn-aware head's OKS loss in the labelled order beside the one up to the turn: a weak pull
+    # a heading-aware head's OKS loss in the labelled order beside the one up to the turn: a weak pull
     # that makes the branch's own choice of order the labelled one wherever the image tells the
-    # front (turn_targets); 0: the branch picks an order freely, and the turn class learns all of it
+    # front (turn_targets); 0: the branch picks an order freely
     kpt_labelled: float = 0.0
     heading: float = 1.0  # 1 - cosine of a heading-aware head's image heading (heading.py); no term without one
     heading_crop: float = 1.0  # 1 - cosine of a crop-stage model's crop headings (crop_stage.py); no term without one
@@ -59,7 +58,7 @@ class LossGains:
     crop_cls: float = 0.5
 
 
-PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn", "kpt_labelled", "heading", "heading_crop", "crop_corners",
+PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "kpt_labelled", "heading", "heading_crop", "crop_corners",
          "crop_cls")
 
 _TURN = list(TURN_IDX)
@@ -112,16 +111,16 @@ def keypoint_l1_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, a
 def turn_targets(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, area: torch.Tensor) -> torch.Tensor:
     """(N,) bool: the prediction's corners fit the object turned 180 degrees better than as labelled.
 
-    Why a turn-aware head learns corners this way: a cuboid turned 180 degrees about its vertical
+    Why a heading-aware head learns corners this way: a cuboid turned 180 degrees about its vertical
     axis occupies the same space, so the eight projected points are the same set and only their
     labels (front/rear) change. Where the image does not say which end is the front (a boxy van,
     a car seen from above, a low-resolution aerial view), a loss that compares corner k with
     corner k drives the branch towards the mean of the two labellings: a collapsed layout that fits
     neither (measured: predicted layouts at about half the true spread). Regressing the corners up
-    to the turn (the order that fits the prediction better, its target) and learning the turn as a
-    binary class keeps the layouts sharp; the ambiguity is left to the classifier, which can be
-    unsure without blurring the geometry. The fit is the scale-free L1 distance, mean over the
-    corners labelled in each order (it stays informative where the OKS kernel saturates).
+    to the turn (the order that fits the prediction better, its target) keeps the layouts sharp;
+    which end is the front is left to the image heading (heading.py), which can be unsure without
+    blurring the geometry. The fit is the scale-free L1 distance, mean over the corners labelled in
+    each order (it stays informative where the OKS kernel saturates).
     """
     turned_gt, turned_mask = gt[:, _TURN], mask[:, _TURN]
 
@@ -207,7 +206,7 @@ class DetectionLoss:
         self.gains = gains or LossGains()
         self.assigner = assigner or TaskAlignedAssigner()
         self.kpt_sigma = kpt_sigma
-        # a turn- or heading-aware head's corners are compared in the labelled order until the trainer frees
+        # a heading-aware head's corners are compared in the labelled order until the trainer frees
         # them (TrainConfig.kpt_turn_start): the branch first learns the labelled order, so that its
         # later choice between the two orders starts from the true heading wherever the image shows it
         self.turn_free = True
@@ -222,7 +221,6 @@ class DetectionLoss:
         # Float32 whatever the autocast dtype: IoU^6 and exp(-e) underflow in half precision.
         out = HeadOutput(box=out.box.float(), cls=out.cls.float(), kpt=out.kpt.float(),
                          anchors=out.anchors.float(), strides=out.strides.float(), kpt_mode=out.kpt_mode,
-                         turn=None if out.turn is None else out.turn.float(),
                          heading=None if out.heading is None else out.heading.float(),
                          crop_heading=None if out.crop_heading is None else out.crop_heading.float(),
                          crop_corners=None if out.crop_corners is None else out.crop_corners.float(),
@@ -254,23 +252,18 @@ class DetectionLoss:
         area = box_area(targets["bboxes"].to(kpts.dtype)[obj])
         kpt_gt = targets["keypoints"].to(kpts.dtype)[obj]
         vis_gt = targets["kpt_visible"].to(kpts.dtype)[obj]
-        turn_loss = kpt_labelled = heading_loss_ = kpts.new_zeros(())
-        if out.turn is not None or out.heading is not None:
+        kpt_labelled = heading_loss_ = kpts.new_zeros(())
+        if out.heading is not None:
             if self.gains.kpt_labelled:
                 kpt_labelled = oks_keypoint_loss(kpts[..., :2], kpt_gt, kmask, area, sigma=self.kpt_sigma)
-            if out.heading is not None:
-                # the target is the labelled corners' own image heading: fixed, whatever order the
-                # branch predicts (a turn logit's target is not: it is the branch's own choice)
-                heading_loss_ = heading_loss(out.heading[bi, :, ai], image_heading(kpt_gt, area, kmask))
+            # the target is the labelled corners' own image heading: fixed, whatever order the
+            # branch predicts
+            heading_loss_ = heading_loss(out.heading[bi, :, ai], image_heading(kpt_gt, area, kmask))
             turned = turn_targets(kpts[..., :2].detach(), kpt_gt, kmask, area) if self.turn_free \
                 else torch.zeros(len(obj), dtype=torch.bool, device=device)  # (N,)
             kpt_gt = torch.where(turned[:, None, None], kpt_gt[:, _TURN], kpt_gt)
             kmask = torch.where(turned[:, None], kmask[:, _TURN], kmask)
             vis_gt = torch.where(turned[:, None], vis_gt[:, _TURN], vis_gt)
-            if out.turn is not None:
-                # mean over the positive anchor-object pairs (their count is a shape, known on the host)
-                turn_loss = F.binary_cross_entropy_with_logits(out.turn[bi, ai], turned.to(kpts.dtype),
-                                                               reduction="sum") / max(len(obj), 1)
         crop_loss = corner_loss = crop_cls = kpts.new_zeros(())
         if out.crop_logits is not None and len(out.crop_rows):
             # each crop is one labelled object: a softmax over the classes, not the head's per-class BCE
@@ -295,7 +288,7 @@ class DetectionLoss:
                      ).sum() / kmask.sum().clamp(min=1)
 
         parts_t = {"box": box_loss, "dfl": dfl_loss, "cls": cls_loss, "kpt": kpt_loss, "kvis": kvis_loss, "kpt_l1": kpt_l1,
-                   "turn": turn_loss, "kpt_labelled": kpt_labelled, "heading": heading_loss_, "heading_crop": crop_loss,
+                   "kpt_labelled": kpt_labelled, "heading": heading_loss_, "heading_crop": crop_loss,
                    "crop_corners": corner_loss, "crop_cls": crop_cls}
         gains = asdict(self.gains)
         total = sum(gains[k] * parts_t[k] for k in PARTS)

@@ -54,12 +54,12 @@ class DetectorConfig:
     max_channels: int | None = None
     reg_max: int = REG_MAX
     kpt_mode: str = "anchor"  # how corners decode: offsets from the anchor, or in units of the box (outputs.py)
-    kpt_turn: bool = False  # corners learned up to the 180-degree turn, the turn a class of its own (loss.py)
-    kpt_hidden: int | None = None  # keypoint-branch width; None: max(stride-8 width / 4, 24) as Ultralytics' pose head
     kpt_heading: bool = False  # corners up to the turn, the front read from a regressed image heading (heading.py)
     heading_crop: int = 0  # side of the crops a second stage places each object's corners and front from (crop_stage.py); 0: none
     crop_classes: bool = False  # the crop stage names each crop's class too, and prediction rescores by it (crop_stage.py)
-    crop_split: bool = False  # ...from a crop net of their own, not the corners' (crop_stage.SplitCropNet)
+    # those classes from a crop net of their own, not the corners' (crop_stage.SplitCropNet): the
+    # stage the crop phase attaches (crop_train.attach_stage); training with the detector builds a CropNet
+    crop_split: bool = False
     crop_position: bool = False  # the crop stage's corners' net is told where each crop was cut (crop_stage.crop_position)
 
     def __post_init__(self) -> None:
@@ -71,8 +71,6 @@ class DetectorConfig:
                              f"known backbones: {', '.join(sorted(BACKBONES))}")
         if self.scale not in SCALE_NAMES:
             raise ValueError(f"DetectorConfig.scale: {self.scale!r} is not one of {', '.join(SCALE_NAMES)}")
-        if self.kpt_turn and self.kpt_heading:
-            raise ValueError("DetectorConfig: kpt_turn and kpt_heading both say which face is the front; choose one")
         if not isinstance(self.num_classes, int) or self.num_classes < 1:
             raise ValueError(f"DetectorConfig.num_classes: must be a positive integer, got {self.num_classes!r}")
         if self.width is not None and not self.width > 0:
@@ -83,8 +81,6 @@ class DetectorConfig:
             raise ValueError(f"DetectorConfig.max_channels: must be >= 8, got {self.max_channels!r}")
         if self.kpt_mode not in KPT_MODES:
             raise ValueError(f"DetectorConfig.kpt_mode: {self.kpt_mode!r} is not one of {', '.join(KPT_MODES)}")
-        if self.kpt_hidden is not None and (not isinstance(self.kpt_hidden, int) or self.kpt_hidden < 8):
-            raise ValueError(f"DetectorConfig.kpt_hidden: must be an integer >= 8 or None, got {self.kpt_hidden!r}")
         if not isinstance(self.heading_crop, int) or self.heading_crop < 0 or self.heading_crop % 16:
             raise ValueError(f"DetectorConfig.heading_crop: must be 0 (none) or a positive multiple of 16 "
                              f"(the crop net halves it four times), got {self.heading_crop!r}")
@@ -136,7 +132,7 @@ class KeypointDetector(nn.Module):
         self.neck = PAN(self.backbone.channels, self.strides, cfg.backbone, width, depth, max_channels, heavy)
         chans = [self.neck.out_channels[s] for s in self.strides]
         self.head = KeypointHead(chans, self.strides, cfg.num_classes, self.neck.out_channels[8], cfg.reg_max,
-                                 cfg.kpt_mode, cfg.kpt_turn, cfg.kpt_hidden, cfg.kpt_heading)
+                                 cfg.kpt_mode, cfg.kpt_heading)
         self.crop_net = None
         if cfg.crop_split:
             self.crop_net = SplitCropNet(cfg.heading_crop, cfg.num_classes, position=cfg.crop_position)

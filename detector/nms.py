@@ -38,15 +38,6 @@ class Detections:
                           None if self.class_scores is None else self.class_scores[index])
 
 
-def concat(parts: list[Detections]) -> Detections:
-    """One image's detections from several lists of them, in order (class scores kept where every
-    part has them)."""
-    scores = [q.class_scores for q in parts]
-    return Detections(torch.cat([q.boxes for q in parts]), torch.cat([q.scores for q in parts]),
-                      torch.cat([q.classes for q in parts]), torch.cat([q.keypoints for q in parts]),
-                      None if any(c is None for c in scores) else torch.cat(scores))
-
-
 def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Pairwise IoU of xyxy boxes (n, 4) x (m, 4) -> (n, m)."""
     lt = torch.maximum(a[:, None, :2], b[None, :, :2])

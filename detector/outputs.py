@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from omnigen.conventions import NUM_KEYPOINTS, TURN_IDX
+from omnigen.conventions import NUM_KEYPOINTS
 from omnigen.detector.boxes import box_area
 from omnigen.detector.heading import orient
 
@@ -35,7 +35,6 @@ class HeadOutput:
     anchors: torch.Tensor  # (A, 2) anchor centres in input pixels ((i + 0.5) * stride)
     strides: torch.Tensor  # (A,) stride of each anchor's level
     kpt_mode: str = "anchor"  # KPT_MODES: how `kpt` decodes (decode_keypoints)
-    turn: torch.Tensor | None = None  # (B, A) logit that the corners are turned 180 degrees (turn-aware heads)
     heading: torch.Tensor | None = None  # (B, 3, A) direction of the image heading (heading-aware heads, heading.py)
     # a crop-stage model's forward given crops (crop_stage.py): their headings (N, 3) and corners
     # (N, 8, 2, in crop units), the rows of the flat targets they were cut for (N,) and the boxes
@@ -112,14 +111,6 @@ def head_keypoints(out: HeadOutput, boxes: torch.Tensor) -> torch.Tensor:
     return decode_keypoints(out.kpt, out.anchors, out.strides, boxes if out.kpt_mode == "box" else None)
 
 
-def apply_turn(k: torch.Tensor, turn: torch.Tensor) -> torch.Tensor:
-    """Corners (B, K, C, A) put in the labelled order: where the turn logit (B, A) is positive the
-    head's corners are those of the object turned 180 degrees, so corner k is taken from slot
-    TURN_IDX[k] (an involution: front and rear faces swap)."""
-    turned = k[:, list(TURN_IDX)]
-    return torch.where((turn > 0)[:, None, None, :], turned, k)
-
-
 def apply_heading(k: torch.Tensor, heading: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
     """Corners (B, K, C, A) put in the labelled order by a heading-aware head: the layout as the
     branch ordered it has an image heading (heading.image_heading, on the decoded boxes' areas);
@@ -130,13 +121,11 @@ def apply_heading(k: torch.Tensor, heading: torch.Tensor, boxes: torch.Tensor) -
 
 def decode(out: HeadOutput) -> torch.Tensor:
     """The inference tensor (B, 4 + nc + NUM_KEYPOINTS * 3, A): xyxy box, class scores (sigmoid),
-    and per corner x, y, visibility score (sigmoid), corners in the labelled order (a turn-aware
-    head's turn, a heading-aware head's heading applied). NMS is applied outside (detector/nms.py)."""
+    and per corner x, y, visibility score (sigmoid), corners in the labelled order (a heading-aware
+    head's heading applied). NMS is applied outside (detector/nms.py)."""
     boxes = decode_boxes(out.box, out.anchors, out.strides)
     scores = out.cls.sigmoid()
     k = head_keypoints(out, boxes)
-    if out.turn is not None:
-        k = apply_turn(k, out.turn)
     if out.heading is not None:
         k = apply_heading(k, out.heading, boxes)
     k = torch.cat([k[:, :, :2], k[:, :, 2:].sigmoid()], 2)

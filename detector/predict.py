@@ -55,7 +55,6 @@ class PredictOptions:
     # a crop stage that names classes rescores the detections it refines (crop_stage.rescore);
     # False keeps the head's scores (docs/detector-training.md gives the difference)
     crop_classes: bool = True
-    crop_score_by: str = "class"  # which head score the crop's class probability rescores (crop_stage.SCORE_BY)
     # "lines": each image's detections get their vertical edges turned to its vertical vanishing
     # point, fitted from them and refined with the image's line segments (vanishing.snap_vertical);
     # "off" keeps the corners as the network placed them
@@ -156,9 +155,7 @@ def infer_batch(model: KeypointDetector, images: list[np.ndarray], boxes: list[L
     dets = postprocess(pred.float(), model.cfg.num_classes, opts.conf ** 2 if relabel else opts.conf, opts.iou,
                        opts.max_det, multi_label=opts.multi_label, class_scores=relabel)
     if model.crop_net is not None:  # a crop-stage model places each detection's corners from its crop
-        dets = refine_detections(model.crop_net, model.cfg.heading_crop, x, dets, rescore_classes=opts.crop_classes,
-                                 score_by=opts.crop_score_by)
-        dets = [d.take(slice(0, opts.max_det)) for d in dets]  # `every` may give a box more classes
+        dets = refine_detections(model.crop_net, model.cfg.heading_crop, x, dets, rescore_classes=opts.crop_classes)
     if relabel:
         dets = [d.take(d.scores > opts.conf) for d in dets]
     if opts.vertical == "lines":
@@ -224,15 +221,15 @@ def load_for_prediction(weights: str | Path, device: str | None = None) -> tuple
 
 def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: str | Path, split: str | None = "test",
                   imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
-                  multi_label: bool = EVAL_MULTI_LABEL, crop_classes: bool = True, crop_score_by: str = "class",
-                  vertical: str = "lines") -> list[dict[str, Any]]:
+                  multi_label: bool = EVAL_MULTI_LABEL, crop_classes: bool = True, vertical: str = "lines"
+                  ) -> list[dict[str, Any]]:
     """Detections of a loaded model (load_for_prediction) on a dataset split, ready for `omnigen
     eval`, at the training input size unless `imgsz` says otherwise. A caller that predicts twice
     with one model (with and without its crop stage: `model.crop_net = None` keeps the head's own
     corners), or reads the checkpoint's taxonomy first, loads it
     once. `multi_label=False` keeps one class an anchor, as `omnigen predict` does
     (EVAL_MULTI_LABEL). `crop_classes=False` keeps the head's scores where the crop stage names classes;
-    `crop_score_by` and `vertical` are PredictOptions'.
+    `vertical` is PredictOptions'.
     """
     from omnigen.detector.checkpoint import checkpoint_taxonomy
 
@@ -240,7 +237,7 @@ def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: 
     data = KeypointDataset(dataset_root, checkpoint_taxonomy(state), imgsz, split_frames(dataset_root, split))
     return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=EVAL_MAX_DET,
                                                       multi_label=multi_label, crop_classes=crop_classes,
-                                                      crop_score_by=crop_score_by, vertical=vertical),
+                                                      vertical=vertical),
                           show_progress=True)
 
 

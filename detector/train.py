@@ -90,7 +90,8 @@ class TrainConfig:
 
     The fields a recipe key fills (detector/recipe.py: recipe.field_key names it) take their
     defaults from the recipe, the run's settings theirs from recipe.RunSettings: nothing here
-    declares a value of its own but what only experiments and tests reach (marked below)."""
+    declares a value of its own but what only tests reach (marked below), the command's options
+    that are no recipe key (the splits, --weights) and save_interval."""
 
     dataset: str
     out: str
@@ -121,15 +122,12 @@ class TrainConfig:
     kpt_sigma_end: float = _TRAIN["kpt_sigma_end"]  # 0.25: the OKS metric's kernel; the design's 0.125 (loss.OKS_SIGMA)
     kpt_mode: str = _TRAIN["kpt_mode"]  # corners as offsets from the anchor, or in units of the anchor's box (outputs.py)
     kpt_l1: float = _TRAIN["kpt_l1"]  # gain of the scale-free L1 corner term beside the OKS loss (loss.keypoint_l1_loss)
-    kpt_turn: bool = False  # experiments: corners up to the 180-degree turn plus a turn class (loss.turn_targets)
-    kpt_hidden: int | None = None  # experiments: keypoint-branch width (DetectorConfig.kpt_hidden)
-    kpt_labelled: float = _TRAIN["kpt_labelled"]  # gain of the labelled-order OKS term beside the turn-aware one
-    kpt_turn_start: float = _TRAIN["kpt_turn_start"]  # fraction of the run before a turn-aware loss may turn corners
+    kpt_labelled: float = _TRAIN["kpt_labelled"]  # gain of the OKS term in the labelled order beside the turned
+    kpt_turn_start: float = _TRAIN["kpt_turn_start"]  # fraction of the run before the loss may turn corners
     kpt_heading: bool = _TRAIN["kpt_heading"]  # corners up to the turn, the front from a regressed image heading
     heading_gain: float = _TRAIN["heading_gain"]  # gain of a heading-aware head's heading term (LossGains.heading)
     heading_crop: int = _TRAIN["heading_crop"]  # crop side of the second stage (DetectorConfig.heading_crop); 0: none
     crop_classes: bool = _TRAIN["crop_classes"]  # that stage names each crop's class too (DetectorConfig.crop_classes)
-    crop_split: bool = False  # experiments: the joint stage's classes from a crop net of their own
     # the crop stage trained again apart as the run's second phase (recipe.CropStage, crop_train.crop_phase);
     # steps 0: the stage trained with the detector is kept
     crop_phase: dict[str, Any] = field(default_factory=lambda: dict(_TRAIN["crop_phase"]))
@@ -162,12 +160,13 @@ class TrainConfig:
         return self.crop_focus if self.window() else 0.0
 
     def model_config(self, num_classes: int) -> DetectorConfig:
-        # never crop_position: joint training crops its augmented windows (--crop), where a crop's
-        # place in the window is not its place in the image; the crop phase gives the position
+        # never crop_position nor crop_split: joint training crops its augmented windows (--crop), where
+        # a crop's place in the window is not its place in the image, with one CropNet; the crop
+        # phase gives the position and the classes' net of their own (crop_train.attach_stage)
         return DetectorConfig(scale=self.model, backbone=self.backbone, p2=self.p2, p6=self.p6, kpt_mode=self.kpt_mode,
-                              kpt_turn=self.kpt_turn, kpt_hidden=self.kpt_hidden, kpt_heading=self.kpt_heading,
-                              heading_crop=self.heading_crop, crop_classes=self.crop_classes and self.heading_crop > 0,
-                              crop_split=self.crop_split, num_classes=num_classes, width=self.width, depth=self.depth)
+                              kpt_heading=self.kpt_heading, heading_crop=self.heading_crop,
+                              crop_classes=self.crop_classes and self.heading_crop > 0, num_classes=num_classes,
+                              width=self.width, depth=self.depth)
 
 
 def param_groups(model: torch.nn.Module, weight_decay: float) -> list[dict[str, Any]]:
@@ -343,7 +342,7 @@ FLAGS = {"dataset": "DATASET", "time_minutes": "--time", "epochs": "--epochs", "
          "seed": "--seed", "amp": "--amp", "channels_last": "--channels-last", "weights": "--weights",
          "train_split": "--train-split", "val_split": "--val-split"}
 """How the run's settings are named to a user: their flags. Recipe fields are named by their key
-(recipe.field_key: 'optim.lr0'), the rest (tests' and experiments' fields) as TrainConfig's."""
+(recipe.field_key: 'optim.lr0'), the rest (the tests' fields) as TrainConfig's."""
 
 
 def flag_of(name: str) -> str:

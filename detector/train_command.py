@@ -139,8 +139,8 @@ def long_run_note(epoch_seconds: float, epochs_left: int, val_every: int) -> str
             "budget (or fewer --epochs)")
 
 
-LOSS_PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "turn", "kpt_labelled", "heading", "heading_crop",
-              "crop_corners", "crop_cls")
+LOSS_PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "kpt_labelled", "heading", "heading_crop", "crop_corners",
+              "crop_cls")
 METRICS = {"oks_map50_95": "OKS mAP50:95", "ap_oks50": "AP at OKS 0.50", "precision": "precision",
            "recall": "recall", "f1": "F1", "corner_error_px": "corner error (px)",
            "corner_error_rel": "corner error rel"}

@@ -5,7 +5,9 @@ Per frame i of a dataset with seed s (frame id `synthetic-<rig>-s<seed>-<i:06d>`
 1. the scene: `SceneGenerator(scene, s).frame(s, i)` (agents, weather, lighting from
    default_rng([s, i]); the city of (scene, s) is built once per process; a mix of presets,
    "downtown,suburban,...", gives the city the preset its seed draws, which the record's
-   `synthetic.scene`, the manifest and `.render-args.json` name);
+   `synthetic.scene`, the manifest and `.render-args.json` name); a run of AHEAD_MIN_FRAMES
+   frames or more draws each next frame's scene in a second process while this one renders
+   (scenes/generate.py FramesAhead: the same Scene);
 2. the camera: `omnigen.rigs.sampling.sample_camera` from the rig's own stream `rig_rng(s, i)`;
 3. render (backend `raster` or `cycles`), annotate (rigs/annotate.py); if fewer than the rig's
    `min_objects` objects are annotated (buildings hid what the geometric estimate counted), the
@@ -53,11 +55,15 @@ from omnigen.rigs.annotate import annotate
 from omnigen.rigs.rig import RESOLUTION_RANGE, Rig, load_rig
 from omnigen.rigs.sampling import Obstacles, rig_rng, sample_camera
 from omnigen.scenes.description import Scene, to_dict
-from omnigen.scenes.generate import FrameOverrides
+from omnigen.scenes.generate import FrameOverrides, FramesAhead
 from omnigen.untrusted import read_regular
 from omnigen.writer import DatasetWriter
 
 BACKENDS = ("cycles", "raster")
+AHEAD_MIN_FRAMES = 16
+"""A run of at least this many frames draws each next frame's scene in a second process while this
+one renders (FramesAhead), where it may use two cores or more: the worker's start (an interpreter,
+its imports and the city: 1-3 s of CPU, on the other core) is repaid within a few frames."""
 QUALITIES = ("preview", "fast", "final")
 MAX_FRAME_INDEX = SEED_MAX
 """The last frame index: frame indices, like seeds, are what numpy's seeding and an int64 hold."""
@@ -263,6 +269,7 @@ class RenderJob:
     save_blend: Path | None = None  # Cycles: write the first rendered frame's scene as a .blend
     labels: str = "auto"  # Cycles: depth, ids and silhouettes from GL (auto, gl) or Cycles' own passes
     device: str = "auto"  # Cycles' compute devices (scenes/cycles_devices.py): how frames render, not what
+    ahead: bool = True  # run(): may draw each next frame's scene in a second process (Renderer.draw_ahead)
 
     def __post_init__(self) -> None:
         """Refuse numbers the frames cannot be made from, before anything is written: a seed past
@@ -517,24 +524,34 @@ class Renderer:
         # frame's record is still written after its images, so a killed run leaves no record
         # without its files. Off, render_frame returns with the frame on disk (Ray actors, tests).
         # With write-behind the raster backend's colour pass is also left to finish while the next
-        # frame's scene is drawn (pure Python, on one core, while llvmpipe shades on its threads):
-        # it is started once annotation has kept the camera (a rejected camera is never shaded)
-        # and read back at the start of the next render_frame, or by flush().
+        # frame's scene and first camera are drawn (pure Python, on one core, while llvmpipe shades
+        # on its threads): it is started once annotation has kept the camera (a rejected camera is
+        # never shaded) and read back before the next frame's backend update, or by flush().
         self.write_behind = False
         self._pending: Future | None = None
         self._pool: ThreadPoolExecutor | None = None
         self._unfinished: tuple[Rendered, FrameRecord] | None = None  # a deferred frame, its image to read back
+        self.ahead: FramesAhead | None = None  # run(): the next frame's scene drawn in a second process
 
     def frame_id(self, index: int) -> str:
         return frame_id_for(self.rig.name, self.job.seed, index)
 
-    def render_frame(self, index: int) -> FrameRecord:
-        """Render, annotate and write frame `index`; returns its record."""
+    def render_frame(self, index: int, next_index: int | None = None) -> FrameRecord:
+        """Render, annotate and write frame `index`; returns its record. `next_index`: the frame
+        rendered next, whose scene is drawn meanwhile when frames are drawn ahead (`self.ahead`)."""
         job, tm = self.job, self.summary.timings
+        if self.ahead is not None and next_index is not None:
+            self.ahead.ask(job.seed, next_index, job.overrides)
         t0 = time.perf_counter()
-        scene = self.gen.frame(job.seed, index, job.overrides)
+        scene = (self.ahead or self.gen).frame(job.seed, index, job.overrides)
         tm["scene"] += time.perf_counter() - t0
-        self._finish_frame()  # the previous frame's image, shaded while this frame's scene was drawn
+        # The first camera is drawn (pure Python) while the previous frame may still be shaded.
+        rng = rig_rng(job.seed, index)
+        t1 = time.perf_counter()
+        obstacles = Obstacles(scene)
+        cam = sample_camera(self.rig, scene, rng, self.width, self.height, obstacles)
+        tm["camera"] += time.perf_counter() - t1
+        self._finish_frame()  # the previous frame's image, shaded while this frame's scene and camera were drawn
         t1 = time.perf_counter()
         if self.backend is None:
             self.backend = make_backend(job.backend, scene, job.quality, job.labels, job.device)
@@ -542,26 +559,22 @@ class Renderer:
         else:
             self.backend.update(scene)
             tm["scene"] += time.perf_counter() - t1
-        rng = rig_rng(job.seed, index)
-        obstacles = Obstacles(scene)
-        tries = 0
         defer = self.write_behind and isinstance(self.backend, RasterBackend)
         while True:
-            t2 = time.perf_counter()
-            cam = sample_camera(self.rig, scene, rng, self.width, self.height, obstacles, start_try=tries)
-            tries = cam.tries
             t3 = time.perf_counter()
-            tm["camera"] += t3 - t2
             out = self.backend.render(cam, defer=True) if defer else self.backend.render(cam)
             t4 = time.perf_counter()
             tm["render"] += t4 - t3
             tm["renderer_core"] += out.render_seconds
             ann = annotate(scene, cam, out.depth, out.instance, lambda ids: self.backend.silhouettes(cam, ids))
-            tm["annotate"] += time.perf_counter() - t4
-            if len(ann.objects) >= self.rig.min_objects or tries >= self.rig.max_tries:
+            t2 = time.perf_counter()
+            tm["annotate"] += t2 - t4
+            if len(ann.objects) >= self.rig.min_objects or cam.tries >= self.rig.max_tries:
                 break
             self.summary.redraws += 1
-        if out.shade is not None:  # the kept camera's colour pass, shaded while the next scene is drawn
+            cam = sample_camera(self.rig, scene, rng, self.width, self.height, obstacles, start_try=cam.tries)
+            tm["camera"] += time.perf_counter() - t2
+        if out.shade is not None:  # the kept camera's colour pass, shaded while the next scene and camera are drawn
             t = time.perf_counter()
             out.shade()
             self._charge(t, "render", "renderer_core")
@@ -591,6 +604,15 @@ class Renderer:
         self.summary.rendered += 1
         self.summary.objects += len(record.objects)
         return record
+
+    def draw_ahead(self, frames: int) -> bool:
+        """Draw each next frame's scene in a second process (FramesAhead) from now on, if the job
+        allows it, a run of `frames` frames repays the worker's start (AHEAD_MIN_FRAMES) and two
+        cores or more may run it; whether frames are drawn ahead. Ray actors never do: each has
+        its one CPU."""
+        if self.ahead is None and self.job.ahead and frames >= AHEAD_MIN_FRAMES and len(os.sched_getaffinity(0)) >= 2:
+            self.ahead = FramesAhead(self.gen)
+        return self.ahead is not None
 
     def _write_frame(self, files: FrameFiles, record: FrameRecord) -> None:
         """A frame's image, depth and instance mask, each atomically, then its record (last: a
@@ -647,9 +669,10 @@ class Renderer:
         todo = [i for i in indices if not self.writer.has(self.frame_id(i))]
         self.summary.skipped = len(indices) - len(todo)
         self.write_behind = True
+        self.draw_ahead(len(todo))
         try:
-            for i in progress(todo, desc=f"render {self.rig.name}", disable=not show_progress, unit="frame"):
-                self.render_frame(i)
+            for k, i in enumerate(progress(todo, desc=f"render {self.rig.name}", disable=not show_progress, unit="frame")):
+                self.render_frame(i, todo[k + 1] if k + 1 < len(todo) else None)
         finally:
             self.close()
         # The last shard to finish finds every frame written and finalizes (see finalize_run).
@@ -658,10 +681,13 @@ class Renderer:
         return self.summary
 
     def close(self) -> None:
-        """Flush pending writes, then free the backend (also when a write failed)."""
+        """Flush pending writes, then free the backend and the frames' worker (also when a write failed)."""
         try:
             self.flush()
         finally:
+            if self.ahead is not None:
+                self.ahead.close()
+                self.ahead = None
             if self._pool is not None:
                 self._pool.shutdown()
                 self._pool = None

@@ -12,6 +12,9 @@ order and on any worker, and fixing the weather on the command line leaves the a
 
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,3 +80,62 @@ class SceneGenerator:
 def build_scene(preset: str | Path | Preset = "downtown", seed: int = 0, overrides: FrameOverrides | None = None) -> Scene:
     """The city of (preset, seed) with its frame 0 drawn from the same seed."""
     return SceneGenerator(preset, seed).frame(seed, 0, overrides)
+
+
+_WORKER_GEN: list[SceneGenerator] = []  # in a FramesAhead worker: the generator it draws with
+
+
+def _start_worker(gen: SceneGenerator) -> None:
+    _WORKER_GEN[:] = [gen]
+
+
+def _worker_frame(dataset_seed: int, frame_index: int, overrides: FrameOverrides | None) -> tuple:
+    """A frame drawn in the worker, less the city (the caller has its own; it is the large part)."""
+    scene = _WORKER_GEN[0].frame(dataset_seed, frame_index, overrides)
+    return scene.agents, scene.weather, scene.lighting
+
+
+class FramesAhead:
+    """A SceneGenerator's frames drawn ahead, in a second process, while this one renders.
+
+    Why: drawing a frame (agents, weather, light) is single-threaded Python, 0.1-0.2 s a downtown
+    frame, that the renderer otherwise waits for. A frame depends only on (city, seed, index), so
+    a worker holding a copy of the city draws the very Scene this process would
+    (tests/rigs/test_render_reuse.py); it comes back without the city and is joined to this
+    process's. The worker is forked here, at once: it inherits the built city (a spawned one would
+    build it again and re-run the caller's main script), and a renderer makes this before its GL
+    context and writer thread exist (Renderer.run). If it dies, frames are drawn here again.
+    """
+
+    def __init__(self, gen: SceneGenerator) -> None:
+        self.gen = gen
+        self._pool: ProcessPoolExecutor | None = ProcessPoolExecutor(
+            1, mp_context=multiprocessing.get_context("fork"), initializer=_start_worker, initargs=(gen,))
+        self._pool.submit(int)  # forks now (a fork pool starts its worker at the first task)
+        self._asked: dict[tuple, Future] = {}
+
+    def ask(self, dataset_seed: int, frame_index: int, overrides: FrameOverrides | None = None) -> None:
+        """Start drawing a frame that `frame` will be asked for."""
+        if self._pool is not None:
+            try:
+                self._asked[(dataset_seed, frame_index, overrides)] = self._pool.submit(
+                    _worker_frame, dataset_seed, frame_index, overrides)
+            except BrokenProcessPool:
+                self.close()
+
+    def frame(self, dataset_seed: int, frame_index: int, overrides: FrameOverrides | None = None) -> Scene:
+        """SceneGenerator.frame: the worker's drawing if it was asked for (waiting for it), else drawn here."""
+        asked = self._asked.pop((dataset_seed, frame_index, overrides), None)
+        if asked is not None:
+            try:
+                agents, weather, lighting = asked.result()
+                return Scene(self.gen.city, agents, weather, lighting, int(dataset_seed), int(frame_index))
+            except BrokenProcessPool:
+                self.close()
+        return self.gen.frame(dataset_seed, frame_index, overrides)
+
+    def close(self) -> None:
+        pool, self._pool = self._pool, None
+        self._asked.clear()
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)

@@ -581,6 +581,7 @@ class _Mesh:
         self.vao = gl.glGenVertexArrays(1)
         self.buffers = list(gl.glGenBuffers(5))
         self.count = 0  # indices
+        self._offset_buffer = (ctypes.c_void_p * 64)()  # draw_ranges' offsets (_offsets)
 
     def upload(self, positions: np.ndarray, triangles: np.ndarray, slots: np.ndarray, ids: np.ndarray | None,
                surfaces: np.ndarray | None = None) -> None:
@@ -615,9 +616,19 @@ class _Mesh:
     def draw_ranges(self, first: np.ndarray, count: np.ndarray) -> None:
         if len(first):
             gl.glBindVertexArray(self.vao)
-            offsets = (ctypes.c_void_p * len(first))(*(4 * int(f) for f in first))
             gl.glMultiDrawElements(gl.GL_TRIANGLES, np.ascontiguousarray(count, dtype=np.int32), gl.GL_UNSIGNED_INT,
-                                   offsets, len(first))
+                                   self._offsets(first), len(first))
+
+    def _offsets(self, first: np.ndarray) -> ctypes.Array:
+        """The ranges' byte offsets (4 a uint32 index) in the mesh's one ctypes array, grown by
+        doubling. Why one: PyOpenGL keeps a handler for every ctypes array type it is given, and
+        (c_void_p * n) is a type of its own for each n, so an array made per draw kept ~3 KB for
+        every range count a run met (tests/scenes/test_raster_speed.py)."""
+        n = len(first)
+        if len(self._offset_buffer) < n:
+            self._offset_buffer = (ctypes.c_void_p * (1 << (n - 1).bit_length()))()
+        np.frombuffer(self._offset_buffer, dtype=np.uintp)[:n] = 4 * np.asarray(first, dtype=np.uintp)
+        return self._offset_buffer
 
     def delete(self) -> None:
         gl.glDeleteBuffers(len(self.buffers), self.buffers)
@@ -732,6 +743,12 @@ class GLRaster:
             loc = {name: gl.glGetUniformLocation(prog, name) for name in _COLOR_UNIFORMS}
             self._color_progs[key] = (prog, loc)
         return self._color_progs[key]
+
+    @property
+    def color_builds(self) -> int:
+        """How many builds of the colour shader exist: each costs resident memory (llvmpipe keeps
+        its compiled code) from the first frame that needs it on (bench_render.py --memory-frames)."""
+        return len(self._color_progs)
 
     # -- data ---------------------------------------------------------------------------------
 

@@ -2,9 +2,23 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist (make test runs one worker per core), each worker's torch, OpenMP and
+    BLAS get the cores divided among the workers: torch's default of one thread per core in every
+    worker would run twice as many threads as cores, and OpenMP's busy-waiting then costs more than
+    the second thread gives. Set before any test module imports torch (the environment is read at
+    its first import); a test that wants a thread count sets it itself."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        threads = str(max(1, (os.cpu_count() or 1) // workers))
+        for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            os.environ.setdefault(name, threads)
+
 
 TINY = dict(width=0.0625, depth=0.33, max_channels=64)
 """A detector small enough to build in a test."""

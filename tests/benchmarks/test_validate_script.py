@@ -313,8 +313,8 @@ VALIDATED_TRAIN_CONFIG = {
     "crop_focus": 0.5, "repeat_thresh": 0.3, "cache": False, "epochs": 150, "batch": 16, "optimizer": "adamw",
     "lr0": 0.002, "lrf": 0.01, "weight_decay": 5e-4, "warmup_iters": 100, "ema_decay": 0.9999, "ema_tau": 2000.0,
     "kpt_sigma_start": 0.5, "kpt_sigma_anneal": 0.3, "kpt_sigma_end": 0.25, "kpt_mode": "box", "kpt_l1": 2.0,
-    "kpt_turn": False, "kpt_hidden": None, "kpt_labelled": 1.0, "kpt_turn_start": 0.3, "kpt_heading": True,
-    "heading_gain": 1.0, "heading_crop": 64, "crop_classes": True, "crop_split": False, "taxonomy": "fine",
+    "kpt_labelled": 1.0, "kpt_turn_start": 0.3, "kpt_heading": True,
+    "heading_gain": 1.0, "heading_crop": 64, "crop_classes": True, "taxonomy": "fine",
     "train_split": "train", "val_split": None, "out_of_image": "learn",
     "augment": {"flip": 0.5, "scale": 0.5, "translate": 0.1, "hsv": (0.015, 0.7, 0.4)}, "workers": 1, "seed": 0,
     "val_every": 50, "save_interval": 60.0, "device": None, "amp": "bf16", "channels_last": None, "weights": None}

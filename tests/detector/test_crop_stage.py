@@ -463,44 +463,25 @@ def test_refined_detections_are_rescored_by_their_crops_class_and_sorted_again()
     assert rescore(torch.tensor([0.25]), torch.tensor([1]), torch.tensor([[0.0, 1.0]])).item() == 0.5
 
 
-def test_rescoring_by_the_anchors_best_score_lets_the_crop_name_the_class():
-    # the same boxes as above: A car 0.9 / van 0.5, B car 0.7, C car 0.4; the crop says 0.8 van.
-    # score_by="object": every class copy of a box combines the crop's p with the box's best head score
+def test_a_single_label_detection_takes_the_class_whose_rescored_score_is_best():
+    # the crop says 0.2 car, 0.8 van; each class's head score at the anchor is rescored by it
     net = CropNet(16, width=8, num_classes=2).eval()
     with torch.no_grad():
         net.out.weight.zero_()
         net.out.bias.zero_()
         net.out.bias[-2:] = torch.tensor([0.0, float(np.log(4.0))])
-    a, b, c = [10.0, 10.0, 50.0, 30.0], [60.0, 5.0, 90.0, 40.0], [5.0, 40.0, 30.0, 60.0]
-    boxes = torch.tensor([a, b, a, c])
-    dets = [Detections(boxes, torch.tensor([0.9, 0.7, 0.5, 0.4]), torch.tensor([0, 0, 1, 0]), torch.rand(4, 8, 3))]
+    a = [10.0, 10.0, 50.0, 30.0]
     images = torch.rand(1, 3, 64, 96)
-    with torch.no_grad():
-        out = refine_detections(net, 16, images, dets, max_refine=2, score_by="object")[0]
-    want = {(0, 1): (0.9 * 0.8) ** 0.5, (0, 0): (0.9 * 0.2) ** 0.5, (1, 0): (0.7 * 0.2) ** 0.5, (2, 0): 0.4}
-    got = {([a, b, c].index(bx), cl): sc for bx, cl, sc in zip(out.boxes.tolist(), out.classes.tolist(),
-                                                             out.scores.tolist())}
-    assert got.keys() == want.keys() and all(abs(got[k] - want[k]) < 1e-5 for k in want)
-    # single-label: the head's best score (car 0.6 here) and the crop's best class (van)
-    single = [Detections(torch.tensor([a]), torch.tensor([0.6]), torch.tensor([0]), torch.rand(1, 8, 3),
-                         class_scores=torch.tensor([[0.6, 0.05]]))]
-    with torch.no_grad():
-        by_class = refine_detections(net, 16, images, single, score_by="class")[0]
-        by_object = refine_detections(net, 16, images, single, score_by="object")[0]
-    assert by_class.classes.tolist() == [0] and abs(by_class.scores.item() - (0.6 * 0.2) ** 0.5) < 1e-5
-    assert by_object.classes.tolist() == [1] and abs(by_object.scores.item() - (0.6 * 0.8) ** 0.5) < 1e-5
-    with pytest.raises(ValueError, match="score_by"):
-        refine_detections(net, 16, images, dets, score_by="box")
-    # score_by="every": each refined box (A, B) once per class, by its best head score; C untouched
-    with torch.no_grad():
-        every = refine_detections(net, 16, images, dets, max_refine=2, score_by="every")[0]
-    want[(1, 1)] = (0.7 * 0.8) ** 0.5  # B's van copy, which the head never gave
-    got = {([a, b, c].index(bx), cl): sc for bx, cl, sc in zip(every.boxes.tolist(), every.classes.tolist(),
-                                                             every.scores.tolist())}
-    assert got.keys() == want.keys() and all(abs(got[k] - want[k]) < 1e-5 for k in want)
-    assert len(every) == 5 and every.scores.tolist() == sorted(every.scores.tolist(), reverse=True)
-    kp = {([a, b, c].index(bx), cl): k for bx, cl, k in zip(every.boxes.tolist(), every.classes.tolist(), every.keypoints)}
-    assert torch.equal(kp[(1, 1)], kp[(1, 0)]) and torch.equal(kp[(2, 0)], dets[0].keypoints[3])
+
+    def single(car: float, van: float) -> Detections:
+        dets = [Detections(torch.tensor([a]), torch.tensor([car]), torch.tensor([0]), torch.rand(1, 8, 3),
+                           class_scores=torch.tensor([[car, van]]))]
+        with torch.no_grad():
+            return refine_detections(net, 16, images, dets)[0]
+    kept = single(0.6, 0.05)  # car sqrt(0.6 * 0.2) = 0.35 beats van sqrt(0.05 * 0.8) = 0.2
+    assert kept.classes.tolist() == [0] and abs(kept.scores.item() - (0.6 * 0.2) ** 0.5) < 1e-5
+    named = single(0.6, 0.3)  # van sqrt(0.3 * 0.8) = 0.49 beats car 0.35: the crop names the class
+    assert named.classes.tolist() == [1] and abs(named.scores.item() - (0.3 * 0.8) ** 0.5) < 1e-5
 
 
 def test_prediction_can_keep_the_heads_scores_of_a_class_naming_stage():

@@ -270,13 +270,17 @@ def test_train_crop_help_does_not_import_torch():
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 
-def test_joint_training_can_build_a_split_stage_and_refuses_one_without_classes(tmp_path, capsys):
+def test_joint_training_builds_one_crop_net_and_the_crop_phase_gives_the_classes_their_own():
+    """Trained with the detector the stage is one CropNet, not told where its crops were cut; the
+    split net and the position come with the second phase (attach_stage)."""
+    from omnigen.detector.crop_stage import CropNet
+    from omnigen.detector.model import KeypointDetector
     from omnigen.detector.train import TrainConfig
 
-    cfg = TrainConfig(dataset="d", out="o", heading_crop=32, crop_classes=True, crop_split=True).model_config(12)
-    assert cfg.crop_split is True and cfg.crop_classes is True
-    with pytest.raises(ValueError, match="crop_split"):  # an experiment's field, no option: the library refuses it
-        TrainConfig(dataset="d", out="o", heading_crop=32, crop_classes=False, crop_split=True).model_config(12)
+    cfg = TrainConfig(dataset="d", out="o", heading_crop=32, crop_classes=True, width=0.0625, depth=0.33
+                      ).model_config(12)
+    assert (cfg.crop_classes, cfg.crop_split, cfg.crop_position) == (True, False, False)
+    assert type(KeypointDetector(cfg).crop_net) is CropNet
 
 
 def test_train_crop_trains_a_stage_without_classes_as_one_net(split_fake_dataset, detector_checkpoint, tmp_path):

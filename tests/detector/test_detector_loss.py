@@ -366,82 +366,27 @@ def test_turn_targets_pick_the_order_the_prediction_fits():
     assert turn_targets(noisy, gt, mask, area).tolist() == [True, True, True]
 
 
-def test_turn_aware_loss_accepts_either_labelling_and_learns_the_turn():
-    """A turn-aware head whose corners are the object turned 180 degrees pays the same corner loss
-    as one that matches it as labelled; the turn logit is what tells them apart, and decode puts
-    the corners back in the labelled order."""
-    from omnigen.detector.outputs import apply_turn
+def test_heading_aware_loss_compares_as_labelled_until_freed_then_up_to_the_turn():
+    """Until the trainer frees the order (turn_free False: the first schedule.kpt_turn_start of the
+    run) a heading-aware head's corners are compared as labelled, so the same points labelled
+    turned pay more or less than as labelled; once freed, either labelling pays the same corner
+    loss (the heading alone says which face is the front)."""
     from omnigen.conventions import TURN_IDX
 
     a = _anchors()[0].shape[0]
-    k = torch.arange(2 * 24 * a, dtype=torch.float32).view(2, 8, 3, a)
-    flipped = apply_turn(k, torch.ones(2, a))
-    assert torch.equal(flipped, k[:, list(TURN_IDX)]) and torch.equal(apply_turn(k, -torch.ones(2, a)), k)
-    out = _head(2, 3, a)
-    out.turn = torch.zeros(2, a, requires_grad=True)
-    loss_fn = DetectionLoss(3, gains=LossGains(box=0, dfl=0, cls=0, kvis=0, kpt=6.0))
-    total, parts = loss_fn(out, _targets())
-    total.backward()
-    assert parts["turn"] == pytest.approx(math.log(2), abs=1e-5)  # logit 0: BCE log 2 whatever the target
-    assert out.turn.grad.abs().sum() > 0 and out.kpt.grad.abs().sum() > 0
-    # without a turn logit there is no turn term and no change to the design's loss
-    plain = _head(2, 3, a)
-    _, plain_parts = loss_fn(plain, _targets())
-    assert plain_parts["turn"] == 0 and plain_parts["kpt"] >= parts["kpt"] - 1e-6
-
-
-def test_turn_aware_model_decodes_in_the_labelled_order():
-    """The turn logit rides in the keypoint branch's 25th channel; decode hands back the same
-    24-value corner layout as before, turned where the logit says so."""
-    from dataclasses import replace
-
-    from omnigen.detector.model import DetectorConfig, KeypointDetector
-    from omnigen.detector.outputs import decode
-    from omnigen.conventions import TURN_IDX
-
-    cfg = DetectorConfig(width=0.0625, depth=0.33, max_channels=64, num_classes=3, kpt_turn=True)
-    model = KeypointDetector(cfg).eval()
-    images = torch.rand(1, 3, 64, 64)
-    with torch.no_grad():
-        for level in model.head.kpt:  # every anchor says "turned"
-            level[-1].weight[24].zero_()
-            level[-1].bias[24] = 5.0
-        out = model(images)
-        assert out.turn is not None and out.turn.shape == (1, out.cls.shape[2]) and out.kpt.shape[1] == 24
-        turned = decode(out)
-        plain = decode(replace(out, turn=None))
-    assert turned.shape == plain.shape == (1, 4 + 3 + 24, out.cls.shape[2])
-    k_t, k_p = turned[:, 7:].view(1, 8, 3, -1), plain[:, 7:].view(1, 8, 3, -1)
-    assert torch.equal(k_t, k_p[:, list(TURN_IDX)]) and not torch.equal(k_t, k_p)
-
-
-def test_free_turn_aware_head_learns_corners_and_turn():
-    """Adam on raw head tensors with a turn logit: corners and the turn both converge (the turn
-    loss falls well below log 2, so its target is consistent from step to step)."""
-    torch.manual_seed(0)
-    a = _anchors()[0].shape[0]
-    out = _head(2, 3, a, kpt_mode="box")
-    out.turn = torch.zeros(2, a, requires_grad=True)
-    _, first_parts, _, parts = _fit(out, DetectionLoss(3, gains=LossGains(kpt_l1=2.0)),
-                                    [out.box, out.cls, out.kpt, out.turn])
-    assert parts["kpt"] < 0.2 * first_parts["kpt"] and parts["kpt_l1"] < 0.3 * first_parts["kpt_l1"]
-    assert parts["turn"] < 0.2 * first_parts["turn"]
-
-
-def test_turn_aware_loss_compares_as_labelled_until_freed():
-    """Before the trainer frees the order (turn_free False) the turn target is 'as labelled' for
-    every positive: a turn logit saying 'turned' pays for it; once freed the same logit is judged
-    against the order the corners fit."""
-    a = _anchors()[0].shape[0]
     loss_fn = DetectionLoss(3, gains=LossGains(box=0, dfl=0, cls=0, kvis=0, kpt=6.0))
     out = _head(2, 3, a)
-    out.turn = torch.full((2, a), 8.0)  # "turned" everywhere, confidently
+    out.kpt = out.kpt.detach() * 10  # layouts spread about the anchor: no object near a tie between the two orders
+    out.heading = torch.randn(2, 3, a, generator=torch.Generator().manual_seed(3))
+    turned = _reordered(out, TURN_IDX)
+    freed, freed_t = loss_fn(out, _targets())[1], loss_fn(turned, _targets())[1]
+    for part in ("kpt", "kpt_l1"):
+        assert float(freed_t[part]) == pytest.approx(float(freed[part]), abs=1e-6)
     loss_fn.turn_free = False
-    _, parts = loss_fn(out, _targets())
-    assert parts["turn"] == pytest.approx(8.0, abs=1e-2)  # BCE(8, 0) = 8 + log(1 + e^-8)
-    loss_fn.turn_free = True
-    _, freed = loss_fn(out, _targets())
-    assert freed["turn"] < parts["turn"] - 0.5  # some positives' corners fit the turned order
+    held, held_t = loss_fn(out, _targets())[1], loss_fn(turned, _targets())[1]
+    assert abs(float(held_t["kpt_l1"]) - float(held["kpt_l1"])) > 1e-3
+    # freed, each object is compared in the order its corners fit better: never worse than as labelled
+    assert float(freed["kpt_l1"]) <= float(held["kpt_l1"]) + 1e-6
 
 
 def _side_view_corners() -> torch.Tensor:
@@ -491,7 +436,7 @@ def test_heading_loss_is_one_minus_cosine_over_objects_with_a_target():
 
 
 def test_heading_aware_loss_targets_do_not_depend_on_the_predicted_order():
-    """The turn logit's target is whichever order the corners fit; the heading's is the labelled
+    """The corners' target order is whichever they fit; the heading's target is the labelled
     corners' own: turning the predicted corners leaves the heading loss as it was."""
     from omnigen.conventions import TURN_IDX
 
@@ -501,7 +446,7 @@ def test_heading_aware_loss_targets_do_not_depend_on_the_predicted_order():
     out.heading = torch.randn(2, 3, a, generator=torch.Generator().manual_seed(3), requires_grad=True)
     total, parts = loss_fn(out, _targets())
     total.backward()
-    assert 0 < parts["heading"] < 2 and out.heading.grad.abs().sum() > 0 and parts["turn"] == 0
+    assert 0 < parts["heading"] < 2 and out.heading.grad.abs().sum() > 0
     turned = _reordered(out, TURN_IDX)
     _, parts_t = loss_fn(turned, _targets())
     assert parts_t["heading"] == pytest.approx(float(parts["heading"]), abs=1e-6)
@@ -524,8 +469,6 @@ def test_heading_aware_model_decodes_in_the_labelled_order():
     from omnigen.detector.model import DetectorConfig, KeypointDetector
     from omnigen.detector.outputs import apply_heading, decode, decode_boxes, head_keypoints
 
-    with pytest.raises(ValueError, match="kpt_turn and kpt_heading"):
-        DetectorConfig(kpt_turn=True, kpt_heading=True)
     cfg = DetectorConfig(width=0.0625, depth=0.33, max_channels=64, num_classes=3, kpt_heading=True)
     model = KeypointDetector(cfg).eval()
     with torch.no_grad():

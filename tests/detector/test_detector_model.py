@@ -213,15 +213,3 @@ def test_onnx_export_matches_pytorch(tmp_path):
         want = model.infer(x).numpy()
     assert got.shape == want.shape
     np.testing.assert_allclose(got, want, atol=1e-4, rtol=1e-4)
-
-
-def test_keypoint_branch_width_is_a_config_field():
-    """kpt_hidden widens the keypoint branch only, is stored with the config, and is checked."""
-    base = tiny().cfg.to_dict()
-    wide = KeypointDetector(DetectorConfig.from_dict({**base, "kpt_hidden": 48}))
-    narrow = KeypointDetector(DetectorConfig.from_dict(base))
-    n = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
-    assert n(wide.head.kpt) > n(narrow.head.kpt) and n(wide.head.box) == n(narrow.head.box)
-    assert wide.head.kpt[0][-1].in_channels == 48 and wide.cfg.to_dict()["kpt_hidden"] == 48
-    with pytest.raises(ValueError, match="kpt_hidden"):
-        DetectorConfig(kpt_hidden=4)

@@ -56,15 +56,14 @@ def test_dynamic_height_and_width(checkpoint, tmp_path):
         assert got.shape[2] == (h // 8) * (w // 8) + (h // 16) * (w // 16) + (h // 32) * (w // 32)
 
 
-@pytest.mark.parametrize("order", ["kpt_turn", "kpt_heading"])
-def test_turn_and_heading_aware_models_export_with_their_decode(order, tmp_path):
-    """The layout's turn (a logit, or the predicted image heading against the layout's own) is
-    decided inside the graph: ONNX Runtime gives PyTorch's corners."""
+def test_heading_aware_models_export_with_their_decode(tmp_path):
+    """The layout's turn (the predicted image heading against the layout's own) is decided inside
+    the graph: ONNX Runtime gives PyTorch's corners."""
     from omnigen.detector.export_onnx import export, max_difference
 
     torch.manual_seed(1)
     cfg = DetectorConfig("n", "c3k2", p2=False, num_classes=2, width=0.0625, depth=0.33, max_channels=64,
-                         **{order: True})
+                         kpt_heading=True)
     model = KeypointDetector(cfg).eval()
     path = tmp_path / "m.onnx"
     export(model, path, 64)

@@ -93,3 +93,28 @@ def test_culling_changes_no_pixel(monkeypatch):
     assert np.array_equal(culled.instance, full.instance)
     assert np.array_equal(culled.depth, full.depth)
     assert len(set(np.unique(full.instance)) - {0}) >= 3
+
+
+def test_drawing_ranges_keeps_no_array_type_per_range_count(noon_raster):
+    """PyOpenGL keeps a handler for every ctypes array type it is given, and (c_void_p * n) is a
+    type of its own for each n: offsets made per draw grew resident memory by every range count a
+    long run met (issue 48). The mesh's one offsets array adds none."""
+    import gc
+
+    from omnigen.camera import Camera, intrinsics_from_fov, look_at
+
+    _, scene, rs = noon_raster
+    camera = Camera(intrinsics_from_fov(math.radians(70), 96, 96), *look_at((0.0, -45.0, 35.0), (0.0, 0.0, 0.0)), 96, 96)
+    rs.render(camera)
+    assert rs.gl.color_builds >= 2  # a colour shader build per surface group drawn (the agents one of them)
+    seen = sorted(rs._ranges)
+    assert len(seen) >= 5
+
+    def handlers() -> int:
+        return sum(type(o).__name__ == "CtypesArrayHandler" for o in gc.get_objects())
+
+    before = handlers()
+    for n in range(1, len(seen) + 1):
+        silhouettes = rs.render_instances(camera, seen[:n])
+        assert set(np.unique(silhouettes)) - {0} <= set(seen[:n])
+    assert handlers() - before <= 1

@@ -1,0 +1,36 @@
+"""Frames drawn ahead in a second process (issue 48) are the frames drawn here: the same agents,
+weather and light (to the byte of their JSON), on this process's city object."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+from omnigen.scenes.description import to_json
+from omnigen.scenes.generate import FrameOverrides, FramesAhead, SceneGenerator
+
+
+def test_a_frame_drawn_ahead_is_the_frame_drawn_here():
+    gen = SceneGenerator("tiny", 6)
+    ahead = FramesAhead(gen)
+    fixed = FrameOverrides(weather="rain", time_of_day="dusk")
+    try:
+        ahead.ask(6, 3)
+        ahead.ask(9, 1, fixed)  # another dataset seed over the same city, weather fixed
+        for seed, index, overrides in ((6, 3, None), (9, 1, fixed)):
+            got, want = ahead.frame(seed, index, overrides), gen.frame(seed, index, overrides)
+            assert got.city is gen.city
+            assert to_json(got) == to_json(want) and got == want
+        assert not ahead._asked
+        # a frame not asked for is drawn here
+        assert to_json(ahead.frame(6, 4)) == to_json(gen.frame(6, 4))
+        # a dead worker: the frame is drawn here, and frames are no longer asked of it
+        for pid in list(ahead._pool._processes):
+            os.kill(pid, signal.SIGKILL)
+        ahead.ask(6, 5)
+        assert to_json(ahead.frame(6, 5)) == to_json(gen.frame(6, 5))
+        assert ahead._pool is None
+        ahead.ask(6, 6)
+        assert to_json(ahead.frame(6, 6)) == to_json(gen.frame(6, 6))
+    finally:
+        ahead.close()
