@@ -11,7 +11,7 @@ the design's 3.57 degrees target is only reachable where this floor lies well be
 
     .venv/bin/python benchmarks/bench_adherence_floor.py runs/validate/uov --split test
 
-The predictions go through `omnigen.detector.oks_eval.evaluate` unchanged (the same matching, priors
+The predictions go through `omnigen.detector.evaluation.oks_eval.evaluate` unchanged (the same matching, priors
 from the train split, lifting and mean), so the figures are comparable to RESULTS.md's. Every
 corner is handed over, in or out of the image, as the model predicts all eight; objects whose
 corners are not all defined (a corner behind the camera) get no prediction.

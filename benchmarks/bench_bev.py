@@ -33,8 +33,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from omnigen.detector.bev import apply_homography, rectify, right_angle_error_deg  # noqa: E402
-from omnigen.detector.bev_synthetic import centre_error_pct, synthetic_frame  # noqa: E402
+from omnigen.detector.bev.homography import apply_homography, rectify, right_angle_error_deg  # noqa: E402
+from omnigen.detector.bev.synthetic import centre_error_pct, synthetic_frame  # noqa: E402
 
 TARGETS = {0.0: (0.5, 1.0), 2.0: (3.0, None)}  # noise px -> (right angle deg, centre % of extent)
 

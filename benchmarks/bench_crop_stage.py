@@ -1,6 +1,6 @@
 """What the crop-heading stage costs: seconds per training step and per predicted image, by crop side.
 
-A crop-heading model (`omnigen train --heading-crop S`, detector/crop_stage.py) runs a small
+A crop-heading model (`omnigen train --heading-crop S`, detector/model/crop_stage.py) runs a small
 CNN on up to MAX_CROPS labelled boxes every training step and, after NMS, on each image's
 MAX_REFINE best detections and their mirror images. That CNN works on S x S crops at full
 resolution in its first block, which on a CPU costs far more than its size suggests (few channels,
@@ -33,15 +33,15 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from omnigen.detector.data import Augment, KeypointDataset  # noqa: E402
-from omnigen.detector.ema import ModelEMA  # noqa: E402
-from omnigen.detector.crop_stage import MAX_CROPS, refine_detections  # noqa: E402
-from omnigen.detector.loss import DetectionLoss  # noqa: E402
-from omnigen.detector.model import DetectorConfig, KeypointDetector  # noqa: E402
-from omnigen.detector.nms import Detections  # noqa: E402
-from omnigen.detector.train import TrainConfig, autocast_dtype, make_optimizer  # noqa: E402
-from omnigen.detector.train_loader import collate_uint8  # noqa: E402
-from omnigen.detector.train_step import TrainStep, to_device  # noqa: E402
+from omnigen.detector.data.samples import Augment, KeypointDataset  # noqa: E402
+from omnigen.detector.training.ema import ModelEMA  # noqa: E402
+from omnigen.detector.model.crop_stage import MAX_CROPS, refine_detections  # noqa: E402
+from omnigen.detector.training.loss import DetectionLoss  # noqa: E402
+from omnigen.detector.model.network import DetectorConfig, KeypointDetector  # noqa: E402
+from omnigen.detector.prediction.nms import Detections  # noqa: E402
+from omnigen.detector.training.train import TrainConfig, autocast_dtype, make_optimizer  # noqa: E402
+from omnigen.detector.data.loader import collate_uint8  # noqa: E402
+from omnigen.detector.training.step import TrainStep, to_device  # noqa: E402
 from omnigen.fakes import write_fake_dataset  # noqa: E402
 from omnigen.taxonomy import load_taxonomy  # noqa: E402
 

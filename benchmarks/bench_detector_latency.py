@@ -26,7 +26,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from omnigen.detector.model import DetectorConfig, InferenceWrapper, KeypointDetector, gflops  # noqa: E402
+from omnigen.detector.model.network import DetectorConfig, InferenceWrapper, KeypointDetector, gflops  # noqa: E402
 
 ANCHORS = Path("/work/shared/anchors")
 ANCHOR_FILES = {

@@ -19,8 +19,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from omnigen.detector.backbones import BACKBONES  # noqa: E402
-from omnigen.detector.model import SCALE_NAMES, DetectorConfig, KeypointDetector, count_parameters, gflops  # noqa: E402
+from omnigen.detector.model.backbones import BACKBONES  # noqa: E402
+from omnigen.detector.model.network import SCALE_NAMES, DetectorConfig, KeypointDetector, count_parameters, gflops  # noqa: E402
 
 LEVELS = {"P3-P5": (False, False), "+P2": (True, False), "+P2+P6": (True, True)}
 

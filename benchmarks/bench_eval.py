@@ -3,8 +3,8 @@
 Three fake sources (synthetic in all three views, kitti, dair-v2x-i; cached in the temp folder)
 are joined in memory into one 10,000-frame dataset, so the per-source and per-view groups all
 exist. Predictions are the ground-truth corners with Gaussian pixel noise, a few dropped objects
-and a few false positives, with random scores. Times `omnigen.detector.oks_eval.evaluate` end to end
-(COCO view, matching, every group, class and size, ground-plane adherence with omnigen.detector.lift): median of
+and a few false positives, with random scores. Times `omnigen.detector.evaluation.oks_eval.evaluate` end to end
+(COCO view, matching, every group, class and size, ground-plane adherence with omnigen.detector.bev.lift): median of
 --repeats runs.
 
     .venv/bin/python benchmarks/bench_eval.py
@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
 from benchmarks.common import fake_dataset  # noqa: E402
-from omnigen.detector.oks_eval import evaluate  # noqa: E402
+from omnigen.detector.evaluation.oks_eval import evaluate  # noqa: E402
 from omnigen.formats.coco import to_coco  # noqa: E402
 from omnigen.dataset import Dataset  # noqa: E402
 from omnigen.tables import FrameTable, ObjectTable  # noqa: E402

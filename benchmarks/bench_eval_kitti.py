@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from omnigen.detector.kitti_eval import CLASSES, METRICS, evaluate_folders  # noqa: E402
+from omnigen.detector.evaluation.kitti_eval import CLASSES, METRICS, evaluate_folders  # noqa: E402
 
 # class, share of objects, (height, width, length) in metres
 KINDS = [("Car", 0.55, (1.5, 1.6, 3.9)), ("Van", 0.06, (2.2, 1.9, 5.1)), ("Truck", 0.02, (3.2, 2.6, 10.0)),

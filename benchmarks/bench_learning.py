@@ -4,7 +4,7 @@ synthetic test split against the box-template baseline.
     .venv/bin/python benchmarks/bench_learning.py runs/validate/uov --steps 2000
     .venv/bin/python benchmarks/bench_learning.py runs/validate/uov loss.kpt_l1=1 crop_stage.steps=0 --steps 400
 
-What is trained is `omnigen train`'s recipe (detector/recipe.py, make validate's), its crop phase
+What is trained is `omnigen train`'s recipe (detector/training/recipe.py, make validate's), its crop phase
 included; a change to compare is given as its KEY=VALUE keys right after the dataset (or a recipe
 file, --recipe), as `omnigen train` takes them.
 
@@ -14,9 +14,9 @@ whatever the machine did meanwhile (the seconds are printed, not compared).
 
 What it prints, for the model (its EMA weights after the last step) and for the box-template
 baseline (each predicted box's corners placed by its class's and view's mean layout from the
-training split, detector/box_template.py): OKS mAP50:95, AP50, ground-plane adherence, and the
+training split, detector/evaluation/box_template.py): OKS mAP50:95, AP50, ground-plane adherence, and the
 median corner error of the box-matched objects in pixels and relative to sqrt(box area)
-(detector/corner_errors.py), on the synthetic test frames and per view. A recipe whose
+(detector/evaluation/corner_errors.py), on the synthetic test frames and per view. A recipe whose
 `corner_error_rel` is not below the baseline's has corners worth no more than the 2D box.
 OKS mAP of a few hundred CPU steps sits near 0 and moves in noise; the corner errors move from
 the first hundred steps on, which is why they are the figure to compare at small budgets.
@@ -87,7 +87,7 @@ def finished(run: Path, cfg: Any, epochs: int) -> dict[str, Any] | None:
     (the same training arguments, its last epoch written), so a rerun only scores it; None when
     the folder has no checkpoint. A checkpoint of other arguments, or one cut off before its end,
     is refused rather than trained over: it may be the only copy of an hour's run."""
-    from omnigen.detector.checkpoint import load_checkpoint
+    from omnigen.detector.model.checkpoint import load_checkpoint
 
     path = run / "last.pt"
     if not path.exists():
@@ -119,23 +119,23 @@ def run_name(args: argparse.Namespace, recipe: Any) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     from benchmarks.validate import fmt
-    from omnigen.detector.box_template import evaluate_with_baseline
-    from omnigen.detector.corner_order import corner_order_counts
-    from omnigen.detector.loss import PARTS
-    from omnigen.detector.predict import predict_dataset
-    from omnigen.detector.train import TrainConfig, train
+    from omnigen.detector.evaluation.box_template import evaluate_with_baseline
+    from omnigen.detector.evaluation.corner_order import corner_order_counts
+    from omnigen.detector.training.loss import PARTS
+    from omnigen.detector.prediction.predict import predict_dataset
+    from omnigen.detector.training.train import TrainConfig, train
     from omnigen.dataset import Dataset
     from omnigen.splits import read_split
 
-    from omnigen.detector.recipe import RECIPE, read_recipe, train_fields, with_overrides
+    from omnigen.detector.training.recipe import RECIPE, read_recipe, train_fields, with_overrides
 
     recipe = with_overrides(read_recipe(args.recipe) if args.recipe else RECIPE, args.overrides)
     fields = train_fields(recipe)
     frames = len(read_split(args.dataset, "train"))
     if fields["repeat_thresh"]:  # an epoch draws more frames: count them as train does, so --steps stays the steps trained
-        from omnigen.detector.balance import epoch_frames
-        from omnigen.detector.data import KeypointDataset, split_frames
-        from omnigen.detector.train import frame_repeats
+        from omnigen.detector.data.balance import epoch_frames
+        from omnigen.detector.data.samples import KeypointDataset, split_frames
+        from omnigen.detector.training.train import frame_repeats
         from omnigen.taxonomy import load_taxonomy
 
         split = KeypointDataset(args.dataset, load_taxonomy(fields["taxonomy"]), fields["imgsz"],

@@ -5,13 +5,13 @@
   clipping and an Adam step, on a real batch (a fake dataset's frames through the training loader).
   `--loop` also times the training loop's own per-step work as `omnigen train` did it before issue
   24 (EMA through two state_dict() walks, float32 images out of the loader) against what it does
-  now (detector/train_step.py: fused foreach EMA, uint8 batch converted where the step runs), in
+  now (detector/training/step.py: fused foreach EMA, uint8 batch converted where the step runs), in
   float32 and with channels-last activations. `--overfit` also prints what bf16 costs in
   precision: the overfit check of the test suite (a tiny model, four raster frames of the tiny
   city at 256x192, 700 Adam steps on one thread) trained in each precision, with its final losses
   and OKS mAP50:95 on those frames.
 - `throughput`: where the time of a run goes, in images/s: the loader alone (the run's own loader,
-  detector/train_loader.py, iterated without training: in total, per worker process, and what one
+  detector/data/loader.py, iterated without training: in total, per worker process, and what one
   process makes without a loader, the most a worker can give), the step alone (on one batch already
   on the device, repeated) and end to end (the loader feeding the step, as `omnigen train` runs
   it). End to end near the step alone means the device is the limit; near the loader alone, the
@@ -56,13 +56,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from omnigen.detector.data import Augment, KeypointDataset, collate, split_frames  # noqa: E402
-from omnigen.detector.ema import ModelEMA  # noqa: E402
-from omnigen.detector.loss import DetectionLoss  # noqa: E402
-from omnigen.detector.model import DetectorConfig, KeypointDetector  # noqa: E402
-from omnigen.detector.train import TrainConfig, autocast_dtype, fast_bf16, make_optimizer  # noqa: E402
-from omnigen.detector.train_loader import PREFETCH, EpochBatches, collate_uint8, make_loader  # noqa: E402
-from omnigen.detector.train_step import PartSums, TrainStep, to_device, use_channels_last  # noqa: E402
+from omnigen.detector.data.samples import Augment, KeypointDataset, collate, split_frames  # noqa: E402
+from omnigen.detector.training.ema import ModelEMA  # noqa: E402
+from omnigen.detector.training.loss import DetectionLoss  # noqa: E402
+from omnigen.detector.model.network import DetectorConfig, KeypointDetector  # noqa: E402
+from omnigen.detector.training.train import TrainConfig, autocast_dtype, fast_bf16, make_optimizer  # noqa: E402
+from omnigen.detector.data.loader import PREFETCH, EpochBatches, collate_uint8, make_loader  # noqa: E402
+from omnigen.detector.training.step import PartSums, TrainStep, to_device, use_channels_last  # noqa: E402
 from omnigen.options import integer, number  # noqa: E402
 from omnigen.taxonomy import load_taxonomy  # noqa: E402
 
@@ -182,7 +182,7 @@ def legacy_step(model: torch.nn.Module, float_batch: tuple) -> Callable[[], None
 
 
 def current_step(model: torch.nn.Module, uint8_batch: tuple, channels_last: bool) -> Callable[[], None]:
-    """One step of the loop as detector/train_step.py runs it now."""
+    """One step of the loop as detector/training/step.py runs it now."""
     step = TrainStep(model, model, DetectionLoss(model.cfg.num_classes), make_optimizer(TrainConfig(dataset="", out=""), model),
                      torch.amp.GradScaler("cpu", enabled=False), ModelEMA(model, 0.9999, 2000.0), None)
     sums = PartSums()
@@ -223,8 +223,8 @@ def loop(args: argparse.Namespace, cfg: DetectorConfig, samples: list) -> None:
 def overfit() -> None:
     """The test suite's overfit run (test_tiny_model_overfits_four_rendered_frames) in both precisions."""
     from omnigen.cli import main as omnigen
-    from omnigen.detector.checkpoint import plain_branch
-    from omnigen.detector.train import train
+    from omnigen.detector.model.checkpoint import plain_branch
+    from omnigen.detector.training.train import train
 
     torch.set_num_threads(1)  # as the test: the trajectory then does not depend on the thread count
     with tempfile.TemporaryDirectory() as tmp:

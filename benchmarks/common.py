@@ -230,7 +230,7 @@ class Need:
 NEEDS: tuple[Need, ...] = (
     Need("orjson", "orjson", "omnigen/files.py, omnigen/formats/coco.py, detector/eval_command.py"),
     Need("shapely", "shapely", "omnigen/geometry.py, scenes/layout.py, rigs/sampling.py"),
-    Need("pycocotools", "pycocotools", "detector/oks_eval.py"),
+    Need("pycocotools", "pycocotools", "detector/evaluation/oks_eval.py"),
     Need("trimesh", "trimesh", "scenes/meshes.py, scenes/assets"),
     Need("OpenEXR", "OpenEXR", "rigs/render.py: depth images"),
     Need("PyOpenGL", "OpenGL", "scenes/gl_raster.py: every GL call"),
@@ -276,7 +276,7 @@ def floor_rows(ds: Dataset, split: str | None, noises: list[float], seed: int) -
     on the synthetic frames (the targets' rows) and per view."""
     import numpy as np
 
-    from omnigen.detector.oks_eval import evaluate
+    from omnigen.detector.evaluation.oks_eval import evaluate
     from omnigen.taxonomy import recorded_taxonomy
 
     taxonomy = recorded_taxonomy(ds.manifest)

@@ -37,7 +37,7 @@ from benchmarks.common import Runner, fmt, metric_row, stale, synthetic_row, usa
 
 MODEL_YAML = "yolo11n-pose.yaml"
 MODEL = "YOLO11n-pose"
-EVAL_CONF = 0.001  # as omnigen.detector.predict.EVAL_CONF: AP integrates over the whole score range
+EVAL_CONF = 0.001  # as omnigen.detector.prediction.predict.EVAL_CONF: AP integrates over the whole score range
 MAX_DETECTIONS = 1000  # as our evaluation's predictions
 
 
@@ -49,7 +49,7 @@ def _numpy(x: Any):
 
 
 def ultralytics_detections(result: Any) -> dict[str, Any]:
-    """One Ultralytics pose `Results` as omnigen.detector.predict's detections: boxes x1 y1 x2 y2, scores,
+    """One Ultralytics pose `Results` as omnigen.detector.prediction.predict's detections: boxes x1 y1 x2 y2, scores,
     0-based classes, keypoints (N, 8, 3) x y and the corner's confidence, in our pixel convention.
 
     Ultralytics measures pixels from the image's top-left corner, our pixel centres are integers
@@ -73,7 +73,7 @@ def ultralytics_detections(result: Any) -> dict[str, Any]:
 def coco_predictions(results: list[Any], frame_index: dict[str, int]) -> list[dict[str, Any]]:
     """Ultralytics results over exported test images (named `<frame_id>.<ext>`) as COCO results
     for `omnigen eval`: image ids as omnigen.formats.coco gives them (1-based frame order), plus frame_id."""
-    from omnigen.detector.predict import coco_results
+    from omnigen.detector.prediction.predict import coco_results
 
     out = []
     for r in results:

@@ -10,7 +10,7 @@ midway (a kill, a time-boxed job) goes on from its last checkpoint, the time of 
 counted (`--fresh` starts over; a working folder rendered with other data arguments is refused
 rather than silently reused).
 
-What is trained is `omnigen train`'s own recipe (detector/recipe.py): this script passes the data
+What is trained is `omnigen train`'s own recipe (detector/training/recipe.py): this script passes the data
 and the budget, never a recipe value (`--recipe FILE` and `--set KEY=VALUE` change it, as they do
 train's). Its defaults fit a 2-core CPU: 600 raster frames at 640 x 640, training on random
 320 x 320 windows of the 640-pixel input (data.window: a step costs what a 320-pixel input costs
@@ -53,8 +53,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks import common  # noqa: E402
 from benchmarks.common import floor_rows, fmt, mentions, stale, synthetic_row  # noqa: E402, F401  (tests read mentions here)
-from omnigen.detector.oks_eval import SIZE_BINS  # noqa: E402
-from omnigen.detector.recipe import RECIPE, RUN, Recipe, read_recipe, train_fields, with_overrides  # noqa: E402
+from omnigen.detector.evaluation.oks_eval import SIZE_BINS  # noqa: E402
+from omnigen.detector.training.recipe import RECIPE, RUN, Recipe, read_recipe, train_fields, with_overrides  # noqa: E402
 from omnigen.files import atomic_write_json, atomic_write_text, file_digest  # noqa: E402
 
 if TYPE_CHECKING:
@@ -171,8 +171,8 @@ def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
     old evaluation (OUT/eval.json) goes: a changed evaluation protocol, or predictions deleted to
     redo them, must not leave old figures standing.
     """
-    from omnigen.detector.crop_stage import MAX_REFINE
-    from omnigen.detector.predict import EVAL_CONF, EVAL_MAX_DET
+    from omnigen.detector.model.crop_stage import MAX_REFINE
+    from omnigen.detector.prediction.predict import EVAL_CONF, EVAL_MAX_DET
 
     preds, predicted = out / "test-predictions.json", out / "predicted"
     weights = weights or out / "last.pt"
@@ -206,7 +206,7 @@ def default_amp(device: str | None) -> str:
     """bf16 when training runs on a CPU with native bf16 (the 2-core default), else train's auto."""
     import torch
 
-    from omnigen.detector.train import fast_bf16
+    from omnigen.detector.training.train import fast_bf16
 
     on_cpu = device == "cpu" if device else not torch.cuda.is_available()
     return "bf16" if on_cpu and fast_bf16(torch.device("cpu")) else "auto"
@@ -351,7 +351,7 @@ def run_recipe(args: argparse.Namespace, keys: list[str] = ()) -> Recipe:
 def check_recipe(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Refuse, before any data stage, a recipe `omnigen train` would refuse at training: an unknown
     key, a value of the wrong type or range, sampling settings train's own check refuses."""
-    from omnigen.detector.train import TrainConfig, check_sampling, check_sizes
+    from omnigen.detector.training.train import TrainConfig, check_sampling, check_sizes
 
     try:
         fields = train_fields(run_recipe(args))
@@ -366,7 +366,7 @@ def train_command(args: argparse.Namespace, dataset: Path, out: Path, keys: list
                   options: list[str] = ()) -> list[str]:
     """`omnigen train` of one run: the dataset, the recipe (--recipe, --set and the run's `keys`),
     and validate's budget and machine settings; nothing of the recipe's own values, which train
-    takes from detector/recipe.py."""
+    takes from detector/training/recipe.py."""
     recipe = ["--recipe", str(args.recipe)] if args.recipe else []
     return ["train", str(dataset), *args.set, *keys, "--out", str(out), *recipe, "--epochs", str(args.epochs),
             "--workers", str(args.workers), "--seed", str(args.seed), "--val-every", str(args.val_every),
@@ -401,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"validate: the dataset is {uov} (--data-only: no training)")
         return 0
 
-    from omnigen.detector.corner_order import corner_order_counts
+    from omnigen.detector.evaluation.corner_order import corner_order_counts
     from omnigen.dataset import Dataset
 
     uov_ds = Dataset.open(uov, show_progress=False)  # read once: the heading table and the object sizes
@@ -410,9 +410,9 @@ def main(argv: list[str] | None = None) -> int:
     def train_eval(name: str, keys: list[str], dataset: Path = uov, options: list[str] = ()) -> dict[str, Any]:
         out = work / "runs" / name
         t = train_stage(run, train_command(args, dataset, out, keys, options), out)
-        from omnigen.detector.checkpoint import load_checkpoint
-        from omnigen.detector.data import split_frames
-        from omnigen.detector.predict import EVAL_MAX_DET, EVAL_MULTI_LABEL, predict_dataset
+        from omnigen.detector.model.checkpoint import load_checkpoint
+        from omnigen.detector.data.samples import split_frames
+        from omnigen.detector.prediction.predict import EVAL_MAX_DET, EVAL_MULTI_LABEL, predict_dataset
 
         # last.pt, not best.pt: without a val split, train validates on the test split, and
         # choosing the checkpoint by its test score would flatter the number reported here. It
@@ -466,7 +466,7 @@ def main(argv: list[str] | None = None) -> int:
 
     bev_dir = work / "bev"
     # one detection a box: the evaluation's class copies would stand twice on the map
-    from omnigen.detector.predict import one_label_per_box
+    from omnigen.detector.prediction.predict import one_label_per_box
 
     predictions = work / "runs" / "n-p2" / "bev-predictions.json"
     atomic_write_text(predictions, json.dumps(one_label_per_box(json.loads(
@@ -580,7 +580,7 @@ def size_table(r: dict[str, Any]) -> list[str]:
     objects = {b: next((by[b]["objects"] for by in rows.values() if b in by), "-") for b in names}
     lines = ["## By object size, every run", "",
              "Over the whole test split; size is the square root of the 2D box area in pixels, in bins",
-             "evaluated as pycocotools' own area ranges (detector/oks_eval.py). Each cell: mAP50:95 / AP50.",
+             "evaluated as pycocotools' own area ranges (detector/evaluation/oks_eval.py). Each cell: mAP50:95 / AP50.",
              "",
              "| run | " + " | ".join(f"{b}: {label[b]} px ({objects[b]} objects)" for b in names) + " |",
              "|---|" + "---|" * len(names)]
@@ -593,7 +593,7 @@ def size_table(r: dict[str, Any]) -> list[str]:
 def validated_on(dataset: Path, train_args: list[str], merged: Path) -> str:
     """The split a run's periodic validation read, as train resolves it (--val-split, else val,
     else test); named with its dataset when that is not `merged`, whose test split the tables use."""
-    from omnigen.detector.train import resolve_val_split
+    from omnigen.detector.training.train import resolve_val_split
 
     given = train_args[train_args.index("--val-split") + 1] if "--val-split" in train_args else None
     split = resolve_val_split(str(dataset), given) or "all"
@@ -836,7 +836,7 @@ def results_markdown(r: dict[str, Any]) -> str:
               "",
               "Each test object is matched to the best-scoring prediction (score >= 0.2) whose 2D box",
               "overlaps its own by IoU >= 0.5, blind to the corners; then the order of the eight corners",
-              "that brings the prediction closest is counted (detector/corner_order.py). `turned 180`",
+              "that brings the prediction closest is counted (detector/evaluation/corner_order.py). `turned 180`",
               "means front and rear swapped: the object was found, its heading was not.",
               "",
               "| run | matched objects | unmatched | as labelled | turned 180 | mirrored | turned +90 | turned -90 |",

@@ -2,7 +2,7 @@
 
 PREDICTIONS is COCO-results JSON: a list of {image_id, category_id, keypoints (24 numbers: x, y, v
 per corner, contract order), bbox [x, y, w, h], score}. Detections whose ground-contact corners 4-7
-all have v > 0 define the image's homography (omnigen.detector.bev.rectify); the others, and entries with
+all have v > 0 define the image's homography (omnigen.detector.bev.homography.rectify); the others, and entries with
 no keypoints at all (an auxiliary 2D detector's), are placed in the BEV by the ridge map fitted on
 the image's keypoint detections. Per image it writes DIR/<image_id>.json and DIR/<image_id>.png.
 
@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from omnigen.detector.results_file import read_results
-from omnigen.detector.bev import RIDGE_LAMBDA, apply_homography, fit_ridge, rectify
+from omnigen.detector.prediction.results_file import read_results
+from omnigen.detector.bev.homography import RIDGE_LAMBDA, apply_homography, fit_ridge, rectify
 from omnigen.conventions import BOTTOM_CORNERS, NUM_KEYPOINTS
 from omnigen.options import fraction, number
 
@@ -189,7 +189,7 @@ def draw_image(out: dict[str, Any], image_id: int | str, images: Path | None,
                file_name: str | None = None) -> tuple[Any, str | None]:
     """One image's BEV figure (a PIL image), and why its picture is not under it (None when it is,
     or when there is none to draw). Raises ValueError when the figure would be too large to draw."""
-    from omnigen.detector.bev_draw import BevScene, render_bev_figure
+    from omnigen.detector.bev.draw import BevScene, render_bev_figure
     from omnigen.images import ImageError, read_rgb
 
     path = find_image(images, image_id, file_name)

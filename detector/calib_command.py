@@ -1,7 +1,7 @@
 """How much metric 3D depends on the intrinsics given to the lifting.
 
 The keypoint detector never sees K; K enters only when predicted corners are lifted to metric
-boxes (detector/lift.py). This command lifts the same predictions with K perturbed (focal length
+boxes (detector/bev/lift.py). This command lifts the same predictions with K perturbed (focal length
 x0.98, x0.95, x0.90; principal point shifted by +50 px in x, then in y), writes KITTI label
 folders of the ground truth and of each lift, and reports KITTI AP (BEV, 3D) for each, beside the
 keypoint metrics, which are identical by construction (the 2D predictions do not change).
@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from omnigen.detector.results_file import read_results
+from omnigen.detector.prediction.results_file import read_results
 from omnigen.conventions import FINE_CLASSES, NUM_KEYPOINTS
 from omnigen.dataset import Dataset
 from omnigen.files import atomic_write_bytes
@@ -35,7 +35,7 @@ from omnigen.taxonomy import Taxonomy, load_taxonomy
 JOB = "calib-sensitivity"
 
 if TYPE_CHECKING:  # the lift (and cv2 with it) is imported where it is used, not when `omnigen --help` builds the parser
-    from omnigen.detector.lift import DimensionPriors
+    from omnigen.detector.bev.lift import DimensionPriors
 
 
 @dataclass(frozen=True)
@@ -176,7 +176,7 @@ class LiftSummary:
 def lift_frames(ds: Dataset, frames: list[int], preds: dict[int, FramePredictions], priors: DimensionPriors,
                 perturbation: Perturbation) -> LiftSummary:
     """Lift every frame's predictions with K perturbed; detections in frame order."""
-    from omnigen.detector.lift import ground_adherence_deg, lift_keypoints, to_kitti_lines
+    from omnigen.detector.bev.lift import ground_adherence_deg, lift_keypoints, to_kitti_lines
 
     lines, depth, adherence = {}, [], []
     for f in frames:
@@ -280,7 +280,7 @@ def select_frames(ds: Dataset, split: str, views: str, sources: str) -> list[int
 def load_priors(ds: Dataset, path: Path | None) -> tuple[DimensionPriors, str]:
     """Priors from a file, else the train split's medians, else (no train split) the fixed priors
     of omnigen/priors.py: never the evaluated frames' own sizes."""
-    from omnigen.detector.lift import DimensionPriors, fit_dimension_priors
+    from omnigen.detector.bev.lift import DimensionPriors, fit_dimension_priors
 
     if path is not None:
         try:
@@ -305,10 +305,10 @@ def _ap(result: dict, metric: str, cls: str = "Car") -> float | None:
 
 
 def keypoint_metrics_of(args: argparse.Namespace, ds: Dataset, taxonomy: Taxonomy) -> dict[str, Any] | None:
-    """OKS mAP50:95 and AP at OKS 0.5 of the same predictions (detector/oks_eval.py), for the
+    """OKS mAP50:95 and AP at OKS 0.5 of the same predictions (detector/evaluation/oks_eval.py), for the
     evaluated view when one is selected, else over the split; None where oks_eval is absent."""
     try:
-        from omnigen.detector.oks_eval import evaluate as oks_evaluate
+        from omnigen.detector.evaluation.oks_eval import evaluate as oks_evaluate
     except ImportError:
         return None
     predictions = read_results(args.predictions)
@@ -337,7 +337,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"{args.dataset}: no frame of split {args.split!r} with views {args.views} and sources "
                          f"{args.sources} (try --views all)")
     try:
-        from omnigen.detector.kitti_eval import evaluate_folders
+        from omnigen.detector.evaluation.kitti_eval import evaluate_folders
     except ImportError as exc:
         print(f"KITTI AP unavailable ({exc}); reporting the lift only")
         evaluate_folders = None

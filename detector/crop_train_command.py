@@ -1,8 +1,8 @@
-"""Train a detector's crop stage apart from it, on clean crops of the labelled objects (detector/crop_train.py).
+"""Train a detector's crop stage apart from it, on clean crops of the labelled objects (detector/training/crop_train.py).
 
     omnigen train-crop runs/uov --weights runs/n-p2/last.pt --out runs/n-p2/crop.pt
 
-`omnigen train` does this as its second phase, with the recipe's crop_stage keys (detector/recipe.py,
+`omnigen train` does this as its second phase, with the recipe's crop_stage keys (detector/training/recipe.py,
 whose values are these options' defaults); this command runs that phase alone, again. OUT is the
 detector's checkpoint with its crop stage (corners, front and, by default, classes)
 replaced by one trained here: `omnigen predict`, `eval` and `bev` take it as they take the
@@ -21,8 +21,8 @@ from omnigen.options import fraction, integer, number, seed
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from omnigen.detector.crop_train_config import CropTrainConfig  # plain data: no torch for --help
-    from omnigen.detector.recipe import RECIPE
+    from omnigen.detector.training.crop_train_config import CropTrainConfig  # plain data: no torch for --help
+    from omnigen.detector.training.recipe import RECIPE
 
     p.add_argument("dataset", help="UrbanOmniView dataset folder (splits from omnigen merge)")
     p.add_argument("--weights", required=True, help="the detector's checkpoint (best.pt or last.pt of omnigen train)")
@@ -62,12 +62,12 @@ def run(args: argparse.Namespace) -> int:
 
     import torch
 
-    from omnigen.detector.checkpoint import checkpoint_taxonomy, detector_config, load_checkpoint, save_checkpoint
-    from omnigen.detector.crop_train import (attach_stage, cut_sets, detector_stage, new_stage, score_stage,
+    from omnigen.detector.model.checkpoint import checkpoint_taxonomy, detector_config, load_checkpoint, save_checkpoint
+    from omnigen.detector.training.crop_train import (attach_stage, cut_sets, detector_stage, new_stage, score_stage,
                                              stage_progress, stage_record, train_stage)
-    from omnigen.detector.crop_train_config import CropTrainConfig
-    from omnigen.detector.predict import trained_imgsz
-    from omnigen.detector.train import resolve_val_split
+    from omnigen.detector.training.crop_train_config import CropTrainConfig
+    from omnigen.detector.prediction.predict import trained_imgsz
+    from omnigen.detector.training.train import resolve_val_split
     from omnigen.files import file_digest
     from omnigen.outputs import refuse_inputs
     from omnigen.progress import print_table

@@ -5,8 +5,8 @@
 
 A .json argument is a list of predictions in COCO-results form (image_id or frame_id,
 category_id, keypoints: 24 numbers, score, bbox); a .pt argument is a checkpoint, run first over the
-split by omnigen.detector.predict. The metrics and their choices are documented in omnigen.detector.oks_eval and
-omnigen.detector.corner_errors; `--baseline` also scores the box-template baseline (omnigen.detector.box_template:
+split by omnigen.detector.prediction.predict. The metrics and their choices are documented in omnigen.detector.evaluation.oks_eval and
+omnigen.detector.evaluation.corner_errors; `--baseline` also scores the box-template baseline (omnigen.detector.evaluation.box_template:
 the same boxes, corners placed by the training split's mean layouts) and prints it beside the model.
 
 `--out` is a new file or one eval wrote before (its first key is "omnigen": "eval"); the
@@ -26,10 +26,10 @@ import orjson
 
 from omnigen.detector.predict_command import BATCH_MAX, IMGSZ_STEP, input_size
 from omnigen.options import integer
-from omnigen.detector.recipe import RECIPE
+from omnigen.detector.training.recipe import RECIPE
 
 if TYPE_CHECKING:
-    from omnigen.detector.oks_eval import EvalReport
+    from omnigen.detector.evaluation.oks_eval import EvalReport
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -63,7 +63,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def load_predictions(path: Path) -> list[dict[str, Any]]:
     """A predictions file; unreadable or non-list content is an error naming the file."""
-    from omnigen.detector.results_file import read_results
+    from omnigen.detector.prediction.results_file import read_results
 
     return read_results(path)
 
@@ -74,8 +74,8 @@ def _cell(v: float) -> float | str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from omnigen.detector.box_template import evaluate_with_baseline, fit_box_template, training_frames
-    from omnigen.detector.oks_eval import evaluate
+    from omnigen.detector.evaluation.box_template import evaluate_with_baseline, fit_box_template, training_frames
+    from omnigen.detector.evaluation.oks_eval import evaluate
     from omnigen.dataset import Dataset, DatasetError
     from omnigen.outputs import check_output_file, json_made_by, write_output_file
     from omnigen.progress import print_table
@@ -97,8 +97,8 @@ def run(args: argparse.Namespace) -> int:
         elif suffix == ".pt":
             if not args.predictions.exists():
                 raise ValueError(f"{args.predictions}: no such checkpoint")
-            from omnigen.detector.checkpoint import checkpoint_taxonomy
-            from omnigen.detector.predict import load_for_prediction, predict_split
+            from omnigen.detector.model.checkpoint import checkpoint_taxonomy
+            from omnigen.detector.prediction.predict import load_for_prediction, predict_split
 
             model, state = load_for_prediction(args.predictions, args.device)
             if args.taxonomy is None:  # the classes the model was trained on

@@ -1,6 +1,6 @@
 """KITTI AP (2D, BEV, 3D; R40 and R11) of KITTI label folders.
 
-The numbers follow the official devkit (see omnigen.detector.kitti_eval for every rule); the JSON holds
+The numbers follow the official devkit (see omnigen.detector.evaluation.kitti_eval for every rule); the JSON holds
 {"omnigen": "eval-kitti", "AP40": {class: {"bbox": [easy, moderate, hard], "bev": [...], "3d": [...]}},
 "AP11": {...}} in percent. Its first key marks it as this command's: a rerun replaces it, any other
 file at --out is refused (omnigen.outputs).
@@ -28,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from omnigen.detector.kitti_eval import CLASSES, DIFFICULTIES, METRICS, evaluate, read_folders, read_ids
+    from omnigen.detector.evaluation.kitti_eval import CLASSES, DIFFICULTIES, METRICS, evaluate, read_folders, read_ids
     from omnigen.outputs import MARK_KEY, check_output_file, json_made_by, write_output_file
     from omnigen.progress import print_table
 

@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 from omnigen.options import fraction, integer
-from omnigen.detector.recipe import RECIPE
+from omnigen.detector.training.recipe import RECIPE
 
 IMGSZ_STEP = 32
 """--imgsz must be a multiple of this, the largest stride of a model without P6 (a P6 model's 64 is
@@ -80,9 +80,9 @@ def overlay_names(files: list[Path]) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from omnigen.detector.checkpoint import load_model
-    from omnigen.detector.overlay import draw_detections
-    from omnigen.detector.predict import PredictOptions, coco_results, image_files, predict_images, trained_imgsz
+    from omnigen.detector.model.checkpoint import load_model
+    from omnigen.detector.prediction.overlay import draw_detections
+    from omnigen.detector.prediction.predict import PredictOptions, coco_results, image_files, predict_images, trained_imgsz
     from omnigen.files import atomic_write_bytes
     from omnigen.outputs import refuse_inputs, save_image
     from omnigen.progress import print_table, progress

@@ -4,7 +4,7 @@
     omnigen train runs/uov loss.kpt_l1=1.5 data.window=0 --out runs/b   # recipe keys changed
     omnigen train runs/uov --recipe runs/n-p2/recipe.json --out runs/c  # an earlier run's recipe
 
-What is learned is the recipe (detector/recipe.py): its defaults are the model docs/RESULTS.md
+What is learned is the recipe (detector/training/recipe.py): its defaults are the model docs/RESULTS.md
 validates, trained in two phases, the detector and then its crop stage apart on clean crops. Its
 keys are changed as KEY=VALUE words (listed at the end of --help), or read from a
 recipe file (`--recipe`, such as the RUN/recipe.json every run writes), the keys given applied over
@@ -43,7 +43,7 @@ class KeysAnywhere(argparse.ArgumentParser):
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from omnigen.detector.recipe import RUN, describe
+    from omnigen.detector.training.recipe import RUN, describe
 
     p.__class__ = type("TrainParser", (KeysAnywhere, type(p)), {})
     # the keys' list keeps its lines (cli's HelpFormatter would fill them into one paragraph)
@@ -62,7 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="epochs of the detector's schedule (an upper bound under --time)")
     p.add_argument("--time", type=number(0.0, 1e6, lo_open=True), default=RUN.time_minutes, metavar="MINUTES",
                    help="wall-clock budget of the whole run: the detector's schedule is fitted to the epochs that fit "
-                        "in its share, the crop stage's steps to what is left (detector/time_budget.py)")
+                        "in its share, the crop stage's steps to what is left (detector/training/time_budget.py)")
     p.add_argument("--val-every", type=integer(0, 100_000), default=RUN.val_every,
                    help="validate every N epochs (and after the last); 0: never")
     p.add_argument("--device", default=RUN.device, help="cpu, cuda, cuda:1 (default: cuda when present)")
@@ -93,8 +93,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def config_of(args: argparse.Namespace) -> Any:
     """The TrainConfig of the command line: the recipe (--recipe, else the validated one) with the
     KEY=VALUE overrides, and the run's settings from the options."""
-    from omnigen.detector.recipe import RECIPE, read_recipe, train_fields, with_overrides
-    from omnigen.detector.train import TrainConfig
+    from omnigen.detector.training.recipe import RECIPE, read_recipe, train_fields, with_overrides
+    from omnigen.detector.training.train import TrainConfig
 
     recipe = with_overrides(read_recipe(args.recipe) if args.recipe else RECIPE, args.overrides)
     return TrainConfig(dataset=str(args.dataset), out=str(args.out), **train_fields(recipe), epochs=args.epochs,
@@ -104,7 +104,7 @@ def config_of(args: argparse.Namespace) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    from omnigen.detector.train import train
+    from omnigen.detector.training.train import train
     from omnigen.progress import print_table
 
     cfg = config_of(args)

@@ -49,7 +49,7 @@ BOTTOM_CORNERS = (4, 5, 6, 7)
 FRONT_CORNERS = (0, 1, 4, 5)
 REAR_CORNERS = (2, 3, 6, 7)
 """The front and rear faces' corners; each rear corner is its front corner turned (TURN_IDX), slot
-for slot, so sums over the two run in the same order (detector/heading.py's exact antisymmetry)."""
+for slot, so sums over the two run in the same order (detector/model/heading.py's exact antisymmetry)."""
 
 FLIP_IDX: tuple[int, ...] = (1, 0, 3, 2, 5, 4, 7, 6)
 """Permutation of the corners under a horizontal image flip (left and right swap)."""

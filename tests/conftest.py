@@ -27,8 +27,8 @@ TINY = dict(width=0.0625, depth=0.33, max_channels=64)
 def _save_checkpoint(path: Path, heading_crop: int, crop_classes: bool = False) -> Path:
     import torch
 
-    from omnigen.detector.checkpoint import save_checkpoint
-    from omnigen.detector.model import DetectorConfig, KeypointDetector
+    from omnigen.detector.model.checkpoint import save_checkpoint
+    from omnigen.detector.model.network import DetectorConfig, KeypointDetector
     from omnigen.taxonomy import load_taxonomy
 
     torch.manual_seed(0)

@@ -8,7 +8,7 @@ only say upright boxes in a level camera; for pitched cameras the rule is box_to
 location = centre + (0, h/2, 0) along the camera's y (so KITTI tools get the true centre back),
 rotation_y = the heading of the box's forward axis projected onto the camera's x-z plane; the tilt
 is lost. Why one module: the converter (converters/kitti.py) reads KITTI, the exporter
-(converters/kitti_export.py) and the detector's metric-3D labels (detector/lift.py,
+(converters/kitti_export.py) and the detector's metric-3D labels (detector/bev/lift.py,
 detector/calib_command.py) write it, and all of them must agree. Every choice:
 docs/converters-kitti.md.
 """

@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
 from benchmarks.bench_learning import main  # noqa: E402
-from omnigen.detector.checkpoint import load_checkpoint  # noqa: E402
+from omnigen.detector.model.checkpoint import load_checkpoint  # noqa: E402
 from omnigen.fakes import write_fake_dataset  # noqa: E402
 from omnigen.splits import write_split  # noqa: E402
 

@@ -197,7 +197,7 @@ def _fake_result(path: Path, labels: np.ndarray, width: int, height: int) -> Sim
 
 
 def test_ultralytics_predictions_become_our_coco_results_exactly(tmp_path):
-    from omnigen.detector.oks_eval import evaluate
+    from omnigen.detector.evaluation.oks_eval import evaluate
     from omnigen.dataset import Dataset
     from omnigen.fakes import write_fake_dataset
     from omnigen.splits import write_split
@@ -266,6 +266,6 @@ def test_the_gpu_recipe_is_make_validates():
     args = gpu_validate.parse_args(["--work", "w", "--device", "cuda"])
     argv = gpu_validate.train_arguments(Path("uov"), Path("run"), args)
     assert argv[:3] == ["train", "uov", "--out"] and not any("=" in a for a in argv)
-    from omnigen.detector.recipe import RECIPE
+    from omnigen.detector.training.recipe import RECIPE
 
     assert gpu_validate.trained_recipe(argparse.Namespace(train_args="")) == RECIPE

@@ -333,9 +333,9 @@ def test_make_validate_trains_exactly_the_validated_model_from_train_s_own_recip
     from dataclasses import asdict
 
     from omnigen.cli import build_parser
-    from omnigen.detector.crop_train import stage_config
-    from omnigen.detector.time_budget import detector_seconds
-    from omnigen.detector.train import crop_phase_due
+    from omnigen.detector.training.crop_train import stage_config
+    from omnigen.detector.training.time_budget import detector_seconds
+    from omnigen.detector.training.train import crop_phase_due
     from omnigen.detector.train_command import config_of
 
     ap = validate.build_parser()
@@ -351,7 +351,7 @@ def test_make_validate_trains_exactly_the_validated_model_from_train_s_own_recip
     stage, split, position = stage_config(cfg)
     assert {"config": asdict(stage), "crop": cfg.heading_crop, "classes": cfg.crop_classes, "split": split,
             "position": position} == VALIDATED_CROP_STAGE and phase["steps"] == 7000
-    # none of the recipe's values is on the command line: train takes them from detector/recipe.py
+    # none of the recipe's values is on the command line: train takes them from detector/training/recipe.py
     assert not [a for a in argv if a.startswith("--") and a.lstrip("-").replace("-", "_") in RECIPE_FLAGS]
 
 

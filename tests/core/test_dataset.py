@@ -257,7 +257,7 @@ def _read_only(monkeypatch, root: Path) -> None:
 @pytest.mark.parametrize("index", ["missing", "stale"])
 def test_a_read_only_dataset_is_read_with_an_index_in_memory(tmp_path: Path, monkeypatch, capsys, index):
     """Issue 27: export, stats, show, train and merge failed with EROFS writing .index.npz."""
-    from omnigen.detector.data import KeypointDataset
+    from omnigen.detector.data.samples import KeypointDataset
 
     root = write_fake_dataset(tmp_path / "ds", n_frames=6, objects_per_frame=2, seed=3, source="kitti").root
     if index == "missing":
@@ -301,7 +301,7 @@ def _refile(root: Path, frame_id: str, as_id: str) -> Path:
 def test_a_record_filed_under_another_id_is_refused_by_every_consumer(tmp_path: Path, capsys):
     """Issue 27: `export yolo` reported 13 frames and wrote 12, `export coco` wrote a duplicate id,
     `train` died with a KeyError; only validate saw it."""
-    from omnigen.detector.data import KeypointDataset
+    from omnigen.detector.data.samples import KeypointDataset
     from omnigen.dataset import read_record
 
     root = write_fake_dataset(tmp_path / "ds", n_frames=13, objects_per_frame=2, seed=5, source="kitti").root

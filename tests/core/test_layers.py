@@ -102,8 +102,8 @@ def test_the_checker_sees_every_kind_of_import():
     assert part_imports(src, "omnigen.x") == {"omnigen.scenes.generate", "omnigen.rigs", "omnigen.rigs.render",
                                               "omnigen.detector", "omnigen.converters.kitti"}
     assert part_imports("from omnigen.dataset import Dataset\nimport numpy\n", "omnigen.x") == set()
-    # relative imports resolve against the module's package: inside the detector, `..converters` is a part
-    assert part_imports("from ..converters.kitti_export import export_kitti\n", "omnigen.detector.lift") \
+    # relative imports resolve against the module's package: inside the detector's bev stage, `...converters` is a part
+    assert part_imports("from ...converters.kitti_export import export_kitti\n", "omnigen.detector.bev.lift") \
         == {"omnigen.converters.kitti_export", "omnigen.converters.kitti_export.export_kitti"}
     assert imports("from . import common\n", "omnigen.converters", is_package=True) \
         == {"omnigen.converters", "omnigen.converters.common"}
@@ -112,7 +112,7 @@ def test_the_checker_sees_every_kind_of_import():
 
 
 def test_module_names_follow_the_package_dirs():
-    assert _module_name(ROOT / "detector" / "lift.py") == "omnigen.detector.lift"
+    assert _module_name(ROOT / "detector" / "bev" / "lift.py") == "omnigen.detector.bev.lift"
     assert _module_name(ROOT / "scenes" / "assets" / "__init__.py") == "omnigen.scenes.assets"
     assert _module_name(ROOT / "omnigen" / "stats" / "report.py") == "omnigen.stats.report"
     assert _is_core("omnigen.stats.report") and _is_core("omnigen.cli") and not _is_core("omnigen.rigs.render")
@@ -129,7 +129,7 @@ MODULES = _modules()
 def test_the_scan_covers_every_folder():
     for folder, package in PACKAGE_DIRS.items():
         assert any(_within(m, (package,)) for m in MODULES), folder
-    assert {"omnigen.cli", "omnigen.stats.report", "omnigen.scenes.blender_backend", "omnigen.detector.lift"} <= set(MODULES)
+    assert {"omnigen.cli", "omnigen.stats.report", "omnigen.scenes.blender_backend", "omnigen.detector.bev.lift"} <= set(MODULES)
 
 
 def test_the_core_imports_no_part():

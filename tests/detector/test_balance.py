@@ -1,4 +1,4 @@
-"""Issue 25: class-balanced training (detector/balance.py): repeat-factor sampling of frames and
+"""Issue 25: class-balanced training (detector/data/balance.py): repeat-factor sampling of frames and
 crop windows centred on rare objects."""
 
 from __future__ import annotations
@@ -11,11 +11,11 @@ import torch
 
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
-from omnigen.detector.balance import (epoch_frames, focus_weights, focused_range, instance_counts, pick_focus,
+from omnigen.detector.data.balance import (epoch_frames, focus_weights, focused_range, instance_counts, pick_focus,
                                       repeat_factors)
-from omnigen.detector.data import Augment, KeypointDataset, Letterbox, Sample, random_crop, split_frames
-from omnigen.detector.train import TrainConfig, check_sampling
-from omnigen.detector.train_loader import EpochBatches, make_loader, with_copies
+from omnigen.detector.data.samples import Augment, KeypointDataset, Letterbox, Sample, random_crop, split_frames
+from omnigen.detector.training.train import TrainConfig, check_sampling
+from omnigen.detector.data.loader import EpochBatches, make_loader, with_copies
 from omnigen.fakes import write_fake_dataset
 from omnigen.taxonomy import load_taxonomy
 
@@ -63,7 +63,7 @@ def test_an_epoch_under_repeat_factors_has_a_fixed_length_and_repeats_the_rare_f
 def test_without_the_options_the_samples_and_the_order_are_those_of_before(fake):
     # the draw order before class balance: a (seed, epoch) permutation, then per sample
     # random_crop, random_affine, flip, hsv_jitter from one Generator seeded [seed, epoch, frame]
-    from omnigen.detector.data import clip_to_canvas, flip_horizontal, hsv_jitter, random_affine
+    from omnigen.detector.data.samples import clip_to_canvas, flip_horizontal, hsv_jitter, random_affine
 
     sampler = EpochBatches(6, 4, seed=9)
     gen = torch.Generator().manual_seed(9 * 100_003 + 2)
@@ -199,7 +199,7 @@ def test_a_focus_share_is_a_probability_and_centres_only_windows_there_are():
 
 def test_the_train_command_carries_the_sampling_keys(fake, tmp_path, monkeypatch):
     from omnigen.cli import main
-    from omnigen.detector import train as train_module
+    from omnigen.detector.training import train as train_module
 
     seen = {}
     monkeypatch.setattr(train_module, "train", lambda cfg, **kw: seen.setdefault("cfg", cfg) and {})

@@ -16,9 +16,9 @@ import math
 import numpy as np
 import pytest
 
-from omnigen.detector.bev import (DEGENERATE_SPREAD_DEG, apply_homography, class_aspect, fit_ridge, rectify,
+from omnigen.detector.bev.homography import (DEGENERATE_SPREAD_DEG, apply_homography, class_aspect, fit_ridge, rectify,
                           right_angle_error_deg)
-from omnigen.detector.bev_synthetic import SyntheticFrame, centre_error_pct, synthetic_frame, umeyama
+from omnigen.detector.bev.synthetic import SyntheticFrame, centre_error_pct, synthetic_frame, umeyama
 
 def test_exact_keypoints_give_right_angles_and_centres():
     rng = np.random.default_rng(11)
@@ -81,7 +81,7 @@ def test_a_single_footprint_is_degenerate_and_takes_the_prior_aspect():
 
 
 def test_varied_headings_are_not_flagged():
-    from omnigen.detector.bev import heading_spread_deg
+    from omnigen.detector.bev.homography import heading_spread_deg
 
     f = synthetic_frame(np.random.default_rng(6), n=4)
     res = rectify(f.pixels, f.classes)
@@ -94,7 +94,7 @@ def test_folding_guard_keeps_every_point_before_the_vanishing_line():
     through the near footprints; the head must pull it back and end unfolded and right-angled."""
     rng = np.random.default_rng(8)
     f = synthetic_frame(rng, n=6)
-    from omnigen.detector.bev import signed_areas
+    from omnigen.detector.bev.homography import signed_areas
 
     far = int(np.argmin(np.abs(signed_areas(f.pixels))))
     bent = f.pixels.copy()
@@ -103,7 +103,7 @@ def test_folding_guard_keeps_every_point_before_the_vanishing_line():
     low = np.argsort(bent[far, :, 1])[2:]
     mid = bent[far, low].mean(axis=0)
     bent[far, low] = mid + 0.15 * (bent[far, low] - mid)
-    from omnigen.detector.bev import _canonical_rectangle, dlt_homography, hartley_normalisation
+    from omnigen.detector.bev.homography import _canonical_rectangle, dlt_homography, hartley_normalisation
 
     T = hartley_normalisation(bent.reshape(-1, 2))
     pts = apply_homography(T, bent)
@@ -244,7 +244,7 @@ def test_the_bev_caption_wraps_whole_words_to_the_panel():
     """A small BEV panel cut its caption mid-word ("aspec"): the words now wrap to its width."""
     from PIL import Image, ImageDraw
 
-    from omnigen.detector.bev_draw import wrap_words
+    from omnigen.detector.bev.draw import wrap_words
     from omnigen.draw import font
 
     draw = ImageDraw.Draw(Image.new("RGB", (1, 1)))

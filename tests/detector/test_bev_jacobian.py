@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omnigen.detector import bev
-from omnigen.detector.bev_synthetic import synthetic_frame
+from omnigen.detector.bev import homography as bev
+from omnigen.detector.bev.synthetic import synthetic_frame
 
 
 @pytest.mark.parametrize("handedness", [1.0, -1.0])

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from omnigen.detector.box_template import (BoxTemplate, apply, evaluate_with_baseline, fit_box_template,
+from omnigen.detector.evaluation.box_template import (BoxTemplate, apply, evaluate_with_baseline, fit_box_template,
                                    training_frames)
-from omnigen.detector.oks_eval import PredictionError
+from omnigen.detector.evaluation.oks_eval import PredictionError
 from omnigen.formats.coco import to_coco
 from omnigen.dataset import Dataset
 from omnigen.fakes import write_fake_dataset

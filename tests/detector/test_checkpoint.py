@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from omnigen.detector.checkpoint import REMOVED, load_checkpoint, load_model, save_checkpoint
+from omnigen.detector.model.checkpoint import REMOVED, load_checkpoint, load_model, save_checkpoint
 
 OFF_CONFIG = {"kpt_turn": False, "kpt_hidden": None}
 """What every checkpoint of the version before recorded in its config for the removed branches."""

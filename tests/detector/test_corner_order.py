@@ -1,10 +1,10 @@
-"""detector/corner_order.py: which corner order fits box-matched predictions (heading confusion)."""
+"""detector/evaluation/corner_order.py: which corner order fits box-matched predictions (heading confusion)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from omnigen.detector.corner_order import ORDERS, corner_order_counts
+from omnigen.detector.evaluation.corner_order import ORDERS, corner_order_counts
 from omnigen.conventions import CORNER_SIGNS, TURN_IDX
 from omnigen.fakes import write_fake_dataset
 

@@ -1,4 +1,4 @@
-"""The crop stage (detector/crop_stage.py): cropping, crop units, orienting, the training rows and
+"""The crop stage (detector/model/crop_stage.py): cropping, crop units, orienting, the training rows and
 their jitter, the model's forward and loss terms, learning corners and a front from pixels, and
 prediction's use of it."""
 
@@ -11,14 +11,14 @@ import pytest
 import torch
 
 from omnigen.conventions import FLIP_IDX, TURN_IDX
-from omnigen.detector.boxes import box_area
-from omnigen.detector.heading import image_heading, orient
-from omnigen.detector.crop_stage import (CropNet, crop_boxes, crop_outputs, distinct_boxes, from_crop_units, jitter_boxes,
+from omnigen.detector.training.boxes import box_area
+from omnigen.detector.model.heading import image_heading, orient
+from omnigen.detector.model.crop_stage import (CropNet, crop_boxes, crop_outputs, distinct_boxes, from_crop_units, jitter_boxes,
                                          mirror_corners, refine, refine_detections, rescore, split_outputs,
                                          to_crop_units, training_rois, draw_rows)
-from omnigen.detector.loss import DetectionLoss
-from omnigen.detector.model import DetectorConfig, KeypointDetector
-from omnigen.detector.nms import Detections
+from omnigen.detector.training.loss import DetectionLoss
+from omnigen.detector.model.network import DetectorConfig, KeypointDetector
+from omnigen.detector.prediction.nms import Detections
 
 TINY = dict(width=0.0625, depth=0.33, max_channels=64)
 
@@ -123,7 +123,7 @@ def test_balanced_draw_crops_every_rare_object_and_subsamples_the_common_class()
 
 
 def test_a_class_naming_stage_draws_its_training_crops_balanced(monkeypatch):
-    from omnigen.detector import train_step
+    from omnigen.detector.training import step as train_step
 
     class Drawn(Exception):
         """Stops the step once the rows are asked for: nothing after them is under test."""
@@ -279,8 +279,8 @@ def _labelled_batch() -> dict[str, torch.Tensor]:
 
 
 def test_train_step_crops_the_labelled_boxes_and_trains_the_crop_net():
-    from omnigen.detector.ema import ModelEMA
-    from omnigen.detector.train_step import TrainStep
+    from omnigen.detector.training.ema import ModelEMA
+    from omnigen.detector.training.step import TrainStep
 
     torch.manual_seed(0)
     model = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=16, **TINY))
@@ -301,8 +301,8 @@ def test_prediction_refines_before_mapping_back_to_the_image():
     """infer_batch places each detection's corners from its crop and hands back image coordinates:
     a constant crop net (a front view's layout, its own mirror image, and "the rear faces the
     camera", so every layout is turned) against the same model without the stage."""
-    from omnigen.detector.data import letterbox
-    from omnigen.detector.predict import PredictOptions, infer_batch
+    from omnigen.detector.data.samples import letterbox
+    from omnigen.detector.prediction.predict import PredictOptions, infer_batch
 
     torch.manual_seed(0)
     model = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=16, **TINY)).eval()
@@ -329,7 +329,7 @@ def test_prediction_refines_before_mapping_back_to_the_image():
 def test_weights_without_a_crop_stage_fine_tune_with_one(tmp_path):
     """--weights from a plain model into a crop-stage one: every detector tensor is the
     checkpoint's, the crop stage starts fresh, and a note says so."""
-    from omnigen.detector.checkpoint import load_pretrained, save_checkpoint
+    from omnigen.detector.model.checkpoint import load_pretrained, save_checkpoint
     from omnigen.taxonomy import load_taxonomy
 
     torch.manual_seed(0)
@@ -351,8 +351,8 @@ def test_weights_without_a_crop_stage_fine_tune_with_one(tmp_path):
 def test_predicting_without_the_crop_stage_keeps_the_detections_and_the_heads_corners(tmp_path):
     """crop_net = None : the same boxes and scores, the head's
     corners; with the stage (a constant crop net) the corners are the crop's."""
-    from omnigen.detector.checkpoint import save_checkpoint
-    from omnigen.detector.predict import load_for_prediction, predict_split
+    from omnigen.detector.model.checkpoint import save_checkpoint
+    from omnigen.detector.prediction.predict import load_for_prediction, predict_split
     from omnigen.fakes import write_fake_dataset
     from omnigen.taxonomy import load_taxonomy
 
@@ -485,8 +485,8 @@ def test_a_single_label_detection_takes_the_class_whose_rescored_score_is_best()
 
 
 def test_prediction_can_keep_the_heads_scores_of_a_class_naming_stage():
-    from omnigen.detector.data import letterbox
-    from omnigen.detector.predict import PredictOptions, infer_batch
+    from omnigen.detector.data.samples import letterbox
+    from omnigen.detector.prediction.predict import PredictOptions, infer_batch
 
     torch.manual_seed(0)
     model = KeypointDetector(DetectorConfig(num_classes=3, kpt_heading=True, heading_crop=16, crop_classes=True,
@@ -504,7 +504,7 @@ def test_prediction_can_keep_the_heads_scores_of_a_class_naming_stage():
 
 
 def test_fine_tuning_a_class_naming_stage_across_taxonomies_starts_its_class_rows_fresh(tmp_path):
-    from omnigen.detector.checkpoint import load_pretrained, save_checkpoint
+    from omnigen.detector.model.checkpoint import load_pretrained, save_checkpoint
     from omnigen.taxonomy import load_taxonomy
 
     torch.manual_seed(0)
@@ -524,8 +524,8 @@ def test_fine_tuning_a_class_naming_stage_across_taxonomies_starts_its_class_row
 def two_anchor_prediction(boxes: list[list[float]], head: list[list[float]], crop: list[float], opts):
     """infer_batch of a two-class crop-stage model whose head gives two anchors `boxes` with class
     scores `head`, and whose crop stage says `crop` (class probabilities) of every crop."""
-    from omnigen.detector.data import letterbox
-    from omnigen.detector.predict import infer_batch
+    from omnigen.detector.data.samples import letterbox
+    from omnigen.detector.prediction.predict import infer_batch
 
     model = KeypointDetector(DetectorConfig(num_classes=2, kpt_heading=True, heading_crop=16, crop_classes=True,
                                             **TINY)).eval()
@@ -545,7 +545,7 @@ def test_single_label_prediction_takes_the_class_the_head_and_the_crop_agree_on(
     """omnigen predict (one label a box) with a stage that names classes: box A, rated car 0.5 and
     van 0.3 by the head, is a van once its crop says van (0.9): sqrt(0.3 * 0.9) = 0.52 against
     sqrt(0.5 * 0.1) = 0.22; box B, car 0.6 alone, falls under the 0.25 floor (sqrt(0.6 * 0.1))."""
-    from omnigen.detector.predict import PredictOptions
+    from omnigen.detector.prediction.predict import PredictOptions
 
     boxes, head = [[10.0, 10.0, 40.0, 30.0], [50.0, 10.0, 60.0, 40.0]], [[0.5, 0.3], [0.6, 0.01]]
     opts = PredictOptions(imgsz=64, conf=0.25, max_det=10)
@@ -559,7 +559,7 @@ def test_single_label_prediction_relabels_after_nms_so_one_object_stays_one_dete
     """Two anchors on one object (IoU > 0.7): the head rates A car 0.8 / van 0.3 and B car 0.7 /
     van 0.35, the crop says car 0.7. One detection comes out, A as car (sqrt(0.8 * 0.7)), not
     a car and a van that per-class NMS of class copies would each keep."""
-    from omnigen.detector.predict import PredictOptions
+    from omnigen.detector.prediction.predict import PredictOptions
 
     got = two_anchor_prediction([[10.0, 10.0, 40.0, 30.0], [11.0, 10.0, 41.0, 30.0]], [[0.8, 0.3], [0.7, 0.35]],
                                 [0.7, 0.3], PredictOptions(imgsz=64, conf=0.25, max_det=10))
@@ -567,7 +567,7 @@ def test_single_label_prediction_relabels_after_nms_so_one_object_stays_one_dete
 
 
 def test_postprocess_can_carry_every_class_score_and_take_keeps_fields_together():
-    from omnigen.detector.nms import postprocess
+    from omnigen.detector.prediction.nms import postprocess
 
     pred = torch.zeros(1, 4 + 3 + 24, 2)
     pred[0, :4, 0] = torch.tensor([0.0, 0.0, 10.0, 10.0])
@@ -584,7 +584,7 @@ def test_postprocess_can_carry_every_class_score_and_take_keeps_fields_together(
 
 
 def test_a_split_stage_gives_the_corners_from_one_net_and_the_classes_from_another():
-    from omnigen.detector.crop_stage import SplitCropNet
+    from omnigen.detector.model.crop_stage import SplitCropNet
 
     torch.manual_seed(0)
     net = SplitCropNet(32, 5).eval()
@@ -605,7 +605,7 @@ def test_a_split_stage_gives_the_corners_from_one_net_and_the_classes_from_anoth
 
 
 def test_the_detector_builds_a_split_stage_only_with_classes_and_predicts_with_it():
-    from omnigen.detector.crop_stage import SplitCropNet
+    from omnigen.detector.model.crop_stage import SplitCropNet
 
     with pytest.raises(ValueError, match="crop_split"):
         DetectorConfig(num_classes=3, heading_crop=32, crop_split=True, **TINY)
@@ -621,7 +621,7 @@ def test_the_detector_builds_a_split_stage_only_with_classes_and_predicts_with_i
 
 
 def test_crop_position_says_where_the_crop_was_cut_and_mirrors_with_the_image():
-    from omnigen.detector.crop_stage import crop_position, mirror_position
+    from omnigen.detector.model.crop_stage import crop_position, mirror_position
 
     hw = torch.tensor([480, 640])
     boxes = torch.tensor([[309.5, 229.5, 329.5, 249.5], [0.0, 0.0, 64.0, 32.0]])
@@ -637,7 +637,7 @@ def test_a_stage_told_where_its_crops_were_learns_what_the_crop_alone_cannot_say
     """Identical crops whose corners lie one way left of the image's centre and the other way right
     of it (as vertical edges point at a vanishing point): a net told the position learns them, one
     without it cannot. It needs the position, and a split stage gives it to the corners' net only."""
-    from omnigen.detector.crop_stage import SplitCropNet, crop_position
+    from omnigen.detector.model.crop_stage import SplitCropNet, crop_position
 
     def batch(n, gen):
         boxes = torch.rand(n, 1, generator=gen) * 560 + torch.tensor([[0.0, 200.0, 40.0, 240.0]])
@@ -683,7 +683,7 @@ def test_weights_with_a_stage_told_its_positions_fine_tune_a_stage_without_as_a_
     """A crop.pt whose stage reads crop positions into a model whose stage does not (or the other
     way round, or at another crop side): the whole stage starts fresh, not its hidden layer alone
     under a trained output layer; the detector's tensors are the checkpoint's; a note says why."""
-    from omnigen.detector.checkpoint import load_pretrained, save_checkpoint
+    from omnigen.detector.model.checkpoint import load_pretrained, save_checkpoint
     from omnigen.taxonomy import load_taxonomy
 
     torch.manual_seed(0)
@@ -709,7 +709,7 @@ def test_weights_with_a_stage_told_its_positions_fine_tune_a_stage_without_as_a_
 def test_the_mirror_average_of_a_positioned_stage_is_that_of_the_mirrored_image():
     """Prediction averages each crop's outputs with its mirror image's, told the mirrored position:
     exactly what the net gives for the mirrored image's crop at the mirrored box, mapped back."""
-    from omnigen.detector.crop_stage import MIRROR_HEADING, crop_position
+    from omnigen.detector.model.crop_stage import MIRROR_HEADING, crop_position
 
     torch.manual_seed(0)
     net = CropNet(32, width=8, position=True).eval()
@@ -729,7 +729,7 @@ def test_the_mirror_average_of_a_positioned_stage_is_that_of_the_mirrored_image(
 
 
 def test_the_crop_nets_pooling_is_max_pool2d_in_value_in_eval_and_is_it_in_training():
-    from omnigen.detector.crop_stage import MaxPool2
+    from omnigen.detector.model.crop_stage import MaxPool2
 
     x = torch.randn(3, 5, 8, 12)
     x[0, 0, :4, :4] = 1.0  # ties, as flat image regions give

@@ -1,4 +1,4 @@
-"""The crop stage trained apart (detector/crop_train.py, omnigen train-crop)."""
+"""The crop stage trained apart (detector/training/crop_train.py, omnigen train-crop)."""
 
 from __future__ import annotations
 
@@ -12,14 +12,14 @@ import torch
 
 from omnigen.cli import main as omnigen
 from omnigen.conventions import FLIP_IDX
-from omnigen.detector.boxes import box_area
-from omnigen.detector.checkpoint import load_checkpoint, load_model
-from omnigen.detector.crop_stage import MIRROR_HEADING, jitter_boxes, mirror_corners
-from omnigen.detector.crop_train_config import CropTrainConfig
-from omnigen.detector.crop_train import (CropSet, attach_stage, cut_crops, draw_weights, mirror_batch,
+from omnigen.detector.training.boxes import box_area
+from omnigen.detector.model.checkpoint import load_checkpoint, load_model
+from omnigen.detector.model.crop_stage import MIRROR_HEADING, jitter_boxes, mirror_corners
+from omnigen.detector.training.crop_train_config import CropTrainConfig
+from omnigen.detector.training.crop_train import (CropSet, attach_stage, cut_crops, draw_weights, mirror_batch,
                                          new_stage, score_stage, train_stage)
-from omnigen.detector.data import KeypointDataset, split_frames
-from omnigen.detector.heading import image_heading
+from omnigen.detector.data.samples import KeypointDataset, split_frames
+from omnigen.detector.model.heading import image_heading
 from omnigen.taxonomy import load_taxonomy
 
 
@@ -194,7 +194,7 @@ def test_attach_stage_replaces_only_the_crop_stage_and_adds_one_where_there_is_n
             assert torch.equal(out["model"][f"crop_net.{k}"], v)
         assert state["config"]["heading_crop"] == heading_crop  # the input state is not changed
         save = tmp_path / f"with{heading_crop}.pt"
-        from omnigen.detector.checkpoint import save_checkpoint
+        from omnigen.detector.model.checkpoint import save_checkpoint
 
         save_checkpoint(save, out)
         model, _ = load_model(save)
@@ -243,8 +243,8 @@ def test_train_crop_command_writes_a_checkpoint_predict_reads_and_guards_its_fil
 
 def test_a_split_stage_trains_both_nets_and_is_attached_and_loaded_as_one(split_fake_dataset, detector_checkpoint,
                                                                          tmp_path):
-    from omnigen.detector.checkpoint import save_checkpoint
-    from omnigen.detector.crop_stage import SplitCropNet
+    from omnigen.detector.model.checkpoint import save_checkpoint
+    from omnigen.detector.model.crop_stage import SplitCropNet
 
     data = _crops(split_fake_dataset, "train", 1, jitter=True)
     net = new_stage(32, 12, 0, split=True)
@@ -273,9 +273,9 @@ def test_train_crop_help_does_not_import_torch():
 def test_joint_training_builds_one_crop_net_and_the_crop_phase_gives_the_classes_their_own():
     """Trained with the detector the stage is one CropNet, not told where its crops were cut; the
     split net and the position come with the second phase (attach_stage)."""
-    from omnigen.detector.crop_stage import CropNet
-    from omnigen.detector.model import KeypointDetector
-    from omnigen.detector.train import TrainConfig
+    from omnigen.detector.model.crop_stage import CropNet
+    from omnigen.detector.model.network import KeypointDetector
+    from omnigen.detector.training.train import TrainConfig
 
     cfg = TrainConfig(dataset="d", out="o", heading_crop=32, crop_classes=True, width=0.0625, depth=0.33
                       ).model_config(12)
@@ -284,7 +284,7 @@ def test_joint_training_builds_one_crop_net_and_the_crop_phase_gives_the_classes
 
 
 def test_train_crop_trains_a_stage_without_classes_as_one_net(split_fake_dataset, detector_checkpoint, tmp_path):
-    from omnigen.detector.crop_stage import CropNet
+    from omnigen.detector.model.crop_stage import CropNet
 
     weights = detector_checkpoint(tmp_path / "det.pt", 32)
     out = tmp_path / "plain.pt"
@@ -307,7 +307,7 @@ def test_train_crop_trains_again_for_a_detector_rewritten_in_place_and_refuses_b
     capsys.readouterr()
     state = load_checkpoint(weights)
     state["model"] = {k: v + 1 if v.is_floating_point() else v for k, v in state["model"].items()}
-    from omnigen.detector.checkpoint import save_checkpoint
+    from omnigen.detector.model.checkpoint import save_checkpoint
 
     save_checkpoint(weights, state)  # the detector trained again into the same file
     assert omnigen(args) == 1 and "not trained with these arguments" in capsys.readouterr().err
@@ -332,8 +332,8 @@ def test_train_crop_tells_the_stage_where_its_crops_were_and_keeps_stages_writte
     """--position: every crop carries where it was cut (mirrored with it), the stage is trained and
     written with crop_position, load_model builds it again and predict runs it; a stage written
     before --position existed counts as one without, so its rerun is still 'already trained'."""
-    from omnigen.detector.checkpoint import save_checkpoint
-    from omnigen.detector.crop_stage import crop_position, mirror_position
+    from omnigen.detector.model.checkpoint import save_checkpoint
+    from omnigen.detector.model.crop_stage import crop_position, mirror_position
 
     data = _crops(split_fake_dataset, "train", 1, jitter=True)
     letterboxed = torch.tensor([128, 128])  # _crops' input size
@@ -370,7 +370,7 @@ def test_train_crop_tells_the_stage_where_its_crops_were_and_keeps_stages_writte
 
 
 def test_the_offset_term_is_the_l1_of_the_faces_offset_and_counts_only_fully_labelled_objects():
-    from omnigen.detector.crop_train import offset_loss
+    from omnigen.detector.training.crop_train import offset_loss
 
     corners = torch.zeros(3, 8, 2)
     corners[:, 4:, 1] = 0.5  # bottom face 0.5 crop units under the top one
@@ -389,7 +389,7 @@ def test_train_crop_records_the_offset_gain_and_keeps_stages_written_before_it(
         split_fake_dataset, detector_checkpoint, tmp_path, capsys):
     """--offset-gain (0.3 by default) adds the term to the stage's loss and its record; a stage
     written before the term existed counts as one of gain 0, so its rerun is 'already trained'."""
-    from omnigen.detector.checkpoint import save_checkpoint
+    from omnigen.detector.model.checkpoint import save_checkpoint
 
     weights = detector_checkpoint(tmp_path / "det.pt", 32, crop_classes=True)
     out = tmp_path / "offset.pt"

@@ -8,9 +8,9 @@ import torch
 
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
-from omnigen.detector.data import (Augment, KeypointDataset, Sample, clip_to_canvas, collate, flip_horizontal, letterbox,
+from omnigen.detector.data.samples import (Augment, KeypointDataset, Sample, clip_to_canvas, collate, flip_horizontal, letterbox,
                            random_affine, random_crop)
-from omnigen.detector.nms import box_iou, nms, postprocess
+from omnigen.detector.prediction.nms import box_iou, nms, postprocess
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
 from omnigen.fakes import write_fake_dataset
 from omnigen.taxonomy import load_taxonomy
@@ -29,7 +29,7 @@ def _sample(rng, n=3, size=64):
     boxes = np.concatenate([kp.min(1), kp.max(1)], 1)
     mask = rng.random((n, NUM_KEYPOINTS)) < 0.8
     vis = (rng.random((n, NUM_KEYPOINTS)) < 0.5).astype(np.float32)
-    from omnigen.detector.data import Letterbox
+    from omnigen.detector.data.samples import Letterbox
     return Sample(image, np.arange(n), boxes, kp, mask, vis, 0, Letterbox(1.0, (0.0, 0.0)))
 
 
@@ -123,7 +123,7 @@ def test_crop_keeps_the_scale_and_moves_targets_with_the_pixels():
 
 
 def test_crop_stays_in_the_letterboxed_content():
-    from omnigen.detector.data import Letterbox
+    from omnigen.detector.data.samples import Letterbox
     rng = np.random.default_rng(0)
     image = np.full((64, 64, 3), 114, np.uint8)
     image[16:48] = 7  # a 64 x 32 image letterboxed into 64 x 64: content rows 16..47
@@ -187,7 +187,7 @@ def test_augmentation_is_seeded_per_frame_and_epoch(fake):
 
 
 def test_cached_images_give_the_same_samples_and_stay_read_only(fake, monkeypatch):
-    import omnigen.detector.data as data_mod
+    import omnigen.detector.data.samples as data_mod
 
     tax = load_taxonomy("fine")
     disk = KeypointDataset(fake, tax, 96, augment=Augment(), seed=7, crop=64)
@@ -254,7 +254,7 @@ def test_postprocess_multi_label_scores_every_class_above_the_floor():
 
 
 def test_one_label_per_box_keeps_each_boxs_best_class():
-    from omnigen.detector.predict import one_label_per_box
+    from omnigen.detector.prediction.predict import one_label_per_box
 
     def det(frame, box, cls, score):
         return {"image_id": 1, "frame_id": frame, "category_id": cls, "bbox": box, "keypoints": [0.0] * 24,

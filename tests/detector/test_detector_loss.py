@@ -7,10 +7,10 @@ import math
 import pytest
 import torch
 
-from omnigen.detector.assign import TaskAlignedAssigner
-from omnigen.detector.boxes import bbox2dist, box_area, box_ciou, box_iou, box_iou_pairwise, dist2bbox
-from omnigen.detector.loss import PARTS, DetectionLoss, LossGains, keypoint_l1_loss, oks_keypoint_loss
-from omnigen.detector.outputs import REG_MAX, HeadOutput, decode_keypoints, make_anchors
+from omnigen.detector.training.assign import TaskAlignedAssigner
+from omnigen.detector.training.boxes import bbox2dist, box_area, box_ciou, box_iou, box_iou_pairwise, dist2bbox
+from omnigen.detector.training.loss import PARTS, DetectionLoss, LossGains, keypoint_l1_loss, oks_keypoint_loss
+from omnigen.detector.model.outputs import REG_MAX, HeadOutput, decode_keypoints, make_anchors
 
 SIGMA = 0.125
 
@@ -353,7 +353,7 @@ def test_box_mode_corners_do_not_pull_the_box():
 
 
 def test_turn_targets_pick_the_order_the_prediction_fits():
-    from omnigen.detector.loss import turn_targets
+    from omnigen.detector.training.loss import turn_targets
     from omnigen.conventions import TURN_IDX
 
     t = _targets()
@@ -401,7 +401,7 @@ def _side_view_corners() -> torch.Tensor:
 
 def test_image_heading_is_fixed_by_the_labelled_corners_and_flips_with_the_turn():
     from omnigen.conventions import TURN_IDX
-    from omnigen.detector.heading import image_heading
+    from omnigen.detector.model.heading import image_heading
 
     kp = _side_view_corners()
     area = torch.tensor(64.0 * 30.0)
@@ -426,7 +426,7 @@ def test_image_heading_is_fixed_by_the_labelled_corners_and_flips_with_the_turn(
 
 
 def test_heading_loss_is_one_minus_cosine_over_objects_with_a_target():
-    from omnigen.detector.heading import heading_loss
+    from omnigen.detector.model.heading import heading_loss
 
     target = torch.tensor([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 0.0]])  # the last has no target
     assert float(heading_loss(target * 3, target)) == pytest.approx(0.0, abs=1e-6)
@@ -465,9 +465,9 @@ def test_heading_aware_model_decodes_in_the_labelled_order():
     from dataclasses import replace
 
     from omnigen.conventions import TURN_IDX
-    from omnigen.detector.heading import image_heading
-    from omnigen.detector.model import DetectorConfig, KeypointDetector
-    from omnigen.detector.outputs import apply_heading, decode, decode_boxes, head_keypoints
+    from omnigen.detector.model.heading import image_heading
+    from omnigen.detector.model.network import DetectorConfig, KeypointDetector
+    from omnigen.detector.model.outputs import apply_heading, decode, decode_boxes, head_keypoints
 
     cfg = DetectorConfig(width=0.0625, depth=0.33, max_channels=64, num_classes=3, kpt_heading=True)
     model = KeypointDetector(cfg).eval()

@@ -11,10 +11,10 @@ import pytest
 import torch
 from torch import nn
 
-from omnigen.detector.backbones import BACKBONES, build_backbone
-from omnigen.detector.model import (SCALE_NAMES, DetectorConfig, InferenceWrapper, KeypointDetector, count_parameters,
+from omnigen.detector.model.backbones import BACKBONES, build_backbone
+from omnigen.detector.model.network import (SCALE_NAMES, DetectorConfig, InferenceWrapper, KeypointDetector, count_parameters,
                             gflops)
-from omnigen.detector.outputs import REG_MAX, HeadOutput
+from omnigen.detector.model.outputs import REG_MAX, HeadOutput
 from omnigen.conventions import NUM_KEYPOINTS
 
 TINY = dict(width=0.0625, depth=0.33, max_channels=64)
@@ -202,7 +202,7 @@ def test_onnx_export_matches_pytorch(tmp_path):
                           input_names=["images"], output_names=["output"])
     # the graph holds no Python-side decision frozen at the traced size
     assert not [w for w in caught if issubclass(w.category, torch.jit.TracerWarning)], [str(w.message) for w in caught]
-    from omnigen.detector.export_onnx import export
+    from omnigen.detector.prediction.export_onnx import export
 
     with pytest.raises(ValueError, match="--imgsz 72: .* multiple of the largest stride 32"):
         export(model, tmp_path / "bad.onnx", 72)  # the size the model no longer checks while traced

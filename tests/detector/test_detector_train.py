@@ -21,13 +21,13 @@ import torch
 
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
-from omnigen.detector.checkpoint import load_checkpoint, plain_branch, load_model, load_pretrained, save_checkpoint
-from omnigen.detector.predict import trained_imgsz
-from omnigen.detector.data import Augment, KeypointDataset, collate, split_frames
-from omnigen.detector.loss import DetectionLoss
-from omnigen.detector.model import DetectorConfig, KeypointDetector
-from omnigen.detector.time_budget import TimeBudget
-from omnigen.detector.train import TrainConfig, autocast_dtype, learning_rate, make_optimizer, train
+from omnigen.detector.model.checkpoint import load_checkpoint, plain_branch, load_model, load_pretrained, save_checkpoint
+from omnigen.detector.prediction.predict import trained_imgsz
+from omnigen.detector.data.samples import Augment, KeypointDataset, collate, split_frames
+from omnigen.detector.training.loss import DetectionLoss
+from omnigen.detector.model.network import DetectorConfig, KeypointDetector
+from omnigen.detector.training.time_budget import TimeBudget
+from omnigen.detector.training.train import TrainConfig, autocast_dtype, learning_rate, make_optimizer, train
 from omnigen.cli import main
 from omnigen.fakes import write_fake_dataset
 from omnigen.taxonomy import load_taxonomy
@@ -101,7 +101,7 @@ def test_train_writes_checkpoints_loadable_with_weights_only(fake, tmp_path):
 
 
 def test_crop_trains_on_windows_and_validates_on_the_whole_input(fake, tmp_path, monkeypatch):
-    import omnigen.detector.train as train_module
+    import omnigen.detector.training.train as train_module
 
     seen = []
     real_collate = train_module.collate_uint8
@@ -203,7 +203,7 @@ def test_bf16_training_learns_and_keeps_float32_weights(rendered, tmp_path):
 
 def test_fp16_path_scales_gradients_and_resumes_its_scaler(fake, tmp_path, monkeypatch):
     # CUDA's default (fp16 with a gradient scaler) exercised on the CPU, which also runs fp16 autocast
-    import omnigen.detector.train as train_mod
+    import omnigen.detector.training.train as train_mod
 
     monkeypatch.setattr(train_mod, "autocast_dtype", lambda amp, device: torch.float16)
     last = train(_cfg(fake, tmp_path / "run", epochs=2, val_every=100), stop_after=1)
@@ -351,7 +351,7 @@ def test_tiny_model_overfits_four_rendered_frames(rendered, tmp_path):
 
 
 def test_kpt_sigma_anneals_geometrically_to_its_end():
-    from omnigen.detector.train import TrainConfig, kpt_sigma
+    from omnigen.detector.training.train import TrainConfig, kpt_sigma
 
     for end in (0.125, 0.25):
         cfg = TrainConfig(dataset="d", out="o", kpt_sigma_start=0.5, kpt_sigma_end=end, kpt_sigma_anneal=0.5)
@@ -413,8 +413,8 @@ def test_a_time_boxed_run_ends_and_leaves_a_validated_last_pt(fake, source, tmp_
 def step_clock(monkeypatch):
     """A deterministic clock for time-boxed runs: a training step takes 0.5 s (an epoch of the
     fake's 2 steps 1 s), a validation 2 s; nothing else takes time."""
-    import omnigen.detector.time_budget as time_budget
-    import omnigen.detector.train as train_module
+    import omnigen.detector.training.time_budget as time_budget
+    import omnigen.detector.training.train as train_module
 
     now = [0.0]
     monkeypatch.setattr(time_budget, "clock", lambda: now[0])
@@ -513,7 +513,7 @@ def test_another_scale_is_refused_naming_the_file_and_field(fake, source, tmp_pa
 
 
 def test_foreach_ema_follows_the_formula_on_every_float_tensor_and_copies_the_counters():
-    from omnigen.detector.ema import ModelEMA
+    from omnigen.detector.training.ema import ModelEMA
 
     torch.manual_seed(0)
     model = KeypointDetector(DetectorConfig(num_classes=12, width=0.125, depth=0.34))
@@ -536,7 +536,7 @@ def test_foreach_ema_follows_the_formula_on_every_float_tensor_and_copies_the_co
 def test_ema_update_refuses_a_model_other_than_its_source():
     # The EMA reads the tensors it paired at construction: another model passed to update() would
     # be ignored while the EMA went on averaging its source. It is refused instead.
-    from omnigen.detector.ema import ModelEMA
+    from omnigen.detector.training.ema import ModelEMA
 
     model = KeypointDetector(DetectorConfig(num_classes=12, width=0.125, depth=0.34))
     ema = ModelEMA(model, decay=0.9, tau=1.0)
@@ -555,7 +555,7 @@ def test_loader_workers_augment_each_sample_by_its_epoch(fake):
     # A worker holds its own copy of the dataset: set_epoch in the main process does not reach it.
     # The epoch travels with each index instead, so what a worker yields for (epoch e, frame i) is
     # the main process's set_epoch(e); data[i], and the augmentation differs from epoch to epoch.
-    from omnigen.detector.train_loader import EpochBatches, make_loader
+    from omnigen.detector.data.loader import EpochBatches, make_loader
 
     data = KeypointDataset(str(fake), load_taxonomy("fine"), 64, split_frames(str(fake), "train"), Augment(), seed=5)
     sampler = EpochBatches(len(data), 2, seed=5)
@@ -580,7 +580,7 @@ def test_the_train_command_carries_recipe_keys_into_the_run_and_has_no_flags_for
     model it builds (the loss reads its gains from the TrainConfig); what only experiments reached
     (--kpt-turn, --kpt-hidden, --heading-gain, --crop-split, --kpt-labelled) is no option."""
     from omnigen.cli import main
-    from omnigen.detector import train as train_module
+    from omnigen.detector.training import train as train_module
 
     seen = {}
     monkeypatch.setattr(train_module, "train", lambda cfg, **kw: seen.setdefault("cfg", cfg) and {})
@@ -607,7 +607,7 @@ def test_the_train_command_carries_recipe_keys_into_the_run_and_has_no_flags_for
 def test_a_wrong_recipe_key_or_value_is_one_line_naming_it_before_anything_is_written(fake, tmp_path, monkeypatch,
                                                                                       capsys, argv, said):
     from omnigen.cli import main
-    from omnigen.detector import train as train_module
+    from omnigen.detector.training import train as train_module
 
     monkeypatch.setattr(train_module, "train", lambda *a, **k: pytest.fail("training must not start"))
     assert main(["train", str(fake), *argv, "--out", str(tmp_path / "run")]) == 1

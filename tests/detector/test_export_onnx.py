@@ -8,8 +8,8 @@ torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx", reason="torch.onnx.export (dynamo=False) needs the 'onnx' package")
 ort = pytest.importorskip("onnxruntime", reason="the export's check runs ONNX Runtime")
 
-from omnigen.detector.checkpoint import save_checkpoint  # noqa: E402
-from omnigen.detector.model import DetectorConfig, KeypointDetector  # noqa: E402
+from omnigen.detector.model.checkpoint import save_checkpoint  # noqa: E402
+from omnigen.detector.model.network import DetectorConfig, KeypointDetector  # noqa: E402
 from omnigen.cli import main  # noqa: E402
 
 TRAINED = 256
@@ -59,7 +59,7 @@ def test_dynamic_height_and_width(checkpoint, tmp_path):
 def test_heading_aware_models_export_with_their_decode(tmp_path):
     """The layout's turn (the predicted image heading against the layout's own) is decided inside
     the graph: ONNX Runtime gives PyTorch's corners."""
-    from omnigen.detector.export_onnx import export, max_difference
+    from omnigen.detector.prediction.export_onnx import export, max_difference
 
     torch.manual_seed(1)
     cfg = DetectorConfig("n", "c3k2", p2=False, num_classes=2, width=0.0625, depth=0.33, max_channels=64,
@@ -75,8 +75,8 @@ def test_crop_stage_model_exports_its_crop_stage_beside(tmp_path, capsys):
     at the traced size and, with --dynamic, at another, for any number of detections."""
     import numpy as np
 
-    from omnigen.detector.export_onnx import crop_stage_max_difference, crop_stage_path
-    from omnigen.detector.crop_stage import RefineWrapper, to_crop_units
+    from omnigen.detector.prediction.export_onnx import crop_stage_max_difference, crop_stage_path
+    from omnigen.detector.model.crop_stage import RefineWrapper, to_crop_units
 
     torch.manual_seed(2)
     cfg = DetectorConfig("n", "c3k2", p2=False, num_classes=2, width=0.0625, depth=0.33, max_channels=64,
@@ -115,7 +115,7 @@ def test_a_class_naming_crop_stage_exports_its_class_probabilities(tmp_path, spl
     it) exports as one graph with the same two outputs."""
     import onnxruntime as ort
 
-    from omnigen.detector.export_onnx import crop_stage_max_difference, export_crop_stage
+    from omnigen.detector.prediction.export_onnx import crop_stage_max_difference, export_crop_stage
 
     torch.manual_seed(3)
     cfg = DetectorConfig("n", "c3k2", p2=False, num_classes=2, width=0.0625, depth=0.33, max_channels=64,
@@ -133,7 +133,7 @@ def test_a_class_naming_crop_stage_exports_its_class_probabilities(tmp_path, spl
 def test_a_stage_told_where_its_crops_were_exports_and_places_as_pytorch_at_any_size(tmp_path):
     """crop_position reads the input's size from the graph, so a --dynamic export traced at one
     size tells the net the right positions at another."""
-    from omnigen.detector.export_onnx import crop_stage_max_difference, export_crop_stage
+    from omnigen.detector.prediction.export_onnx import crop_stage_max_difference, export_crop_stage
 
     torch.manual_seed(6)
     cfg = DetectorConfig("n", "c3k2", p2=False, num_classes=2, width=0.0625, depth=0.33, max_channels=64,

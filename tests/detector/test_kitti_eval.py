@@ -18,7 +18,7 @@ import pytest
 import shapely
 from shapely.geometry import Polygon
 
-from omnigen.detector import kitti_eval as ke
+from omnigen.detector.evaluation import kitti_eval as ke
 from omnigen.detector import kitti_eval_command
 
 REAL_LABELS = Path(__file__).resolve().parents[2].parent / "shared" / "realdata" / "kitti" / "training" / "label_2"

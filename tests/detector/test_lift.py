@@ -1,4 +1,4 @@
-"""Metric 3D lifting (detector/lift.py) and the calibration-sensitivity command's parts."""
+"""Metric 3D lifting (detector/bev/lift.py) and the calibration-sensitivity command's parts."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 from omnigen.converters.kitti import parse_labels
 from omnigen.detector.calib_command import (PERTURBATIONS, Perturbation, add_arguments, lift_frames, load_predictions,
                                     representative_fine_classes, run, sensitivity)
-from omnigen.detector.lift import (DimensionPriors, LiftedBoxes, fit_dimension_priors, ground_adherence_deg,
+from omnigen.detector.bev.lift import (DimensionPriors, LiftedBoxes, fit_dimension_priors, ground_adherence_deg,
                            lift_keypoints, to_kitti_lines)
 from omnigen.formats.coco import to_coco
 from omnigen.conventions import FINE_CLASSES
@@ -258,7 +258,7 @@ def test_exact_lifts_score_in_3d_what_they_score_in_2d(tmp_path):
     """Lifted lines and exported ground truth agree on KITTI's conventions: with exact corners and
     true sizes, every 3D and BEV match the 2D box match does (a sign or offset slip would zero them)."""
     from omnigen.formats.kitti import label_text
-    from omnigen.detector.kitti_eval import evaluate_folders
+    from omnigen.detector.evaluation.kitti_eval import evaluate_folders
     from omnigen.record import FrameRecord, ObjectRecord
 
     (tmp_path / "gt").mkdir()

@@ -1,11 +1,11 @@
-"""Issue 24: the device-side NMS (omnigen.detector.nms.greedy_survivors) keeps exactly what the host loop keeps."""
+"""Issue 24: the device-side NMS (omnigen.detector.prediction.nms.greedy_survivors) keeps exactly what the host loop keeps."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from omnigen.detector.nms import box_iou, greedy_survivors, nms
+from omnigen.detector.prediction.nms import box_iou, greedy_survivors, nms
 
 
 def test_matrix_nms_keeps_what_the_greedy_loop_keeps():

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from pycocotools.cocoeval import COCOeval
 
-import omnigen.detector.oks_eval as oks_eval
+import omnigen.detector.evaluation.oks_eval as oks_eval
 from omnigen.detector import eval_command
-from omnigen.detector.oks_eval import (PredictionError, _coco_from_dict, _results_coco, ap_numbers, best_f1,
+from omnigen.detector.evaluation.oks_eval import (PredictionError, _coco_from_dict, _results_coco, ap_numbers, best_f1,
                                evalimgs_subset, evaluate, make_cocoeval, normalize_predictions, run_quietly)
 from omnigen.formats.coco import to_coco
 from omnigen.dataset import Dataset
@@ -245,7 +245,7 @@ def test_bad_predictions_name_the_file_and_field(ds, change, field):
 
 
 def test_adherence_means_per_group_with_a_stub_lift(ds, monkeypatch):
-    """The adherence plumbing against omnigen.detector.lift's API, whatever the lift computes."""
+    """The adherence plumbing against omnigen.detector.bev.lift's API, whatever the lift computes."""
     calls = {}
 
     class Priors:
@@ -267,7 +267,7 @@ def test_adherence_means_per_group_with_a_stub_lift(ds, monkeypatch):
 
     stub = SimpleNamespace(fit_dimension_priors=fit_dimension_priors, lift_keypoints=lift_keypoints,
                            ground_adherence_deg=ground_adherence_deg)
-    monkeypatch.setitem(__import__("sys").modules, "omnigen.detector.lift", stub)
+    monkeypatch.setitem(__import__("sys").modules, "omnigen.detector.bev.lift", stub)
     report = evaluate(ds, perfect(ds), split="test")
     assert calls["frames"] == read_split(ds.root, "train")
     assert report.priors_from == "train"
@@ -292,7 +292,7 @@ def test_priors_from_all_frames_without_a_train_split_and_no_plane_no_adherence(
         fit_dimension_priors=fit_dimension_priors,
         lift_keypoints=lambda kp, dims, K, valid=None: SimpleNamespace(ok=np.ones(len(kp), bool)),
         ground_adherence_deg=lambda lifted, plane: np.full(len(lifted.ok), 2.0))
-    monkeypatch.setitem(__import__("sys").modules, "omnigen.detector.lift", stub)
+    monkeypatch.setitem(__import__("sys").modules, "omnigen.detector.bev.lift", stub)
     report = evaluate(small, perfect(small, split=None), split=None)
     assert report.priors_from == "all frames" and calls["frames"] == small.table.frame_id
     assert report.row("overall").ground_adherence_deg == pytest.approx(2.0)
@@ -340,7 +340,7 @@ def test_command_writes_json_and_prints_a_table(ds, tmp_path, capsys, monkeypatc
 
 
 def test_command_runs_weights_through_predict(ds, tmp_path, monkeypatch):
-    import omnigen.detector.predict as predict
+    import omnigen.detector.prediction.predict as predict
 
     seen, state = {}, {"taxonomy": load_taxonomy("fine").to_dict()}
 
@@ -519,7 +519,7 @@ def test_command_prints_corner_errors_per_corner_and_the_baseline(ds, tmp_path, 
 def test_corner_spread_says_how_collapsed_the_predicted_layouts_are(ds):
     """Predicted corners pulled halfway to their centroid spread half as far as the truth (0.5);
     exact corners spread 1.0; a shift moves them without changing the spread."""
-    from omnigen.detector.corner_errors import spread_ratio
+    from omnigen.detector.evaluation.corner_errors import spread_ratio
 
     gt = np.array([[[0, 0], [4, 0], [4, 2], [0, 2], [0, 0], [4, 0], [4, 2], [0, 2]]], dtype=float)
     labelled = np.ones((1, 8), bool)

@@ -1,4 +1,4 @@
-"""Issue 47, one recipe, one story: detector/recipe.py holds the validated recipe once; `omnigen train`
+"""Issue 47, one recipe, one story: detector/training/recipe.py holds the validated recipe once; `omnigen train`
 trains it end to end (the crop stage's second phase included, within --time), records it in
 RUN/recipe.json, reruns or tweaks it (--recipe, KEY=VALUE), resumes either phase, and says what it
 did in a short summary; nothing else re-declares a recipe value."""
@@ -20,11 +20,12 @@ import torch
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
 from omnigen.cli import build_parser, main as omnigen  # noqa: E402
-from omnigen.detector import crop_train, time_budget  # noqa: E402
-from omnigen.detector import train as train_module  # noqa: E402
-from omnigen.detector.checkpoint import SCHEMA, load_checkpoint, load_model, save_checkpoint  # noqa: E402
-from omnigen.detector.recipe import RECIPE, read_recipe, recipe_of, train_fields, with_overrides  # noqa: E402
-from omnigen.detector.train import TrainConfig, train  # noqa: E402
+from omnigen.detector.training import crop_train
+from omnigen.detector.training import time_budget  # noqa: E402
+from omnigen.detector.training import train as train_module  # noqa: E402
+from omnigen.detector.model.checkpoint import SCHEMA, load_checkpoint, load_model, save_checkpoint  # noqa: E402
+from omnigen.detector.training.recipe import RECIPE, read_recipe, recipe_of, train_fields, with_overrides  # noqa: E402
+from omnigen.detector.training.train import TrainConfig, train  # noqa: E402
 from omnigen.detector.train_command import long_run_note, summary_rows  # noqa: E402
 from omnigen.outputs import json_made_by  # noqa: E402
 
@@ -51,7 +52,7 @@ def _crop_tensors(path: Path) -> dict[str, torch.Tensor]:
 PERTURB = r'''
 import dataclasses, json, sys
 sys.path.insert(0, sys.argv[1])
-import omnigen.detector.recipe as r
+import omnigen.detector.training.recipe as r
 
 def other(v):
     if isinstance(v, bool): return not v
@@ -67,8 +68,8 @@ def perturbed(obj):
 
 r.RECIPE, r.RUN = perturbed(r.RECIPE), perturbed(r.RUN)
 r.RUN = dataclasses.replace(r.RUN, device="meta", channels_last=True)
-from omnigen.detector.train import TrainConfig
-from omnigen.detector.crop_train_config import CropTrainConfig
+from omnigen.detector.training.train import TrainConfig
+from omnigen.detector.training.crop_train_config import CropTrainConfig
 from omnigen.cli import build_parser
 from benchmarks.validate import build_parser as validate_parser
 
@@ -103,7 +104,7 @@ print(json.dumps(bad))
 
 
 def test_no_command_config_or_benchmark_declares_a_recipe_value_of_its_own():
-    """Every recipe value and run setting changed in detector/recipe.py before the rest is imported:
+    """Every recipe value and run setting changed in detector/training/recipe.py before the rest is imported:
     TrainConfig's and CropTrainConfig's defaults, train's and train-crop's options and validate's
     must all follow. A default written out again anywhere (even equal today) is caught here."""
     out = subprocess.run([sys.executable, "-c", PERTURB, str(ROOT)], capture_output=True, text=True, cwd=ROOT)
@@ -316,8 +317,8 @@ def test_a_long_run_is_told_after_its_first_epoch_and_pointed_at_time():
 
 
 def test_the_datas_augmentation_defaults_are_the_recipes():
-    """detector/data.py's Augment() is what validation and the tests build without a recipe; it must
+    """detector/data/samples.py's Augment() is what validation and the tests build without a recipe; it must
     not drift from the recipe's augment section (it should take its defaults from it: data.py)."""
-    from omnigen.detector.data import Augment
+    from omnigen.detector.data.samples import Augment
 
     assert asdict(Augment()) == asdict(RECIPE.augment)

@@ -153,9 +153,9 @@ def test_the_vertical_snap_keeps_the_corners_of_an_image_of_one_input_row():
     PAD_MARGIN rows on each padded side leave empty; cv2.cvtColor failed on the empty crop."""
     import torch
 
-    from omnigen.detector.data import letterbox
-    from omnigen.detector.nms import Detections
-    from omnigen.detector.predict import snap_batch
+    from omnigen.detector.data.samples import letterbox
+    from omnigen.detector.prediction.nms import Detections
+    from omnigen.detector.prediction.predict import snap_batch
 
     boxed, lb = letterbox(np.zeros((20, 10000, 3), np.uint8), 64)
     kp = torch.rand(3, 8, 3) * 64
@@ -208,7 +208,7 @@ def test_bev_canvas_is_bounded_whatever_the_predictions_claim(tmp_path, capsys):
 
 
 def test_bev_refuses_a_figure_too_large_to_draw_before_allocating_it():
-    from omnigen.detector.bev_draw import BevScene, render_bev_figure
+    from omnigen.detector.bev.draw import BevScene, render_bev_figure
 
     scene = BevScene(np.zeros((0, 4, 2)), [], None)
     with pytest.raises(ValueError, match=r"image 7: the picture would be \d+x\d+ pixels.*MAX_CANVAS_PIXELS"):

@@ -18,13 +18,13 @@ import torch
 pytest.importorskip("cv2", reason="opencv-python-headless is part of the train extra")
 
 from omnigen.cli import main as omnigen
-from omnigen.detector import train as train_module
-from omnigen.detector.checkpoint import load_checkpoint, plain_branch, load_model, save_checkpoint
-from omnigen.detector.crop_train import CropSet, new_stage, train_stage
-from omnigen.detector.crop_train_config import CropTrainConfig
-from omnigen.detector.data import Augment, split_frames
-from omnigen.detector.train import NonFiniteLoss, TrainConfig, train
-from omnigen.detector.train_loader import EpochBatches
+from omnigen.detector.training import train as train_module
+from omnigen.detector.model.checkpoint import load_checkpoint, plain_branch, load_model, save_checkpoint
+from omnigen.detector.training.crop_train import CropSet, new_stage, train_stage
+from omnigen.detector.training.crop_train_config import CropTrainConfig
+from omnigen.detector.data.samples import Augment, split_frames
+from omnigen.detector.training.train import NonFiniteLoss, TrainConfig, train
+from omnigen.detector.data.loader import EpochBatches
 
 TINY = {"model": "n", "width": 0.125, "depth": 0.34}
 # the design's plain branch (TrainConfig's defaults before the recipe, with AdamW): the trainer's

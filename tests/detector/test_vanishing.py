@@ -1,4 +1,4 @@
-"""detector/vanishing.py: the vertical vanishing point from boxes and from an image's line
+"""detector/prediction/vanishing.py: the vertical vanishing point from boxes and from an image's line
 segments, and the snap that turns predicted vertical edges to it."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from omnigen.detector.vanishing import (SnapOptions, fit_vertical_vanishing_point, image_vertical_point,
+from omnigen.detector.prediction.vanishing import (SnapOptions, fit_vertical_vanishing_point, image_vertical_point,
                                         refine_with_segments, snap_vertical, turn_vertical_edges)
 
 W, H = 640, 480
@@ -127,9 +127,9 @@ def test_prediction_snaps_in_the_letterboxed_input_without_the_padding_border():
     the image's point, in input pixels, and every other field is kept."""
     import torch
 
-    from omnigen.detector.data import letterbox
-    from omnigen.detector.nms import Detections
-    from omnigen.detector.predict import PredictOptions, snap_batch
+    from omnigen.detector.data.samples import letterbox
+    from omnigen.detector.prediction.nms import Detections
+    from omnigen.detector.prediction.predict import PredictOptions, snap_batch
 
     rng = np.random.default_rng(4)
     vertical = np.array([160.0, 900.0])  # image pixels of the 320 x 200 original
@@ -178,10 +178,10 @@ def test_prediction_leaves_out_a_far_side_padding_a_pixel_wider_than_the_near_on
     is the image's own rows, so the padding's edge (a long straight segment) is not among them."""
     import torch
 
-    import omnigen.detector.vanishing as vanishing
-    from omnigen.detector.data import letterbox
-    from omnigen.detector.nms import Detections
-    from omnigen.detector.predict import snap_batch
+    import omnigen.detector.prediction.vanishing as vanishing
+    from omnigen.detector.data.samples import letterbox
+    from omnigen.detector.prediction.nms import Detections
+    from omnigen.detector.prediction.predict import snap_batch
 
     image = np.full((639, 640, 3), 30, np.uint8)
     boxed, lb = letterbox(image, 640)
@@ -205,8 +205,8 @@ def test_omnigen_predict_passes_vertical_to_prediction(tmp_path, monkeypatch):
 
     import cv2 as _cv2
 
-    import omnigen.detector.checkpoint as checkpoint
-    import omnigen.detector.predict as predict
+    import omnigen.detector.model.checkpoint as checkpoint
+    import omnigen.detector.prediction.predict as predict
     from omnigen.detector import predict_command
 
     _cv2.imwrite(str(tmp_path / "a.png"), np.zeros((8, 8, 3), np.uint8))

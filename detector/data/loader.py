@@ -26,8 +26,8 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from omnigen.detector.balance import epoch_frames
-from omnigen.detector.data import KeypointDataset, Sample, collate
+from omnigen.detector.data.balance import epoch_frames
+from omnigen.detector.data.samples import KeypointDataset, Sample, collate
 
 
 class EpochBatches(torch.utils.data.Sampler):

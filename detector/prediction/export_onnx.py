@@ -1,6 +1,6 @@
 """Export a checkpoint to ONNX: the forward pass with box and keypoint decoding, NMS left outside.
 
-A crop-stage model (DetectorConfig.heading_crop, detector/crop_stage.py) places each detection's
+A crop-stage model (DetectorConfig.heading_crop, detector/model/crop_stage.py) places each detection's
 corners and front from its crop after NMS, so it exports a second graph beside the first,
 FILE-crops.onnx (`crop_stage_path`): the input image, the kept boxes and keypoints in, the
 keypoints with the crops' corners out, and for a stage that names classes (crop_classes) their
@@ -10,7 +10,7 @@ crop_stage.rescore does: sqrt(score * p[class]).
 Neither graph turns the vertical edges to the image's vertical vanishing point, as `omnigen
 predict` does by default (`--vertical lines`): that step reads the image's line segments with
 OpenCV's detector, outside any network. A caller of the graphs applies
-omnigen.detector.vanishing.snap_vertical to each image's refined corners, in the pixels of the
+omnigen.detector.prediction.vanishing.snap_vertical to each image's refined corners, in the pixels of the
 image the graph saw less its letterbox padding (predict.snap_batch shows how), or leaves the
 corners as the network placed them (`--vertical off`).
 
@@ -90,7 +90,7 @@ def export(model, path: Path, imgsz: int, dynamic: bool = False) -> None:
 
     import torch
 
-    from omnigen.detector.model import InferenceWrapper
+    from omnigen.detector.model.network import InferenceWrapper
 
     buf = io.BytesIO()
     torch.onnx.export(InferenceWrapper(model.eval()), (torch.zeros(1, 3, imgsz, imgsz),), buf, opset_version=OPSET,
@@ -115,7 +115,7 @@ def export_crop_stage(model, path: Path, imgsz: int, dynamic: bool = False) -> N
 
     import torch
 
-    from omnigen.detector.crop_stage import RefineWrapper
+    from omnigen.detector.model.crop_stage import RefineWrapper
 
     boxes = torch.tensor([[8.0, 8.0, 40.0, 30.0], [20.0, 4.0, 30.0, 44.0], [0.0, 0.0, 16.0, 16.0]])
     outputs = ["refined"] + (["class_probs"] if model.crop_net.num_classes else [])
@@ -136,7 +136,7 @@ def crop_stage_max_difference(model, path: Path, imgsz: int | tuple[int, int], s
     import onnxruntime as ort
     import torch
 
-    from omnigen.detector.crop_stage import RefineWrapper
+    from omnigen.detector.model.crop_stage import RefineWrapper
 
     h, w = (imgsz, imgsz) if isinstance(imgsz, int) else imgsz
     rng = np.random.default_rng(seed)
@@ -173,8 +173,8 @@ def max_difference(model, path: Path, imgsz: int | tuple[int, int], seed: int = 
 
 
 def run(args: argparse.Namespace) -> int:
-    from omnigen.detector.checkpoint import load_model
-    from omnigen.detector.predict import trained_imgsz
+    from omnigen.detector.model.checkpoint import load_model
+    from omnigen.detector.prediction.predict import trained_imgsz
     from omnigen.outputs import check_output_file
     from omnigen.progress import print_table
 

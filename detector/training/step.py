@@ -2,7 +2,7 @@
 
 Written so that a GPU never waits on the host inside a step: the batch is copied from pinned
 memory without blocking and converted from uint8 on the device, the EMA is a fused multi-tensor
-update (detector/ema.py), and the loss parts are summed on the device (`PartSums`) and read once
+update (detector/training/ema.py), and the loss parts are summed on the device (`PartSums`) and read once
 an epoch, or when the progress bar redraws, instead of a `float()` (a device synchronisation) per
 part and step. For the same reason whether a step's loss was finite is a flag left on the device
 (`TrainStep.finite`), collected by `FiniteWatch` and read where the loop reads the device anyway.
@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from omnigen.detector.ema import ModelEMA
-from omnigen.detector.crop_stage import jitter_boxes, training_rois
+from omnigen.detector.training.ema import ModelEMA
+from omnigen.detector.model.crop_stage import jitter_boxes, training_rois
 
 
 def use_channels_last(setting: bool | None, device: torch.device) -> bool:

@@ -14,9 +14,9 @@ import math
 import torch
 from torch import nn
 
-from omnigen.detector.blocks import DSConv
-from omnigen.detector.heading import HEADING_CHANNELS
-from omnigen.detector.outputs import KPT_MODES, REG_MAX, HeadOutput, make_anchors
+from omnigen.detector.model.blocks import DSConv
+from omnigen.detector.model.heading import HEADING_CHANNELS
+from omnigen.detector.model.outputs import KPT_MODES, REG_MAX, HeadOutput, make_anchors
 from omnigen.conventions import NUM_KEYPOINTS
 
 KPT_OUTPUTS = NUM_KEYPOINTS * 3

@@ -18,7 +18,7 @@ from typing import Callable
 import torch
 from torch import nn
 
-from omnigen.detector.blocks import C2PSA, SPPF, C2f, C3k2, Conv
+from omnigen.detector.model.blocks import C2PSA, SPPF, C2f, C3k2, Conv
 
 
 def scale_channels(c: int, width: float, max_channels: int) -> int:

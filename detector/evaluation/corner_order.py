@@ -18,7 +18,7 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 import torch
 
-from omnigen.detector.nms import box_iou
+from omnigen.detector.prediction.nms import box_iou
 from omnigen.conventions import FLIP_IDX, TURN_IDX
 from omnigen.dataset import Dataset
 from omnigen.splits import read_split
@@ -50,7 +50,7 @@ def box_matches(ds: Dataset, predictions: Sequence[dict[str, Any]], frames: Sequ
     as (object-table row, matched prediction or None): the highest-scoring prediction of the same
     frame with score >= `min_score` whose 2D box overlaps the object's by IoU >= `min_iou`, blind to
     its class and corners. `predictions` are COCO results with `frame_id`, `bbox` (x, y, w, h) and
-    `score`, as `omnigen predict` and omnigen.detector.predict.predict_dataset write them."""
+    `score`, as `omnigen predict` and omnigen.detector.prediction.predict.predict_dataset write them."""
     by_frame: dict[str, list[dict[str, Any]]] = {}
     for p in predictions:
         if p["score"] >= min_score:

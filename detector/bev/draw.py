@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from PIL import Image, ImageDraw
 
-from omnigen.detector.bev import BevResult
+from omnigen.detector.bev.homography import BevResult
 from omnigen.draw import (BACKGROUND, BOTTOM_COLOR, BOX2D_COLOR, CLASS_COLORS, PLACEHOLDER, TITLE_HEIGHT, bev_side,
                           check_canvas, display_scale, font)
 from omnigen.images import MAX_IMAGE_PIXELS

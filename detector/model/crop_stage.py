@@ -41,7 +41,7 @@ past MAX_REFINE keep the head's scores, on the head's scale. Two other rescoring
 and not kept (docs/detector-training.md): by the anchor's best score of any class (the head
 finds, the crop names), and that with a detection of every class for each refined box.
 
-Trained apart. `omnigen train-crop` (detector/crop_train.py) trains the stage again after the
+Trained apart. `omnigen train-crop` (detector/training/crop_train.py) trains the stage again after the
 detector, alone on clean crops of the labelled objects, and writes the detector's checkpoint with
 the new stage. There the classes come from a net of their own (SplitCropNet,
 DetectorConfig.crop_split): in one small net the class term costs the corners
@@ -67,9 +67,9 @@ import torch.nn.functional as F
 import torch.onnx.operators
 
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
-from omnigen.detector.boxes import box_area
-from omnigen.detector.heading import HEADING_CHANNELS, image_heading, orient
-from omnigen.detector.nms import Detections
+from omnigen.detector.training.boxes import box_area
+from omnigen.detector.model.heading import HEADING_CHANNELS, image_heading, orient
+from omnigen.detector.prediction.nms import Detections
 
 MARGIN = 0.1
 """Context around the box on each side, as a share of its longer side (that of the crops a small CNN told the front from)."""
@@ -250,7 +250,7 @@ def crop_boxes(images: torch.Tensor, batch_index: torch.Tensor, boxes: torch.Ten
     batch_index[n], grown by `margin` of its longer side on each side and squared about its centre;
     zero outside the image. Bilinear sampling (F.grid_sample), so it runs on any device and in
     ONNX. The contract's pixel convention: pixel centres at integers, an image of width W spans
-    -0.5 .. W - 0.5 (detector/data.py Letterbox)."""
+    -0.5 .. W - 0.5 (detector/data/samples.py Letterbox)."""
     # the size as a tensor, so that an ONNX graph traced at one size crops right at any other
     hw = torch.onnx.operators.shape_as_tensor(images)[2:].to(images.dtype)
     boxes = boxes.to(images.dtype)
@@ -431,7 +431,7 @@ def refine_detections(net: CropNet, size: int, images: torch.Tensor, dets: list[
 
 
 class RefineWrapper(nn.Module):
-    """The crop stage as a graph of its own for ONNX (detector/export_onnx.py), run after NMS:
+    """The crop stage as a graph of its own for ONNX (detector/prediction/export_onnx.py), run after NMS:
     (images (1, 3, H, W) as the detector saw them, boxes (N, 4), keypoints (N, 8, 3) of the
     detections) -> the keypoints with each detection's corners and front from its crop (`refine`),
     and for a net that names classes their probabilities (N, nc) too, which a caller rescores its

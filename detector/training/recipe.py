@@ -105,7 +105,7 @@ class Model:
     kpt_mode: str = knob("box", choice("anchor", "box"),
                          "corners as offsets from the anchor, or in units of the anchor's predicted box", "kpt_mode")
     heading: bool = knob(True, switch, "learn corners up to the 180-degree turn and the front from a regressed "
-                         "image heading (detector/heading.py)", "kpt_heading")
+                         "image heading (detector/model/heading.py)", "kpt_heading")
 
 
 @dataclass(frozen=True)
@@ -115,7 +115,7 @@ class Data:
     window: int = knob(320, integer(0, 8192), "train on random WINDOW x WINDOW windows of the input: objects keep the "
                        "scale they are predicted at; 0, or one as large as the input: whole images", "crop")
     focus: float = knob(0.5, fraction(), "with windows: centre this share of them on an object drawn class-balanced "
-                        "(detector/balance.py)", "crop_focus")
+                        "(detector/data/balance.py)", "crop_focus")
     repeat_thresh: float = knob(0.3, fraction(), "repeat-factor sampling (LVIS): a frame whose rarest class is in a "
                                 "fraction f < T of the training frames is drawn sqrt(T / f) times an epoch; 0: off",
                                 "repeat_thresh")
@@ -176,8 +176,8 @@ class Loss:
 @dataclass(frozen=True)
 class CropStage:
     """The second stage that places each object's corners, front and class from a crop of it
-    (detector/crop_stage.py): trained with the detector, then again apart on clean crops for
-    `steps` (detector/crop_train.py), the run's second phase."""
+    (detector/model/crop_stage.py): trained with the detector, then again apart on clean crops for
+    `steps` (detector/training/crop_train.py), the run's second phase."""
 
     side: int = knob(64, integer(0, 1024), "crop side in pixels, a multiple of 16; 0: no crop stage", "heading_crop")
     classes: bool = knob(True, switch, "the stage names each crop's class and prediction rescores by it",
@@ -201,7 +201,7 @@ class Predict:
     """How the published figures were predicted (omnigen predict, eval)."""
 
     vertical: str = knob("lines", choice("lines", "off"), "turn each image's vertical edges to its vertical "
-                         "vanishing point (detector/vanishing.py); off: the network's corners")
+                         "vanishing point (detector/prediction/vanishing.py); off: the network's corners")
 
 
 @dataclass(frozen=True)

@@ -15,8 +15,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from omnigen.detector.backbones import scale_channels, scale_depth
-from omnigen.detector.blocks import C2f, C3k2, Conv
+from omnigen.detector.model.backbones import scale_channels, scale_depth
+from omnigen.detector.model.blocks import C2f, C3k2, Conv
 
 NECK_CHANNELS = {4: 128, 8: 256, 16: 512, 32: 1024, 64: 1024}
 """Nominal output channels of the neck per stride, before width scaling."""

@@ -18,10 +18,10 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 import torch
 
-from omnigen.detector.data import KeypointDataset, Letterbox, letterbox, split_frames
-from omnigen.detector.crop_stage import refine_detections
-from omnigen.detector.model import KeypointDetector
-from omnigen.detector.nms import Detections, postprocess
+from omnigen.detector.data.samples import KeypointDataset, Letterbox, letterbox, split_frames
+from omnigen.detector.model.crop_stage import refine_detections
+from omnigen.detector.model.network import KeypointDetector
+from omnigen.detector.prediction.nms import Detections, postprocess
 from omnigen.conventions import NUM_KEYPOINTS
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
@@ -71,7 +71,7 @@ def snap_batch(images: list[np.ndarray], boxes: list[Letterbox], dets: list[Dete
     would count as a long straight edge."""
     import cv2
 
-    from omnigen.detector.vanishing import snap_vertical
+    from omnigen.detector.prediction.vanishing import snap_vertical
 
     out = []
     for image, lb, d in zip(images, boxes, dets):
@@ -213,7 +213,7 @@ def load_for_prediction(weights: str | Path, device: str | None = None) -> tuple
     """A checkpoint's model, in eval mode on `device` (default: CUDA when there is one: a
     checkpoint loads onto the CPU, where a GPU machine's evaluation would otherwise run), and the
     checkpoint, whose taxonomy and training size the prediction needs."""
-    from omnigen.detector.checkpoint import load_model
+    from omnigen.detector.model.checkpoint import load_model
 
     model, state = load_model(weights)
     return model.to(device or ("cuda" if torch.cuda.is_available() else "cpu")), state
@@ -231,7 +231,7 @@ def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: 
     (EVAL_MULTI_LABEL). `crop_classes=False` keeps the head's scores where the crop stage names classes;
     `vertical` is PredictOptions'.
     """
-    from omnigen.detector.checkpoint import checkpoint_taxonomy
+    from omnigen.detector.model.checkpoint import checkpoint_taxonomy
 
     imgsz = imgsz or trained_imgsz(state)
     data = KeypointDataset(dataset_root, checkpoint_taxonomy(state), imgsz, split_frames(dataset_root, split))

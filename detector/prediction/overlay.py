@@ -15,7 +15,7 @@ from omnigen.draw import BOX2D_COLOR, EDGE_COLORS, font
 
 
 def draw_detections(image: np.ndarray, det: dict[str, np.ndarray], classes: list[str]) -> Image.Image:
-    """RGB image (H, W, 3) and detections in its pixels (omnigen.detector.predict.to_image_coords) -> PIL image."""
+    """RGB image (H, W, 3) and detections in its pixels (omnigen.detector.prediction.predict.to_image_coords) -> PIL image."""
     out = Image.fromarray(image).convert("RGB")
     draw = ImageDraw.Draw(out)
     lw = max(1, round(max(out.size) / 400))

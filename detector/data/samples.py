@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
-from omnigen.detector.balance import check_crop_focus, focus_weights, focused_range, instance_counts, pick_focus
+from omnigen.detector.data.balance import check_crop_focus, focus_weights, focused_range, instance_counts, pick_focus
 from omnigen.dataset import Dataset
 from omnigen.splits import TRAIN, read_split, split_names
 from omnigen.taxonomy import Taxonomy
@@ -223,7 +223,7 @@ class KeypointDataset(torch.utils.data.Dataset):
 
     Each image is letterboxed to `size`; with `crop`, a sample is a random crop x crop window of
     it (see random_crop), drawn before the other augmentations; with `crop_focus` that share of the
-    windows is centred on an object drawn class-balanced (detector/balance.py).
+    windows is centred on an object drawn class-balanced (detector/data/balance.py).
 
     Ignore regions (KITTI DontCare) are not used in training: objects inside them are simply
     unlabelled, which costs a little recall signal and never teaches a wrong box.
@@ -288,7 +288,7 @@ class KeypointDataset(torch.utils.data.Dataset):
 
     def frame_classes(self) -> list[np.ndarray]:
         """Each frame's target classes (taxonomy ids, one per object), without reading images:
-        what class-balanced sampling counts (detector/balance.py)."""
+        what class-balanced sampling counts (detector/data/balance.py)."""
         if self._frame_classes is None:
             cat = self.ds.objects.category
             self._frame_classes = [self.class_of_fine[cat[self._target_rows(int(f))]].astype(np.int64)
@@ -348,7 +348,7 @@ class KeypointDataset(torch.utils.data.Dataset):
 
 
 def collate(samples: list[Sample]) -> tuple[torch.Tensor, dict[str, torch.Tensor], list[Sample]]:
-    """Images (B, 3, S, S) float in 0..1 and the loss's targets (detector/outputs.py layout)."""
+    """Images (B, 3, S, S) float in 0..1 and the loss's targets (detector/model/outputs.py layout)."""
     images = torch.from_numpy(np.stack([s.image for s in samples])).permute(0, 3, 1, 2).float().div_(255)
     n = [len(s.cls) for s in samples]
     targets = {

@@ -16,12 +16,12 @@ import torch
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
-from omnigen.detector.backbones import BACKBONES, build_backbone
-from omnigen.detector.blocks import fuse_batchnorm
-from omnigen.detector.head import KeypointHead
-from omnigen.detector.crop_stage import CropNet, SplitCropNet, crop_outputs
-from omnigen.detector.neck import PAN
-from omnigen.detector.outputs import KPT_MODES, REG_MAX, HeadOutput, decode
+from omnigen.detector.model.backbones import BACKBONES, build_backbone
+from omnigen.detector.model.blocks import fuse_batchnorm
+from omnigen.detector.model.head import KeypointHead
+from omnigen.detector.model.crop_stage import CropNet, SplitCropNet, crop_outputs
+from omnigen.detector.model.neck import PAN
+from omnigen.detector.model.outputs import KPT_MODES, REG_MAX, HeadOutput, decode
 from omnigen.conventions import FINE_CLASSES
 
 SCALE_NAMES = ("n", "s", "m", "l", "x")
@@ -146,7 +146,7 @@ class KeypointDetector(nn.Module):
         from `images` and their headings returned in the output with the rows of the targets they
         stand for. Here in the forward, so that data parallelism sees the crop net's parameters used."""
         top = self.strides[-1]
-        # not while traced (detector/export_onnx.py checks the fixed input first): the test would only warn
+        # not while traced (detector/prediction/export_onnx.py checks the fixed input first): the test would only warn
         if not torch.jit.is_tracing() and (images.shape[-1] % top or images.shape[-2] % top):
             raise ValueError(f"KeypointDetector: image size {tuple(images.shape[-2:])} is not a multiple "
                              f"of the largest stride {top}")

@@ -4,7 +4,7 @@ One process trains on the CPU or one GPU; under torchrun (WORLD_SIZE > 1) each p
 shard of every epoch (DistributedSampler) and DistributedDataParallel averages the gradients, with
 NCCL on CUDA and gloo on the CPU. Only rank 0 validates and writes checkpoints.
 
-What a run learns is its recipe (detector/recipe.py; TrainConfig's defaults are the validated
+What a run learns is its recipe (detector/training/recipe.py; TrainConfig's defaults are the validated
 one), in two phases: the detector's epochs, then, where the recipe has a crop stage and steps for
 it, that stage trained again apart on clean crops (crop_train.crop_phase, what `omnigen train-crop`
 does) and put into best.pt and last.pt, so that `omnigen predict RUN/best.pt` uses it. A --time
@@ -35,7 +35,7 @@ results.csv has a row per epoch; its `time` column is the seconds the run's epoc
 far, validation included, summed over resumed invocations (the work a kill threw away is not in
 it), so a run cut into time-boxed jobs still says what it cost.
 
-`time_minutes` fits the schedule to a wall-clock budget (detector/time_budget.py); `weights`
+`time_minutes` fits the schedule to a wall-clock budget (detector/training/time_budget.py); `weights`
 starts a new run from an earlier run's weights (checkpoint.load_pretrained). Where the time of a
 step goes and what was done about it: docs/detector-training.md, "Speed".
 """
@@ -57,22 +57,22 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from omnigen.detector.balance import describe as describe_repeat
-from omnigen.detector.balance import check_crop_focus, check_repeat_thresh, repeat_factors
-from omnigen.detector.checkpoint import (SCHEMA, a_kind, check_tensors, checked_fields, checkpoint_taxonomy, config_difference,
+from omnigen.detector.data.balance import describe as describe_repeat
+from omnigen.detector.data.balance import check_crop_focus, check_repeat_thresh, repeat_factors
+from omnigen.detector.model.checkpoint import (SCHEMA, a_kind, check_tensors, checked_fields, checkpoint_taxonomy, config_difference,
                                          detector_config, load_checkpoint, load_part, load_pretrained, load_weights,
                                          save_checkpoint)
-from omnigen.detector.data import Augment, KeypointDataset, split_frames
-from omnigen.detector.ema import ModelEMA
-from omnigen.detector.loss import DetectionLoss, LossGains
-from omnigen.detector.model import DetectorConfig, KeypointDetector
-from omnigen.detector.recipe import JOB as RECIPE_JOB
-from omnigen.detector.recipe import RECIPE, RECIPE_FILE, RUN, field_key, from_dict, recipe_json, recipe_of, train_fields
-from omnigen.detector.predict import EVAL_CONF, EVAL_MAX_DET, EVAL_MULTI_LABEL, PredictOptions, predict_frames
-from omnigen.detector import time_budget
-from omnigen.detector.time_budget import TimeBudget
-from omnigen.detector.train_loader import EpochBatches, collate_uint8, make_loader
-from omnigen.detector.train_step import FiniteWatch, PartSums, TrainStep, finite_weights, to_device, use_channels_last
+from omnigen.detector.data.samples import Augment, KeypointDataset, split_frames
+from omnigen.detector.training.ema import ModelEMA
+from omnigen.detector.training.loss import DetectionLoss, LossGains
+from omnigen.detector.model.network import DetectorConfig, KeypointDetector
+from omnigen.detector.training.recipe import JOB as RECIPE_JOB
+from omnigen.detector.training.recipe import RECIPE, RECIPE_FILE, RUN, field_key, from_dict, recipe_json, recipe_of, train_fields
+from omnigen.detector.prediction.predict import EVAL_CONF, EVAL_MAX_DET, EVAL_MULTI_LABEL, PredictOptions, predict_frames
+from omnigen.detector.training import time_budget
+from omnigen.detector.training.time_budget import TimeBudget
+from omnigen.detector.data.loader import EpochBatches, collate_uint8, make_loader
+from omnigen.detector.training.step import FiniteWatch, PartSums, TrainStep, finite_weights, to_device, use_channels_last
 from omnigen.files import TMP_PREFIX, atomic_write_bytes, atomic_write_text, dumps_json
 from omnigen.outputs import json_made_by, read_prefix, same_file
 from omnigen.ownership import output_lock
@@ -81,14 +81,14 @@ from omnigen.taxonomy import load_taxonomy
 
 
 _TRAIN = train_fields(RECIPE)
-"""The TrainConfig fields of the validated recipe (detector/recipe.py): the defaults below."""
+"""The TrainConfig fields of the validated recipe (detector/training/recipe.py): the defaults below."""
 
 
 @dataclass
 class TrainConfig:
     """Everything a run depends on; stored in the checkpoint and in args.json.
 
-    The fields a recipe key fills (detector/recipe.py: recipe.field_key names it) take their
+    The fields a recipe key fills (detector/training/recipe.py: recipe.field_key names it) take their
     defaults from the recipe, the run's settings theirs from recipe.RunSettings: nothing here
     declares a value of its own but what only tests reach (marked below), the command's options
     that are no recipe key (the splits, --weights) and save_interval."""
@@ -317,7 +317,7 @@ def pick_device(cfg: TrainConfig, local_rank: int) -> torch.device:
 
 def validate(model: KeypointDetector, data: KeypointDataset, split: str | None, batch: int) -> dict[str, float]:
     """OKS mAP of the model on a split (omnigen eval's numbers, overall row; adherence left to eval)."""
-    from omnigen.detector.oks_eval import evaluate
+    from omnigen.detector.evaluation.oks_eval import evaluate
 
     # the network's own corners (vertical="off"): the snap to the image's vanishing point is a step after
     # it (omnigen predict, eval) that would cost a line segment detection an image at every validation
@@ -717,7 +717,7 @@ def run_crop_phase(cfg: TrainConfig, taxonomy: Any, val_name: str | None, joint:
     partial state. Returns the phase's figures for the summary."""
     import copy
 
-    from omnigen.detector.crop_train import attach_stage, crop_phase
+    from omnigen.detector.training.crop_train import attach_stage, crop_phase
 
     def say(text: str) -> None:
         print(f"note: {text}", file=sys.stderr, flush=True)

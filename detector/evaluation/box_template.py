@@ -7,7 +7,7 @@ prediction's box, class and score and replaces its eight corners by the **mean n
 layout** of the prediction's class in the frame's view (ego, infrastructure, aerial, ...), learned
 from the training split: corner (x, y) written as ((x - cx) / w, (y - cy) / h) relative to the
 object's 2D box (centre cx, cy; size w, h). Scored by the same evaluation as the model
-(omnigen.detector.oks_eval), it is the bar the keypoint branch must clear: equal numbers mean the corners
+(omnigen.detector.evaluation.oks_eval), it is the bar the keypoint branch must clear: equal numbers mean the corners
 carry no more than the box.
 
 - Fitted from the dataset's 'train' split when it has one, else from all frames (and the report
@@ -31,7 +31,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from omnigen.detector.oks_eval import EvalReport, PredictionError, evaluate
+from omnigen.detector.evaluation.oks_eval import EvalReport, PredictionError, evaluate
 from omnigen.conventions import NUM_KEYPOINTS
 from omnigen.dataset import Dataset
 from omnigen.splits import TRAIN, read_split, split_names

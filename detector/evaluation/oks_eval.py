@@ -41,7 +41,7 @@ counted. Choices, and why:
   Lifts that fail (ok = False) are left out and counted.
 - Corner errors (corner_error_px, corner_error_rel; per corner with per_corner=True): medians of
   the distances between predicted and true corners of the objects matched to a prediction by 2D
-  box IoU >= 0.5, not by OKS, over their labelled corners (detector/corner_errors.py says why).
+  box IoU >= 0.5, not by OKS, over their labelled corners (detector/evaluation/corner_errors.py says why).
   Per source, view and class the group's objects; per size, the objects whose box is in the bin.
 """
 
@@ -59,7 +59,7 @@ import numpy as np
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
-from omnigen.detector.corner_errors import BOX_MATCH_IOU, CornerErrors, corners_extent_boxes, matched_corners
+from omnigen.detector.evaluation.corner_errors import BOX_MATCH_IOU, CornerErrors, corners_extent_boxes, matched_corners
 from omnigen.formats.coco import to_coco
 from omnigen.conventions import NUM_KEYPOINTS
 from omnigen.dataset import Dataset
@@ -90,7 +90,7 @@ class EvalRow:
     conf_threshold: float
     ground_adherence_deg: float = math.nan  # NaN where no matched prediction has a known ground plane
     adherence_objects: int = 0
-    # medians over the labelled corners of the box-matched objects (detector/corner_errors.py); NaN: none
+    # medians over the labelled corners of the box-matched objects (detector/evaluation/corner_errors.py); NaN: none
     corner_error_px: float = math.nan
     corner_error_rel: float = math.nan  # each corner's error / sqrt(the object's 2D box area)
     corner_objects: int = 0  # box-matched objects with a labelled corner
@@ -434,7 +434,7 @@ def adherence_per_detection(ds: Dataset, gt: COCO, anns: list[dict[str, Any]], m
 
     Returns also where the dimension priors came from and how many lifts failed.
     """
-    from omnigen.detector.lift import fit_dimension_priors, ground_adherence_deg, lift_keypoints
+    from omnigen.detector.bev.lift import fit_dimension_priors, ground_adherence_deg, lift_keypoints
 
     planes = ds.table.ground_plane
     has_plane = np.isfinite(planes).all(axis=1)
@@ -546,9 +546,9 @@ def evaluate(ds: Dataset, predictions: Sequence[dict[str, Any]], split: str | No
             angles, priors_from, report.lift_failures = adherence_per_detection(ds, gt, anns, matches.matched_ids())
             report.priors_from = priors_from or None
         except ModuleNotFoundError as exc:
-            if exc.name != "omnigen.detector.lift":
+            if exc.name != "omnigen.detector.bev.lift":
                 raise
-            report.notes.append("ground-plane adherence not computed: omnigen.detector.lift is not installed")
+            report.notes.append("ground-plane adherence not computed: omnigen.detector.bev.lift is not installed")
     for name, ids in groups.items():
         sub_imgs, sub = evalimgs_subset(e, ids)
         report.rows.append(_row(name, len(ids), sub_imgs, sub, matches.subset(ids), angles))

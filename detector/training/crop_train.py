@@ -45,12 +45,12 @@ import torch
 import torch.nn.functional as F
 
 from omnigen.conventions import FLIP_IDX, TURN_IDX
-from omnigen.detector.boxes import box_area
-from omnigen.detector.crop_stage import (MIRROR_HEADING, CropNet, SplitCropNet, crop_boxes, crop_position, from_crop_units,
+from omnigen.detector.training.boxes import box_area
+from omnigen.detector.model.crop_stage import (MIRROR_HEADING, CropNet, SplitCropNet, crop_boxes, crop_position, from_crop_units,
                                          jitter_boxes, mirror_corners, mirror_position, outputs_of_crops, to_crop_units,
                                          training_rois)
-from omnigen.detector.heading import heading_loss, image_heading, orient
-from omnigen.detector.crop_train_config import CropTrainConfig
+from omnigen.detector.model.heading import heading_loss, image_heading, orient
+from omnigen.detector.training.crop_train_config import CropTrainConfig
 
 
 @dataclass
@@ -111,7 +111,7 @@ def split_crops(dataset: str | Path, taxonomy, imgsz: int, frames: str | None, s
     `imgsz` and unaugmented as prediction sees them, each object cut `copies` times about moved
     boxes: what train-crop trains and scores on. With `label`, a
     progress bar of that name counts the frames."""
-    from omnigen.detector.data import KeypointDataset, split_frames
+    from omnigen.detector.data.samples import KeypointDataset, split_frames
     from omnigen.progress import progress
 
     data = KeypointDataset(dataset, taxonomy, imgsz, split_frames(str(dataset), frames))
@@ -127,8 +127,8 @@ def split_crops(dataset: str | Path, taxonomy, imgsz: int, frames: str | None, s
 def detector_stage(state: dict[str, Any], path: str | Path = "checkpoint") -> CropNet | SplitCropNet:
     """The crop stage a detector checkpoint's `state` (of the file `path`, named in errors) was
     trained with (its model's weights)."""
-    from omnigen.detector.checkpoint import detector_config, load_weights
-    from omnigen.detector.model import KeypointDetector
+    from omnigen.detector.model.checkpoint import detector_config, load_weights
+    from omnigen.detector.model.network import KeypointDetector
 
     model = KeypointDetector(detector_config(path, state))
     load_weights(model, state["model"], path)
@@ -193,7 +193,7 @@ def offset_loss(t: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor) -> t
 def stage_loss(net: CropNet | SplitCropNet, x: torch.Tensor, corners: torch.Tensor, mask: torch.Tensor, heading: torch.Tensor,
                cls: torch.Tensor, cfg: CropTrainConfig, where: torch.Tensor | None = None
                ) -> tuple[torch.Tensor, dict[str, float]]:
-    """The joint training's crop terms (detector/loss.py) on one batch, and with cfg.offset_gain the
+    """The joint training's crop terms (detector/training/loss.py) on one batch, and with cfg.offset_gain the
     offset term (`offset_loss`), weighed by cfg's gains (the corners' is 1), and each term's value;
     `where`, the crops' positions, for a net that reads them."""
     h, t, logits = outputs_of_crops(net, x, where=where)
@@ -219,7 +219,7 @@ PARTIAL_FIELDS: dict[str, type | tuple[type, ...]] = {
 def read_partial(partial: Path, steps: int) -> dict[str, Any]:
     """A partial state, checked field by field: a damaged or foreign file is one line naming it
     (it is this command's own file, so the way out is to delete it)."""
-    from omnigen.detector.checkpoint import a_kind, load_plain
+    from omnigen.detector.model.checkpoint import a_kind, load_plain
 
     state = load_plain(partial)
     again = "delete it to start over"
@@ -242,7 +242,7 @@ def resume_partial(partial: Path, state: dict[str, Any], net: torch.nn.Module, o
                    sched: Any, rng: np.random.Generator) -> None:
     """Load a checked partial state into the run's net, optimiser, schedule and generator, each
     refusal one line naming the file and the field."""
-    from omnigen.detector.checkpoint import check_tensors, load_part, load_weights
+    from omnigen.detector.model.checkpoint import check_tensors, load_part, load_weights
 
     load_weights(net, check_tensors(partial, "net", state["net"]), partial, "net")
     load_part(partial, "opt", lambda: opt.load_state_dict(state["opt"]))
@@ -258,7 +258,7 @@ def train_stage(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfig
     on from it (a finished one returns at once) when it is of the same config, crops and
     `identity` (what else made the crops and the net: the caller's arguments); one of others is
     refused, naming the file. The caller removes it once the result is safely written."""
-    from omnigen.detector.checkpoint import save_checkpoint  # torch.save to memory, then an atomic write
+    from omnigen.detector.model.checkpoint import save_checkpoint  # torch.save to memory, then an atomic write
 
     rng = np.random.default_rng(cfg.seed)
     p = draw_weights(data.cls, cfg.balance)
@@ -371,7 +371,7 @@ def attach_stage(state: dict[str, Any], net: CropNet | SplitCropNet, size: int, 
     config["crop_classes"] = net.num_classes > 0
     config["crop_split"] = isinstance(net, SplitCropNet)
     config["crop_position"] = bool(net.position)
-    from omnigen.detector.checkpoint import SCHEMA
+    from omnigen.detector.model.checkpoint import SCHEMA
 
     tensors = {f"crop_net.{k}": v.detach().clone() for k, v in net.state_dict().items()}
     out = dict(state)
@@ -407,7 +407,7 @@ def step_seconds(data: CropSet, net: CropNet | SplitCropNet, cfg: CropTrainConfi
     generator is left as it was."""
     import copy
 
-    from omnigen.detector import time_budget
+    from omnigen.detector.training import time_budget
 
     with torch.random.fork_rng(devices=[]):
         start = time_budget.clock()
@@ -485,7 +485,7 @@ def crop_phase(cfg: Any, taxonomy, val_split: str | None, joint: CropNet | Split
     that fit (time_budget.fit_steps, one step timed on a throwaway copy; a partial state's own
     plan where one is there), and too few to train keep the joint stage. The state goes to
     `partial` as train_stage saves it: a killed phase goes on from it."""
-    from omnigen.detector import time_budget
+    from omnigen.detector.training import time_budget
 
     classes = bool(cfg.crop_classes)
     stage_cfg, split, position = stage_config(cfg)

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import torch
 
 from omnigen.conventions import NUM_KEYPOINTS
-from omnigen.detector.boxes import box_area
-from omnigen.detector.heading import orient
+from omnigen.detector.training.boxes import box_area
+from omnigen.detector.model.heading import orient
 
 REG_MAX = 16
 """Bins of the distribution focal loss: each box side is a distribution over 0..REG_MAX-1 strides."""
@@ -122,7 +122,7 @@ def apply_heading(k: torch.Tensor, heading: torch.Tensor, boxes: torch.Tensor) -
 def decode(out: HeadOutput) -> torch.Tensor:
     """The inference tensor (B, 4 + nc + NUM_KEYPOINTS * 3, A): xyxy box, class scores (sigmoid),
     and per corner x, y, visibility score (sigmoid), corners in the labelled order (a heading-aware
-    head's heading applied). NMS is applied outside (detector/nms.py)."""
+    head's heading applied). NMS is applied outside (detector/prediction/nms.py)."""
     boxes = decode_boxes(out.box, out.anchors, out.strides)
     scores = out.cls.sigmoid()
     k = head_keypoints(out, boxes)

@@ -2,7 +2,7 @@
 
 OKS mAP says how many predictions are good enough at each threshold; it does not say how far
 off the corners are, nor whether they are better than what the 2D box alone implies (the box
-template baseline, detector/box_template.py). These numbers do.
+template baseline, detector/evaluation/box_template.py). These numbers do.
 
 - Matching is by **2D box IoU >= 0.5**, not by OKS: ground truth and predictions of the same class
   in the same image, greedy by score (each prediction, best first, takes the unmatched object it
@@ -10,7 +10,7 @@ template baseline, detector/box_template.py). These numbers do.
   evaluation matches. Matching by OKS would keep only the predictions whose corners are already
   close to the truth, so their error would be small by construction; matching by box measures the
   corners of every object the detector found, good or bad. The prediction's box is its `bbox`
-  (x, y, w, h, what omnigen.detector.predict writes); a prediction without one is matched by its corners'
+  (x, y, w, h, what omnigen.detector.prediction.predict writes); a prediction without one is matched by its corners'
   extent clipped to the image.
 - Errors are measured on the object's **labelled corners**, the ones OKS uses: in the image and
   in front of the camera (v > 0). `corner_error_px` is the median over every such corner of the

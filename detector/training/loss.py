@@ -15,11 +15,11 @@ from dataclasses import asdict, dataclass
 import torch
 import torch.nn.functional as F
 
-from omnigen.detector.assign import TaskAlignedAssigner
-from omnigen.detector.boxes import bbox2dist, box_area, box_ciou
-from omnigen.detector.crop_stage import to_crop_units
-from omnigen.detector.heading import heading_loss, image_heading
-from omnigen.detector.outputs import REG_MAX, HeadOutput, decode_boxes, head_keypoints
+from omnigen.detector.training.assign import TaskAlignedAssigner
+from omnigen.detector.training.boxes import bbox2dist, box_area, box_ciou
+from omnigen.detector.model.crop_stage import to_crop_units
+from omnigen.detector.model.heading import heading_loss, image_heading
+from omnigen.detector.model.outputs import REG_MAX, HeadOutput, decode_boxes, head_keypoints
 from omnigen.conventions import NUM_KEYPOINTS, TURN_IDX
 
 OKS_SIGMA = 0.125

@@ -1,0 +1,1 @@
+"""From image corners to the ground: the calibration-free BEV homography, metric lifting, pictures."""

@@ -1,0 +1,1 @@
+"""What a training step sees: letterboxed samples, class-balanced sampling, the loader."""

@@ -1,0 +1,1 @@
+"""Images in, COCO-results detections out: NMS, the crop stage's refinement, vertical edges, ONNX."""
