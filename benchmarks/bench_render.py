@@ -7,19 +7,33 @@ frames per second, time by stage, and the overhead share: the fraction of the pe
 spent in the renderer's own core (Cycles' beauty path tracing; for raster the whole pyrender call
 counts as the core). Resident memory is printed after the first and the last frame. Frames are
 written as `omnigen render` writes them: each frame's files on a thread while the next is drawn
-(the "write" stage is the time the loop waited for them; the last frame's writing is in the total).
+(the "write" stage is the time the loop waited for them; the last frame's writing is in the total),
+and each next frame's scene drawn in a second process where `omnigen render` would (the "scene"
+stage is then the wait for it and the backend's update).
 
 Issue 6's targets: raster >= 3 annotated frames/s; Cycles --quality fast <= 8 s a frame, overhead
 <= 10% of the frame time over 20 frames.
 
+`--profile` instead prints, per backend and per preset (PROFILE_PRESETS), where the time of the
+frames after frame 0 goes: the stage timers, and the parts of each stage root of PROFILE_ROOTS
+(drawing the frame's Scene, updating the backend, drawing the camera, building the raster's agent
+buffers, annotating) split by the functions they call, from cProfile's call graph (which slows
+Python code, not the renderers: compare parts with each other, not with the plain stage rows).
+`--profile-clock cpu` times the parts by the rendering thread's CPU time, for a loaded machine.
+
     .venv/bin/python benchmarks/bench_render.py [--raster-frames 21] [--cycles-frames 21] [--size 640] [--no-cycles]
         [--no-raster] [--memory-frames 200 [--memory-backend cycles] [--memory-size 96] [--memory-quality preview]]
+    .venv/bin/python benchmarks/bench_render.py --profile [--profile-frames 4] [--size 640] [--quality fast] [--no-cycles]
+        [--no-raster] [--profile-presets downtown,intersection,suburban] [--profile-clock wall|cpu]
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import platform
+import pstats
+import re
 import sys
 import tempfile
 import time
@@ -41,8 +55,9 @@ def bench(backend: str, frames: int, size: int, quality: str, scene: str, seed: 
                         width=size, height=size, backend=backend, quality=quality, durable=False)
         r = Renderer(job)
         r.write_behind = True  # as `omnigen render` (Renderer.run) writes: each frame's files on a thread
+        ahead = r.draw_ahead(frames)  # and draws the next frame's scene in a second process
         t0 = time.perf_counter()
-        r.render_frame(0)
+        r.render_frame(0, 1 if frames > 1 else None)
         r.flush()
         first = time.perf_counter() - t0
         rss_first = rss_mb()
@@ -50,7 +65,7 @@ def bench(backend: str, frames: int, size: int, quality: str, scene: str, seed: 
         base = dict(r.summary.timings)
         t1 = time.perf_counter()
         for i in range(1, frames):
-            r.render_frame(i)
+            r.render_frame(i, i + 1 if i + 1 < frames else None)
         r.flush()  # the last frame's files are part of the time
         loop = time.perf_counter() - t1
         rss_last = rss_mb()
@@ -61,7 +76,7 @@ def bench(backend: str, frames: int, size: int, quality: str, scene: str, seed: 
     return {"backend": backend, "frames": n, "s_per_frame": loop / n, "fps": n / loop, "first_frame_s": first,
             "build_s": build, "core_s_per_frame": core / n, "overhead_share": 1 - core / loop,
             "stages": {k: v / n for k, v in tm.items() if k not in ("build",)}, "rss_first": rss_first,
-            "rss_last": rss_last, "objects": r.summary.objects, "redraws": r.summary.redraws}
+            "rss_last": rss_last, "objects": r.summary.objects, "redraws": r.summary.redraws, "ahead": ahead}
 
 
 def report(res: dict) -> None:
@@ -76,15 +91,160 @@ def report(res: dict) -> None:
             ["city + backend build, s", round(res["build_s"], 2)],
             ["objects annotated (all frames)", res["objects"]],
             ["camera redraws after annotation", res["redraws"]],
+            ["scenes drawn ahead (second process)", "yes" if res["ahead"] else "no"],
             ["resident MB after frame 0", round(res["rss_first"])],
             ["resident MB after last frame", round(res["rss_last"])]]
     rows += [[f"  stage {k}, s per frame", round(v, 3)] for k, v in res["stages"].items()]
     print_table(f"{res['backend']}: drone rig", ["measure", "value"], rows)
 
 
+PROFILE_PRESETS = ("downtown", "intersection", "suburban")
+PROFILE_ROOTS = (  # (row label, file name, function, levels of callees shown)
+    ("scene: SceneGenerator.frame", "generate.py", "randomize_frame", 2),
+    ("scene: backend.update", "render.py", "update", 3),  # RasterBackend.update or CyclesBackend.update
+    ("camera: sample_camera", "sampling.py", "sample_camera", 1),
+    ("render: raster agent buffers", "raster_backend.py", "_prepare_agents", 1),  # Cycles: the GL labels'
+    ("annotate", "annotate.py", "annotate", 1),
+)
+PROFILE_MIN_SHARE = 0.02  # a callee under this share of its stage root's time is folded into "other"
+PROFILE_STAGES = ("scene", "camera", "render", "annotate", "write")
+_INLINE = ("<genexpr>", "<listcomp>", "<dictcomp>", "<setcomp>", "<lambda>")  # their callees shown in their place
+
+Func = tuple[str, int, str]  # cProfile's key of a function: (file, first line, name)
+
+
+def _label(func: Func, caller: Func | None = None) -> str:
+    """A function as a row names it: `module.function`, just `function` under a caller of the
+    same module, a builtin or C method by its own name and "(C)"."""
+    file, _, name = func
+    if file == "~":
+        m = re.search(r"'([^']+)'", name) or re.search(r"method (\S+)>", name)
+        return (m.group(1) if m else name).split(".")[-1] + " (C)"
+    return name if caller is not None and caller[0] == file else f"{Path(file).stem}.{name}"
+
+
+def call_tree(stats: pstats.Stats, file: str, name: str, depth: int, frames: int) -> dict[tuple[str, ...], tuple[float, float]]:
+    """(seconds, calls) per frame of the function `name` in `file` and of its callees down to
+    `depth` levels, keyed by the path of labels from it. Comprehensions and lambdas, and builtins
+    that only call them (list.extend over a generator), are looked through: their callees count as
+    their caller's. A callee under PROFILE_MIN_SHARE of the root's time is folded into its caller's
+    "other" row (the caller's own time and small callees). cProfile keeps one level of callers, so
+    the callees of a function called from several places are given to each place in proportion to
+    its share of that function's time."""
+    table = stats.stats  # func -> (primitive calls, calls, own time, cumulative time, {caller: edge})
+    children: dict[Func, list[tuple[Func, tuple]]] = {}
+    for func, (*_, callers) in table.items():
+        for caller, edge in callers.items():
+            children.setdefault(caller, []).append((func, edge))
+    roots = [f for f in table if Path(f[0]).name == file and f[2] == name]
+    if not roots:
+        return {}
+    total = sum(table[f][3] for f in roots)
+    root = (name if len(roots) > 1 else _label(roots[0]),)
+    out = {root: (total / frames, sum(table[f][1] for f in roots) / frames)}
+    floor = PROFILE_MIN_SHARE * total
+
+    def callees(funcs: list[Func], share: float, seen: frozenset, edges: dict) -> dict[Func, list[float]]:
+        """Each callee's (seconds, calls) from `funcs`, `share` of whose time is this path's."""
+        for f in funcs:
+            for g, (_, nc, _, ct) in children.get(f, []):
+                if g in seen:
+                    continue
+                if g[2] in _INLINE or (g[0] == "~" and children.get(g) and all(c[2] in _INLINE for c, _ in children[g])):
+                    callees([g], share * ct / max(table[g][3], 1e-12), seen | {g}, edges)
+                    continue
+                e = edges.setdefault(g, [0.0, 0.0])
+                e[0], e[1] = e[0] + share * ct, e[1] + share * nc
+        return edges
+
+    def walk(funcs: list[Func], path: tuple[str, ...], spent: float, level: int, seen: frozenset) -> None:
+        edges = callees(funcs, spent / max(sum(table[f][3] for f in funcs), 1e-12), seen, {})
+        shown = 0.0
+        for g, (ct, nc) in sorted(edges.items(), key=lambda kv: -kv[1][0]):
+            if ct < floor:
+                continue
+            shown += ct
+            sub = path + (_label(g, funcs[0]),)
+            out[sub] = (ct / frames, nc / frames)
+            if level > 1:
+                walk([g], sub, ct, level - 1, seen | {g})
+        if shown and spent - shown >= floor:
+            out[path + ("other",)] = ((spent - shown) / frames, 0.0)
+
+    walk(roots, root, total, depth, frozenset(roots))
+    return out
+
+
+PROFILE_CLOCKS = {"wall": time.perf_counter, "cpu": time.thread_time}
+
+
+def profile_frames(backend: str, scene: str, frames: int, size: int, quality: str, seed: int = 0, clock: str = "wall"):
+    """Render frames 0..frames-1 of the drone rig over `scene` as `omnigen render` does, but for
+    drawing every scene in this process (what a run of under AHEAD_MIN_FRAMES frames does, so
+    the profile sees its parts), profiling every frame after frame 0 (the city and backend build)
+    by `clock` (PROFILE_CLOCKS; "cpu": the rendering thread's CPU time, what a loaded machine still
+    measures); (pstats.Stats, stage wall seconds per frame)."""
+    from omnigen.rigs.render import RenderJob, Renderer
+
+    with tempfile.TemporaryDirectory() as tmp:
+        r = Renderer(RenderJob(rig="drone", frames=frames, out=Path(tmp), seed=seed, scene=scene, width=size, height=size,
+                               backend=backend, quality=quality, durable=False))
+        r.write_behind = True
+        try:
+            r.render_frame(0)
+            r.flush()
+            base = dict(r.summary.timings)
+            prof = cProfile.Profile(PROFILE_CLOCKS[clock])
+            prof.enable()
+            for i in range(1, frames):
+                r.render_frame(i)
+            r.flush()
+            prof.disable()
+        finally:
+            r.close()
+    n = frames - 1
+    return pstats.Stats(prof), {k: (r.summary.timings[k] - base[k]) / n for k in PROFILE_STAGES}
+
+
+def profile_rows(results: dict[str, tuple[pstats.Stats, dict]], frames: int) -> list[list]:
+    """One row per stage and per part of PROFILE_ROOTS, a column per preset: milliseconds per
+    frame, and the calls per frame of a part in brackets."""
+    presets = list(results)
+    rows = [[f"stage {k} (wall)"] + [f"{1000 * results[p][1][k]:.1f}" for p in presets] for k in PROFILE_STAGES]
+    for label, file, name, depth in PROFILE_ROOTS:
+        trees = {p: call_tree(results[p][0], file, name, depth, frames - 1) for p in presets}
+        paths: list[tuple[str, ...]] = []
+        for p in presets:
+            paths += [path for path in trees[p] if path not in paths]
+        if not paths:
+            continue
+        weight = {path: sum(trees[p].get(path, (0.0, 0.0))[0] for p in presets) for path in paths}
+        # depth first, the heavier sibling first, "other" after its siblings
+        for path in sorted(paths, key=lambda q: [(q[k] == "other", -weight.get(q[:k + 1], 0.0), q[k]) for k in range(len(q))]):
+            cells = []
+            for p in presets:
+                sec, calls = trees[p].get(path, (0.0, 0.0))
+                shown = f"{calls:.1f}".rstrip("0").rstrip(".")
+                cells.append(f"{1000 * sec:.1f}" + (f" ({shown})" if calls >= 0.05 and len(path) > 1 else ""))
+            rows.append([label if len(path) == 1 else "  " * (len(path) - 1) + path[-1]] + cells)
+    return rows
+
+
+def profile(backend: str, frames: int, size: int, quality: str, presets=PROFILE_PRESETS, seed: int = 0,
+            clock: str = "wall") -> None:
+    from omnigen.progress import print_table
+
+    results = {p: profile_frames(backend, p, frames, size, quality, seed, clock) for p in presets}
+    print_table(f"{backend}: where a frame's time goes (drone rig, {size}x{size}, {quality}; ms per frame over frames "
+                f"1-{frames - 1}, parts by {clock} clock, calls per frame in brackets)", ["part"] + list(presets),
+                profile_rows(results, frames))
+
+
 def memory(backend: str, frames: int, size: int, scene: str, seed: int, quality: str = "preview") -> None:
     """Resident memory every 10 frames over a long run (leaks show as steady growth), and the change
-    from frame 20 to the last (issue 6: within 10% from frame 20 to frame 200)."""
+    from frame 20 to the last (issue 6: within 10% from frame 20 to frame 200). Beside it, what
+    steps it up without being a leak: the raster's colour shader builds (each kept, made at the
+    first frame that needs it), Cycles' bpy datablocks."""
     from omnigen.progress import print_table
     from omnigen.rigs.render import RenderJob, Renderer
 
@@ -96,10 +256,13 @@ def memory(backend: str, frames: int, size: int, scene: str, seed: int, quality:
             r.render_frame(i)
             if (i + 1) % 10 == 0:
                 at[i + 1] = rss_mb()
-                blocks = r.backend.bs.datablock_counts() if backend == "cycles" else {}
-                rows.append([i + 1, round(at[i + 1])] + ([" ".join(f"{k} {v}" for k, v in blocks.items())] if blocks else []))
+                if backend == "cycles":
+                    extra = [" ".join(f"{k} {v}" for k, v in r.backend.bs.datablock_counts().items())]
+                else:
+                    extra = [r.backend.rs.gl.color_builds]
+                rows.append([i + 1, round(at[i + 1])] + extra)
         r.backend.close()
-    head = ["frames", "resident MB"] + (["bpy datablocks"] if backend == "cycles" else [])
+    head = ["frames", "resident MB", "bpy datablocks" if backend == "cycles" else "colour shader builds"]
     print_table(f"{backend}: resident MB by frame ({size}x{size}, {quality})", head, rows)
     if 20 in at and frames in at and frames > 20:
         print(f"{backend}: resident MB after frame 20 {at[20]:.0f}, after frame {frames} {at[frames]:.0f}: "
@@ -120,11 +283,22 @@ def main() -> int:
     ap.add_argument("--memory-backend", default="raster", choices=("raster", "cycles"))
     ap.add_argument("--memory-size", type=int, default=160, help="frame size of the memory run (square)")
     ap.add_argument("--memory-quality", default="preview")
+    ap.add_argument("--profile", action="store_true", help="instead: where each stage's time goes, per backend and preset")
+    ap.add_argument("--profile-frames", type=int, default=4, help="frames a preset of the profile renders (frame 0 untimed)")
+    ap.add_argument("--profile-presets", default=",".join(PROFILE_PRESETS), help="comma-separated scene presets")
+    ap.add_argument("--profile-clock", default="wall", choices=tuple(PROFILE_CLOCKS),
+                    help="cpu: the rendering thread's CPU time (a loaded machine)")
     args = ap.parse_args()
     import os
 
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
-          f"{args.size}x{args.size}, scene {args.scene} seed {args.seed}")
+          f"{args.size}x{args.size}, " + (f"scenes {args.profile_presets}" if args.profile else f"scene {args.scene}")
+          + f" seed {args.seed}")
+    if args.profile:
+        for backend in [b for b, off in (("raster", args.no_raster), ("cycles", args.no_cycles)) if not off]:
+            profile(backend, args.profile_frames, args.size, args.quality, args.profile_presets.split(","), args.seed,
+                    args.profile_clock)
+        return 0
     if not args.no_raster:
         report(bench("raster", args.raster_frames, args.size, args.quality, args.scene, args.seed))
     if not args.no_cycles:

@@ -4,6 +4,10 @@ What it builds, and why this way:
 - Meshes from numpy with foreach_set (no bpy.ops), flat-shaded, one object per RenderObject,
   named as in the description; agents carry pass_index = instance id (Cycles' IndexOB pass) and
   custom properties omnigen_instance_id, omnigen_category, omnigen_dims.
+- Datablocks made once and reused from frame to frame (BlenderScene): a pool of agent objects
+  whose meshes are rewritten in place, the street lamps, fog box and precipitation shown or
+  hidden, the static city restyled where its colours change; nothing is deleted per frame, and
+  a frame renders the bytes a fresh process rendering only that frame renders.
 - Two Principled BSDF materials whose inputs (base colour, roughness, metallic, emission colour
   and strength) come from per-face attributes (pbr_base, pbr_rme, pbr_emit): "omnigen_pbr" for
   plain parts (car paint with a clear coat) and "omnigen_surface" for the procedural surfaces of
@@ -39,6 +43,8 @@ import contextlib
 import math
 import os
 import sys
+import time
+from dataclasses import replace
 from pathlib import Path
 
 import bpy
@@ -301,14 +307,12 @@ def expose(linear: np.ndarray, scene: Scene, road: np.ndarray | None = None) -> 
 # ---------------------------------------------------------------------------------------------
 
 
-def _mesh_from_parts(name: str, parts: dict, surfaces: dict[str, Surface] | None = None
-                     ) -> tuple[bpy.types.Mesh, list[tuple[str, int]]]:
-    """One mesh from role -> trimesh parts; returns it and the (role, face count) order.
+PBR_ATTRIBUTES = ("pbr_base", "pbr_rme", "pbr_emit")
 
-    `surfaces` (role -> materials.Surface) become a per-face attribute the surface materials read
-    (pbr_surface: pattern, scale, variant, spacing), written once: a part's pattern follows the
-    city, not the frame. Faces of a patterned role use their pattern's surface material, the rest
-    omnigen_pbr, so plain parts (most of an agent) pay nothing for the patterns."""
+
+def _stack_parts(parts: dict) -> tuple[np.ndarray, np.ndarray, list[tuple[str, int]]]:
+    """Role -> trimesh parts as one vertex array (float32), one triangle array (int32, into it)
+    and the (role, face count) order."""
     verts, faces, order, n = [], [], [], 0
     for role, m in parts.items():
         v = np.asarray(m.vertices, dtype=np.float32)
@@ -317,9 +321,15 @@ def _mesh_from_parts(name: str, parts: dict, surfaces: dict[str, Surface] | None
         faces.append(f + n)
         order.append((role, len(f)))
         n += len(v)
-    v = np.vstack(verts)
-    f = np.vstack(faces)
-    mesh = bpy.data.meshes.new(name)
+    return np.vstack(verts), np.vstack(faces), order
+
+
+def _set_triangles(mesh: bpy.types.Mesh, v: np.ndarray, f: np.ndarray) -> None:
+    """Make `mesh` hold the triangles (v, f), replacing what it held: a reused mesh keeps its
+    datablock and material slots, and loses its face attributes (clear_geometry), so it ends
+    exactly as a new mesh given the same triangles would."""
+    if len(mesh.vertices) or len(mesh.polygons):
+        mesh.clear_geometry()
     mesh.vertices.add(len(v))
     mesh.vertices.foreach_set("co", v.ravel())
     mesh.loops.add(3 * len(f))
@@ -327,43 +337,84 @@ def _mesh_from_parts(name: str, parts: dict, surfaces: dict[str, Surface] | None
     mesh.polygons.add(len(f))
     mesh.polygons.foreach_set("loop_start", np.arange(0, 3 * len(f), 3, dtype=np.int32))
     mesh.update(calc_edges=True)
-    for attr in ("pbr_base", "pbr_rme", "pbr_emit"):
+
+
+def _set_materials(mesh: bpy.types.Mesh, materials: list[bpy.types.Material]) -> None:
+    """The mesh's material slots, left alone when they already are `materials` (a slot change
+    makes Blender rebuild its dependency graph's relations)."""
+    if [m.name for m in mesh.materials if m is not None] != [m.name for m in materials] or len(mesh.materials) != len(materials):
+        mesh.materials.clear()
+        for m in materials:
+            mesh.materials.append(m)
+
+
+class _Painted:
+    """A mesh whose faces take their part's Material (pbr_* attributes), written only when a
+    role's Material changed (a static building keeps its colours from one clear frame to the
+    next), as arrays gathered from a table with one row a role."""
+
+    def __init__(self, mesh: bpy.types.Mesh, order: list[tuple[str, int]]) -> None:
+        self.mesh = mesh
+        self.roles = tuple(role for role, _ in order)
+        self.face_role = np.repeat(np.arange(len(order), dtype=np.int32), [count for _, count in order])
+        self.written: dict[str, tuple] = {}  # attribute -> the per-role values it holds
+
+    def paint(self, materials: dict[str, Material]) -> bool:
+        """Write the faces' attributes for `materials` (role -> Material); False when nothing changed."""
+        mats = [materials[role] for role in self.roles]
+        changed = False
+        for attr, values in zip(PBR_ATTRIBUTES, _pbr_rows(mats)):
+            if self.written.get(attr) == values:
+                continue
+            table = np.array(values, dtype=np.float32).reshape(len(mats), 3)
+            self.mesh.attributes[attr].data.foreach_set("vector", table[self.face_role].ravel())
+            self.written[attr] = values
+            changed = True
+        return changed
+
+
+def _pbr_rows(mats: list[Material]) -> tuple[tuple, tuple, tuple]:
+    """(base colours, (roughness, metallic, emission strength), emission colours), one row a role."""
+    base = tuple(tuple(m.base_color) for m in mats)
+    rme = tuple((m.roughness, m.metallic, m.emission_strength) for m in mats)
+    emit = tuple(tuple(m.emission_color) for m in mats)
+    return base, rme, emit
+
+
+def _paint_mesh(mesh: bpy.types.Mesh, parts: dict, surfaces: dict[str, Surface]) -> _Painted:
+    """Fill `mesh` (new or reused) from role -> trimesh parts, ready for _Painted.paint.
+
+    `surfaces` (role -> materials.Surface) become a per-face attribute the surface materials read
+    (pbr_surface: pattern, scale, variant, spacing), written with the triangles: a part's pattern
+    follows its shape, not the frame. Faces of a patterned role use their pattern's surface
+    material, the rest omnigen_pbr, so plain parts (most of an agent) pay nothing for the patterns."""
+    v, f, order = _stack_parts(parts)
+    _set_triangles(mesh, v, f)
+    for attr in PBR_ATTRIBUTES:
         mesh.attributes.new(attr, "FLOAT_VECTOR", "FACE")
-    mesh.materials.append(_pbr_material())
-    if surfaces is not None:
-        _write_surfaces(mesh, order, surfaces)
-    return mesh, order
+    painted = _Painted(mesh, order)
+    _write_surfaces(painted, surfaces)
+    return painted
 
 
 PLAIN_PATTERNS = frozenset({"plain", "car_paint"})  # drawn by omnigen_pbr (car paint: its coat)
 
 
-def _write_surfaces(mesh: bpy.types.Mesh, order: list[tuple[str, int]], surfaces: dict[str, Surface]) -> None:
+def _write_surfaces(painted: _Painted, surfaces: dict[str, Surface]) -> None:
     """Each face's surface row (pbr_surface) and material slot: omnigen_pbr for plain parts, the
     pattern's surface material for the rest (slots in the order the patterns first appear)."""
-    rows = np.concatenate([np.tile(np.asarray(surfaces[role].row(), dtype=np.float32), (count, 1)) for role, count in order])
-    mesh.attributes.new("pbr_surface", "FLOAT_COLOR", "FACE").data.foreach_set("color", rows.ravel())
+    mesh, roles = painted.mesh, painted.roles
+    rows = np.array([surfaces[role].row() for role in roles], dtype=np.float32).reshape(len(roles), 4)
+    mesh.attributes.new("pbr_surface", "FLOAT_COLOR", "FACE").data.foreach_set("color", rows[painted.face_role].ravel())
     slots = {}
-    for role, _ in order:
+    for role in roles:
         pattern = surfaces[role].pattern
         if pattern not in PLAIN_PATTERNS and pattern not in slots:
-            slots[pattern] = len(mesh.materials)
-            mesh.materials.append(_surface_material(pattern))
+            slots[pattern] = len(slots) + 1
+    _set_materials(mesh, [_pbr_material(), *(_surface_material(p) for p in slots)])
     if slots:
-        index = np.concatenate([np.full(count, slots.get(surfaces[role].pattern, 0), dtype=np.int32) for role, count in order])
-        mesh.polygons.foreach_set("material_index", index)
-
-
-def _write_materials(mesh: bpy.types.Mesh, order: list[tuple[str, int]], materials: dict[str, Material]) -> None:
-    base, rme, emit = [], [], []
-    for role, count in order:
-        m = materials[role]
-        base.append(np.tile(np.asarray(m.base_color, dtype=np.float32), (count, 1)))
-        rme.append(np.tile(np.array([m.roughness, m.metallic, m.emission_strength], dtype=np.float32), (count, 1)))
-        emit.append(np.tile(np.asarray(m.emission_color, dtype=np.float32), (count, 1)))
-    mesh.attributes["pbr_base"].data.foreach_set("vector", np.vstack(base).ravel())
-    mesh.attributes["pbr_rme"].data.foreach_set("vector", np.vstack(rme).ravel())
-    mesh.attributes["pbr_emit"].data.foreach_set("vector", np.vstack(emit).ravel())
+        index = np.array([slots.get(surfaces[role].pattern, 0) for role in roles], dtype=np.int32)
+        mesh.polygons.foreach_set("material_index", index[painted.face_role])
 
 
 def _pbr_nodes(mat: bpy.types.Material):
@@ -680,22 +731,50 @@ def _simple_material(name: str, color, roughness: float = 0.5, transmission: flo
     return mat
 
 
+def _show(obj: bpy.types.Object, visible: bool) -> None:
+    """Show or hide `obj` in renders; set only on a change (each set makes Blender rebuild its
+    dependency graph's relations)."""
+    if obj.hide_render == visible:
+        obj.hide_render = not visible
+
+
+FOG_CORNERS = np.array([[x, y, z] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)], dtype=np.float32)
+
+
+def _fog_mesh() -> bpy.types.Mesh:
+    """The fog box (sized per frame by _size_fog) with its volume material, made once."""
+    mesh = bpy.data.meshes.new(FOG)
+    faces = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    mesh.from_pydata(FOG_CORNERS.tolist(), [], faces)
+    mat = bpy.data.materials.new(FOG)
+    nt = mat.node_tree
+    nt.nodes.clear()
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    vol = nt.nodes.new("ShaderNodeVolumePrincipled")
+    vol.inputs["Color"].default_value = (0.85, 0.87, 0.9, 1.0)
+    vol.inputs["Anisotropy"].default_value = 0.3
+    nt.links.new(vol.outputs["Volume"], out.inputs["Volume"])
+    mesh.materials.append(mat)
+    return mesh
+
+
+def _size_fog(obj: bpy.types.Object, density: float) -> None:
+    """The fog box big enough that what lies beyond is fully extinct (transmittance < 1%), at most
+    1.5 km, and its density (extinction, 1/m): values written into the box made once."""
+    half = float(min(max(4.6 / density, 100.0), 1500.0))
+    v = FOG_CORNERS * np.array([half, half, 150.0], dtype=np.float32) + np.array([0, 0, 148.0], dtype=np.float32)
+    obj.data.vertices.foreach_set("co", v.ravel())
+    obj.data.update()
+    vol = next(n for n in obj.data.materials[0].node_tree.nodes if n.type == "PRINCIPLED_VOLUME")
+    vol.inputs["Density"].default_value = float(density)
+
+
 def _collection(name: str) -> bpy.types.Collection:
     col = bpy.data.collections.get(name)
     if col is None:
         col = bpy.data.collections.new(name)
         bpy.context.scene.collection.children.link(col)
     return col
-
-
-def _remove_object(obj: bpy.types.Object) -> None:
-    data = obj.data
-    bpy.data.objects.remove(obj, do_unlink=True)
-    if data is not None and data.users == 0:
-        if isinstance(data, bpy.types.Mesh):
-            bpy.data.meshes.remove(data)
-        elif isinstance(data, bpy.types.Light):
-            bpy.data.lights.remove(data)
 
 
 def _trim_heap() -> None:
@@ -714,9 +793,39 @@ def _trim_heap() -> None:
 # The scene
 # ---------------------------------------------------------------------------------------------
 
+FOG, PRECIPITATION = "omnigen_fog", "omnigen_precipitation"
+UPDATE_PARTS = ("compile", "agents", "materials", "environment", "session", "trim")
+"""BlenderScene.timings' parts of an update: compile (compile_scene: the frame's objects and
+materials, the agents' meshes from the asset cache), agents (the agent pool: triangles, colours,
+transforms, names), materials (restyling the static city), environment (sky, sun, lamps, fog,
+precipitation), session (freeing Cycles' persistent session), trim (malloc_trim)."""
+
+
+def _slot_name(index: int) -> str:
+    """An agent slot's name while it holds no agent (or between two names): never an agent's."""
+    return f"omnigen_agent_slot_{index}"
+
 
 class BlenderScene:
-    """A bpy scene kept in step with a Scene: build once, `update` per frame, `save_blend`."""
+    """A bpy scene kept in step with a Scene: build once, `update` per frame, `save_blend`.
+
+    Between frames only what changes is written, into datablocks made once: the static city's
+    meshes are restyled in place (and only where a part's Material changed), agents fill a pool
+    of objects (slot j holds the frame's j-th agent: its mesh rewritten in place, its transform,
+    name, ids; slots past the frame's agents hidden), the street lamps, fog box and precipitation
+    are made once and shown, hidden or rewritten, the sky and sun take new values. Nothing is
+    deleted, which is what a frame cost before: Blender's object removal scans every datablock
+    (2 to 4 s a frame over downtown's 850 objects).
+
+    A frame is what a fresh process rendering only that frame makes, byte for byte: the objects
+    are linked in the order a new build links them (static city, agents, sun, lamps, fog,
+    precipitation; hidden ones are not rendered), and `update` frees Cycles' persistent session,
+    whose object and light arrays otherwise keep the order of earlier frames (Cycles appends new
+    objects and fills a removed one's place with the last), which changes which light a random
+    number picks. The renders of one frame (beauty, labels, a redrawn camera) still share it.
+
+    `timings`: seconds spent in `update` since the build, by part (UPDATE_PARTS), and in render's
+    own work outside Cycles ("readback": reading and exposing the EXRs), summed over calls."""
 
     def __init__(self, scene: Scene, reset: bool = True, volumes: bool = True, precipitation: bool = True,
                  device: str = "cpu") -> None:
@@ -728,60 +837,152 @@ class BlenderScene:
         self.device = use_cycles_devices(device, self.bscene)  # --device (scenes/cycles_devices.py)
         self.bscene.view_layers[0].use_pass_object_index = True
         self.bscene.view_layers[0].use_pass_z = True
-        self._order: dict[str, list[tuple[str, int]]] = {}
+        self.timings = dict.fromkeys((*UPDATE_PARTS, "readback"), 0.0)
         self.objects: dict[str, RenderObject] = {}
         self.focus = (0.0, 0.0, 0.0)
         self.scene = scene
         self._buildings = {b.building_id: b for b in scene.city.buildings}
+        self._static: dict[str, _Painted] = {}
+        self._slots: list[tuple[bpy.types.Object, _Painted, dict]] = []  # (object, its mesh, the parts it holds)
+        for name in (STATIC, AGENTS, WEATHER):  # link order is render order: made first, in this order
+            _collection(name)
         _surface_images(scene.city)
-        for obj in compile_scene(scene):
-            self._add(obj)
+        objects = compile_scene(scene)
+        for obj in objects:
+            if obj.kind != "agent":
+                self._add_static(obj)
+        self._place_agents([obj for obj in objects if obj.kind == "agent"])
+        self.objects = {obj.name: obj for obj in objects}
+        self._environment_objects(scene)
         self._environment(scene)
 
     # -- objects ----------------------------------------------------------------------------
 
-    def _add(self, obj: RenderObject) -> None:
+    def _surfaces(self, obj: RenderObject) -> dict[str, Surface]:
         building = self._buildings.get(obj.name) if obj.kind == "building" else None
-        surfaces = {role: part_surface(obj.kind, role, self.scene.city, building) for role in obj.parts}
-        mesh, order = _mesh_from_parts(obj.name, obj.parts, surfaces)
-        _write_materials(mesh, order, obj.materials)
-        bobj = bpy.data.objects.new(obj.name, mesh)
+        return {role: part_surface(obj.kind, role, self.scene.city, building) for role in obj.parts}
+
+    def _add_static(self, obj: RenderObject) -> None:
+        painted = _paint_mesh(bpy.data.meshes.new(obj.name), obj.parts, self._surfaces(obj))
+        painted.paint(obj.materials)
+        bobj = bpy.data.objects.new(obj.name, painted.mesh)
         bobj.matrix_world = _matrix(obj.matrix_world)
-        if obj.kind == "agent":
+        bobj["omnigen_kind"] = obj.kind
+        _collection(STATIC).objects.link(bobj)
+        self._static[obj.name] = painted
+
+    def _place_agents(self, agents: list[RenderObject]) -> None:
+        """Slot j takes agent j: its triangles when its parts differ from what the slot holds
+        (the asset cache returns the same parts for the same asset and dims), its colours where
+        they differ, its transform, ids and name; slots past the last agent are hidden."""
+        for j, obj in enumerate(agents):
+            if j == len(self._slots):
+                mesh = bpy.data.meshes.new(_slot_name(j))
+                bobj = bpy.data.objects.new(_slot_name(j), mesh)
+                _collection(AGENTS).objects.link(bobj)
+                self._slots.append((bobj, None, None))
+            bobj, painted, parts = self._slots[j]
+            if parts is not obj.parts:
+                painted = _paint_mesh(bobj.data, obj.parts, self._surfaces(obj))
+                self._slots[j] = (bobj, painted, obj.parts)
+            painted.paint(obj.materials)
+            bobj.matrix_world = _matrix(obj.matrix_world)
             bobj.pass_index = int(obj.instance_id)
             bobj["omnigen_instance_id"] = int(obj.instance_id)
             bobj["omnigen_category"] = obj.category
             bobj["omnigen_dims"] = [float(d) for d in obj.dims]
-        bobj["omnigen_kind"] = obj.kind
-        _collection(AGENTS if obj.kind == "agent" else STATIC).objects.link(bobj)
-        self._order[obj.name] = order
-        self.objects[obj.name] = obj
+            bobj["omnigen_kind"] = obj.kind
+            _show(bobj, True)
+        for bobj, _, _ in self._slots[len(agents):]:
+            _show(bobj, False)
+            bobj.pass_index = 0
+            bobj["omnigen_instance_id"] = 0
+        self._name_slots([obj.name for obj in agents])
+
+    def _name_slots(self, names: list[str]) -> None:
+        """Each used slot named as its agent (Cycles seeds an object's random number from its
+        name), the others by their index; a slot renamed goes through its own index name first,
+        so no agent's name is ever taken by another slot (Blender would add a suffix)."""
+        wanted = names + [_slot_name(j) for j in range(len(names), len(self._slots))]
+        moved = [j for j, (bobj, _, _) in enumerate(self._slots) if bobj.name != wanted[j]]
+        for j in moved:
+            self._slots[j][0].name = _slot_name(j)
+        for j in moved:
+            self._slots[j][0].name = wanted[j]
 
     def update(self, scene: Scene) -> None:
-        """Next frame over the same city: new agents, restyled static objects, new environment."""
+        """Next frame over the same city: the agents, the static city's colours, the environment."""
         if scene.city is not self.scene.city and scene.city != self.scene.city:
             raise ValueError("BlenderScene.update needs the same city; build a new BlenderScene for another")
-        for bobj in list(_collection(AGENTS).objects):
-            self._order.pop(bobj.name, None)
-            self.objects.pop(bobj.name, None)
-            _remove_object(bobj)
-        for obj in compile_scene(scene):
-            if obj.kind == "agent":
-                self._add(obj)
-            else:
-                _write_materials(bpy.data.objects[obj.name].data, self._order[obj.name], obj.materials)
-                self.objects[obj.name] = obj
+        t = self.timings
+        t0 = time.perf_counter()
+        objects = compile_scene(scene)
+        t1 = time.perf_counter()
         self.scene = scene
+        self._place_agents([obj for obj in objects if obj.kind == "agent"])
+        t2 = time.perf_counter()
+        for obj in objects:
+            if obj.kind != "agent":
+                self._static[obj.name].paint(obj.materials)
+        self.objects = {obj.name: obj for obj in objects}
+        t3 = time.perf_counter()
         self._environment(scene)
+        t4 = time.perf_counter()
+        self._fresh_session()
+        t5 = time.perf_counter()
         _trim_heap()
+        t6 = time.perf_counter()
+        for part, seconds in zip(UPDATE_PARTS, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5)):
+            t[part] += seconds
+
+    def _fresh_session(self) -> None:
+        """Free Cycles' persistent session (switching persistent data off frees it), so the frame's
+        first render syncs the scene as a new process's first render does. Measured over downtown
+        at 96 x 64: no more CPU time than keeping it, since every frame changes the agents, the
+        colours of the whole city and the sky that the kept session would re-sync anyway."""
+        render = self.bscene.render
+        render.use_persistent_data = False
+        render.use_persistent_data = True
 
     # -- environment ------------------------------------------------------------------------
+
+    def _environment_objects(self, scene: Scene) -> None:
+        """The sun, every street lamp (shown when the lamps are on), the fog box and the
+        precipitation, made once in the order a frame links them, so a frame's lights keep their
+        order whatever frames came before."""
+        self._sun_lamp = bpy.data.objects.new("omnigen_sun", bpy.data.lights.new("omnigen_sun", "SUN"))
+        _collection(WEATHER).objects.link(self._sun_lamp)
+        lit = replace(scene, lighting=replace(scene.lighting, street_lights_on=True))
+        self._lamps = []
+        for lamp in lamp_lights(lit):
+            data = bpy.data.lights.new(lamp.name, "SPOT")
+            data.energy = lamp.power
+            data.color = lamp.color
+            data.spot_size = lamp.spot_angle
+            data.shadow_soft_size = 0.2
+            obj = bpy.data.objects.new(lamp.name, data)
+            obj.location = lamp.position  # spots shine along -z: straight down
+            obj["omnigen_lamp"] = True
+            _collection(WEATHER).objects.link(obj)
+            self._lamps.append(obj)
+        self._fog = self._weather_object(FOG, "fog", _fog_mesh()) if self.volumes else None
+        mesh = bpy.data.meshes.new(PRECIPITATION)
+        self._precip = self._weather_object(PRECIPITATION, "rain", mesh) if self.precipitation else None
+
+    def _weather_object(self, name: str, role: str, mesh: bpy.types.Mesh) -> bpy.types.Object:
+        obj = bpy.data.objects.new(name, mesh)
+        obj["omnigen_weather"] = role
+        obj["omnigen_follow"] = True
+        obj.hide_render = True
+        _collection(WEATHER).objects.link(obj)
+        return obj
 
     def _environment(self, scene: Scene) -> None:
         self.bscene[SNOW_PROPERTY] = float(scene.weather.snow_cover)  # the surface material reads it
         self._sky(scene)
         self._sun(scene)
-        self._lamps(scene)
+        for obj in self._lamps:
+            _show(obj, scene.lighting.street_lights_on)
         self._weather(scene)
 
     def _sky(self, scene: Scene) -> None:
@@ -832,67 +1033,28 @@ class BlenderScene:
 
     def _sun(self, scene: Scene) -> None:
         light, w = scene.lighting, scene.weather
-        obj = bpy.data.objects.get("omnigen_sun")
-        if obj is None:
-            data = bpy.data.lights.new("omnigen_sun", "SUN")
-            obj = bpy.data.objects.new("omnigen_sun", data)
-            _collection(WEATHER).objects.link(obj)
+        obj = self._sun_lamp
         d = np.asarray(light.sun_direction)
         obj.matrix_world = _matrix(_look_along(-d))
         obj.data.energy = float(light.sun_strength) if light.sun_elevation > 0 else 0.0
         obj.data.angle = math.radians(0.53 + 25.0 * float(w.cloud_cover))
         obj.data.color = _sun_color(light.sun_elevation)
 
-    def _lamps(self, scene: Scene) -> None:
-        for obj in [o for o in _collection(WEATHER).objects if o.get("omnigen_lamp")]:
-            _remove_object(obj)
-        for lamp in lamp_lights(scene):
-            data = bpy.data.lights.new(lamp.name, "SPOT")
-            data.energy = lamp.power
-            data.color = lamp.color
-            data.spot_size = lamp.spot_angle
-            data.shadow_soft_size = 0.2
-            obj = bpy.data.objects.new(lamp.name, data)
-            obj.location = lamp.position  # spots shine along -z: straight down
-            obj["omnigen_lamp"] = True
-            _collection(WEATHER).objects.link(obj)
-
     def _weather(self, scene: Scene) -> None:
-        for name in ("omnigen_fog", "omnigen_precipitation"):
-            obj = bpy.data.objects.get(name)
-            if obj is not None:
-                _remove_object(obj)
         w = scene.weather
-        if self.volumes and w.fog_density > 0:
-            self._fog(w.fog_density)
-        if self.precipitation and w.precipitation > 0 and w.kind in ("rain", "snow"):
-            self._precip(scene)
+        if self._fog is not None:
+            _show(self._fog, w.fog_density > 0)
+            if w.fog_density > 0:
+                _size_fog(self._fog, w.fog_density)
+        if self._precip is not None:
+            falls = w.precipitation > 0 and w.kind in ("rain", "snow")
+            _show(self._precip, falls)
+            if falls:
+                self._precip_mesh(scene)
         self.place_weather(self.focus)
 
-    def _fog(self, density: float) -> None:
-        # Big enough that what lies beyond is fully extinct (transmittance < 1%), at most 1.5 km.
-        half = float(min(max(4.6 / density, 100.0), 1500.0))
-        mesh = bpy.data.meshes.new("omnigen_fog")
-        v = np.array([[x, y, z] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)], dtype=np.float32)
-        v = v * np.array([half, half, 150.0], dtype=np.float32) + np.array([0, 0, 148.0], dtype=np.float32)
-        faces = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
-        mesh.from_pydata(v.tolist(), [], faces)
-        mat = bpy.data.materials.get("omnigen_fog") or bpy.data.materials.new("omnigen_fog")
-        nt = mat.node_tree
-        nt.nodes.clear()
-        out = nt.nodes.new("ShaderNodeOutputMaterial")
-        vol = nt.nodes.new("ShaderNodeVolumePrincipled")
-        vol.inputs["Color"].default_value = (0.85, 0.87, 0.9, 1.0)
-        vol.inputs["Density"].default_value = float(density)
-        vol.inputs["Anisotropy"].default_value = 0.3
-        nt.links.new(vol.outputs["Volume"], out.inputs["Volume"])
-        mesh.materials.append(mat)
-        obj = bpy.data.objects.new("omnigen_fog", mesh)
-        obj["omnigen_weather"] = "fog"
-        obj["omnigen_follow"] = True
-        _collection(WEATHER).objects.link(obj)
-
-    def _precip(self, scene: Scene) -> None:
+    def _precip_mesh(self, scene: Scene) -> None:
+        """The precipitation's triangles for this frame, into the one precipitation mesh."""
         w = scene.weather
         rng = frame_streams(scene.dataset_seed, scene.frame_index)["extra"]
         bx, by, bz = WEATHER_BOX
@@ -918,23 +1080,17 @@ class BlenderScene:
             v = (p[:, None, :] + octa[None] * r[:, :, None]).reshape(-1, 3)
             f = (np.arange(n)[:, None, None] * 6 + tri[None]).reshape(-1, 3)
             mat = _simple_material("omnigen_snow", (0.9, 0.9, 0.92), roughness=0.6)
-        import trimesh
-
-        mesh, order = _mesh_from_parts("omnigen_precipitation", {"p": trimesh.Trimesh(v, f, process=False)})
-        mesh.materials.clear()
-        mesh.materials.append(mat)
-        obj = bpy.data.objects.new("omnigen_precipitation", mesh)
-        obj["omnigen_weather"] = w.kind
-        obj["omnigen_follow"] = True
-        _collection(WEATHER).objects.link(obj)
+        mesh = self._precip.data
+        _set_triangles(mesh, np.asarray(v, dtype=np.float32), np.asarray(f, dtype=np.int32))
+        _set_materials(mesh, [mat])
+        self._precip["omnigen_weather"] = w.kind
 
     def place_weather(self, focus) -> None:
         """Centre the fog box and the precipitation on `focus` (x, y, z): the camera, usually."""
         self.focus = tuple(float(c) for c in focus)
-        for name in ("omnigen_fog", "omnigen_precipitation"):
-            obj = bpy.data.objects.get(name)
+        for obj in (self._fog, self._precip):
             if obj is not None:
-                z = 0.0 if name == "omnigen_fog" else max(self.focus[2] - WEATHER_BOX[2] / 2, 0.0)
+                z = 0.0 if obj is self._fog else max(self.focus[2] - WEATHER_BOX[2] / 2, 0.0)
                 obj.location = (self.focus[0], self.focus[1], z)
 
     # -- rendering (Cycles) -----------------------------------------------------------------
@@ -1026,22 +1182,22 @@ class BlenderScene:
         pass's depth (camera z, inf where nothing was hit) and instance ids (None with
         labels=False: the caller draws them another way); `seconds` is the beauty render's time,
         `gain` the exposure applied to Cycles' linear radiance."""
-        import time as _time
-
         self._set_camera(camera)
         self.place_weather(tuple(float(v) for v in camera.center))
         self._apply_quality()
-        fog = bpy.data.objects.get("omnigen_fog")
-        skip_fog = fog is not None and self.scene.weather.fog_density < self.quality["min_volume_density"]
+        fog = self._fog
+        skip_fog = fog is not None and not fog.hide_render and self.scene.weather.fog_density < self.quality["min_volume_density"]
         if skip_fog:
             fog.hide_render = True
-        t0 = _time.perf_counter()
+        t0 = time.perf_counter()
         try:
             self._run(self._beauty_tree)
-            seconds = _time.perf_counter() - t0
+            t1 = time.perf_counter()
+            seconds = t1 - t0
             road = road_pixels(camera, _read_exr_channel(self._single("beauty_", "depth")))
             rgb, gain = expose(_read_exr_rgb(self._single("beauty_", "rgb")), self.scene, road)
             self.bscene.view_settings.exposure = float(math.log2(gain))
+            self.timings["readback"] += time.perf_counter() - t1
             # The label pass runs before the fog comes back: with the same objects visible as in
             # the beauty render, Cycles (persistent data) reuses the beauty render's BVH instead
             # of building the city's again (about 2 s at 640 x 640 on the 2-core machine).
@@ -1115,6 +1271,8 @@ class BlenderScene:
         out = []
         for col in (STATIC, AGENTS):
             for bobj in _collection(col).objects:
+                if bobj.hide_render:
+                    continue  # an agent slot that holds no agent this frame
                 mesh = bobj.data
                 co = np.empty(3 * len(mesh.vertices), dtype=np.float32)
                 mesh.vertices.foreach_get("co", co)
@@ -1128,9 +1286,11 @@ class BlenderScene:
         return out
 
     def environment_objects(self) -> list[dict]:
-        """Sun, lamps, fog and precipitation: name, role and location (for checks and tools)."""
+        """Sun, lamps, fog and precipitation shown this frame: name, role and location (for checks and tools)."""
         out = []
         for obj in _collection(WEATHER).objects:
+            if obj.hide_render:
+                continue  # lamps by day, no fog, no rain: made once, hidden
             role = "lamp" if obj.get("omnigen_lamp") else obj.get("omnigen_weather", "sun" if obj.name == "omnigen_sun" else "")
             out.append({"name": obj.name, "role": role, "location": tuple(obj.location)})
         return out

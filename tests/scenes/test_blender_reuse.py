@@ -1,0 +1,82 @@
+"""Issue 48: BlenderScene.update changes what changes and makes no datablock.
+
+Frames over the tiny city through rain at night, snow, fog and a clear noon: once the agent pool
+has grown to the most agents a frame had, every further update keeps the very same meshes,
+objects, materials, lights, images, node groups and worlds (no per-frame creation, nothing
+removed), shows exactly the frame's agents, lamps and weather, and reports where its time went.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnigen.scenes.generate import FrameOverrides, SceneGenerator
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+blender = pytest.importorskip("omnigen.scenes.blender_backend", reason="bpy not installed")
+
+SEED = 21
+WEATHERS = (("rain", "night"), ("clear", "noon"), ("snow", "dusk"), ("fog", "noon"))
+KINDS = ("meshes", "objects", "materials", "lights", "images", "node_groups", "worlds")
+
+
+def _datablocks() -> dict[str, set[int]]:
+    import bpy
+
+    return {kind: {block.as_pointer() for block in getattr(bpy.data, kind)} for kind in KINDS}
+
+
+@pytest.fixture(scope="module")
+def frames():
+    gen = SceneGenerator("tiny", SEED)
+    return [gen.frame(SEED, i, FrameOverrides(weather=w, time_of_day=t)) for i, (w, t) in enumerate(WEATHERS)]
+
+
+def test_updates_reuse_every_datablock_and_show_only_the_frame(frames):
+    bs = blender.BlenderScene(frames[0])
+    for scene in frames[1:]:  # the pool grows to the most agents a frame has
+        bs.update(scene)
+    made = _datablocks()
+    for scene in frames:
+        bs.update(scene)
+        assert _datablocks() == made
+        shown = bs.objects_summary()
+        assert sorted(o["name"] for o in shown if o["instance_id"]) == sorted(a.name for a in scene.agents)
+        assert {o["instance_id"] for o in shown if o["instance_id"]} == {a.instance_id for a in scene.agents}
+        env = bs.environment_objects()
+        roles = {o["name"]: o["role"] for o in env}
+        lamps = sum(f.kind == "street_light" for f in scene.city.furniture) if scene.lighting.street_lights_on else 0
+        assert list(roles.values()).count("lamp") == lamps and len(env) == len(roles)
+        w = scene.weather
+        assert (blender.FOG in roles) == (w.fog_density > 0)
+        falls = w.precipitation > 0 and w.kind in ("rain", "snow")
+        assert roles.get(blender.PRECIPITATION) == (w.kind if falls else None)
+    assert max(len(s.agents) for s in frames) > min(len(s.agents) for s in frames)  # slots were hidden too
+
+
+def test_update_reports_its_parts(frames):
+    bs = blender.BlenderScene(frames[0])
+    assert set(bs.timings) == {*blender.UPDATE_PARTS, "readback"} and not any(bs.timings.values())
+    bs.update(frames[1])
+    assert all(bs.timings[part] > 0 for part in blender.UPDATE_PARTS)
+
+
+def test_a_mesh_is_repainted_only_where_a_material_changed(frames):
+    import bpy
+
+    scene = frames[0]
+    obj = next(o for o in blender.compile_scene(scene) if o.kind == "building")
+    mesh = bpy.data.meshes.new("omnigen_test_paint")
+    try:
+        painted = blender._paint_mesh(mesh, obj.parts, {role: blender.Surface() for role in obj.parts})
+        assert painted.paint(obj.materials) and not painted.paint(dict(obj.materials))
+        role = next(iter(obj.materials))
+        recolored = {**obj.materials, role: blender.replace(obj.materials[role], base_color=(0.1, 0.2, 0.3))}
+        assert painted.paint(recolored)
+        base = np.empty(3 * len(mesh.polygons), dtype=np.float32)
+        mesh.attributes["pbr_base"].data.foreach_get("vector", base)
+        first = np.repeat(np.arange(len(obj.parts)), [len(p.faces) for p in obj.parts.values()]) == 0
+        assert np.allclose(base.reshape(-1, 3)[first], (0.1, 0.2, 0.3))
+    finally:
+        bpy.data.meshes.remove(mesh)
