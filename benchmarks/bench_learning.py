@@ -118,7 +118,7 @@ def run_name(args: argparse.Namespace, recipe: Any) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    from benchmarks.validate import fmt
+    from benchmarks.common import fmt
     from omnigen.detector.evaluation.box_template import evaluate_with_baseline
     from omnigen.detector.evaluation.corner_order import corner_order_counts
     from omnigen.detector.training.loss import PARTS
@@ -127,9 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     from omnigen.dataset import Dataset
     from omnigen.splits import read_split
 
-    from omnigen.detector.training.recipe import RECIPE, read_recipe, train_fields, with_overrides
+    from omnigen.detector.training.recipe import resolve, train_fields
 
-    recipe = with_overrides(read_recipe(args.recipe) if args.recipe else RECIPE, args.overrides)
+    recipe = resolve(args.recipe, args.overrides)
     fields = train_fields(recipe)
     frames = len(read_split(args.dataset, "train"))
     if fields["repeat_thresh"]:  # an epoch draws more frames: count them as train does, so --steps stays the steps trained

@@ -47,29 +47,42 @@ def rss_mb() -> float:
         return int(f.read().split()[1]) * 4096 / 2**20
 
 
-def bench(backend: str, frames: int, size: int, quality: str, scene: str, seed: int) -> dict:
+def drone_renderer(out: Path, backend: str, frames: int, size: int, quality: str, scene: str, seed: int):
+    """A Renderer of frames 0..frames-1 of the drone rig over `scene` into `out`, writing as
+    `omnigen render` (Renderer.run) writes: each frame's files on a thread while the next is drawn."""
     from omnigen.rigs.render import RenderJob, Renderer
 
+    r = Renderer(RenderJob(rig="drone", frames=frames, out=out, seed=seed, scene=scene, width=size, height=size,
+                           backend=backend, quality=quality, durable=False))
+    r.write_behind = True
+    return r
+
+
+def render_frames(r, indices: range) -> dict[str, float]:
+    """Render `indices` as Renderer.run does (each told the job's next index, which a renderer
+    drawing ahead asks its worker for) and wait for their files (the last frame's writing is part
+    of the time); the seconds each stage of the summary's timings took over them."""
+    base = dict(r.summary.timings)
+    job_indices = r.job.indices()
+    for i in indices:
+        r.render_frame(i, i + 1 if i + 1 in job_indices else None)
+    r.flush()
+    return {k: v - base[k] for k, v in r.summary.timings.items()}
+
+
+def bench(backend: str, frames: int, size: int, quality: str, scene: str, seed: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        job = RenderJob(rig="drone", frames=frames, out=Path(tmp) / backend, seed=seed, scene=scene,
-                        width=size, height=size, backend=backend, quality=quality, durable=False)
-        r = Renderer(job)
-        r.write_behind = True  # as `omnigen render` (Renderer.run) writes: each frame's files on a thread
-        ahead = r.draw_ahead(frames)  # and draws the next frame's scene in a second process
+        r = drone_renderer(Path(tmp) / backend, backend, frames, size, quality, scene, seed)
+        ahead = r.draw_ahead(frames)  # each next frame's scene drawn in a second process where `omnigen render` would
         t0 = time.perf_counter()
-        r.render_frame(0, 1 if frames > 1 else None)
-        r.flush()
+        render_frames(r, range(1))
         first = time.perf_counter() - t0
         rss_first = rss_mb()
         build = r.summary.timings["build"]
-        base = dict(r.summary.timings)
         t1 = time.perf_counter()
-        for i in range(1, frames):
-            r.render_frame(i, i + 1 if i + 1 < frames else None)
-        r.flush()  # the last frame's files are part of the time
+        tm = render_frames(r, range(1, frames))
         loop = time.perf_counter() - t1
         rss_last = rss_mb()
-        tm = {k: r.summary.timings[k] - base[k] for k in base}
         r.close()
     n = frames - 1
     core = tm["renderer_core"]
@@ -184,26 +197,17 @@ def profile_frames(backend: str, scene: str, frames: int, size: int, quality: st
     the profile sees its parts), profiling every frame after frame 0 (the city and backend build)
     by `clock` (PROFILE_CLOCKS; "cpu": the rendering thread's CPU time, what a loaded machine still
     measures); (pstats.Stats, stage wall seconds per frame)."""
-    from omnigen.rigs.render import RenderJob, Renderer
-
     with tempfile.TemporaryDirectory() as tmp:
-        r = Renderer(RenderJob(rig="drone", frames=frames, out=Path(tmp), seed=seed, scene=scene, width=size, height=size,
-                               backend=backend, quality=quality, durable=False))
-        r.write_behind = True
+        r = drone_renderer(Path(tmp), backend, frames, size, quality, scene, seed)
         try:
-            r.render_frame(0)
-            r.flush()
-            base = dict(r.summary.timings)
+            render_frames(r, range(1))
             prof = cProfile.Profile(PROFILE_CLOCKS[clock])
             prof.enable()
-            for i in range(1, frames):
-                r.render_frame(i)
-            r.flush()
+            tm = render_frames(r, range(1, frames))
             prof.disable()
         finally:
             r.close()
-    n = frames - 1
-    return pstats.Stats(prof), {k: (r.summary.timings[k] - base[k]) / n for k in PROFILE_STAGES}
+    return pstats.Stats(prof), {k: tm[k] / (frames - 1) for k in PROFILE_STAGES}
 
 
 def profile_rows(results: dict[str, tuple[pstats.Stats, dict]], frames: int) -> list[list]:

@@ -90,6 +90,16 @@ def precision_name(amp: str) -> str:
     return "float32" if amp == "off" else amp
 
 
+def train_step(model: KeypointDetector, amp_dtype: torch.dtype | None) -> TrainStep:
+    """The TrainStep `omnigen train` builds, on `model` where it is: the default loss, the recipe's
+    optimiser and EMA (TrainConfig's defaults), a gradient scaler for fp16 only."""
+    cfg = TrainConfig(dataset="", out="")
+    device = next(model.parameters()).device
+    return TrainStep(model, model, DetectionLoss(model.cfg.num_classes), make_optimizer(cfg, model),
+                     torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16),
+                     ModelEMA(model, cfg.ema_decay, cfg.ema_tau), amp_dtype)
+
+
 # ---------------------------------------------------------------------------------------------
 # step: float32 against bf16, the loop before and after issue 24, the overfit check
 # ---------------------------------------------------------------------------------------------
@@ -146,7 +156,7 @@ def run_step(args: argparse.Namespace) -> None:
 class LegacyEMA:
     """The EMA update as train.py did it before issue 24: two state_dict() walks a step."""
 
-    def __init__(self, model: torch.nn.Module, decay: float = 0.9999, tau: float = 2000.0):
+    def __init__(self, model: torch.nn.Module, decay: float, tau: float):
         self.ema, self.decay, self.tau, self.updates = copy.deepcopy(model).eval(), decay, tau, 0
 
     @torch.no_grad()
@@ -164,9 +174,10 @@ class LegacyEMA:
 def legacy_step(model: torch.nn.Module, float_batch: tuple) -> Callable[[], None]:
     """One step of the loop as it was before issue 24: float32 images out of the loader, the EMA's
     two state_dict() walks, a float() per loss part."""
-    optimizer = make_optimizer(TrainConfig(dataset="", out=""), model)
+    cfg = TrainConfig(dataset="", out="")
+    optimizer = make_optimizer(cfg, model)
     criterion = DetectionLoss(model.cfg.num_classes)
-    ema = LegacyEMA(model)
+    ema = LegacyEMA(model, cfg.ema_decay, cfg.ema_tau)
 
     def before() -> None:
         images, targets = float_batch
@@ -183,8 +194,7 @@ def legacy_step(model: torch.nn.Module, float_batch: tuple) -> Callable[[], None
 
 def current_step(model: torch.nn.Module, uint8_batch: tuple, channels_last: bool) -> Callable[[], None]:
     """One step of the loop as detector/training/step.py runs it now."""
-    step = TrainStep(model, model, DetectionLoss(model.cfg.num_classes), make_optimizer(TrainConfig(dataset="", out=""), model),
-                     torch.amp.GradScaler("cpu", enabled=False), ModelEMA(model, 0.9999, 2000.0), None)
+    step = train_step(model, None)
     sums = PartSums()
     return lambda: sums.add(step(*to_device(*uint8_batch, torch.device("cpu"), channels_last)))
 
@@ -348,10 +358,7 @@ def throughput(args: argparse.Namespace, device: torch.device, root: str | Path)
     if device.type == "cuda":
         torch.backends.cudnn.benchmark = True
     model.train()
-    amp_dtype = autocast_dtype(args.amp, device)
-    step = TrainStep(model, model, DetectionLoss(model.cfg.num_classes), make_optimizer(TrainConfig(dataset="", out=""), model),
-                     torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16),
-                     ModelEMA(model, 0.9999, 2000.0), amp_dtype)
+    step = train_step(model, autocast_dtype(args.amp, device))
 
     on_device = to_device(images, targets, device, channels_last)
     for _ in range(3):  # warm-up: kernel selection (cudnn autotuning, oneDNN primitives)

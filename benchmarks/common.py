@@ -9,6 +9,10 @@ other import is made inside the function that needs it.
 - fmt, stale, Runner: a figure in a table, a done-marker written with other arguments, omnigen
   commands run in this process with their wall times kept (validate, gpu_validate, bench_learning,
   peer_ultralytics).
+- the stages validate and gpu_validate both run: the renders (render_jobs, run_renders, SCENE_MIX),
+  a training resumed or redone by its done-marker (train_stage), the data arguments a working
+  folder was made with (check_data_arguments), the machine's line, and RESULTS.md's sections that
+  each script owns (with_section, kept_sections).
 - synthetic_row, metric_row: the rows of an `omnigen eval` report the GPU results are made of.
 - usable_cores, use_site: the cores this process may use; the folder gpu_validate installs into.
 - NEEDS: the distributions gpu_validate installs on the GPU machine and fetch_gpu_wheels.py fetches.
@@ -110,20 +114,33 @@ def mentions(command: str, folder: Path) -> bool:
     return re.search(re.escape(str(folder)) + r"(?=[/ ,)]|$)", command) is not None
 
 
+# train flags that change how fast a run learns, not what it learns (tests/detector/test_detector_train.py
+# checks that the image cache trains the same weights): a run done without them is not redone with them
+SAME_WEIGHTS = ("--cache",)
+
+
+def train_stamp(command: str) -> str:
+    """A training command without the flags that leave its weights alone: what its done-marker holds."""
+    return " ".join(t for t in command.split(" ") if t not in SAME_WEIGHTS)
+
+
+def trains_into(command: str, out: Path) -> bool:
+    """Whether a recorded command is an `omnigen train` whose --out is `out` (not one that only
+    reads from it, e.g. --weights OUT/last.pt)."""
+    argv = shlex.split(command)
+    return argv[:2] == ["omnigen", "train"] and "--out" in argv[:-1] and Path(argv[argv.index("--out") + 1]) == out
+
+
 class Runner:
     """Runs omnigen commands in this process, records each with its wall time (in WORK/commands.json,
     so that a resumed run reports the stages an earlier invocation did), and stops on failure.
-
-    `key` says which records are one piece of work: a subclass may leave out of it the flags that
-    change how fast a command runs, not what it makes (validate.py: train's --cache)."""
+    Records are compared by their train_stamp: a training with --cache or without is one piece of
+    work."""
 
     def __init__(self, work: Path, who: str = "benchmarks") -> None:
         self.path = work / "commands.json"
-        self.who = who  # the script named in the failure line
+        self.who = who  # the script named in the failure lines
         self.log: list[dict[str, Any]] = json.loads(self.path.read_text()) if self.path.exists() else []
-
-    def key(self, command: str) -> str:
-        return command
 
     @staticmethod
     def omnigen(argv: list[str]) -> int:
@@ -144,9 +161,9 @@ class Runner:
         self.save()
 
     def seconds(self, prefix: str) -> float:
-        """Wall time of the recorded commands that start with `prefix` (compared by `key`)."""
-        prefix = self.key(prefix)
-        return sum(c["seconds"] for c in self.log if self.key(c["command"]).startswith(prefix))
+        """Wall time of the recorded commands that start with `prefix`, --cache or not (train_stamp)."""
+        prefix = train_stamp(prefix)
+        return sum(c["seconds"] for c in self.log if train_stamp(c["command"]).startswith(prefix))
 
     def drop(self, prefix: str) -> None:
         """Drop the records of commands that start with `prefix` (redone in another form)."""
@@ -156,6 +173,13 @@ class Runner:
     def forget(self, folder: Path) -> None:
         """Drop the records of commands that wrote into or read from `folder` (it is being redone)."""
         self.log = [c for c in self.log if not mentions(c["command"], folder)]
+        self.save()
+
+    def forget_trainings(self, out: Path, but: str | None = None) -> None:
+        """Drop the records of trainings into `out` (trains_into), but those of the training `but`
+        (--cache or not, train_stamp): a folder trained again, or moved back from another run."""
+        keep = None if but is None else train_stamp(but)
+        self.log = [c for c in self.log if not trains_into(c["command"], out) or train_stamp(c["command"]) == keep]
         self.save()
 
     def __call__(self, argv: list[str], done: Path | None = None, resume_from: float | None = None) -> float:
@@ -174,6 +198,168 @@ class Runner:
             raise SystemExit(f"{self.who}: 'omnigen {shlex.join(invoked)}' exited with {rc}")
         self.record(cmd, (resume_from or 0.0) + dt)
         return dt
+
+
+# ---------------------------------------------------------------------------------------------
+# the stages validate.py and gpu_validate.py share
+# ---------------------------------------------------------------------------------------------
+
+RIGS = ("ego", "pole", "drone")
+SCENE_MIX = "downtown,suburban,arterial,intersection"
+"""The presets make validate's cities are drawn from: city seed s gets the (s mod 4)-th (omnigen
+render --scene with a mix), so each rig's consecutive seeds cover all four."""
+
+
+def trained_seconds(out: Path) -> float:
+    """The seconds a run's saved epochs took, over all its invocations (results.csv's `time`)."""
+    import csv
+
+    path = out / "results.csv"
+    rows = list(csv.DictReader(path.read_text().splitlines())) if path.exists() else []
+    return float(rows[-1].get("time") or 0.0) if rows else 0.0
+
+
+def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
+    """Train into `out` unless its done-marker says it was trained with these arguments; returns
+    the training's seconds, over all the invocations it took.
+
+    A run cut off midway (its `started` marker holds these arguments and it has a last.pt) goes on
+    from that checkpoint; a folder from other arguments, or cut off before its first checkpoint,
+    is trained again from the start.
+    """
+    from omnigen.files import atomic_write_text
+
+    stamp = train_stamp(shlex.join(train_cmd))
+    done, started = out / "done", out / "started"
+    if stale(done, stamp):  # e.g. more --epochs than last time: train again
+        print(f"[stale] {out} was trained with other arguments: training again", flush=True)
+        shutil.rmtree(out)
+        run.forget(out)
+    if done.exists():
+        run(train_cmd, done)  # says it skips
+        cmd = "omnigen " + shlex.join(train_cmd)
+        # the log must name this training, not another one that once wrote into `out` (a folder
+        # moved back by hand from an earlier run): other trainings into it are dropped, and a run
+        # the log lost is recorded with its epochs' own seconds (none without a results.csv, rather
+        # than a 0 that reads as a figure)
+        run.forget_trainings(out, but=cmd)
+        seconds = trained_seconds(out)
+        if seconds and not run.seconds(cmd):
+            run.record(cmd, seconds)
+    else:
+        resumable = (out / "last.pt").exists() and started.exists() and not stale(started, stamp)
+        if resumable:
+            print(f"[resume] {out} goes on from its last.pt", flush=True)
+        else:
+            if out.exists():
+                shutil.rmtree(out)
+                run.forget(out)
+            # a training from the start: no earlier training into `out` counts towards its seconds
+            # (one whose folder was moved away left its record, perhaps with --cache and so not replaced)
+            run.forget_trainings(out)
+            out.mkdir(parents=True)
+            atomic_write_text(started, stamp + "\n")
+        run(train_cmd, done, resume_from=trained_seconds(out) if resumable else None)
+        atomic_write_text(done, stamp + "\n")
+    return run.seconds("omnigen " + shlex.join(train_cmd))
+
+
+def check_data_arguments(work: Path, args: Any, names: tuple[str, ...]) -> None:
+    """Refuse to resume a working folder whose renders and merge were made with other arguments.
+
+    Stages are skipped when their output exists, so reusing a folder rendered at another --size
+    would silently train on the old data; the arguments that shape the data (`names`, attributes
+    of `args`) are kept in WORK/data.json and compared.
+    """
+    from omnigen.files import atomic_write_json
+
+    wanted = {k: str(getattr(args, k)) if isinstance(getattr(args, k), Path) else getattr(args, k)
+              for k in names}
+    path = work / "data.json"
+    if path.exists():
+        had = json.loads(path.read_text())
+        diff = [f"--{k} {had.get(k)} (now {v})" for k, v in wanted.items() if had.get(k) != v]
+        if diff:
+            raise SystemExit(f"validate: {work} holds data made with {', '.join(diff)}: "
+                             f"pass --fresh to start over, or another --work")
+    else:
+        atomic_write_json(path, wanted, indent=1)
+
+
+def render_jobs(work: Path, args: Any, first_city: int = 0) -> list[tuple[list[str], Path]]:
+    """The render command and output folder of each rig's --cities cities, numbered from
+    `first_city` (the seed of city c of rig i is --seed + 100 i + c); a finished one is said skipped."""
+    per_city = max(1, args.frames // args.cities)
+    jobs = []
+    for i, rig in enumerate(RIGS):
+        for c in range(first_city, first_city + args.cities):
+            seed = args.seed + 100 * i + c
+            out = work / f"render-{rig}-s{seed}"
+            argv = ["render", "--rig", rig, "--frames", str(per_city), "--seed", str(seed), "--width", str(args.size),
+                    "--height", str(args.size), "--backend", args.backend, "--quality", "preview", "--out", str(out)]
+            if getattr(args, "scene", None):  # validate: the preset mix; gpu_validate: its --scene (tiny in its test)
+                argv += ["--scene", args.scene]
+            if (out / "manifest.json").exists():
+                print(f"[skip, done] omnigen {shlex.join(argv)}", flush=True)
+            jobs.append((argv, out))
+    return jobs
+
+
+def run_renders(run: Runner, todo: list[list[str]], jobs: int, env: dict[str, str] | None = None) -> None:
+    """Run `omnigen ARGV` for each of `todo`, `jobs` processes at a time (in `env`, else this
+    process's environment), recording each with its wall time; the first failure stops the run."""
+    import subprocess
+
+    todo = list(todo)
+    running: list[tuple[list[str], subprocess.Popen, float]] = []
+    while todo or running:
+        while todo and len(running) < jobs:
+            argv = todo.pop(0)
+            print(f"[run] omnigen {shlex.join(argv)}", flush=True)
+            running.append((argv, subprocess.Popen([sys.executable, "-m", "omnigen.cli", *argv],
+                                                   stdout=subprocess.DEVNULL, env=env), time.perf_counter()))
+        # whichever ends first frees its slot: waiting on the oldest would idle the others' slots
+        while not (ended := [r for r in running if r[1].poll() is not None]):
+            time.sleep(0.05)
+        for argv, proc, t in ended:
+            running.remove((argv, proc, t))
+            if proc.returncode:
+                for _, other, _ in running:
+                    other.kill()
+                raise SystemExit(f"{run.who}: 'omnigen {shlex.join(argv)}' exited with {proc.returncode}")
+            run.record(f"omnigen {shlex.join(argv)}", time.perf_counter() - t)
+
+
+def machine() -> str:
+    """The machine a results file was made on: architecture, CPUs, GPU, Python."""
+    import platform
+
+    try:
+        import torch
+        gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    except Exception:  # torch missing is reported by the train step itself
+        gpu = "no GPU"
+    return f"{platform.machine()}, {os.cpu_count()} CPUs, {gpu}, Python {platform.python_version()}"
+
+
+# Sections of RESULTS.md that other scripts write (benchmarks/gpu_validate.py): each between its
+# own markers, kept when validate.py rewrites the rest, replaced whole by the script that owns it.
+SECTION = re.compile(r"<!-- (?P<name>[\w-]+): begin -->\n.*?<!-- (?P=name): end -->\n", re.S)
+
+
+def kept_sections(text: str) -> str:
+    """The marked sections of a RESULTS.md, each after a blank line, to append to a rewritten one."""
+    return "".join("\n" + m.group(0) for m in SECTION.finditer(text))
+
+
+def with_section(text: str, name: str, body: str) -> str:
+    """`text` with section `name` replaced by `body` (markers added), or appended when it has none."""
+    block = f"<!-- {name}: begin -->\n{body.rstrip()}\n<!-- {name}: end -->\n"
+    for m in SECTION.finditer(text):
+        if m.group("name") == name:
+            return text[:m.start()] + block + text[m.end():]
+    gap = "" if not text or text.endswith("\n\n") else "\n" if text.endswith("\n") else "\n\n"
+    return text + gap + block
 
 
 # ---------------------------------------------------------------------------------------------

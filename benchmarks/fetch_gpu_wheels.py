@@ -56,7 +56,7 @@ VERSION_OVERRIDES = {"pyopengl": "3.1.10"}
 ENTRY_MODULES = (
     "omnigen.cli", "omnigen.rigs.render", "omnigen.scenes.generate", "omnigen.scenes.raster_backend", "omnigen.converters.kitti", "omnigen.merge",
     "omnigen.detector.train_command", "omnigen.detector.training.train", "omnigen.detector.eval_command", "omnigen.detector.evaluation.oks_eval", "omnigen.detector.prediction.predict",
-    "omnigen.detector.bev.lift", "benchmarks.validate",
+    "omnigen.detector.bev.lift", "benchmarks.gpu_validate",
     # lazy: GLRaster's context, the depth EXR writer, the shader compiler, training's progress bar
     "pyrender.platforms.egl", "OpenEXR", "OpenGL.GL.shaders", "OpenGL.EGL", "PIL.Image", "tqdm",
 )

@@ -15,7 +15,7 @@ setup stage has made the rest importable: the distributions it cannot import are
 interpreter is itself a venv whose own venvs would not see its torch.
 
 Stages, each timed and printed against its share of the 12 minutes (a stage whose output exists is
-skipped, so an interrupted run resumes; benchmarks/validate.py's Runner and train_stage):
+skipped, so an interrupted run resumes; benchmarks/common.py's Runner and train_stage, as validate.py):
 - setup: the wheels; EGL (glvnd's loaders from WORK/gl when the machine lacks libEGL.so.1, the
   NVIDIA driver's vendor file when it is out of glvnd's sight); a child process that makes the
   raster backend's context and says which GL renderer it got.
@@ -59,7 +59,9 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.common import NEEDS, metric_row, usable_cores, use_site  # noqa: E402  (the standard library alone)
+from benchmarks.common import (NEEDS, SCENE_MIX, Runner, check_data_arguments, fmt, machine, metric_row,  # noqa: E402
+                               render_jobs, run_renders, synthetic_row, train_stage, usable_cores, use_site,
+                               with_section)  # the standard library alone until a stage's function runs
 
 BUDGET_SECONDS = 12 * 60
 SECTION = "gpu-validate"
@@ -239,8 +241,6 @@ def default_kitti() -> Path | None:
 def render_stage(run, work: Path, args: argparse.Namespace, env: dict[str, str]) -> tuple[list[Path], list[Path], bool]:
     """The `make validate` cities and the extra training cities, rendered --jobs at a time, longest
     jobs first; returns (validate's renders, the extra ones, whether anything was rendered)."""
-    from benchmarks.validate import render_jobs, run_renders
-
     base_frames = args.cities * args.city_frames
     data = {"size": args.size, "backend": "raster", "seed": args.seed, "scene": args.scene}
     base = render_jobs(work, argparse.Namespace(frames=base_frames, cities=args.cities, **data))
@@ -330,8 +330,6 @@ def cpu_reference(results_dir: Path) -> dict[str, Any] | None:
 
 def section_markdown(r: dict[str, Any]) -> str:
     """The RESULTS.md section: every number read from results.json, which this script wrote."""
-    from benchmarks.validate import fmt
-
     a, t, s = r["arguments"], r["training"], r["synthetic"]
     unused = ("work", "wheels", "results", "kitti")
     cmd = "python benchmarks/gpu_validate.py " + " ".join(
@@ -397,8 +395,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--city-frames", type=int, default=40, help="frames of each of those cities")
     ap.add_argument("--test-fraction", type=float, default=0.2, help="of make validate's merge (its test split)")
     ap.add_argument("--size", type=int, default=640, help="rendered width and height")
-    ap.add_argument("--scene", default="downtown,suburban,arterial,intersection",
-                    help="city preset or mix (default: make validate's mix, benchmarks/validate.py SCENE_MIX)")
+    ap.add_argument("--scene", default=SCENE_MIX, help="city preset or mix (default: make validate's mix)")
     ap.add_argument("--minutes", type=float, default=7.0, help="training's wall-clock budget (train --time)")
     ap.add_argument("--batch", type=int, default=64, help="images a batch of the evaluation")
     ap.add_argument("--val-every", type=int, default=10, help="validate every N epochs (train stretches it under --time)")
@@ -438,7 +435,6 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from benchmarks.validate import Runner, fmt, check_data_arguments, machine, synthetic_row, train_stage, with_section
     from omnigen.files import atomic_write_json, atomic_write_text
     from omnigen.splits import read_split
 
@@ -446,7 +442,7 @@ def main(argv: list[str] | None = None) -> int:
     stages = Stages(work)
     stages.done("setup", time.perf_counter() - t, True, STAGE_BUDGETS["setup"])
     check_data_arguments(work, args, ("frames", "cities", "city_frames", "test_fraction", "size", "scene", "seed", "kitti"))
-    run = Runner(work)
+    run = Runner(work, who="gpu_validate")
 
     t = time.perf_counter()
     base, extra, ran = render_stage(run, work, args, env)

@@ -37,10 +37,6 @@ import csv
 import datetime
 import hashlib
 import json
-import os
-import platform
-import re
-import shlex
 import shutil
 import statistics
 import sys
@@ -51,49 +47,19 @@ from typing import TYPE_CHECKING, Any, Callable
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks import common  # noqa: E402
-from benchmarks.common import floor_rows, fmt, mentions, stale, synthetic_row  # noqa: E402, F401  (tests read mentions here)
+from benchmarks.common import (SCENE_MIX, Runner, check_data_arguments, floor_rows, fmt, kept_sections,  # noqa: E402
+                               machine, render_jobs, run_renders, stale, synthetic_row, train_stage)
 from omnigen.detector.evaluation.oks_eval import SIZE_BINS  # noqa: E402
-from omnigen.detector.training.recipe import RECIPE, RUN, Recipe, read_recipe, train_fields, with_overrides  # noqa: E402
+from omnigen.detector.training.recipe import RECIPE, RUN, Recipe, resolve, train_fields  # noqa: E402
 from omnigen.files import atomic_write_json, atomic_write_text, file_digest  # noqa: E402
 
 if TYPE_CHECKING:
     from omnigen.dataset import Dataset
 
-RIGS = ("ego", "pole", "drone")
 TARGET_MAP = 0.55  # the design's nano reaches 0.559 on its mixed data
 TARGET_ADHERENCE = 3.57  # degrees, the design's synthetic figure
 FLOOR_NOISE_PX = [0.0, 1.0, 2.0]
 BASELINE_FIELDS = ("oks_map50_95", "ap_oks50", "ground_adherence_deg", "corner_error_px", "corner_error_rel")  # corner noise of the "what the truth's own corners score" rows
-
-
-class Runner(common.Runner):
-    """Runs omnigen commands, records each with its wall time (in WORK/commands.json, so that a
-    resumed run reports the stages an earlier invocation did), and stops on failure; a training is
-    keyed by its train_stamp (--cache or not: the same weights)."""
-
-    def __init__(self, work: Path) -> None:
-        super().__init__(work, who="validate")
-
-    def key(self, command: str) -> str:
-        return train_stamp(command)
-
-    def forget_trainings(self, out: Path, but: str | None = None) -> None:
-        """Drop the records of trainings into `out` (trains_into), but those of the training `but`
-        (--cache or not, train_stamp): a folder trained again, or moved back from another run."""
-        keep = None if but is None else train_stamp(but)
-        self.log = [c for c in self.log if not trains_into(c["command"], out) or train_stamp(c["command"]) == keep]
-        self.save()
-
-
-# train flags that change how fast a run learns, not what it learns (tests/detector/test_detector_train.py
-# checks that the image cache trains the same weights): a run done without them is not redone with them
-SAME_WEIGHTS = ("--cache",)
-
-
-def train_stamp(command: str) -> str:
-    """A training command without the flags that leave its weights alone: what its done-marker holds."""
-    return " ".join(t for t in command.split(" ") if t not in SAME_WEIGHTS)
 
 
 def stale_or_missing(marker: Path, stamp: str) -> bool:
@@ -101,66 +67,9 @@ def stale_or_missing(marker: Path, stamp: str) -> bool:
     return not marker.exists() or stale(marker, stamp)
 
 
-def trained_seconds(out: Path) -> float:
-    """The seconds a run's saved epochs took, over all its invocations (results.csv's `time`)."""
-    path = out / "results.csv"
-    rows = list(csv.DictReader(path.read_text().splitlines())) if path.exists() else []
-    return float(rows[-1].get("time") or 0.0) if rows else 0.0
-
-
-def trains_into(command: str, out: Path) -> bool:
-    """Whether a recorded command is an `omnigen train` whose --out is `out` (not one that only
-    reads from it, e.g. --weights OUT/last.pt)."""
-    argv = shlex.split(command)
-    return argv[:2] == ["omnigen", "train"] and "--out" in argv[:-1] and Path(argv[argv.index("--out") + 1]) == out
-
-
-def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
-    """Train into `out` unless its done-marker says it was trained with these arguments; returns
-    the training's seconds, over all the invocations it took.
-
-    A run cut off midway (its `started` marker holds these arguments and it has a last.pt) goes on
-    from that checkpoint; a folder from other arguments, or cut off before its first checkpoint,
-    is trained again from the start.
-    """
-    stamp = train_stamp(shlex.join(train_cmd))
-    done, started = out / "done", out / "started"
-    if stale(done, stamp):  # e.g. more --epochs than last time: train again
-        print(f"[stale] {out} was trained with other arguments: training again", flush=True)
-        shutil.rmtree(out)
-        run.forget(out)
-    if done.exists():
-        run(train_cmd, done)  # says it skips
-        cmd = "omnigen " + shlex.join(train_cmd)
-        # the log must name this training, not another one that once wrote into `out` (a folder
-        # moved back by hand from an earlier run): other trainings into it are dropped, and a run
-        # the log lost is recorded with its epochs' own seconds (none without a results.csv, rather
-        # than a 0 that reads as a figure)
-        run.forget_trainings(out, but=cmd)
-        seconds = trained_seconds(out)
-        if seconds and not run.seconds(cmd):
-            run.record(cmd, seconds)
-    else:
-        resumable = (out / "last.pt").exists() and started.exists() and not stale(started, stamp)
-        if resumable:
-            print(f"[resume] {out} goes on from its last.pt", flush=True)
-        else:
-            if out.exists():
-                shutil.rmtree(out)
-                run.forget(out)
-            # a training from the start: no earlier training into `out` counts towards its seconds
-            # (one whose folder was moved away left its record, perhaps with --cache and so not replaced)
-            run.forget_trainings(out)
-            out.mkdir(parents=True)
-            atomic_write_text(started, stamp + "\n")
-        run(train_cmd, done, resume_from=trained_seconds(out) if resumable else None)
-        atomic_write_text(done, stamp + "\n")
-    return run.seconds("omnigen " + shlex.join(train_cmd))
-
-
 def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
                   predict: Callable[[bool], list[dict[str, Any]]], weights: Path | None = None,
-                  vertical: str = "lines") -> Path:
+                  vertical: str = RECIPE.predict.vertical) -> Path:
     """OUT/test-predictions.json, made by `predict(multi_label)` unless it was made the same way before.
 
     OUT/predicted holds how (the checkpoint, OUT/last.pt unless `weights` names another, and a digest
@@ -193,15 +102,6 @@ def predict_stage(run: Runner, out: Path, uov: Path, multi_label: bool,
     return preds
 
 
-def machine() -> str:
-    try:
-        import torch
-        gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
-    except Exception:  # torch missing is reported by the train step itself
-        gpu = "no GPU"
-    return f"{platform.machine()}, {os.cpu_count()} CPUs, {gpu}, Python {platform.python_version()}"
-
-
 def default_amp(device: str | None) -> str:
     """bf16 when training runs on a CPU with native bf16 (the 2-core default), else train's auto."""
     import torch
@@ -213,29 +113,7 @@ def default_amp(device: str | None) -> str:
 
 
 DATA_ARGUMENTS = ("frames", "cities", "size", "backend", "seed", "scene", "kitti", "dair")
-SCENE_MIX = "downtown,suburban,arterial,intersection"
-"""The presets validate's cities are drawn from: city seed s gets the (s mod 4)-th (omnigen render
---scene with a mix), so each rig's consecutive seeds cover all four."""
-
-
-def check_data_arguments(work: Path, args: argparse.Namespace, names: tuple[str, ...] = DATA_ARGUMENTS) -> None:
-    """Refuse to resume a working folder whose renders and merge were made with other arguments.
-
-    Stages are skipped when their output exists, so reusing a folder rendered at another --size
-    would silently train on the old data; the arguments that shape the data are kept in
-    WORK/data.json and compared.
-    """
-    wanted = {k: str(getattr(args, k)) if isinstance(getattr(args, k), Path) else getattr(args, k)
-              for k in names}
-    path = work / "data.json"
-    if path.exists():
-        had = json.loads(path.read_text())
-        diff = [f"--{k} {had.get(k)} (now {v})" for k, v in wanted.items() if had.get(k) != v]
-        if diff:
-            raise SystemExit(f"validate: {work} holds data made with {', '.join(diff)}: "
-                             f"pass --fresh to start over, or another --work")
-    else:
-        atomic_write_json(path, wanted, indent=1)
+"""The arguments that shape the data: a working folder made with others is refused (check_data_arguments)."""
 
 
 def render_all(run: Runner, work: Path, args: argparse.Namespace) -> list[Path]:
@@ -244,50 +122,6 @@ def render_all(run: Runner, work: Path, args: argparse.Namespace) -> list[Path]:
     jobs = render_jobs(work, args)
     run_renders(run, [argv for argv, out in jobs if not (out / "manifest.json").exists()], args.jobs)
     return [out for _, out in jobs]
-
-
-def render_jobs(work: Path, args: argparse.Namespace, first_city: int = 0) -> list[tuple[list[str], Path]]:
-    """The render command and output folder of each rig's --cities cities, numbered from
-    `first_city` (the seed of city c of rig i is --seed + 100 i + c); a finished one is said skipped."""
-    per_city = max(1, args.frames // args.cities)
-    jobs = []
-    for i, rig in enumerate(RIGS):
-        for c in range(first_city, first_city + args.cities):
-            seed = args.seed + 100 * i + c
-            out = work / f"render-{rig}-s{seed}"
-            argv = ["render", "--rig", rig, "--frames", str(per_city), "--seed", str(seed), "--width", str(args.size),
-                    "--height", str(args.size), "--backend", args.backend, "--quality", "preview", "--out", str(out)]
-            if getattr(args, "scene", None):  # validate: the preset mix; gpu_validate: its --scene (tiny in its test)
-                argv += ["--scene", args.scene]
-            if (out / "manifest.json").exists():
-                print(f"[skip, done] omnigen {shlex.join(argv)}", flush=True)
-            jobs.append((argv, out))
-    return jobs
-
-
-def run_renders(run: Runner, todo: list[list[str]], jobs: int, env: dict[str, str] | None = None) -> None:
-    """Run `omnigen ARGV` for each of `todo`, `jobs` processes at a time (in `env`, else this
-    process's environment), recording each with its wall time; the first failure stops the run."""
-    import subprocess
-
-    todo = list(todo)
-    running: list[tuple[list[str], subprocess.Popen, float]] = []
-    while todo or running:
-        while todo and len(running) < jobs:
-            argv = todo.pop(0)
-            print(f"[run] omnigen {shlex.join(argv)}", flush=True)
-            running.append((argv, subprocess.Popen([sys.executable, "-m", "omnigen.cli", *argv],
-                                                   stdout=subprocess.DEVNULL, env=env), time.perf_counter()))
-        # whichever ends first frees its slot: waiting on the oldest would idle the others' slots
-        while not (ended := [r for r in running if r[1].poll() is not None]):
-            time.sleep(0.05)
-        for argv, proc, t in ended:
-            running.remove((argv, proc, t))
-            if proc.returncode:
-                for _, other, _ in running:
-                    other.kill()
-                raise SystemExit(f"validate: 'omnigen {shlex.join(argv)}' exited with {proc.returncode}")
-            run.record(f"omnigen {shlex.join(argv)}", time.perf_counter() - t)
 
 
 def time_box(args: argparse.Namespace) -> list[str]:
@@ -320,10 +154,6 @@ def build_parser() -> argparse.ArgumentParser:
                     help="train this recipe file instead of the validated one (omnigen train --recipe)")
     ap.add_argument("--set", nargs="+", action="extend", default=[], metavar="KEY=VALUE",
                     help="recipe keys to change for every run (omnigen train KEY=VALUE; data.window=0: whole images)")
-    ap.add_argument("--vertical", default=RECIPE.predict.vertical, choices=["lines", "off"],
-                    help="prediction turns each test image's detections' vertical edges to its vertical vanishing "
-                         "point, found from them and the image's line segments (omnigen predict --vertical); "
-                         "off: the corners as the network placed them")
     ap.add_argument("--amp", default=None, choices=["auto", "bf16", "fp16", "off"],
                     help="mixed precision of training (default: bf16 when training on a CPU that runs it "
                          "natively, else auto)")
@@ -345,7 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
 def run_recipe(args: argparse.Namespace, keys: list[str] = ()) -> Recipe:
     """The recipe a run trains: --recipe's (else the validated one) with --set's keys and the run's
     own (`keys`: an ablation's), as `omnigen train` resolves them."""
-    return with_overrides(read_recipe(args.recipe) if args.recipe else RECIPE, [*args.set, *keys])
+    return resolve(args.recipe, [*args.set, *keys])
 
 
 def check_recipe(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
@@ -360,6 +190,22 @@ def check_recipe(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         check_sampling(cfg)
     except ValueError as e:
         ap.error(f"the recipe: {e}")
+
+
+def predict_test_split(run: Runner, out: Path, uov: Path, recipe: Recipe, device: str | None) -> Path:
+    """OUT/test-predictions.json of a run's last.pt (predict_stage), predicted as its recipe says: at
+    its input size and batch, vertical edges snapped or not by predict.vertical (`--set
+    predict.vertical=off`: the corners as the network placed them).
+
+    last.pt, not best.pt: without a val split, train validates on the test split, and choosing the
+    checkpoint by its test score would flatter the number reported here. It holds the crop stage of
+    the run's second phase (trained again apart on clean crops)."""
+    from omnigen.detector.prediction.predict import EVAL_MULTI_LABEL, predict_dataset
+
+    weights, vertical = out / "last.pt", recipe.predict.vertical
+    return predict_stage(run, out, uov, EVAL_MULTI_LABEL, lambda multi_label: predict_dataset(
+        weights, uov, split="test", imgsz=recipe.model.imgsz, batch=recipe.optim.batch, device=device,
+        multi_label=multi_label, vertical=vertical), weights=weights, vertical=vertical)
 
 
 def train_command(args: argparse.Namespace, dataset: Path, out: Path, keys: list[str] = (),
@@ -384,8 +230,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.fresh and work.exists():
         shutil.rmtree(work)
     work.mkdir(parents=True, exist_ok=True)
-    check_data_arguments(work, args)
-    run = Runner(work)
+    check_data_arguments(work, args, DATA_ARGUMENTS)
+    run = Runner(work, who="validate")
     sources = render_all(run, work, args)
     real = []
     if args.kitti:
@@ -412,18 +258,12 @@ def main(argv: list[str] | None = None) -> int:
         t = train_stage(run, train_command(args, dataset, out, keys, options), out)
         from omnigen.detector.model.checkpoint import load_checkpoint
         from omnigen.detector.data.samples import split_frames
-        from omnigen.detector.prediction.predict import EVAL_MAX_DET, EVAL_MULTI_LABEL, predict_dataset
+        from omnigen.detector.prediction.predict import EVAL_MAX_DET
 
-        # last.pt, not best.pt: without a val split, train validates on the test split, and
-        # choosing the checkpoint by its test score would flatter the number reported here. It
-        # holds the crop stage of the run's second phase (trained again apart on clean crops).
-        weights = out / "last.pt"
-        stage = load_checkpoint(weights).get("crop_stage")
+        stage = load_checkpoint(out / "last.pt").get("crop_stage")
         recipe = run_recipe(args, keys)
         imgsz = recipe.model.imgsz
-        preds = predict_stage(run, out, uov, EVAL_MULTI_LABEL, lambda multi_label: predict_dataset(
-            weights, uov, split="test", imgsz=imgsz, batch=recipe.optim.batch, device=args.device,
-            multi_label=multi_label, vertical=args.vertical), weights=weights, vertical=args.vertical)
+        preds = predict_test_split(run, out, uov, recipe, args.device)
         report_path = out / "eval.json"
         run(["eval", str(preds), str(uov), "--split", "test", "--baseline", "--out", str(report_path)], report_path)
         report = json.loads(report_path.read_text())
@@ -676,26 +516,6 @@ def floor_table(r: dict[str, Any]) -> list[str]:
     return lines + [""]
 
 
-# Sections of RESULTS.md that other scripts write (benchmarks/gpu_validate.py): each between its
-# own markers, kept when this script rewrites the rest, replaced whole by the script that owns it.
-SECTION = re.compile(r"<!-- (?P<name>[\w-]+): begin -->\n.*?<!-- (?P=name): end -->\n", re.S)
-
-
-def kept_sections(text: str) -> str:
-    """The marked sections of a RESULTS.md, each after a blank line, to append to a rewritten one."""
-    return "".join("\n" + m.group(0) for m in SECTION.finditer(text))
-
-
-def with_section(text: str, name: str, body: str) -> str:
-    """`text` with section `name` replaced by `body` (markers added), or appended when it has none."""
-    block = f"<!-- {name}: begin -->\n{body.rstrip()}\n<!-- {name}: end -->\n"
-    for m in SECTION.finditer(text):
-        if m.group("name") == name:
-            return text[:m.start()] + block + text[m.end():]
-    gap = "" if not text or text.endswith("\n\n") else "\n" if text.endswith("\n") else "\n\n"
-    return text + gap + block
-
-
 def command_line(a: dict[str, Any]) -> str:
     """The validate command that `a` (results.json's arguments) stand for."""
     def opt(k: str, v: Any) -> str:
@@ -733,7 +553,7 @@ def protocol_line(r: dict[str, Any]) -> list[str]:
         f"{run['detection_cap']} detections")
     stage = run.get("crop_stage")
     snapped = ("; each image's vertical edges turned to its vertical vanishing point, found from the detections "
-               "and the image's line segments (--vertical lines)" if "vertical='lines'" in made else "")
+               "and the image's line segments (predict.vertical=lines)" if "vertical='lines'" in made else "")
     lines = [f"- test predictions: {how}; last.pt, not best.pt{capped}{snapped}"]
     if stage:
         sc = stage.get("score", {})

@@ -93,10 +93,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def config_of(args: argparse.Namespace) -> Any:
     """The TrainConfig of the command line: the recipe (--recipe, else the validated one) with the
     KEY=VALUE overrides, and the run's settings from the options."""
-    from omnigen.detector.training.recipe import RECIPE, read_recipe, train_fields, with_overrides
+    from omnigen.detector.training.recipe import resolve, train_fields
     from omnigen.detector.training.train import TrainConfig
 
-    recipe = with_overrides(read_recipe(args.recipe) if args.recipe else RECIPE, args.overrides)
+    recipe = resolve(args.recipe, args.overrides)
     return TrainConfig(dataset=str(args.dataset), out=str(args.out), **train_fields(recipe), epochs=args.epochs,
                        time_minutes=args.time, val_every=args.val_every, device=args.device, workers=args.workers,
                        amp=args.amp, cache=args.cache, channels_last=args.channels_last, seed=args.seed,
@@ -139,8 +139,6 @@ def long_run_note(epoch_seconds: float, epochs_left: int, val_every: int) -> str
             "budget (or fewer --epochs)")
 
 
-LOSS_PARTS = ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "kpt_labelled", "heading", "heading_crop", "crop_corners",
-              "crop_cls")
 METRICS = {"oks_map50_95": "OKS mAP50:95", "ap_oks50": "AP at OKS 0.50", "precision": "precision",
            "recall": "recall", "f1": "F1", "corner_error_px": "corner error (px)",
            "corner_error_rel": "corner error rel"}
@@ -154,6 +152,8 @@ def summary_rows(last: dict[str, Any], epoch_seconds: float | None, wall: float)
     epochs and the crop phase; else this invocation's), the loss parts that are on (a part that is
     off is 0 throughout), the last validation where there was one (a figure nothing was matched
     for, NaN, left out), the crop phase's figures, the last learning rate readably."""
+    from omnigen.detector.training.loss import PARTS  # the run's loss terms, as its rows name them
+
     def finite(v: Any) -> bool:
         return isinstance(v, (int, float)) and v == v and abs(v) != float("inf")
 
@@ -164,7 +164,7 @@ def summary_rows(last: dict[str, Any], epoch_seconds: float | None, wall: float)
     rows.append(("time (min)", f"{total / 60:.1f}"))
     if "lr" in last:
         rows.append(("last learning rate", f"{last['lr']:.3g}"))
-    rows += [(f"loss: {k}", f"{last[k]:.4f}") for k in LOSS_PARTS if finite(last.get(k)) and last[k] != 0.0]
+    rows += [(f"loss: {k}", f"{last[k]:.4f}") for k in PARTS if finite(last.get(k)) and last[k] != 0.0]
     rows += [(name, f"{last[k]:.3f}") for k, name in METRICS.items() if finite(last.get(k))]
     rows += [(name, f"{last[k]:.3f}" if isinstance(last[k], float) else str(last[k]))
              for k, name in CROP.items() if finite(last.get(k))]

@@ -794,11 +794,6 @@ def _trim_heap() -> None:
 # ---------------------------------------------------------------------------------------------
 
 FOG, PRECIPITATION = "omnigen_fog", "omnigen_precipitation"
-UPDATE_PARTS = ("compile", "agents", "materials", "environment", "session", "trim")
-"""BlenderScene.timings' parts of an update: compile (compile_scene: the frame's objects and
-materials, the agents' meshes from the asset cache), agents (the agent pool: triangles, colours,
-transforms, names), materials (restyling the static city), environment (sky, sun, lamps, fog,
-precipitation), session (freeing Cycles' persistent session), trim (malloc_trim)."""
 
 
 def _slot_name(index: int) -> str:
@@ -823,9 +818,7 @@ class BlenderScene:
     whose object and light arrays otherwise keep the order of earlier frames (Cycles appends new
     objects and fills a removed one's place with the last), which changes which light a random
     number picks. The renders of one frame (beauty, labels, a redrawn camera) still share it.
-
-    `timings`: seconds spent in `update` since the build, by part (UPDATE_PARTS), and in render's
-    own work outside Cycles ("readback": reading and exposing the EXRs), summed over calls."""
+    Where an update's time goes: `benchmarks/bench_render.py --profile --no-raster`."""
 
     def __init__(self, scene: Scene, reset: bool = True, volumes: bool = True, precipitation: bool = True,
                  device: str = "cpu") -> None:
@@ -837,7 +830,6 @@ class BlenderScene:
         self.device = use_cycles_devices(device, self.bscene)  # --device (scenes/cycles_devices.py)
         self.bscene.view_layers[0].use_pass_object_index = True
         self.bscene.view_layers[0].use_pass_z = True
-        self.timings = dict.fromkeys((*UPDATE_PARTS, "readback"), 0.0)
         self.objects: dict[str, RenderObject] = {}
         self.focus = (0.0, 0.0, 0.0)
         self.scene = scene
@@ -914,26 +906,16 @@ class BlenderScene:
         """Next frame over the same city: the agents, the static city's colours, the environment."""
         if scene.city is not self.scene.city and scene.city != self.scene.city:
             raise ValueError("BlenderScene.update needs the same city; build a new BlenderScene for another")
-        t = self.timings
-        t0 = time.perf_counter()
         objects = compile_scene(scene)
-        t1 = time.perf_counter()
         self.scene = scene
         self._place_agents([obj for obj in objects if obj.kind == "agent"])
-        t2 = time.perf_counter()
         for obj in objects:
             if obj.kind != "agent":
                 self._static[obj.name].paint(obj.materials)
         self.objects = {obj.name: obj for obj in objects}
-        t3 = time.perf_counter()
         self._environment(scene)
-        t4 = time.perf_counter()
         self._fresh_session()
-        t5 = time.perf_counter()
         _trim_heap()
-        t6 = time.perf_counter()
-        for part, seconds in zip(UPDATE_PARTS, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5)):
-            t[part] += seconds
 
     def _fresh_session(self) -> None:
         """Free Cycles' persistent session (switching persistent data off frees it), so the frame's
@@ -1192,12 +1174,10 @@ class BlenderScene:
         t0 = time.perf_counter()
         try:
             self._run(self._beauty_tree)
-            t1 = time.perf_counter()
-            seconds = t1 - t0
+            seconds = time.perf_counter() - t0
             road = road_pixels(camera, _read_exr_channel(self._single("beauty_", "depth")))
             rgb, gain = expose(_read_exr_rgb(self._single("beauty_", "rgb")), self.scene, road)
             self.bscene.view_settings.exposure = float(math.log2(gain))
-            self.timings["readback"] += time.perf_counter() - t1
             # The label pass runs before the fog comes back: with the same objects visible as in
             # the beauty render, Cycles (persistent data) reuses the beauty render's BVH instead
             # of building the city's again (about 2 s at 640 x 640 on the 2-core machine).

@@ -216,26 +216,8 @@ REMOVED: dict[str, dict[str, Any]] = {
 }
 """Fields of branches this version no longer has, with the value each recorded while its branch was
 off (False, None). Checkpoints of either schema that record them so, as every run of the recipe
-did, are read without them; one trained with a branch is refused by name (`without_removed`): its
+did, are read without them; one trained with a branch is refused by name (`upgraded`): its
 tensors, or the run it would resume, need code that is gone."""
-
-
-def without_removed(path: str | Path, state: Any) -> Any:
-    """`state` with the REMOVED fields left out of its records, or one line naming the file and the
-    first field that records a branch this version does not have."""
-    if not isinstance(state, dict):
-        return state  # check_state says what it is
-    out = dict(state)
-    for part, removed in REMOVED.items():
-        record = state.get(part)
-        if not isinstance(record, dict):
-            continue
-        for key, off in removed.items():
-            if key in record and record[key] is not off:  # False and None: one object each
-                raise ValueError(f"{path}: trained with {key}, a branch this version does not have "
-                                 f"({part}.{key} is {_shown(record[key])})")
-        out[part] = {k: v for k, v in record.items() if k not in removed}
-    return out
 
 
 def plain_branch() -> dict[str, Any]:
@@ -248,17 +230,31 @@ def plain_branch() -> dict[str, Any]:
             "optimizer": "adamw"}
 
 
-def upgraded(state: dict[str, Any]) -> dict[str, Any]:
-    """A schema-1 checkpoint's records completed with what it was trained with (V1_DEFAULTS),
-    marked schema 2; a newer one as it is. One table for every field added later, where each
-    reader kept its own."""
-    if state.get("schema", 1) != 1:
+def upgraded(path: str | Path, state: Any) -> Any:
+    """A checkpoint's records as this version reads them, one table for each way an older writer
+    differs: the fields of removed branches left out (REMOVED; one recorded on is one line naming
+    the file and the field), and a schema-1 one's records completed with what it was trained with
+    (V1_DEFAULTS), marked schema 2. Anything else, and what is not a dict, as it is: check_state
+    and load_checkpoint say what is wrong with it."""
+    if not isinstance(state, dict):
         return state
     out = dict(state)
-    if isinstance(state.get("train_config"), dict):
-        out["train_config"] = {**V1_DEFAULTS["train_config"], **state["train_config"]}
-    if isinstance(state.get("crop_stage"), dict):
-        stage = {**V1_DEFAULTS["crop_stage"], **state["crop_stage"]}
+    for part, removed in REMOVED.items():
+        record = state.get(part)
+        if not isinstance(record, dict):
+            continue
+        for key, off in removed.items():
+            if key in record and record[key] is not off:  # False and None: one object each
+                raise ValueError(f"{path}: trained with {key}, a branch this version does not have "
+                                 f"({part}.{key} is {_shown(record[key])})")
+        out[part] = {k: v for k, v in record.items() if k not in removed}
+    schema = state.get("schema", 1)
+    if type(schema) is not int or schema != 1:  # a newer one, or one load_checkpoint refuses
+        return out
+    if isinstance(out.get("train_config"), dict):
+        out["train_config"] = {**V1_DEFAULTS["train_config"], **out["train_config"]}
+    if isinstance(out.get("crop_stage"), dict):
+        stage = {**V1_DEFAULTS["crop_stage"], **out["crop_stage"]}
         if isinstance(stage.get("config"), dict):
             stage["config"] = {**V1_DEFAULTS["crop_stage.config"], **stage["config"]}
         out["crop_stage"] = stage
@@ -267,14 +263,14 @@ def upgraded(state: dict[str, Any]) -> dict[str, Any]:
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """A checkpoint file without the fields of removed branches (without_removed), checked
-    (check_state) and read as the current schema (upgraded): every error one line naming the file."""
-    state = check_state(path, without_removed(path, load_plain(path)))
-    if not isinstance(state.get("schema", 1), int) or isinstance(state.get("schema"), bool) \
-            or not 1 <= state.get("schema", 1) <= SCHEMA:
+    """A checkpoint file read as this version's (upgraded), checked (check_state): every error one
+    line naming the file."""
+    state = check_state(path, upgraded(path, load_plain(path)))
+    schema = state.get("schema", 1)
+    if not isinstance(schema, int) or isinstance(schema, bool) or not 1 <= schema <= SCHEMA:
         raise ValueError(f"{path}: schema is {_shown(state.get('schema'))}, not one this omnigen reads "
                          f"(1 to {SCHEMA}; a newer omnigen wrote it?)")
-    return upgraded(state)
+    return state
 
 
 def load_weights(module: torch.nn.Module, tensors: dict[str, torch.Tensor], path: str | Path,

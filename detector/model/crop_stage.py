@@ -86,9 +86,9 @@ average, 104 at most)."""
 MIN_SIDE = 4.0
 """Boxes whose longer side is under this many pixels are not cropped in training: nothing to see."""
 CENTRE_JITTER = 0.06
-"""Training boxes' centres move by N(0, this) of their width and height (
-noise, what a detector's boxes miss the truth by), so that the stage places corners about
-predicted boxes, not only about perfect ones."""
+"""Training boxes' centres move by N(0, this) of their width and height (about what a detector's
+boxes miss the truth by), so that the stage places corners about predicted boxes, not only about
+perfect ones."""
 SIDE_JITTER = 0.1
 """...and each side is scaled by a log-normal factor of this sigma."""
 HIDDEN = 128
@@ -119,11 +119,10 @@ class CropNet(nn.Module):
     (unnormalised), the eight corners (x, y) in the crop's units (`to_crop_units`) and, where
     num_classes > 0, the class logits.
 
-    Four blocks of two 3x3 convolutions, batch norm, SiLU and a 2x2 max-pool (the classifier that
-    the classifier shape that told a vehicle's front at 64x64), then the last feature map
-    flattened, not averaged: where a corner lies is what a global average would throw away
-    ( model). With `position`, each crop's `crop_position` is appended
-    to those features (forward's `where`)."""
+    Four blocks of two 3x3 convolutions, batch norm, SiLU and a 2x2 max-pool (the shape of the
+    classifier that told a vehicle's front at 64x64), then the last feature map flattened, not
+    averaged: where a corner lies is what a global average would throw away. With `position`,
+    each crop's `crop_position` is appended to those features (forward's `where`)."""
 
     def __init__(self, size: int, width: int = 16, num_classes: int = 0, position: bool = False):
         super().__init__()
@@ -161,8 +160,8 @@ class SplitCropNet(nn.Module):
     (no classes), the class logits from `classes` (its heading and corner outputs unused). Why:
     in one small net the class term costs the corners. Trained apart on the same crops for 2000
     steps, a net of corners alone placed them 0.191 of sqrt(box area) from the truth with the turn
-    forgiven, one that also named the classes 0.211 (
-    docs/detector-training.md). Twice the crop net's cost (benchmarks/bench_crop_stage.py)."""
+    forgiven, one that also named the classes 0.211 (docs/detector-training.md). Twice the crop
+    net's cost (benchmarks/bench_crop_stage.py)."""
 
     def __init__(self, size: int, num_classes: int, width: int = 16, position: bool = False):
         super().__init__()

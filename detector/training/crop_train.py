@@ -36,7 +36,7 @@ run never stopped.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -458,9 +458,9 @@ def stage_config(cfg: Any) -> tuple[CropTrainConfig, bool, bool]:
     knows only off and bf16: a GPU's 'auto' is neither); and whether the stage names its classes
     with a net of their own (split) and is told where its crops were cut (position)."""
     phase = cfg.crop_phase
-    stage = CropTrainConfig(**{k: phase[k] for k in ("steps", "batch", "lr", "weight_decay", "copies", "balance",
-                                                     "heading_gain", "class_gain", "offset_gain")},
-                            seed=cfg.seed, amp="bf16" if cfg.amp == "bf16" else "off")
+    own = {f.name for f in fields(CropTrainConfig)}  # the phase's keys but split and position
+    stage = CropTrainConfig(**{k: v for k, v in phase.items() if k in own}, seed=cfg.seed,
+                            amp="bf16" if cfg.amp == "bf16" else "off")
     return stage, bool(cfg.crop_classes and phase["split"]), bool(phase["position"])
 
 

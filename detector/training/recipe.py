@@ -245,9 +245,9 @@ RUN = RunSettings()
 # -- keys ---------------------------------------------------------------------------------------------
 
 def sections() -> dict[str, type]:
-    """Section name -> its dataclass."""
-    return {f.name: f.type if isinstance(f.type, type) else typing.get_type_hints(Recipe)[f.name]
-            for f in fields(Recipe)}
+    """Section name -> its dataclass (the annotations are strings here: resolved)."""
+    hints = typing.get_type_hints(Recipe)
+    return {f.name: hints[f.name] for f in fields(Recipe)}
 
 
 def knobs() -> dict[str, Any]:
@@ -373,6 +373,12 @@ def read_recipe(path: str | Path) -> Recipe:
     return from_dict(data, str(path))
 
 
+def resolve(recipe_file: str | Path | None, overrides: list[str]) -> Recipe:
+    """The recipe a command line names: `--recipe FILE`'s (else the validated one) with its KEY=VALUE
+    overrides applied, as `omnigen train` and the benchmarks that drive it resolve it."""
+    return with_overrides(read_recipe(recipe_file) if recipe_file else RECIPE, overrides)
+
+
 def recipe_json(recipe: Recipe) -> str:
     """The recipe file's text: the mark first (omnigen.outputs.json_made_by), then each section."""
     return json.dumps({"omnigen": JOB, **asdict(recipe)}, indent=2, allow_nan=False) + "\n"
@@ -380,37 +386,46 @@ def recipe_json(recipe: Recipe) -> str:
 
 # -- TrainConfig ---------------------------------------------------------------------------------------
 
+def _slot(key: str) -> tuple[str, str | None] | None:
+    """Where TrainConfig keeps a recipe key: its `to` field (None), or a key of its augment or
+    crop_phase dict (the crop stage's second-phase keys); None for a key training does not read
+    (predict's, which `omnigen predict` and `eval` take as their options' defaults)."""
+    to = knobs()[key].metadata["to"]
+    section, name = key.split(".")
+    if to:
+        return to, None
+    return {"augment": ("augment", name), "crop_stage": ("crop_phase", name)}.get(section)
+
+
 def train_fields(recipe: Recipe) -> dict[str, Any]:
-    """The TrainConfig fields of a recipe: each key's `to` field, the augmentation as its dict and
-    the crop stage's training as TrainConfig.crop_phase; data.window 0 is no window (None)."""
-    values = flat(recipe)
-    out: dict[str, Any] = {"augment": asdict(recipe.augment),
-                           "crop_phase": crop_phase(recipe.crop_stage)}
-    for key, spec in knobs().items():
-        if spec.metadata["to"]:
-            out[spec.metadata["to"]] = values[key]
+    """The TrainConfig fields of a recipe (each key at its `_slot`); data.window 0 is no window (None)."""
+    out: dict[str, Any] = {"augment": {}, "crop_phase": {}}
+    for key, value in flat(recipe).items():
+        slot = _slot(key)
+        if slot is None:
+            continue
+        field_name, name = slot
+        if name is None:
+            out[field_name] = value
+        else:
+            out[field_name][name] = value
     out["crop"] = out["crop"] or None
     return out
 
 
-def crop_phase(stage: CropStage) -> dict[str, Any]:
-    """The crop stage's second-phase fields (all but its side and classes, which shape the model)."""
-    return {f.name: getattr(stage, f.name) for f in fields(CropStage) if not f.metadata["to"]}
-
-
 def recipe_of(config: dict[str, Any]) -> Recipe:
-    """The recipe of TrainConfig fields (`asdict(cfg)`): what a run records as RUN/recipe.json.
-    Fields it lacks keep the default recipe's values."""
+    """The recipe of TrainConfig fields (`asdict(cfg)`), train_fields' inverse: what a run records as
+    RUN/recipe.json. Keys it lacks (and predict's, which TrainConfig does not keep) keep the default
+    recipe's values."""
     values = {}
-    for key, spec in knobs().items():
-        to = spec.metadata["to"]
-        section, name = key.split(".")
-        if to and to in config:
-            values[key] = config[to]
-        elif section == "augment" and name in config.get("augment", {}):
-            values[key] = tuple(config["augment"][name]) if name == "hsv" else config["augment"][name]
-        elif section == "crop_stage" and name in config.get("crop_phase", {}):
-            values[key] = config["crop_phase"][name]
+    for key in knobs():
+        slot = _slot(key)
+        if slot is None:
+            continue
+        field_name, name = slot
+        part, name = (config, field_name) if name is None else (config.get(field_name, {}), name)
+        if name in part:
+            values[key] = tuple(part[name]) if isinstance(part[name], list) else part[name]  # hsv as JSON spells it
     if "data.window" in values:
         values["data.window"] = values["data.window"] or 0
     return with_values(RECIPE, values)

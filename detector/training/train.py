@@ -285,11 +285,6 @@ def check_sampling(cfg: TrainConfig) -> None:
         raise ValueError(f"TrainConfig.{e}") from None
 
 
-def augment_of(cfg: TrainConfig) -> Augment:
-    """The data's augmentation of cfg.augment (recipe.Augment's keys)."""
-    return Augment(**cfg.augment)
-
-
 def frame_repeats(cfg: TrainConfig, data: KeypointDataset) -> np.ndarray | None:
     """Each training frame's repeat factor (balance.repeat_factors), None without --repeat-thresh;
     also what bench_learning counts an epoch's frames by."""
@@ -540,7 +535,7 @@ def _train(cfg: TrainConfig, resume: bool, fresh: bool, on_epoch: Callable[[int,
 
     train_ids = split_frames(cfg.dataset, cfg.train_split)
     val_name = resolve_val_split(cfg.dataset, cfg.val_split)
-    data = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, train_ids, augment_of(cfg),
+    data = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, train_ids, Augment(**cfg.augment),
                            cfg.out_of_image, cfg.seed, crop=cfg.window(), crop_focus=cfg.focus())
     if len(data) == 0:
         raise ValueError(f"{cfg.dataset}: split {cfg.train_split!r} has no frames")

@@ -228,7 +228,7 @@ def test_ultralytics_predictions_become_our_coco_results_exactly(tmp_path):
 
 
 def test_make_validate_keeps_the_gpu_section_when_it_rewrites_results_md():
-    from benchmarks.validate import kept_sections, with_section
+    from benchmarks.common import kept_sections, with_section
 
     old = with_section("# Results\n\nCPU tables\n", "gpu-validate", "## On one GPU\n\nfigures\n")
     assert old == "# Results\n\nCPU tables\n\n<!-- gpu-validate: begin -->\n## On one GPU\n\nfigures\n<!-- gpu-validate: end -->\n"
@@ -258,14 +258,21 @@ def test_training_takes_recipe_keys_and_renders_make_validates_mix():
 
 
 def test_the_gpu_recipe_is_make_validates():
-    """The GPU run trains `omnigen train`'s own recipe, as make validate does: neither script passes
-    a recipe value, so one kept change reaches both."""
-    import argparse
+    """The GPU run trains `omnigen train`'s own recipe, as make validate does: what train resolves
+    from either script's command line is the validated recipe, so one kept change reaches both."""
+    from dataclasses import asdict
     from pathlib import Path
 
-    args = gpu_validate.parse_args(["--work", "w", "--device", "cuda"])
-    argv = gpu_validate.train_arguments(Path("uov"), Path("run"), args)
-    assert argv[:3] == ["train", "uov", "--out"] and not any("=" in a for a in argv)
-    from omnigen.detector.training.recipe import RECIPE
+    from benchmarks import validate
+    from omnigen.cli import build_parser
+    from omnigen.detector.train_command import config_of
+    from omnigen.detector.training.recipe import RECIPE, recipe_of
 
-    assert gpu_validate.trained_recipe(argparse.Namespace(train_args="")) == RECIPE
+    args = gpu_validate.parse_args(["--work", "w", "--device", "cuda"])
+    gpu = gpu_validate.train_arguments(Path("uov"), Path("run"), args)
+    assert gpu[:3] == ["train", "uov", "--out"] and not any("=" in a for a in gpu)
+    v = validate.build_parser().parse_args([])
+    v.amp = "bf16"
+    cpu = validate.train_command(v, Path("uov"), Path("run"))
+    resolved = [recipe_of(asdict(config_of(build_parser().parse_args(argv)))) for argv in (gpu, cpu)]
+    assert resolved == [RECIPE, RECIPE] and gpu_validate.trained_recipe(args) == RECIPE

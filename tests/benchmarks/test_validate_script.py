@@ -1,4 +1,5 @@
-"""benchmarks/validate.py: what a done-marker means, which records a redo drops, what RESULTS.md shows."""
+"""benchmarks/validate.py and the stages it shares with gpu_validate.py (benchmarks/common.py): what a
+done-marker means, which records a redo drops, what RESULTS.md shows."""
 
 from __future__ import annotations
 
@@ -14,8 +15,9 @@ import shutil  # noqa: E402
 import pytest  # noqa: E402
 
 import benchmarks.validate as validate  # noqa: E402
-from benchmarks.validate import (Runner, check_data_arguments, mentions, results_markdown, size_table, stale,  # noqa: E402
-                                 curve_table, train_stage, train_stamp, validated_on)
+from benchmarks.common import (Runner, check_data_arguments, mentions, stale, train_stage, train_stamp,  # noqa: E402
+                               trains_into)
+from benchmarks.validate import curve_table, results_markdown, size_table, validated_on  # noqa: E402
 
 
 def test_mentions_names_a_folder_and_its_files_not_its_siblings():
@@ -78,7 +80,7 @@ class FakeTrain:
 
 def test_a_training_cut_off_midway_goes_on_from_its_checkpoint_and_counts_its_time(tmp_path, monkeypatch):
     fake = FakeTrain()
-    monkeypatch.setattr(validate.Runner, "omnigen", staticmethod(fake))
+    monkeypatch.setattr(Runner, "omnigen", staticmethod(fake))
     run, out = Runner(tmp_path), tmp_path / "runs" / "s-p2"
     cmd = ["train", "uov", "--out", str(out), "--epochs", "150"]
     fake.kill = True
@@ -98,7 +100,7 @@ def test_a_trained_folder_moved_back_is_reported_as_its_own_training(tmp_path, m
     log drops that other training and records this one with its epochs' seconds, so RESULTS.md
     neither lists a training that is not there nor a train time of 0."""
     fake = FakeTrain()
-    monkeypatch.setattr(validate.Runner, "omnigen", staticmethod(fake))
+    monkeypatch.setattr(Runner, "omnigen", staticmethod(fake))
     run, out = Runner(tmp_path), tmp_path / "runs" / "n-p2"
     cmd = ["train", "uov", "--out", str(out), "--imgsz", "640"]
     train_stage(run, cmd, out)
@@ -115,7 +117,7 @@ def test_a_trained_folder_moved_back_is_reported_as_its_own_training(tmp_path, m
 
 def test_a_training_cut_off_with_other_arguments_starts_over(tmp_path, monkeypatch):
     fake = FakeTrain()
-    monkeypatch.setattr(validate.Runner, "omnigen", staticmethod(fake))
+    monkeypatch.setattr(Runner, "omnigen", staticmethod(fake))
     run, out = Runner(tmp_path), tmp_path / "runs" / "n-p2"
     fake.kill = True
     with pytest.raises(KeyboardInterrupt):
@@ -130,10 +132,11 @@ def test_a_training_cut_off_with_other_arguments_starts_over(tmp_path, monkeypat
 def test_a_folder_rendered_with_other_data_arguments_is_refused(tmp_path):
     args = argparse.Namespace(frames=200, cities=5, size=640, backend="raster", seed=0, scene="downtown,suburban",
                               kitti=Path("../shared/realdata/kitti"), dair=None, epochs=150)
-    check_data_arguments(tmp_path, args)  # first run: recorded
-    check_data_arguments(tmp_path, argparse.Namespace(**{**vars(args), "epochs": 30}))  # training may change
+    names = validate.DATA_ARGUMENTS
+    check_data_arguments(tmp_path, args, names)  # first run: recorded
+    check_data_arguments(tmp_path, argparse.Namespace(**{**vars(args), "epochs": 30}), names)  # training may change
     with pytest.raises(SystemExit, match=r"--size 640 \(now 320\).*--fresh"):
-        check_data_arguments(tmp_path, argparse.Namespace(**{**vars(args), "size": 320}))
+        check_data_arguments(tmp_path, argparse.Namespace(**{**vars(args), "size": 320}), names)
 
 
 def test_forget_drops_only_the_redone_folder(tmp_path):
@@ -298,7 +301,7 @@ def test_data_only_stops_at_the_merged_dataset(tmp_path, monkeypatch):
         (out / "manifest.json").write_text("{}")
         return 0
 
-    monkeypatch.setattr(validate.Runner, "omnigen", staticmethod(fake))
+    monkeypatch.setattr(Runner, "omnigen", staticmethod(fake))
     for folder in ("render-ego-s0", "render-pole-s100", "render-drone-s200"):
         (tmp_path / folder).mkdir()
         (tmp_path / folder / "manifest.json").write_text("{}")
@@ -424,7 +427,7 @@ def test_results_markdown_says_how_the_test_predictions_were_made():
     assert "single-label" in validate.protocol_line(made)[0]
     assert "vanishing point" not in validate.protocol_line(made)[0]  # made before --vertical: not snapped
     made["runs"][0]["predicted"] = "predict_dataset(w/crop.pt, uov, split='test', multi_label=True, vertical='lines')"
-    assert validate.protocol_line(made)[0].endswith("line segments (--vertical lines)")
+    assert validate.protocol_line(made)[0].endswith("line segments (predict.vertical=lines)")
     assert validate.protocol_line({"runs": [{}]}) == []  # a results.json from before the marker
 
 
@@ -438,9 +441,9 @@ def test_the_results_say_how_many_frames_reached_the_detection_cap():
 
 def test_trains_into_reads_the_out_folder_not_a_mention():
     out = Path("runs/n-p2")
-    assert validate.trains_into("omnigen train uov --out runs/n-p2 --epochs 3", out)
-    assert not validate.trains_into("omnigen train uov --out runs/other --weights runs/n-p2/last.pt", out)
-    assert not validate.trains_into("omnigen eval runs/n-p2/last.pt uov --out runs/n-p2/eval.json", out)
+    assert trains_into("omnigen train uov --out runs/n-p2 --epochs 3", out)
+    assert not trains_into("omnigen train uov --out runs/other --weights runs/n-p2/last.pt", out)
+    assert not trains_into("omnigen eval runs/n-p2/last.pt uov --out runs/n-p2/eval.json", out)
 
 
 def test_predictions_name_the_checkpoint_they_were_made_with(tmp_path):
@@ -495,5 +498,20 @@ def test_predictions_of_a_checkpoint_rewritten_in_place_are_made_again(tmp_path)
     assert calls == [True, True] and validate.file_digest(weights) in (out / "predicted").read_text()
 
 
-def test_prediction_snaps_vertical_edges_as_the_recipe_says():
-    assert validate.build_parser().parse_args([]).vertical == "lines"  # predict --vertical, recipe.predict.vertical
+def test_the_test_split_is_predicted_as_the_recipe_says_with_no_option_of_validate_s_own(tmp_path, monkeypatch):
+    """predict.vertical is a recipe key like the others: validate has no flag for it (the command
+    RESULTS.md prints names none), and `--set predict.vertical=off` reaches the prediction."""
+    import omnigen.detector.prediction.predict as predict
+
+    seen: list[dict] = []
+    monkeypatch.setattr(predict, "predict_dataset", lambda weights, uov, **kw: seen.append(kw) or [])
+    ap = validate.build_parser()
+    assert "--vertical" not in validate.command_line(vars(ap.parse_args([])))
+    with pytest.raises(SystemExit):
+        ap.parse_args(["--vertical", "off"])
+    recipe = validate.run_recipe(ap.parse_args(["--set", "predict.vertical=off", "optim.batch=3"]))
+    out = tmp_path / "n-p2"
+    out.mkdir()
+    validate.predict_test_split(Runner(tmp_path), out, Path("uov"), recipe, "cpu")
+    assert [(kw["vertical"], kw["batch"], kw["imgsz"]) for kw in seen] == [("off", 3, recipe.model.imgsz)]
+    assert "vertical='off'" in (out / "predicted").read_text()

@@ -349,8 +349,8 @@ def test_weights_without_a_crop_stage_fine_tune_with_one(tmp_path):
 
 
 def test_predicting_without_the_crop_stage_keeps_the_detections_and_the_heads_corners(tmp_path):
-    """crop_net = None : the same boxes and scores, the head's
-    corners; with the stage (a constant crop net) the corners are the crop's."""
+    """crop_net = None: the same boxes and scores, the head's corners; with the stage (a constant
+    crop net) the corners are the crop's."""
     from omnigen.detector.model.checkpoint import save_checkpoint
     from omnigen.detector.prediction.predict import load_for_prediction, predict_split
     from omnigen.fakes import write_fake_dataset

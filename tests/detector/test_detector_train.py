@@ -576,19 +576,21 @@ def test_loader_workers_augment_each_sample_by_its_epoch(fake):
 
 def test_the_train_command_carries_recipe_keys_into_the_run_and_has_no_flags_for_experiments(fake, tmp_path, monkeypatch,
                                                                                             capsys):
-    """loss.heading, loss.kpt_labelled and schedule.kpt_turn_start reach the TrainConfig and the
-    model it builds (the loss reads its gains from the TrainConfig); what only experiments reached
+    """loss.heading, loss.kpt_labelled and schedule.kpt_turn_start reach the TrainConfig (the loss
+    reads its gains from it), model.heading the model it builds; what only experiments reached
     (--kpt-turn, --kpt-hidden, --heading-gain, --crop-split, --kpt-labelled) is no option."""
     from omnigen.cli import main
     from omnigen.detector.training import train as train_module
 
     seen = {}
     monkeypatch.setattr(train_module, "train", lambda cfg, **kw: seen.setdefault("cfg", cfg) and {})
-    assert main(["train", str(fake), "loss.heading=3", "loss.kpt_labelled=1", "schedule.kpt_turn_start=0.3",
+    assert main(["train", str(fake), "loss.heading=3", "loss.kpt_labelled=0.5", "schedule.kpt_turn_start=0.2",
                  "--out", str(tmp_path / "run")]) == 0
-    cfg = seen["cfg"]
-    assert (cfg.kpt_heading, cfg.heading_gain, cfg.kpt_labelled, cfg.kpt_turn_start) == (True, 3.0, 1.0, 0.3)
-    assert cfg.model_config(3).kpt_heading
+    cfg = seen["cfg"]  # values other than the recipe's: each must have come from its key
+    assert (cfg.heading_gain, cfg.kpt_labelled, cfg.kpt_turn_start) == (3.0, 0.5, 0.2)
+    seen.clear()
+    assert main(["train", str(fake), "model.heading=false", "--out", str(tmp_path / "run")]) == 0
+    assert not seen["cfg"].model_config(3).kpt_heading  # off, against the recipe's on: the key reaches the model
     from dataclasses import fields
     assert not {"kpt_turn", "kpt_hidden", "crop_split"} & {f.name for f in fields(type(cfg))}  # the branches not kept
     for gone in ("--kpt-turn", "--kpt-hidden", "--heading-gain", "--crop-split", "--kpt-labelled", "--kpt-mode", "--crop"):

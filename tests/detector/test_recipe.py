@@ -98,7 +98,6 @@ for dest in ("steps", "batch", "lr", "copies", "balance", "heading_gain", "offse
 check("train-crop --seed", crop_opts["seed"], r.RUN.seed)
 v = validate_parser().parse_args([])
 check("validate --epochs", v.epochs, r.RUN.epochs)
-check("validate --vertical", v.vertical, r.RECIPE.predict.vertical)
 print(json.dumps(bad))
 '''
 
@@ -114,7 +113,7 @@ def test_no_command_config_or_benchmark_declares_a_recipe_value_of_its_own():
 
 RECIPE_FLAGS = ("--kpt-mode", "--kpt-l1", "--kpt-labelled", "--kpt-turn-start", "--kpt-turn", "--kpt-heading",
                 "--kpt-hidden", "--kpt-sigma-end", "--heading-crop", "--heading-gain", "--crop-classes", "--crop-focus",
-                "--repeat-thresh", "--crop-steps", "--crop-position", "--offset-gain", "--optimizer", "--lr0")
+                "--repeat-thresh", "--crop-steps", "--crop-position", "--offset-gain", "--optimizer", "--lr0", "--vertical")
 
 
 @pytest.mark.parametrize("script", ["validate.py", "gpu_validate.py", "bench_learning.py"])
@@ -136,9 +135,12 @@ def test_train_help_has_at_most_20_options_and_lists_the_recipe_keys(capsys):
 # -- keys and files ------------------------------------------------------------------------------------
 
 def test_keys_and_recipe_files_are_checked_and_each_error_names_the_key_and_the_file(tmp_path):
-    r = with_overrides(RECIPE, ["loss.kpt_l1=1.5", "augment.hsv=0,0,0", "model.p2=off", "data.window=0"])
+    r = with_overrides(RECIPE, ["loss.kpt_l1=1.5", "augment.hsv=0,0,0", "model.p2=off", "data.window=0",
+                                "crop_stage.side=32", "crop_stage.steps=5", "crop_stage.split=false"])
     assert (r.loss.kpt_l1, r.augment.hsv, r.model.p2, r.data.window) == (1.5, (0.0, 0.0, 0.0), False, 0)
-    assert recipe_of(asdict(TrainConfig(dataset="d", out="o", **train_fields(r)))) == r  # TrainConfig holds it all
+    # TrainConfig holds it all (but predict's keys, which training does not read), args.json too
+    cfg = asdict(TrainConfig(dataset="d", out="o", **train_fields(r)))
+    assert recipe_of(cfg) == recipe_of(json.loads(json.dumps(cfg))) == r
     path = tmp_path / "r.json"
     for content, said in [('{"loss": {"kpt_l1": "2"}}', "loss.kpt_l1 is \"2\", not a number"),
                           ('{"model": {"imgsz": 640.0}}', "model.imgsz is 640.0, not a whole number"),
@@ -185,7 +187,7 @@ def test_a_run_records_its_recipe_and_a_rerun_from_it_trains_the_same_first_epoc
                     "--out", str(tmp_path / "pred"), "--no-overlays"]) == 0
     # the summary: one time, the learning rate readably, only the loss parts that are on, no NaN
     assert "time (min)" in summary and "wall time" not in summary and "crop stage: steps" in summary
-    assert "loss: turn" not in summary and " nan" not in summary
+    assert "loss: kpt_l1" in summary and " nan" not in summary
     assert float(re.search(r"last learning rate\W+([\d.e+-]+)", summary).group(1)) > 0
     capsys.readouterr()
     args = build_parser().parse_args(["train", ds, "--recipe", str(recipe), "optim.lr0=0.01", "--out", "c"])
@@ -299,13 +301,15 @@ def test_a_checkpoint_from_before_the_schema_reads_as_what_it_was_trained_with(d
 # -- what the user is told ---------------------------------------------------------------------------------
 
 def test_the_summary_shows_the_parts_that_are_on_one_time_and_no_nan():
+    # heading_crop and crop_cls off (0 throughout), crop_corners not finite: left out
     last = {"epoch": 150, "lr": 2e-05, "seconds": 35.8, "box": 1.2, "dfl": 0.9, "cls": 0.8, "kpt": 0.5, "kvis": 0.3,
-            "kpt_l1": 0.4, "turn": 0.0, "kpt_labelled": 0.2, "heading": 0.1, "heading_crop": 0.0, "oks_map50_95": 0.1,
-            "corner_error_px": float("nan"), "time": 5686.6, "crop_seconds": 995.4, "crop_steps": 7000,
-            "crop_corner_rel": 0.155}
+            "kpt_l1": 0.4, "kpt_labelled": 0.2, "heading": 0.1, "heading_crop": 0.0, "crop_cls": 0.0,
+            "crop_corners": float("nan"), "oks_map50_95": 0.1, "corner_error_px": float("nan"), "time": 5686.6,
+            "crop_seconds": 995.4, "crop_steps": 7000, "crop_corner_rel": 0.155}
     rows = dict(summary_rows(last, 35.8, 10.0))
     assert rows["last learning rate"] == "2e-05" and rows["time (min)"] == "111.4"  # detector and crop phase
-    assert "loss: turn" not in rows and "loss: heading_crop" not in rows and "loss: kpt_l1" in rows
+    assert [k for k in rows if k.startswith("loss: ")] == [
+        f"loss: {k}" for k in ("box", "dfl", "cls", "kpt", "kvis", "kpt_l1", "kpt_labelled", "heading")]
     assert "corner error (px)" not in rows and rows["OKS mAP50:95"] == "0.100" and rows["crop stage: steps"] == "7000"
     assert [k for k in rows if "time" in k] == ["time (min)"]
 
