@@ -19,12 +19,14 @@ frames after frame 0 goes: the stage timers, and the parts of each stage root of
 (drawing the frame's Scene, updating the backend, drawing the camera, building the raster's agent
 buffers, annotating) split by the functions they call, from cProfile's call graph (which slows
 Python code, not the renderers: compare parts with each other, not with the plain stage rows).
-`--profile-clock cpu` times the parts by the rendering thread's CPU time, for a loaded machine.
+`--profile-clock cpu` times the parts by the rendering thread's CPU time, for a loaded machine;
+`--profile-ahead` draws each next scene (and for Cycles its agent meshes) in a second process, as
+a run of 16 frames or more does, so the parts are what the render process is left with.
 
     .venv/bin/python benchmarks/bench_render.py [--raster-frames 21] [--cycles-frames 21] [--size 640] [--no-cycles]
         [--no-raster] [--memory-frames 200 [--memory-backend cycles] [--memory-size 96] [--memory-quality preview]]
     .venv/bin/python benchmarks/bench_render.py --profile [--profile-frames 4] [--size 640] [--quality fast] [--no-cycles]
-        [--no-raster] [--profile-presets downtown,intersection,suburban] [--profile-clock wall|cpu]
+        [--no-raster] [--profile-presets downtown,intersection,suburban] [--profile-clock wall|cpu] [--profile-ahead]
 """
 
 from __future__ import annotations
@@ -191,14 +193,21 @@ def call_tree(stats: pstats.Stats, file: str, name: str, depth: int, frames: int
 PROFILE_CLOCKS = {"wall": time.perf_counter, "cpu": time.thread_time}
 
 
-def profile_frames(backend: str, scene: str, frames: int, size: int, quality: str, seed: int = 0, clock: str = "wall"):
+def profile_frames(backend: str, scene: str, frames: int, size: int, quality: str, seed: int = 0, clock: str = "wall",
+                   ahead: bool = False):
     """Render frames 0..frames-1 of the drone rig over `scene` as `omnigen render` does, but for
     drawing every scene in this process (what a run of under AHEAD_MIN_FRAMES frames does, so
-    the profile sees its parts), profiling every frame after frame 0 (the city and backend build)
-    by `clock` (PROFILE_CLOCKS; "cpu": the rendering thread's CPU time, what a loaded machine still
-    measures); (pstats.Stats, stage wall seconds per frame)."""
+    the profile sees its parts; with `ahead`, in a second process as a longer run does, so the
+    profile sees what is left to the render process: for Cycles, no agent mesh is built there),
+    profiling every frame after frame 0 (the city and backend build) by `clock` (PROFILE_CLOCKS;
+    "cpu": the rendering thread's CPU time, what a loaded machine still measures); (pstats.Stats,
+    stage wall seconds per frame)."""
+    from omnigen.rigs.render import AHEAD_MIN_FRAMES
+
     with tempfile.TemporaryDirectory() as tmp:
         r = drone_renderer(Path(tmp), backend, frames, size, quality, scene, seed)
+        if ahead:
+            r.draw_ahead(max(frames, AHEAD_MIN_FRAMES))
         try:
             render_frames(r, range(1))
             prof = cProfile.Profile(PROFILE_CLOCKS[clock])
@@ -235,12 +244,13 @@ def profile_rows(results: dict[str, tuple[pstats.Stats, dict]], frames: int) -> 
 
 
 def profile(backend: str, frames: int, size: int, quality: str, presets=PROFILE_PRESETS, seed: int = 0,
-            clock: str = "wall") -> None:
+            clock: str = "wall", ahead: bool = False) -> None:
     from omnigen.progress import print_table
 
-    results = {p: profile_frames(backend, p, frames, size, quality, seed, clock) for p in presets}
+    results = {p: profile_frames(backend, p, frames, size, quality, seed, clock, ahead) for p in presets}
+    where = "; scenes drawn ahead in a second process" if ahead else ""
     print_table(f"{backend}: where a frame's time goes (drone rig, {size}x{size}, {quality}; ms per frame over frames "
-                f"1-{frames - 1}, parts by {clock} clock, calls per frame in brackets)", ["part"] + list(presets),
+                f"1-{frames - 1}, parts by {clock} clock, calls per frame in brackets{where})", ["part"] + list(presets),
                 profile_rows(results, frames))
 
 
@@ -292,6 +302,8 @@ def main() -> int:
     ap.add_argument("--profile-presets", default=",".join(PROFILE_PRESETS), help="comma-separated scene presets")
     ap.add_argument("--profile-clock", default="wall", choices=tuple(PROFILE_CLOCKS),
                     help="cpu: the rendering thread's CPU time (a loaded machine)")
+    ap.add_argument("--profile-ahead", action="store_true",
+                    help="draw each next scene in a second process, as a run of 16 frames or more does")
     args = ap.parse_args()
     import os
 
@@ -301,7 +313,7 @@ def main() -> int:
     if args.profile:
         for backend in [b for b, off in (("raster", args.no_raster), ("cycles", args.no_cycles)) if not off]:
             profile(backend, args.profile_frames, args.size, args.quality, args.profile_presets.split(","), args.seed,
-                    args.profile_clock)
+                    args.profile_clock, args.profile_ahead)
         return 0
     if not args.no_raster:
         report(bench("raster", args.raster_frames, args.size, args.quality, args.scene, args.seed))

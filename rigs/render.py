@@ -611,7 +611,7 @@ class Renderer:
         cores or more may run it; whether frames are drawn ahead. Ray actors never do: each has
         its one CPU."""
         if self.ahead is None and self.job.ahead and frames >= AHEAD_MIN_FRAMES and len(os.sched_getaffinity(0)) >= 2:
-            self.ahead = FramesAhead(self.gen)
+            self.ahead = FramesAhead(self.gen, meshes=self.job.backend == "cycles")  # Cycles builds every agent
         return self.ahead is not None
 
     def _write_frame(self, files: FrameFiles, record: FrameRecord) -> None:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from omnigen.scenes.assets.build import agent_parts, furniture_parts
+from omnigen.scenes.assets.build import agent_parts, furniture_parts, hold_agents
 from omnigen.scenes.assets.static import building_parts, footprints, ground_parts, marking_parts
 from omnigen.scenes.description import Agent, City, Material, Scene, to_json
 from omnigen.scenes.materials import agent_material, building_material, furniture_material, ground_material
@@ -120,13 +120,47 @@ def agent_object(agent: Agent, scene: Scene) -> RenderObject:
     )
 
 
+# [the frame's Scene, its agents' RenderObjects by index (None until asked for), its static objects]
+_LAST_FRAME: list = [None, [], None]
+
+
+def _frame(scene: Scene) -> list:
+    """What is kept of the frame `scene` (a new Scene starts a new frame, letting the last go)."""
+    if _LAST_FRAME[0] is not scene:
+        _LAST_FRAME[:] = [scene, [None] * len(scene.agents), None]
+        hold_agents(len(scene.agents))
+    return _LAST_FRAME
+
+
+def frame_agent(scene: Scene, k: int) -> RenderObject:
+    """The k-th agent of `scene` as a RenderObject, built once per frame, not once per user.
+
+    A frame's Scene is one object handed to every backend and camera of the frame, so it keys the
+    frame: a Cycles render's Blender scene (compile_scene, all agents) and its GL labels (the
+    agents in view), and every camera of the frame (a redrawn camera, the silhouettes) share the
+    same objects. Only the last frame is kept (holding its Scene, so the identity test is sound):
+    memory holds one frame's agents. The raster alone asks only for the agents in view, so the
+    rest are never built."""
+    built = _frame(scene)[1]
+    if built[k] is None:
+        built[k] = agent_object(scene.agents[k], scene)
+    return built[k]
+
+
+def frame_statics(scene: Scene) -> list[RenderObject]:
+    """The static objects with the frame's materials (its weather and light), made once per frame
+    as frame_agent's agents are: the Blender scene and the raster's material table share them."""
+    kept = _frame(scene)
+    if kept[2] is None:
+        kept[2] = [RenderObject(obj.name, obj.kind, obj.parts, obj.matrix_world, static_materials(scene, obj))
+                   for obj in static_objects(scene.city)]
+    return kept[2]
+
+
 def compile_scene(scene: Scene) -> list[RenderObject]:
-    """Static objects (with this frame's materials) followed by the agents."""
-    out = []
-    for obj in static_objects(scene.city):
-        out.append(RenderObject(obj.name, obj.kind, obj.parts, obj.matrix_world, static_materials(scene, obj)))
-    out.extend(agent_object(a, scene) for a in scene.agents)
-    return out
+    """Static objects (with this frame's materials) followed by the agents, as frame_statics and
+    frame_agent keep them."""
+    return frame_statics(scene) + [frame_agent(scene, k) for k in range(len(scene.agents))]
 
 
 def lamp_lights(scene: Scene) -> list[LightSource]:

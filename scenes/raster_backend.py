@@ -48,7 +48,7 @@ from omnigen.camera import Camera  # noqa: E402
 from omnigen.geometry import cuboid_corners, rots_z  # noqa: E402
 from omnigen.scenes.gl_raster import MAX_LAMPS, SHADOW_SIZE, ZFAR, ZNEAR, GLRaster, Light  # noqa: E402
 from omnigen.scenes.materials import PATTERNS, agent_surface, building_surface, furniture_surface, ground_surface  # noqa: E402
-from omnigen.scenes.meshes import (agent_object, compile_scene, lamp_lights, static_materials, static_objects,  # noqa: E402
+from omnigen.scenes.meshes import (compile_scene, frame_agent, frame_statics, lamp_lights, static_objects,  # noqa: E402
                            world_box)
 from omnigen.scenes.road_wear import road_wear_map  # noqa: E402
 from omnigen.scenes.seeding import frame_streams  # noqa: E402
@@ -222,7 +222,7 @@ class RasterScene:
         self._lamps = np.array([lamp.position for lamp in lamps], dtype=np.float64).reshape(-1, 3)
 
     def _static_materials(self, scene: Scene) -> np.ndarray:
-        return material_table([m for obj in self._statics for m in static_materials(scene, obj).values()])
+        return material_table([m for obj in frame_statics(scene) for m in obj.materials.values()])
 
     def update(self, scene: Scene) -> None:
         """Next frame: new agents, new weather and lighting, same city."""
@@ -251,7 +251,7 @@ class RasterScene:
         self._ranges = {}
         n_verts = n_faces = 0
         for k in chosen:
-            obj = agent_object(agents[k], self.scene)
+            obj = frame_agent(self.scene, k)
             rot, shift = obj.matrix_world[:3, :3], obj.matrix_world[:3, 3]
             begin, first_vert = n_faces, n_verts
             for role, mesh in obj.parts.items():

@@ -1,7 +1,8 @@
 """From an agent's (family, dims, params) or a furniture item to fitted parts, cached.
 
 Why a cache keyed on the parameters: an agent's mesh is a pure function of its AssetSpec and
-dims, so the same parked car in frame 7 and frame 8 costs one build.
+dims, so an asset asked for twice (by a frame's Blender scene, its GL labels and the camera
+sampler; a user asset in every frame) costs one build. How large: hold_agents.
 """
 
 from __future__ import annotations
@@ -32,9 +33,23 @@ AGENT_BUILDERS = {
 }
 
 _CACHE: OrderedDict[str, tuple[dict[str, trimesh.Trimesh], np.ndarray]] = OrderedDict()
-# One frame's agents (~160 downtown) fit, so a frame never builds an agent twice; more would only
-# hold meshes of past frames (agents are redrawn every frame) and grow resident memory.
-_CACHE_SIZE = 256
+_CACHE_MIN = 256  # entries the cache holds whatever the frames (a city's furniture kinds, small presets' agents)
+_cache_size = [_CACHE_MIN]
+
+
+def hold_agents(agents: int) -> None:
+    """Let the cache hold a frame of `agents` agents: its size is the most agents a frame has had
+    (at least _CACHE_MIN), grown here when a frame brings more (scenes/meshes.py frame_agent).
+
+    Why this bound: a procedural agent's dims and parameters are drawn anew every frame (none of
+    downtown's ~400 agents of one frame recurs in the next), so meshes of past frames are never
+    asked for again and a larger cache would only hold them and grow resident memory; a smaller
+    one than a frame (the fixed 256 against downtown's ~400) evicted a frame's early agents before
+    the frame's other users (the raster's labels, the camera sampler's near-geometry test) asked
+    for them, and each was built again. Sized to the largest frame, every agent is built once per
+    frame, an asset that does recur (a user asset, whose dims are its own) stays, being touched
+    every frame, and memory holds at most max(_CACHE_MIN, the largest frame's agents) meshes."""
+    _cache_size[0] = max(_cache_size[0], int(agents))
 
 
 def _cached(key: str, make):
@@ -44,9 +59,34 @@ def _cached(key: str, make):
         return hit
     value = make()
     _CACHE[key] = value
-    if len(_CACHE) > _CACHE_SIZE:
+    while len(_CACHE) > _cache_size[0]:
         _CACHE.popitem(last=False)
     return value
+
+
+def _agent_key(asset: AssetSpec, dims) -> str:
+    return json.dumps([to_dict(asset), to_dict(tuple(dims))], sort_keys=True)
+
+
+def built_agents(agents) -> list[tuple[str, tuple]]:
+    """(cache key, agent_parts) of each of `agents` (scenes.description.Agent): what a process
+    that drew a frame (scenes/generate.py FramesAhead's worker) hands the renderer with it, for
+    adopt_agents. The parts are bare arrays (parts.Piece), so they cross a pipe as they are."""
+    hold_agents(len(agents))
+    return [(_agent_key(a.asset, a.dims), agent_parts(a.asset, a.dims)) for a in agents]
+
+
+def adopt_agents(built: list[tuple[str, tuple]]) -> None:
+    """Put built_agents' meshes in this process's cache, so agent_parts finds them (the same
+    arrays, to the byte: a mesh is a pure function of its key); a key already held is kept."""
+    hold_agents(len(built))
+    for key, value in built:
+        if key in _CACHE:
+            _CACHE.move_to_end(key)
+        else:
+            _CACHE[key] = value
+    while len(_CACHE) > _cache_size[0]:
+        _CACHE.popitem(last=False)
 
 
 def agent_parts(asset: AssetSpec, dims) -> tuple[dict[str, trimesh.Trimesh], np.ndarray]:
@@ -54,7 +94,7 @@ def agent_parts(asset: AssetSpec, dims) -> tuple[dict[str, trimesh.Trimesh], np.
 
     User assets are scale-free: their dims are their own extent, so the fit leaves them as loaded.
     """
-    key = json.dumps([to_dict(asset), to_dict(tuple(dims))], sort_keys=True)
+    key = _agent_key(asset, dims)
 
     def make():
         if asset.family == "user":

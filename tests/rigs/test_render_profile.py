@@ -92,3 +92,14 @@ def test_profile_rows_name_the_parts_of_a_raster_frame():
         assert label in labels
     assert "placement.place_agents" in labels and "stage scene (wall)" in labels
     assert all(len(r) == 2 for r in rows)
+
+
+@pytest.mark.usefixtures("headless_gl")
+def test_profile_ahead_draws_the_scenes_in_the_second_process():
+    """--profile-ahead: the frames after frame 0 are drawn by the worker, so the render process's
+    profile holds no scene drawing (without it, one a frame)."""
+    def drawn(stats: pstats.Stats) -> int:
+        return sum(v[1] for f, v in stats.stats.items() if f[2] == "randomize_frame")
+
+    assert drawn(profile_frames("raster", "tiny", 3, 48, "preview", clock="cpu")[0]) == 2
+    assert drawn(profile_frames("raster", "tiny", 3, 48, "preview", clock="cpu", ahead=True)[0]) == 0

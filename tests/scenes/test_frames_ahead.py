@@ -34,3 +34,38 @@ def test_a_frame_drawn_ahead_is_the_frame_drawn_here():
         assert to_json(ahead.frame(6, 6)) == to_json(gen.frame(6, 6))
     finally:
         ahead.close()
+
+
+def test_meshes_built_ahead_are_adopted_and_equal_a_build_here(monkeypatch):
+    """With meshes=True the worker builds the frame's agent meshes and this process adopts them:
+    agent_parts then builds nothing (no builder is reachable) and gives the very arrays a build
+    here gives. Without it the worker's meshes are not sent (the raster builds only agents in view)."""
+    from omnigen.scenes.assets import build
+
+    monkeypatch.setattr(build, "_CACHE", type(build._CACHE)())
+    gen = SceneGenerator("tiny", 6)
+    ahead = FramesAhead(gen, meshes=True)
+    try:
+        ahead.ask(6, 2)
+        scene = ahead.frame(6, 2)
+    finally:
+        ahead.close()
+    assert len(build._CACHE) == len({build._agent_key(a.asset, a.dims) for a in scene.agents}) > 0
+    with monkeypatch.context() as m:
+        m.setattr(build, "AGENT_BUILDERS", {})
+        adopted = [build.agent_parts(a.asset, a.dims) for a in scene.agents]
+    build._CACHE.clear()
+    for a, (parts, raw) in zip(scene.agents, adopted):
+        here, raw_here = build.agent_parts(a.asset, a.dims)
+        assert parts is not here and list(parts) == list(here) and raw.tobytes() == raw_here.tobytes()
+        for role in parts:
+            assert parts[role].vertices.tobytes() == here[role].vertices.tobytes()
+            assert parts[role].faces.tobytes() == here[role].faces.tobytes()
+    plain = FramesAhead(gen)
+    try:
+        build._CACHE.clear()
+        plain.ask(6, 3)
+        plain.frame(6, 3)
+        assert not build._CACHE
+    finally:
+        plain.close()
