@@ -305,7 +305,11 @@ class Scene:
     """One frame's world: the static city, the agents, weather and lighting.
 
     `dataset_seed` and `frame_index` say which numpy Generator drew the per-frame part:
-    np.random.default_rng([dataset_seed, frame_index]).
+    np.random.default_rng([dataset_seed, frame_index]). In a sequence (scenes/world.py)
+    `frame_index` is the sequence q, whose instant 0 is that frame; `instant` k is the instant,
+    `time` its seconds from the sequence's start and `velocities` each agent's world velocity
+    (m/s, parallel to `agents`). Their defaults are a legacy frame's and are left out of its JSON
+    (_OMITTED_AT_DEFAULT), so a legacy Scene serialises to the same bytes as before they existed.
     """
 
     city: City
@@ -314,6 +318,9 @@ class Scene:
     lighting: Lighting
     dataset_seed: int
     frame_index: int
+    instant: int = 0
+    time: float = 0.0
+    velocities: tuple[Vec3, ...] = ()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -322,6 +329,9 @@ class Scene:
 
 
 _FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+# Fields written only when they differ from these defaults: added after descriptions were stored,
+# so descriptions without them keep their bytes (and read back with the defaults).
+_OMITTED_AT_DEFAULT: dict[type, dict[str, Any]] = {Scene: {"instant": 0, "time": 0.0, "velocities": ()}}
 
 
 def _plain(value: Any) -> Any:
@@ -342,6 +352,10 @@ def _plain(value: Any) -> Any:
     if names is None and dataclasses.is_dataclass(value) and not isinstance(value, type):
         names = _FIELD_NAMES[t] = tuple(f.name for f in dataclasses.fields(value))
     if names is not None:
+        omitted = _OMITTED_AT_DEFAULT.get(t)
+        if omitted is not None:
+            return {name: _plain(getattr(value, name)) for name in names
+                    if name not in omitted or getattr(value, name) != omitted[name]}
         return {name: _plain(getattr(value, name)) for name in names}
     if isinstance(value, float):
         if not math.isfinite(value):

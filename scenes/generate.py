@@ -21,7 +21,7 @@ from pathlib import Path
 from omnigen.scenes.assets.build import adopt_agents, built_agents
 from omnigen.scenes.description import City, Scene, canonical
 from omnigen.scenes.layout import build_city
-from omnigen.scenes.placement import place_agents
+from omnigen.scenes.placement import place_world
 from omnigen.scenes.preset import Preset, load_preset, preset_for_seed
 from omnigen.scenes.seeding import frame_streams
 from omnigen.scenes.weather import draw_lighting, draw_weather
@@ -51,15 +51,25 @@ def _user_library(preset: Preset):
 def randomize_frame(city: City, preset: Preset, dataset_seed: int, frame_index: int,
                     overrides: FrameOverrides | None = None, user_assets=None) -> Scene:
     """Agents, weather and lighting of one frame over a fixed city."""
+    return instant_zero(city, preset, dataset_seed, frame_index, overrides, user_assets)[0]
+
+
+def instant_zero(city: City, preset: Preset, dataset_seed: int, frame_index: int,
+                 overrides: FrameOverrides | None = None, user_assets=None) -> tuple[Scene, dict[str, bool]]:
+    """randomize_frame's Scene and the signal phases its queues were placed by (placement.place_world),
+    which the Scene does not carry: a sequence (scenes/world.py) starts from frame `frame_index`'s
+    world and keeps its lights as its queues assumed them."""
     o = overrides or FrameOverrides()
     streams = frame_streams(dataset_seed, frame_index)
     weather = draw_weather(streams["weather"], preset.weather.kinds, o.weather, o.fog_density, o.precipitation)
     lighting = draw_lighting(streams["lighting"], preset.lighting.times, preset.lighting.latitude, weather, o.time_of_day)
     if user_assets is None:
         user_assets = _user_library(preset)
-    agents = tuple(canonical(a) for a in place_agents(city, preset.agents, streams["agents"], user_assets))
+    placed = place_world(city, preset.agents, streams["agents"], user_assets)
+    agents = tuple(canonical(a) for a in placed.agents)
     # The city is already canonical (build_city returns it so) and shared by every frame.
-    return Scene(city, agents, canonical(weather), canonical(lighting), int(dataset_seed), int(frame_index))
+    scene = Scene(city, agents, canonical(weather), canonical(lighting), int(dataset_seed), int(frame_index))
+    return scene, placed.signals
 
 
 class SceneGenerator:

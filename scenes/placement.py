@@ -34,7 +34,7 @@ import shapely
 from shapely.geometry import Polygon
 
 from omnigen.scenes.assets.catalog import SIZES, draw_asset
-from omnigen.scenes.description import Agent, AssetSpec, City, Lane
+from omnigen.scenes.description import Agent, AssetSpec, City, Intersection, Lane
 from omnigen.scenes.preset import AgentSpec
 from omnigen.scenes.seeding import choice_index
 from omnigen.scenes.shapes import Occupancy, rect_corners, rect_polygon, to_world
@@ -156,6 +156,7 @@ class _Placer:
         self.static = _static(city)
         self.world = _world(city)
         self.agents: list[Agent] = []
+        self.signals: dict[str, bool] = {}  # intersection id -> green_x, as `queues` drew it
         self.user_assets = user_assets or []
         self.user_probability = user_probability
         self.driving = [lane for road in city.roads for lane in road.lanes if lane.kind == "driving"]
@@ -500,9 +501,7 @@ class _Placer:
         key = (id(lane), id(inter))
         hit = self.static.crosses.get(key)
         if hit is None:
-            d = np.subtract(lane.end, lane.start) / lane.length
-            off = abs(float(np.cross(d, np.subtract(inter.center, lane.start))))
-            hit = self.static.crosses[key] = bool(off < abs(d[1]) * inter.size[0] / 2 + abs(d[0]) * inter.size[1] / 2)
+            hit = self.static.crosses[key] = lane_crosses(lane, inter)
         return hit
 
     def _span(self, lane: Lane, inter) -> tuple[float, float]:
@@ -510,10 +509,7 @@ class _Placer:
         key = (id(lane), id(inter))
         hit = self.static.spans.get(key)
         if hit is None:
-            d = np.subtract(lane.end, lane.start) / lane.length
-            t = float(np.dot(np.subtract(inter.center, lane.start), d))
-            half = abs(d[0]) * inter.size[0] / 2 + abs(d[1]) * inter.size[1] / 2
-            hit = self.static.spans[key] = (t - half, t + half)
+            hit = self.static.spans[key] = lane_span(lane, inter)
         return hit
 
     def queues(self, probability: float, length, mix: dict[str, float]) -> None:
@@ -528,6 +524,7 @@ class _Placer:
             if not inter.traffic_lights:
                 continue
             green_x = bool(self.rng.random() < 0.5)  # whether the road along x has green
+            self.signals[inter.intersection_id] = green_x  # a moving world's signals start from it
             for lane in self.driving:
                 if not self._crosses(lane, inter) or self.rng.random() >= probability:
                     continue
@@ -578,6 +575,21 @@ class _Placer:
             self.try_add("traffic_cone", "placed", dims, spec, xy, lane.heading + float(self.rng.uniform(-0.3, 0.3)), 0.0)
 
 
+def lane_crosses(lane: Lane, inter: Intersection) -> bool:
+    """Whether `lane` runs through the intersection box (pure geometry; placement caches it)."""
+    d = np.subtract(lane.end, lane.start) / lane.length
+    off = abs(float(np.cross(d, np.subtract(inter.center, lane.start))))
+    return bool(off < abs(d[1]) * inter.size[0] / 2 + abs(d[0]) * inter.size[1] / 2)
+
+
+def lane_span(lane: Lane, inter: Intersection) -> tuple[float, float]:
+    """Where along `lane` (from its start) it enters and leaves the intersection box."""
+    d = np.subtract(lane.end, lane.start) / lane.length
+    t = float(np.dot(np.subtract(inter.center, lane.start), d))
+    half = abs(d[0]) * inter.size[0] / 2 + abs(d[1]) * inter.size[1] / 2
+    return (t - half, t + half)
+
+
 def _meets(spans: list[tuple[float, float]], lo: float, hi: float) -> tuple[float, float] | None:
     """The first of the sorted stretches `spans` that meets [lo, hi], or None."""
     for a, b in spans:
@@ -588,8 +600,25 @@ def _meets(spans: list[tuple[float, float]], lo: float, hi: float) -> tuple[floa
     return None
 
 
+@dataclass(frozen=True)
+class Placement:
+    """A frame's agents and the signal phases its queues were drawn for.
+
+    Why `signals` is kept: a moving world (scenes/world.py) starts its traffic lights from the
+    phase the queues were placed by, so the queued road still waits at t = 0. Junctions without
+    an entry drew no phase (the preset queues nothing)."""
+
+    agents: tuple[Agent, ...]
+    signals: dict[str, bool]  # intersection id -> whether the road along x has green
+
+
 def place_agents(city: City, spec: AgentSpec, rng: np.random.Generator, user_assets=None) -> tuple[Agent, ...]:
     """All agents of one frame, drawn from `rng`; instance ids 1..N in placement order."""
+    return place_world(city, spec, rng, user_assets).agents
+
+
+def place_world(city: City, spec: AgentSpec, rng: np.random.Generator, user_assets=None) -> Placement:
+    """place_agents with the signal phases drawn on the way (the same draws, the same agents)."""
     p = _Placer(city, rng, user_assets, spec.user_asset_probability)
     count = lambda r: int(rng.integers(int(r[0]), int(r[1]) + 1))  # noqa: E731
     # Classes a preset leaves at (0, 0) draw nothing, so adding one leaves other presets' streams.
@@ -635,4 +664,4 @@ def place_agents(city: City, spec: AgentSpec, rng: np.random.Generator, user_ass
             p.pedestrian_on_sidewalk("barrow", walking=True)
         else:
             p.in_lane("barrow", ride, edge=edge)
-    return tuple(p.agents)
+    return Placement(tuple(p.agents), dict(p.signals))

@@ -19,6 +19,7 @@ from itertools import accumulate
 import numpy as np
 
 _CITY_SPAWN_KEY = (0x0C17,)
+_SEQUENCE_SPAWN_KEY = (0x5E0,)
 
 
 def city_rng(seed: int) -> np.random.Generator:
@@ -33,6 +34,28 @@ def frame_streams(dataset_seed: int, frame_index: int) -> dict[str, np.random.Ge
     """Independent child streams of frame_rng(dataset_seed, frame_index), by purpose."""
     agents, weather, lighting, extra = frame_rng(dataset_seed, frame_index).spawn(4)
     return {"agents": agents, "weather": weather, "lighting": lighting, "extra": extra}
+
+
+def sequence_streams(dataset_seed: int, sequence: int) -> dict[str, np.random.Generator]:
+    """What a sequence draws beyond its instant 0 (motion parameters and routes, signal plans, the
+    junction its rigs meet at), by purpose.
+
+    Why a spawn key: instant 0 of sequence q is legacy frame q, drawn from frame_rng(seed, q); a
+    spawn key keeps these streams independent of it, so adding motion never moves a legacy draw.
+    """
+    root = np.random.SeedSequence([int(dataset_seed), int(sequence)], spawn_key=_SEQUENCE_SPAWN_KEY)
+    motion, signals, meeting = (np.random.default_rng(c) for c in root.spawn(3))
+    return {"motion": motion, "signals": signals, "meeting": meeting}
+
+
+def instant_extra_rng(dataset_seed: int, sequence: int, instant: int) -> np.random.Generator:
+    """The per-instant effects stream (rain streaks) of instant `instant` of a sequence.
+
+    Equal to frame_streams(seed, sequence)["extra"] at instant 0: SeedSequence pads entropy with
+    zeros, so [seed, q, 0] and [seed, q] seed the same stream (tested), and a one-instant sequence
+    draws its effects exactly as the legacy frame q did.
+    """
+    return np.random.default_rng([int(dataset_seed), int(sequence), int(instant)]).spawn(4)[3]
 
 
 def choice_index(rng: np.random.Generator, p) -> int:

@@ -35,6 +35,18 @@ def test_same_seed_same_bytes_and_json_round_trip():
     assert to_json(build_scene("tiny", 12)) != to_json(a)
 
 
+def test_sequence_fields_written_only_off_their_defaults():
+    """A legacy frame's JSON has no instant, time or velocities (so its bytes are those from before
+    sequences); a sequence instant's has them and reads back equal."""
+    from dataclasses import replace
+
+    a = build_scene("tiny", 11)
+    text = to_json(a)
+    assert '"instant"' not in text and '"velocities"' not in text and '"time"' not in text
+    b = replace(a, instant=3, time=0.3, velocities=tuple((1.0, -0.5, 0.0) for _ in a.agents))
+    assert '"instant":3' in to_json(b) and from_json(Scene, to_json(b)) == b
+
+
 def test_same_bytes_in_a_fresh_interpreter():
     """Same (seed, preset) in another process (fresh hash seeds, fresh imports): same bytes."""
     code = (
