@@ -1,6 +1,6 @@
 """What the crop-heading stage costs: seconds per training step and per predicted image, by crop side.
 
-A crop-heading model (`omnigen train --heading-crop S`, detector/model/crop_stage.py) runs a small
+A model with a crop stage (the recipe's `crop_stage.side=S`, detector/model/crop_stage.py) runs a small
 CNN on up to MAX_CROPS labelled boxes every training step and, after NMS, on each image's
 MAX_REFINE best detections and their mirror images. That CNN works on S x S crops at full
 resolution in its first block, which on a CPU costs far more than its size suggests (few channels,
@@ -38,7 +38,7 @@ from omnigen.detector.training.ema import ModelEMA  # noqa: E402
 from omnigen.detector.model.crop_stage import MAX_CROPS, refine_detections  # noqa: E402
 from omnigen.detector.training.loss import DetectionLoss  # noqa: E402
 from omnigen.detector.model.network import DetectorConfig, KeypointDetector  # noqa: E402
-from omnigen.detector.prediction.nms import Detections  # noqa: E402
+from omnigen.detector.model.outputs import Detections  # noqa: E402
 from omnigen.detector.training.train import TrainConfig, autocast_dtype, make_optimizer  # noqa: E402
 from omnigen.detector.data.loader import collate_uint8  # noqa: E402
 from omnigen.detector.training.step import TrainStep, to_device  # noqa: E402
@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sides", type=int, nargs="+", default=[32, 64], help="crop sides to time (multiples of 16)")
     ap.add_argument("--batch", type=int, default=16)
-    ap.add_argument("--imgsz", type=int, default=320, help="training input (make validate's --crop window)")
+    ap.add_argument("--imgsz", type=int, default=320, help="training input (the recipe's data.window, make validate's)")
     ap.add_argument("--rounds", type=int, default=8, help="timed rounds; each runs every configuration once")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--dataset", type=Path, default=None,

@@ -4,7 +4,7 @@ synthetic test split against the box-template baseline.
     .venv/bin/python benchmarks/bench_learning.py runs/validate/uov --steps 2000
     .venv/bin/python benchmarks/bench_learning.py runs/validate/uov loss.kpt_l1=1 crop_stage.steps=0 --steps 400
 
-What is trained is `omnigen train`'s recipe (detector/training/recipe.py, make validate's), its crop phase
+What is trained is `omnigen train`'s recipe (detector/recipe.py, make validate's), its crop phase
 included; a change to compare is given as its KEY=VALUE keys right after the dataset (or a recipe
 file, --recipe), as `omnigen train` takes them.
 
@@ -59,7 +59,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--single-label", action="store_true",
-                    help="score one class an anchor (as `omnigen predict` gives and as rows before 2026-11-27 were scored); default: every class above the floor, as omnigen eval")
+                    help="score one class an anchor (as `omnigen predict` gives, and as the earliest rows were scored); "
+                         "default: every class above the floor, as omnigen eval")
     return ap.parse_args(argv)
 
 
@@ -127,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     from omnigen.dataset import Dataset
     from omnigen.splits import read_split
 
-    from omnigen.detector.training.recipe import resolve, train_fields
+    from omnigen.detector.recipe import resolve, train_fields
 
     recipe = resolve(args.recipe, args.overrides)
     fields = train_fields(recipe)

@@ -502,7 +502,8 @@ def build_parser() -> argparse.ArgumentParser:
     tp.add_argument("--frames", type=integer(1, None), default=None,
                     help="frames of the fake dataset (default: 2 batches, at least 16)")
     tp.add_argument("--fake-size", type=image_size, default=(960, 540), help="WxH of the fake dataset's images")
-    tp.add_argument("--crop", type=integer(1, None), default=None, help="training windows of this size")
+    tp.add_argument("--crop", type=integer(1, None), default=None,
+                    help="training windows of this size (the recipe's data.window)")
     tp.add_argument("--cache", action="store_true", help="letterboxed images in memory, as train --cache")
     tp.add_argument("--amp", default="auto", choices=["auto", "bf16", "fp16", "off"])
     tp.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None)
@@ -512,7 +513,8 @@ def build_parser() -> argparse.ArgumentParser:
     cache = sub.add_parser("cache", help="the loader's seconds per epoch from disk against in memory (train --cache)")
     cache.add_argument("dataset", type=Path, help="an UrbanOmniView dataset (its train split is read)")
     cache.add_argument("--imgsz", type=integer(32, None), default=640)
-    cache.add_argument("--crop", type=integer(0, None), default=320, help="0: whole images")
+    cache.add_argument("--crop", type=integer(0, None), default=320,
+                       help="training windows of this size (the recipe's data.window); 0: whole images")
     cache.add_argument("--workers", type=integer(0, None), default=1)
     cache.add_argument("--batch", type=integer(1, None), default=16)
     cache.add_argument("--epochs", type=integer(1, None), default=3, help="epochs per mode")

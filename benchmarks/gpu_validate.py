@@ -25,7 +25,7 @@ skipped, so an interrupted run resumes; benchmarks/common.py's Runner and train_
   from more cities, for training only.
 - data: KITTI converted; the `make validate` renders merged with it to draw the test split, then
   everything merged with that split pinned (`--split-file`, the rest train).
-- train: `omnigen train --time --minutes`, the recipe as make validate trains it (detector/training/recipe.py:
+- train: `omnigen train --time --minutes`, the recipe as make validate trains it (detector/recipe.py:
   nano+P2, its windows, its crop stage's second phase; --train-args changes keys), both phases fitted
   to the budget, --cache, amp auto.
 - eval: `omnigen eval last.pt --baseline` on the test split (the corner errors beside the
@@ -269,7 +269,7 @@ def data_stage(run, work: Path, base: list[Path], extra: list[Path], args: argpa
 
 
 def train_arguments(uov: Path, out: Path, args: argparse.Namespace) -> list[str]:
-    """`omnigen train`: the recipe (detector/training/recipe.py: make validate's, windows and crop stage
+    """`omnigen train`: the recipe (detector/recipe.py: make validate's, windows and crop stage
     included; --train-args' KEY=VALUE changes it) on the data, its schedule fitted to --minutes
     (--time, both phases), the images cached; nothing of the recipe's own values."""
     budget = ["--time", f"{args.minutes:g}", "--epochs", str(MAX_EPOCHS)]
@@ -280,7 +280,7 @@ def train_arguments(uov: Path, out: Path, args: argparse.Namespace) -> list[str]
 
 def trained_recipe(args: argparse.Namespace) -> Any:
     """The recipe train_arguments trains (for the report's input size and batch, and the peer's)."""
-    from omnigen.detector.training.recipe import RECIPE, with_overrides
+    from omnigen.detector.recipe import RECIPE, with_overrides
 
     return with_overrides(RECIPE, shlex.split(getattr(args, "train_args", "") or ""))
 

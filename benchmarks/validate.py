@@ -10,7 +10,7 @@ midway (a kill, a time-boxed job) goes on from its last checkpoint, the time of 
 counted (`--fresh` starts over; a working folder rendered with other data arguments is refused
 rather than silently reused).
 
-What is trained is `omnigen train`'s own recipe (detector/training/recipe.py): this script passes the data
+What is trained is `omnigen train`'s own recipe (detector/recipe.py): this script passes the data
 and the budget, never a recipe value (`--recipe FILE` and `--set KEY=VALUE` change it, as they do
 train's). Its defaults fit a 2-core CPU: 600 raster frames at 640 x 640, training on random
 320 x 320 windows of the 640-pixel input (data.window: a step costs what a 320-pixel input costs
@@ -50,7 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import (SCENE_MIX, Runner, check_data_arguments, floor_rows, fmt, kept_sections,  # noqa: E402
                                machine, render_jobs, run_renders, stale, synthetic_row, train_stage)
 from omnigen.detector.evaluation.oks_eval import SIZE_BINS  # noqa: E402
-from omnigen.detector.training.recipe import RECIPE, RUN, Recipe, resolve, train_fields  # noqa: E402
+from omnigen.detector.recipe import RECIPE, RUN, Recipe, resolve, train_fields  # noqa: E402
 from omnigen.files import atomic_write_json, atomic_write_text, file_digest  # noqa: E402
 
 if TYPE_CHECKING:
@@ -212,7 +212,7 @@ def train_command(args: argparse.Namespace, dataset: Path, out: Path, keys: list
                   options: list[str] = ()) -> list[str]:
     """`omnigen train` of one run: the dataset, the recipe (--recipe, --set and the run's `keys`),
     and validate's budget and machine settings; nothing of the recipe's own values, which train
-    takes from detector/training/recipe.py."""
+    takes from detector/recipe.py."""
     recipe = ["--recipe", str(args.recipe)] if args.recipe else []
     return ["train", str(dataset), *args.set, *keys, "--out", str(out), *recipe, "--epochs", str(args.epochs),
             "--workers", str(args.workers), "--seed", str(args.seed), "--val-every", str(args.val_every),
@@ -480,7 +480,7 @@ def upsampled_note(r: dict[str, Any]) -> list[str]:
 def window_note(r: dict[str, Any]) -> list[str]:
     """The lines that say so when runs trained on windows of the same size cut from inputs of
     different sizes: each step then shows a run with a larger input less of each image, so it sees
-    fewer objects in as many steps, a difference beside the resolution (`--crop 0` has none)."""
+    fewer objects in as many steps, a difference beside the resolution (`data.window=0` has none)."""
     shares: dict[float, list[str]] = {}
     for run in r["runs"]:
         if run.get("crop"):
@@ -488,9 +488,9 @@ def window_note(r: dict[str, Any]) -> list[str]:
     if len(shares) < 2:
         return []
     parts = "; ".join(f"{', '.join(names)}: {share:.0%}" for share, names in sorted(shares.items(), reverse=True))
-    return ["The runs trained on windows of one size cut from their inputs (`--crop`), so a larger input",
+    return ["The runs trained on windows of one size cut from their inputs (`data.window`), so a larger input",
             f"showed fewer objects a step; the share of the input a window holds: {parts}.",
-            "The comparison mixes resolution with objects seen; `--crop 0` (whole images) has no such difference.",
+            "The comparison mixes resolution with objects seen; `data.window=0` (whole images) has no such difference.",
             ""]
 
 
@@ -557,9 +557,9 @@ def protocol_line(r: dict[str, Any]) -> list[str]:
     lines = [f"- test predictions: {how}; last.pt, not best.pt{capped}{snapped}"]
     if stage:
         sc = stage.get("score", {})
-        told = ", told where each crop was cut (--position)" if stage.get("position") else ""
+        told = ", told where each crop was cut (crop_stage.position)" if stage.get("position") else ""
         gain = stage.get("config", {}).get("offset_gain")
-        told += f", an L1 term on the faces' offset (--offset-gain {gain:g})" if gain else ""
+        told += f", an L1 term on the faces' offset (crop_stage.offset_gain={gain:g})" if gain else ""
         how = "the run's second phase" if stage.get("by") == "omnigen train" else "`omnigen train-crop`"
         lines.append(f"- crop stage: trained again apart from the detector ({how}, "
                      f"{stage['steps_done']} steps, {stage['seconds']} s{told}) and predicted with (the detector's "

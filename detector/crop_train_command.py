@@ -2,7 +2,7 @@
 
     omnigen train-crop runs/uov --weights runs/n-p2/last.pt --out runs/n-p2/crop.pt
 
-`omnigen train` does this as its second phase, with the recipe's crop_stage keys (detector/training/recipe.py,
+`omnigen train` does this as its second phase, with the recipe's crop_stage keys (detector/recipe.py,
 whose values are these options' defaults); this command runs that phase alone, again. OUT is the
 detector's checkpoint with its crop stage (corners, front and, by default, classes)
 replaced by one trained here: `omnigen predict`, `eval` and `bev` take it as they take the
@@ -22,7 +22,7 @@ from omnigen.options import fraction, integer, number, seed
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from omnigen.detector.training.crop_train_config import CropTrainConfig  # plain data: no torch for --help
-    from omnigen.detector.training.recipe import RECIPE
+    from omnigen.detector.recipe import RECIPE
 
     p.add_argument("dataset", help="UrbanOmniView dataset folder (splits from omnigen merge)")
     p.add_argument("--weights", required=True, help="the detector's checkpoint (best.pt or last.pt of omnigen train)")

@@ -26,7 +26,6 @@ import orjson
 
 from omnigen.detector.predict_command import BATCH_MAX, IMGSZ_STEP, input_size
 from omnigen.options import integer
-from omnigen.detector.training.recipe import RECIPE
 
 if TYPE_CHECKING:
     from omnigen.detector.evaluation.oks_eval import EvalReport
@@ -44,9 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--imgsz", type=input_size, default=None,
                    help=f"network input size, a multiple of {IMGSZ_STEP}, with a checkpoint (default: its training size)")
     p.add_argument("--batch", type=integer(1, BATCH_MAX), default=8, help="images per batch, with a checkpoint")
-    p.add_argument("--vertical", choices=("lines", "off"), default=RECIPE.predict.vertical,
+    p.add_argument("--vertical", choices=("lines", "off"), default=None,
                    help="with a checkpoint: turn each image's vertical edges to its vertical vanishing point "
-                        "(lines, as omnigen predict does) or keep the network's corners (off)")
+                        "(lines) or keep the network's corners (off) (default: the run's recipe, predict.vertical)")
     p.add_argument("--device", default=None, help="where a checkpoint predicts: cpu, cuda, cuda:1 (default: cuda when present)")
     p.add_argument("--single-label", action="store_true",
                    help="with a checkpoint, one class an anchor as `omnigen predict` gives (default: every class above "

@@ -18,7 +18,6 @@ import sys
 from pathlib import Path
 
 from omnigen.options import fraction, integer
-from omnigen.detector.training.recipe import RECIPE
 
 IMGSZ_STEP = 32
 """--imgsz must be a multiple of this, the largest stride of a model without P6 (a P6 model's 64 is
@@ -51,10 +50,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-det", type=integer(1, MAX_DET_MAX), default=300, help="detections kept an image")
     p.add_argument("--batch", type=integer(1, BATCH_MAX), default=8, help="images per batch")
     p.add_argument("--no-overlays", action="store_true", help="write predictions.json only")
-    p.add_argument("--vertical", choices=("lines", "off"), default=RECIPE.predict.vertical,
-                   help="lines (default): turn each image's detections' vertical edges to its vertical vanishing "
-                        "point, fitted from them and refined with the image's line segments; off: the corners as "
-                        "the network placed them")
+    p.add_argument("--vertical", choices=("lines", "off"), default=None,
+                   help="lines: turn each image's detections' vertical edges to its vertical vanishing point, "
+                        "fitted from them and refined with the image's line segments; off: the corners as the "
+                        "network placed them (default: the run's recipe, predict.vertical)")
 
 
 def claim_folder(out: Path, job: str, mark: bool = True) -> None:
@@ -82,7 +81,8 @@ def overlay_names(files: list[Path]) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     from omnigen.detector.model.checkpoint import load_model
     from omnigen.detector.prediction.overlay import draw_detections
-    from omnigen.detector.prediction.predict import PredictOptions, coco_results, image_files, predict_images, trained_imgsz
+    from omnigen.detector.prediction.predict import (PredictOptions, coco_results, image_files, predict_images,
+                                                     trained_imgsz, trained_vertical)
     from omnigen.files import atomic_write_bytes
     from omnigen.outputs import refuse_inputs, save_image
     from omnigen.progress import print_table, progress
@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     claim_folder(args.out, "predict", mark=False)  # checked before the model loads, marked before the first write
     model, state = load_model(args.weights)
     opts = PredictOptions(imgsz=args.imgsz or trained_imgsz(state), conf=args.conf, iou=args.iou,
-                          max_det=args.max_det, batch=args.batch, vertical=args.vertical)
+                          max_det=args.max_det, batch=args.batch,
+                          vertical=args.vertical or trained_vertical(state))
     predicted = predict_images(model, files, opts)
     claim_folder(args.out, "predict")
     names = overlay_names(files)

@@ -4,7 +4,7 @@
     omnigen train runs/uov loss.kpt_l1=1.5 data.window=0 --out runs/b   # recipe keys changed
     omnigen train runs/uov --recipe runs/n-p2/recipe.json --out runs/c  # an earlier run's recipe
 
-What is learned is the recipe (detector/training/recipe.py): its defaults are the model docs/RESULTS.md
+What is learned is the recipe (detector/recipe.py): its defaults are the model docs/RESULTS.md
 validates, trained in two phases, the detector and then its crop stage apart on clean crops. Its
 keys are changed as KEY=VALUE words (listed at the end of --help), or read from a
 recipe file (`--recipe`, such as the RUN/recipe.json every run writes), the keys given applied over
@@ -43,7 +43,7 @@ class KeysAnywhere(argparse.ArgumentParser):
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from omnigen.detector.training.recipe import RUN, describe
+    from omnigen.detector.recipe import RUN, describe
 
     p.__class__ = type("TrainParser", (KeysAnywhere, type(p)), {})
     # the keys' list keeps its lines (cli's HelpFormatter would fill them into one paragraph)
@@ -93,7 +93,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def config_of(args: argparse.Namespace) -> Any:
     """The TrainConfig of the command line: the recipe (--recipe, else the validated one) with the
     KEY=VALUE overrides, and the run's settings from the options."""
-    from omnigen.detector.training.recipe import resolve, train_fields
+    from omnigen.detector.recipe import resolve, train_fields
     from omnigen.detector.training.train import TrainConfig
 
     recipe = resolve(args.recipe, args.overrides)

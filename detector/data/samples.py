@@ -23,6 +23,7 @@ import torch
 
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
 from omnigen.detector.data.balance import check_crop_focus, focus_weights, focused_range, instance_counts, pick_focus
+from omnigen.detector.recipe import RECIPE
 from omnigen.dataset import Dataset
 from omnigen.splits import TRAIN, read_split, split_names
 from omnigen.taxonomy import Taxonomy
@@ -37,14 +38,19 @@ are dropped: the assigner cannot place an anchor inside them."""
 OutOfImage = Literal["learn", "drop"]
 
 
+_AUGMENT = RECIPE.augment
+"""The recipe's augmentation (detector/recipe.py): Augment's defaults, declared there only."""
+
+
 @dataclass(frozen=True)
 class Augment:
-    """Training augmentation; all off gives the validation transform (letterbox only)."""
+    """Training augmentation; all off gives the validation transform (letterbox only). What
+    validation and the tests build without a recipe is the recipe's (`Augment()`)."""
 
-    flip: float = 0.5  # probability of a horizontal flip (corners permuted by FLIP_IDX)
-    scale: float = 0.5  # random zoom in [1 - scale, 1 + scale] of the letterboxed image
-    translate: float = 0.1  # random shift, fraction of the input size
-    hsv: tuple[float, float, float] = (0.015, 0.7, 0.4)  # hue, saturation, value jitter gains
+    flip: float = _AUGMENT.flip  # probability of a horizontal flip (corners permuted by FLIP_IDX)
+    scale: float = _AUGMENT.scale  # random zoom in [1 - scale, 1 + scale] of the letterboxed image
+    translate: float = _AUGMENT.translate  # random shift, fraction of the input size
+    hsv: tuple[float, float, float] = _AUGMENT.hsv  # hue, saturation, value jitter gains
 
     @classmethod
     def off(cls) -> "Augment":

@@ -1,1 +1,1 @@
-"""The network: blocks, backbones, neck, head, the crop stage, and checkpoints that rebuild it."""
+"""The network: blocks, backbones, neck, head, the crop stage, the boxes and detections they share, and checkpoints that rebuild it."""

@@ -25,6 +25,8 @@ from typing import Any, Callable, TypeVar
 import torch
 
 from omnigen.detector.model.network import DetectorConfig, KeypointDetector
+from omnigen.detector.model.train_config import TrainConfig
+from omnigen.detector.recipe import field_key, from_dict
 from omnigen.files import atomic_write_bytes
 from omnigen.taxonomy import Taxonomy, load_taxonomy
 from omnigen.untrusted import open_regular
@@ -173,15 +175,15 @@ def check_state(path: str | Path, state: Any) -> dict[str, Any]:
         if taxonomy.classes != classes:
             raise ValueError(f"{path}: taxonomy's classes {taxonomy.classes} are not the checkpoint's {classes}")
     if "train_config" in state:
-        from omnigen.detector.training.train import TrainConfig  # train imports this module
-
         check_types(path, "train_config", state["train_config"], TrainConfig, unknown_ok=True)
+        if "predict" in state["train_config"]:  # what prediction takes as its defaults (trained_vertical)
+            from_dict({"predict": state["train_config"]["predict"]}, f"{path}: train_config.predict")
     return state
 
 
 SCHEMA = 2
 """The version of what a checkpoint records (state["schema"]). 1, unmarked: written before the
-recipe (detector/training/recipe.py) gave `omnigen train` its defaults; its records may lack fields that
+recipe (detector/recipe.py) gave `omnigen train` its defaults; its records may lack fields that
 were added later, and a field it lacks is read as what the code did then (V1_DEFAULTS). 2: every
 record complete."""
 
@@ -224,8 +226,6 @@ def plain_branch() -> dict[str, Any]:
     """TrainConfig's recipe fields as the design's plain branch (V1_DEFAULTS, AdamW): what the
     trainer's mechanics are measured and tested with, apart from the validated recipe (no heading,
     no crop stage, no crop phase)."""
-    from omnigen.detector.training.recipe import field_key
-
     return {**{k: v for k, v in V1_DEFAULTS["train_config"].items() if field_key(k) or k == "crop_phase"},
             "optimizer": "adamw"}
 

@@ -2,12 +2,10 @@
 
 Why a second stage. The keypoint branch regresses an object's eight corners from the one feature
 vector at its anchor, at every scale at once, shared with the box and class of a nano model. On
-the CPU budget its corners stay 0.41 of sqrt(box area) from the truth and its front is a coin
-toss (its heading loss stays near 0.93: docs/detector-training.md). Human-pose estimation knows
-the alternative: top-down, a network that sees one object at one scale. A small CNN on 64x64 crops
-of the same objects places their corners 0.26 of sqrt(box area) from the truth, about boxes moved
-as a detector's are, after 400 steps, and tells facing left from
-facing right at a balanced accuracy of 0.85 (docs/detector-training.md). So the detector
+a CPU budget its corners stay far from the truth and its front is a coin toss (the ablations in
+docs/detector-training.md). Human-pose estimation knows the alternative: top-down, a network that
+sees one object at one scale; a small CNN on 64x64 crops of the same objects places their corners
+much closer and tells facing left from facing right. So the detector
 crops each object out of its own input image (bilinear, square about the box centre) and a small
 CNN of those benchmarks' shape regresses from the crop both the corners (in the crop's units:
 (x - box centre) / half side) and the image heading's direction. The keypoint branch still learns
@@ -25,10 +23,9 @@ averages each crop's outputs with its mirror image's (a horizontal flip negates 
 the corners by FLIP_IDX; it negates the heading's x component and keeps the rest).
 
 With classes (DetectorConfig.crop_classes) the stage also names each crop's class, and prediction
-rescores each refined detection by it. Why: the head finds the vehicles and then calls them cars
-(make validate's class-balanced run: of the 115 vans it found, 93 were named car; trucks 27 of 96,
-buses 16 of 61), deciding between look-alike classes from one
-anchor's feature at a stride of 4-32 pixels, where the crop net sees the object alone at 64 x 64.
+rescores each refined detection by it. Why: the head finds the vehicles and then calls most vans,
+trucks and buses cars (docs/detector-training.md: `crop_stage.classes`), deciding between
+look-alike classes from one anchor's feature at a stride of 4-32 pixels, where the crop net sees the object alone at 64 x 64.
 Training adds a cross-entropy of the crops' class logits against the labelled classes
 (`crop_cls`); prediction gives a detection of class c with score s the score sqrt(s * p_c), p the
 crop's softmax (mirror-averaged logits): the geometric mean keeps the head's evidence that there
@@ -67,9 +64,9 @@ import torch.nn.functional as F
 import torch.onnx.operators
 
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
-from omnigen.detector.training.boxes import box_area
+from omnigen.detector.model.boxes import box_area
 from omnigen.detector.model.heading import HEADING_CHANNELS, image_heading, orient
-from omnigen.detector.prediction.nms import Detections
+from omnigen.detector.model.outputs import Detections
 
 MARGIN = 0.1
 """Context around the box on each side, as a share of its longer side (that of the crops a small CNN told the front from)."""
@@ -287,7 +284,7 @@ def draw_rows(rows: torch.Tensor, max_crops: int, classes: torch.Tensor | None =
     generator, which the trainer seeds). Given the candidates' `classes` (len(rows),), class-balanced:
     each row drawn with weight 1 / (candidates of its class), so that every class in the batch gets
     about an equal share of the crops until its objects run out; a batch's rare objects are then
-    nearly always cropped and its cars subsampled (balanced draws named rare classes 0.30 of the time against 0.07)."""
+    nearly always cropped and its cars subsampled."""
     if len(rows) <= max_crops:
         return rows
     if classes is None:

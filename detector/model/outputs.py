@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from omnigen.conventions import NUM_KEYPOINTS
-from omnigen.detector.training.boxes import box_area
+from omnigen.detector.model.boxes import box_area
 from omnigen.detector.model.heading import orient
 
 REG_MAX = 16
@@ -48,6 +48,29 @@ class HeadOutput:
     @property
     def num_classes(self) -> int:
         return self.cls.shape[1]
+
+
+@dataclass
+class Detections:
+    """Detections of one image, in the coordinates of the tensor they were decoded from: what NMS
+    (prediction/nms.py) hands on and the crop stage (crop_stage.py) refines, so it lives with the
+    model, below both."""
+
+    boxes: torch.Tensor  # (n, 4) xyxy
+    scores: torch.Tensor  # (n,)
+    classes: torch.Tensor  # (n,) long
+    keypoints: torch.Tensor  # (n, 8, 3) x, y, visibility score
+    # (n, nc) every class's score at each detection's anchor (postprocess(class_scores=True)): what
+    # a crop stage that names classes needs to relabel a single-label detection (crop_stage.py)
+    class_scores: torch.Tensor | None = None
+
+    def __len__(self) -> int:
+        return len(self.scores)
+
+    def take(self, index: torch.Tensor) -> "Detections":
+        """The detections at `index` (indices or a boolean mask), every field alike."""
+        return Detections(self.boxes[index], self.scores[index], self.classes[index], self.keypoints[index],
+                          None if self.class_scores is None else self.class_scores[index])
 
 
 def make_anchors(shapes: list[tuple[int, int]], strides: list[int], device=None, dtype=torch.float32

@@ -9,33 +9,11 @@ filter.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
 from omnigen.conventions import NUM_KEYPOINTS
-
-
-@dataclass
-class Detections:
-    """Detections of one image, in the coordinates of the tensor they were decoded from."""
-
-    boxes: torch.Tensor  # (n, 4) xyxy
-    scores: torch.Tensor  # (n,)
-    classes: torch.Tensor  # (n,) long
-    keypoints: torch.Tensor  # (n, 8, 3) x, y, visibility score
-    # (n, nc) every class's score at each detection's anchor (postprocess(class_scores=True)): what
-    # a crop stage that names classes needs to relabel a single-label detection (crop_stage.py)
-    class_scores: torch.Tensor | None = None
-
-    def __len__(self) -> int:
-        return len(self.scores)
-
-    def take(self, index: torch.Tensor) -> "Detections":
-        """The detections at `index` (indices or a boolean mask), every field alike."""
-        return Detections(self.boxes[index], self.scores[index], self.classes[index], self.keypoints[index],
-                          None if self.class_scores is None else self.class_scores[index])
+from omnigen.detector.model.outputs import Detections
 
 
 def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

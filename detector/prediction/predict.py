@@ -21,7 +21,9 @@ import torch
 from omnigen.detector.data.samples import KeypointDataset, Letterbox, letterbox, split_frames
 from omnigen.detector.model.crop_stage import refine_detections
 from omnigen.detector.model.network import KeypointDetector
-from omnigen.detector.prediction.nms import Detections, postprocess
+from omnigen.detector.model.outputs import Detections
+from omnigen.detector.prediction.nms import postprocess
+from omnigen.detector.recipe import RECIPE
 from omnigen.conventions import NUM_KEYPOINTS
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
@@ -209,6 +211,13 @@ def trained_imgsz(state: dict[str, Any], default: int = 640) -> int:
     return int(state.get("train_config", {}).get("imgsz", default))
 
 
+def trained_vertical(state: dict[str, Any]) -> str:
+    """How the checkpoint's run predicts vertical edges (its recipe's predict.vertical, checked when
+    the checkpoint loaded), the validated recipe's for a checkpoint written before runs kept it:
+    `omnigen train predict.vertical=off` then predicts as it was told without --vertical."""
+    return state.get("train_config", {}).get("predict", {}).get("vertical", RECIPE.predict.vertical)
+
+
 def load_for_prediction(weights: str | Path, device: str | None = None) -> tuple[KeypointDetector, dict[str, Any]]:
     """A checkpoint's model, in eval mode on `device` (default: CUDA when there is one: a
     checkpoint loads onto the CPU, where a GPU machine's evaluation would otherwise run), and the
@@ -221,7 +230,7 @@ def load_for_prediction(weights: str | Path, device: str | None = None) -> tuple
 
 def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: str | Path, split: str | None = "test",
                   imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
-                  multi_label: bool = EVAL_MULTI_LABEL, crop_classes: bool = True, vertical: str = "lines"
+                  multi_label: bool = EVAL_MULTI_LABEL, crop_classes: bool = True, vertical: str | None = None
                   ) -> list[dict[str, Any]]:
     """Detections of a loaded model (load_for_prediction) on a dataset split, ready for `omnigen
     eval`, at the training input size unless `imgsz` says otherwise. A caller that predicts twice
@@ -229,7 +238,7 @@ def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: 
     corners), or reads the checkpoint's taxonomy first, loads it
     once. `multi_label=False` keeps one class an anchor, as `omnigen predict` does
     (EVAL_MULTI_LABEL). `crop_classes=False` keeps the head's scores where the crop stage names classes;
-    `vertical` is PredictOptions'.
+    `vertical` is PredictOptions' (None: the run's, trained_vertical).
     """
     from omnigen.detector.model.checkpoint import checkpoint_taxonomy
 
@@ -237,13 +246,13 @@ def predict_split(model: KeypointDetector, state: dict[str, Any], dataset_root: 
     data = KeypointDataset(dataset_root, checkpoint_taxonomy(state), imgsz, split_frames(dataset_root, split))
     return predict_frames(model, data, PredictOptions(imgsz=imgsz, conf=conf, batch=batch, max_det=EVAL_MAX_DET,
                                                       multi_label=multi_label, crop_classes=crop_classes,
-                                                      vertical=vertical),
+                                                      vertical=vertical or trained_vertical(state)),
                           show_progress=True)
 
 
 def predict_dataset(weights: str | Path, dataset_root: str | Path, split: str | None = "test",
                     imgsz: int | None = None, batch: int = 8, conf: float = EVAL_CONF,
-                    device: str | None = None, multi_label: bool = EVAL_MULTI_LABEL, vertical: str = "lines"
+                    device: str | None = None, multi_label: bool = EVAL_MULTI_LABEL, vertical: str | None = None
                     ) -> list[dict[str, Any]]:
     """predict_split of a checkpoint file, loaded onto `device` (load_for_prediction)."""
     model, state = load_for_prediction(weights, device)

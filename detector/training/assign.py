@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import torch
 
-from omnigen.detector.training.boxes import box_iou
+from omnigen.detector.model.boxes import box_iou
 
 
 @dataclass

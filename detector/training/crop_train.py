@@ -45,7 +45,7 @@ import torch
 import torch.nn.functional as F
 
 from omnigen.conventions import FLIP_IDX, TURN_IDX
-from omnigen.detector.training.boxes import box_area
+from omnigen.detector.model.boxes import box_area
 from omnigen.detector.model.crop_stage import (MIRROR_HEADING, CropNet, SplitCropNet, crop_boxes, crop_position, from_crop_units,
                                          jitter_boxes, mirror_corners, mirror_position, outputs_of_crops, to_crop_units,
                                          training_rois)

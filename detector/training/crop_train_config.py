@@ -5,14 +5,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from omnigen.detector.training.recipe import RECIPE, RUN
+from omnigen.detector.recipe import RECIPE, RUN
 
 _STAGE = RECIPE.crop_stage
 
 
 @dataclass(frozen=True)
 class CropTrainConfig:
-    """How the stage is trained: the recipe's crop stage (detector/training/recipe.py, whose defaults are
+    """How the stage is trained: the recipe's crop stage (detector/recipe.py, whose defaults are
     what make validate measured: uniform draws, a tenth of the joint
     training's heading gain, the offset term at 0.3, docs/detector-training.md). `balance` 0 draws
     crops uniformly, 1 gives every class an equal share of the draws."""

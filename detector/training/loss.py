@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from omnigen.detector.training.assign import TaskAlignedAssigner
-from omnigen.detector.training.boxes import bbox2dist, box_area, box_ciou
+from omnigen.detector.model.boxes import bbox2dist, box_area, box_ciou
 from omnigen.detector.model.crop_stage import to_crop_units
 from omnigen.detector.model.heading import heading_loss, image_heading
 from omnigen.detector.model.outputs import REG_MAX, HeadOutput, decode_boxes, head_keypoints

@@ -266,7 +266,7 @@ def test_the_gpu_recipe_is_make_validates():
     from benchmarks import validate
     from omnigen.cli import build_parser
     from omnigen.detector.train_command import config_of
-    from omnigen.detector.training.recipe import RECIPE, recipe_of
+    from omnigen.detector.recipe import RECIPE, recipe_of
 
     args = gpu_validate.parse_args(["--work", "w", "--device", "cuda"])
     gpu = gpu_validate.train_arguments(Path("uov"), Path("run"), args)

@@ -319,7 +319,8 @@ VALIDATED_TRAIN_CONFIG = {
     "kpt_labelled": 1.0, "kpt_turn_start": 0.3, "kpt_heading": True,
     "heading_gain": 1.0, "heading_crop": 64, "crop_classes": True, "taxonomy": "fine",
     "train_split": "train", "val_split": None, "out_of_image": "learn",
-    "augment": {"flip": 0.5, "scale": 0.5, "translate": 0.1, "hsv": (0.015, 0.7, 0.4)}, "workers": 1, "seed": 0,
+    "augment": {"flip": 0.5, "scale": 0.5, "translate": 0.1, "hsv": (0.015, 0.7, 0.4)}, "predict": {"vertical": "lines"},
+    "workers": 1, "seed": 0,
     "val_every": 50, "save_interval": 60.0, "device": None, "amp": "bf16", "channels_last": None, "weights": None}
 VALIDATED_CROP_STAGE = {
     # `omnigen train-crop ... --steps 7000 --seed 0 --amp bf16 --position --offset-gain 0.3` with its
@@ -354,7 +355,7 @@ def test_make_validate_trains_exactly_the_validated_model_from_train_s_own_recip
     stage, split, position = stage_config(cfg)
     assert {"config": asdict(stage), "crop": cfg.heading_crop, "classes": cfg.crop_classes, "split": split,
             "position": position} == VALIDATED_CROP_STAGE and phase["steps"] == 7000
-    # none of the recipe's values is on the command line: train takes them from detector/training/recipe.py
+    # none of the recipe's values is on the command line: train takes them from detector/recipe.py
     assert not [a for a in argv if a.startswith("--") and a.lstrip("-").replace("-", "_") in RECIPE_FLAGS]
 
 
@@ -471,9 +472,9 @@ def test_the_results_say_when_the_crop_stage_was_trained_apart():
     assert "omnigen train-crop" in line and "4000 steps, 812.5 s)" in line
     assert "corner error rel 0.170, front right 0.850, class accuracy 0.840" in line
     made["runs"][0]["crop_stage"]["position"] = True
-    assert "812.5 s, told where each crop was cut (--position))" in validate.protocol_line(made)[1]
+    assert "812.5 s, told where each crop was cut (crop_stage.position))" in validate.protocol_line(made)[1]
     made["runs"][0]["crop_stage"]["config"] = {"offset_gain": 0.3}
-    assert "(--position), an L1 term on the faces' offset (--offset-gain 0.3))" in validate.protocol_line(made)[1]
+    assert "(crop_stage.position), an L1 term on the faces' offset (crop_stage.offset_gain=0.3))" in validate.protocol_line(made)[1]
     made["runs"][0]["crop_stage"]["by"] = "omnigen train"  # the run's own second phase
     assert "trained again apart from the detector (the run's second phase, 4000 steps" in validate.protocol_line(made)[1]
 

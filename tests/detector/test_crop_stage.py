@@ -11,14 +11,14 @@ import pytest
 import torch
 
 from omnigen.conventions import FLIP_IDX, TURN_IDX
-from omnigen.detector.training.boxes import box_area
+from omnigen.detector.model.boxes import box_area
 from omnigen.detector.model.heading import image_heading, orient
 from omnigen.detector.model.crop_stage import (CropNet, crop_boxes, crop_outputs, distinct_boxes, from_crop_units, jitter_boxes,
                                          mirror_corners, refine, refine_detections, rescore, split_outputs,
                                          to_crop_units, training_rois, draw_rows)
 from omnigen.detector.training.loss import DetectionLoss
 from omnigen.detector.model.network import DetectorConfig, KeypointDetector
-from omnigen.detector.prediction.nms import Detections
+from omnigen.detector.model.outputs import Detections
 
 TINY = dict(width=0.0625, depth=0.33, max_channels=64)
 

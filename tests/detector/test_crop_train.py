@@ -12,7 +12,7 @@ import torch
 
 from omnigen.cli import main as omnigen
 from omnigen.conventions import FLIP_IDX
-from omnigen.detector.training.boxes import box_area
+from omnigen.detector.model.boxes import box_area
 from omnigen.detector.model.checkpoint import load_checkpoint, load_model
 from omnigen.detector.model.crop_stage import MIRROR_HEADING, jitter_boxes, mirror_corners
 from omnigen.detector.training.crop_train_config import CropTrainConfig

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from omnigen.detector.training.assign import TaskAlignedAssigner
-from omnigen.detector.training.boxes import bbox2dist, box_area, box_ciou, box_iou, box_iou_pairwise, dist2bbox
+from omnigen.detector.model.boxes import bbox2dist, box_area, box_ciou, box_iou, box_iou_pairwise, dist2bbox
 from omnigen.detector.training.loss import PARTS, DetectionLoss, LossGains, keypoint_l1_loss, oks_keypoint_loss
 from omnigen.detector.model.outputs import REG_MAX, HeadOutput, decode_keypoints, make_anchors
 

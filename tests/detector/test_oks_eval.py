@@ -360,7 +360,8 @@ def test_command_runs_weights_through_predict(ds, tmp_path, monkeypatch):
     args = _args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True, device="cpu")
     assert eval_command.run(args) == 0
     assert seen == {"weights": weights, "split": "test", "imgsz": 320, "batch": 2, "device": "cpu", "loads": 1,
-                    "multi_label": True, "vertical": "lines"}  # every class above the floor, as Ultralytics' validation
+                    "multi_label": True, "vertical": None}  # every class above the floor, as Ultralytics' validation;
+    # no --vertical: predict_split takes the run's predict.vertical (trained_vertical)
     assert eval_command.run(_args(tmp_path, weights, ds.root, imgsz=320, batch=2, no_adherence=True,
                                   device="cpu", single_label=True, vertical="off")) == 0
     assert seen["multi_label"] is False and seen["vertical"] == "off"

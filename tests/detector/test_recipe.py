@@ -1,4 +1,4 @@
-"""Issue 47, one recipe, one story: detector/training/recipe.py holds the validated recipe once; `omnigen train`
+"""Issue 47, one recipe, one story: detector/recipe.py holds the validated recipe once; `omnigen train`
 trains it end to end (the crop stage's second phase included, within --time), records it in
 RUN/recipe.json, reruns or tweaks it (--recipe, KEY=VALUE), resumes either phase, and says what it
 did in a short summary; nothing else re-declares a recipe value."""
@@ -23,8 +23,10 @@ from omnigen.cli import build_parser, main as omnigen  # noqa: E402
 from omnigen.detector.training import crop_train
 from omnigen.detector.training import time_budget  # noqa: E402
 from omnigen.detector.training import train as train_module  # noqa: E402
+from omnigen.detector.prediction import predict as predict_module  # noqa: E402
+from omnigen.detector.prediction.predict import trained_vertical  # noqa: E402
 from omnigen.detector.model.checkpoint import SCHEMA, load_checkpoint, load_model, save_checkpoint  # noqa: E402
-from omnigen.detector.training.recipe import RECIPE, read_recipe, recipe_of, train_fields, with_overrides  # noqa: E402
+from omnigen.detector.recipe import RECIPE, read_recipe, recipe_of, train_fields, with_overrides  # noqa: E402
 from omnigen.detector.training.train import TrainConfig, train  # noqa: E402
 from omnigen.detector.train_command import long_run_note, summary_rows  # noqa: E402
 from omnigen.outputs import json_made_by  # noqa: E402
@@ -52,7 +54,7 @@ def _crop_tensors(path: Path) -> dict[str, torch.Tensor]:
 PERTURB = r'''
 import dataclasses, json, sys
 sys.path.insert(0, sys.argv[1])
-import omnigen.detector.training.recipe as r
+import omnigen.detector.recipe as r
 
 def other(v):
     if isinstance(v, bool): return not v
@@ -83,6 +85,8 @@ for name, value in r.train_fields(r.RECIPE).items():
     check(f"TrainConfig.{name}", defaults[name], value)
 for name in ("epochs", "time_minutes", "val_every", "workers", "device", "amp", "cache", "seed", "channels_last"):
     check(f"TrainConfig.{name}", defaults[name], getattr(r.RUN, name))
+from omnigen.detector.data.samples import Augment
+check("Augment()", dataclasses.asdict(Augment()), dataclasses.asdict(r.RECIPE.augment))
 for f in dataclasses.fields(CropTrainConfig):
     want = r.RUN.seed if f.name == "seed" else getattr(r.RECIPE.crop_stage, f.name, None) if f.name != "amp" else "off"
     check(f"CropTrainConfig.{f.name}", getattr(CropTrainConfig(), f.name), want)
@@ -103,8 +107,8 @@ print(json.dumps(bad))
 
 
 def test_no_command_config_or_benchmark_declares_a_recipe_value_of_its_own():
-    """Every recipe value and run setting changed in detector/training/recipe.py before the rest is imported:
-    TrainConfig's and CropTrainConfig's defaults, train's and train-crop's options and validate's
+    """Every recipe value and run setting changed in detector/recipe.py before the rest is imported:
+    TrainConfig's, data's Augment's and CropTrainConfig's defaults, train's and train-crop's options and validate's
     must all follow. A default written out again anywhere (even equal today) is caught here."""
     out = subprocess.run([sys.executable, "-c", PERTURB, str(ROOT)], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -157,16 +161,18 @@ def test_keys_and_recipe_files_are_checked_and_each_error_names_the_key_and_the_
 
 
 def test_a_run_records_its_recipe_and_a_rerun_from_it_trains_the_same_first_epoch(split_fake_dataset, tmp_path,
-                                                                                   capsys):
+                                                                                   capsys, monkeypatch):
     """RUN/recipe.json is the resolved recipe, marked as train's; `--recipe RUN/recipe.json` into
     another folder trains the same losses; keys given beside it change it. The run's best.pt and
     last.pt carry the crop stage of its second phase, which `omnigen predict RUN/best.pt` runs."""
     ds = str(split_fake_dataset.root)
     common = ["--epochs", "1", "--workers", "0", "--val-every", "1"]
-    assert omnigen(["train", ds, *SMALL, "loss.kpt_l1=1.5", "--out", str(tmp_path / "a"), *common]) == 0
+    assert omnigen(["train", ds, *SMALL, "loss.kpt_l1=1.5", "predict.vertical=off", "--out", str(tmp_path / "a"),
+                    *common]) == 0
     summary = capsys.readouterr().out
     recipe = tmp_path / "a" / "recipe.json"
     assert json_made_by("train")(recipe) and read_recipe(recipe).loss.kpt_l1 == 1.5
+    assert read_recipe(recipe).predict.vertical == "off"
     assert omnigen(["train", ds, "--recipe", str(recipe), "--out", str(tmp_path / "b"), *common]) == 0
     assert (tmp_path / "b" / "recipe.json").read_text() == recipe.read_text()
 
@@ -183,8 +189,12 @@ def test_a_run_records_its_recipe_and_a_rerun_from_it_trains_the_same_first_epoc
     assert model.crop_net.position and torch.equal(model.state_dict()["crop_net.corners.out.weight"],
                                                    _crop_tensors(tmp_path / "a" / "last.pt")["crop_net.corners.out.weight"])
     assert not (tmp_path / "a" / train_module.CROP_PARTIAL).exists()
-    assert omnigen(["predict", str(tmp_path / "a" / "best.pt"), str(split_fake_dataset.root / "images"),
-                    "--out", str(tmp_path / "pred"), "--no-overlays"]) == 0
+    told = []  # predict takes the run's predict.vertical (off) unless --vertical says otherwise
+    monkeypatch.setattr(predict_module, "predict_images", lambda model, files, opts: told.append(opts.vertical) or [])
+    for flags in ([], ["--vertical", "lines"]):
+        assert omnigen(["predict", str(tmp_path / "a" / "best.pt"), str(split_fake_dataset.root / "images"),
+                        "--out", str(tmp_path / "pred"), "--no-overlays", *flags]) == 0
+    assert told == ["off", "lines"]
     # the summary: one time, the learning rate readably, only the loss parts that are on, no NaN
     assert "time (min)" in summary and "wall time" not in summary and "crop stage: steps" in summary
     assert "loss: kpt_l1" in summary and " nan" not in summary
@@ -291,6 +301,11 @@ def test_a_checkpoint_from_before_the_schema_reads_as_what_it_was_trained_with(d
     assert state["train_config"]["kpt_mode"] == "anchor" and state["train_config"]["kpt_heading"] is False
     assert state["train_config"]["crop_phase"] == {"steps": 0}  # no second phase then
     assert load_model(path)[0].cfg.heading_crop == 0  # predict and eval read it as before
+    assert trained_vertical(state) == RECIPE.predict.vertical  # no predict section then: the recipe's
+    save_checkpoint(path, {**raw, "train_config": {"dataset": "d", "out": "o", "predict": {"vertical": "up"}}})
+    with pytest.raises(ValueError) as exc:
+        load_model(path)
+    assert str(exc.value).startswith(f"{path}: train_config.predict: predict.vertical: 'up' is not one of")
     raw["schema"] = SCHEMA + 1
     save_checkpoint(tmp_path / "new.pt", raw)
     with pytest.raises(ValueError) as exc:
@@ -320,9 +335,3 @@ def test_a_long_run_is_told_after_its_first_epoch_and_pointed_at_time():
     assert long_run_note(2.0, 149, 10) is None
 
 
-def test_the_datas_augmentation_defaults_are_the_recipes():
-    """detector/data/samples.py's Augment() is what validation and the tests build without a recipe; it must
-    not drift from the recipe's augment section (it should take its defaults from it: data.py)."""
-    from omnigen.detector.data.samples import Augment
-
-    assert asdict(Augment()) == asdict(RECIPE.augment)

@@ -154,7 +154,7 @@ def test_the_vertical_snap_keeps_the_corners_of_an_image_of_one_input_row():
     import torch
 
     from omnigen.detector.data.samples import letterbox
-    from omnigen.detector.prediction.nms import Detections
+    from omnigen.detector.model.outputs import Detections
     from omnigen.detector.prediction.predict import snap_batch
 
     boxed, lb = letterbox(np.zeros((20, 10000, 3), np.uint8), 64)

@@ -128,7 +128,7 @@ def test_prediction_snaps_in_the_letterboxed_input_without_the_padding_border():
     import torch
 
     from omnigen.detector.data.samples import letterbox
-    from omnigen.detector.prediction.nms import Detections
+    from omnigen.detector.model.outputs import Detections
     from omnigen.detector.prediction.predict import PredictOptions, snap_batch
 
     rng = np.random.default_rng(4)
@@ -180,7 +180,7 @@ def test_prediction_leaves_out_a_far_side_padding_a_pixel_wider_than_the_near_on
 
     import omnigen.detector.prediction.vanishing as vanishing
     from omnigen.detector.data.samples import letterbox
-    from omnigen.detector.prediction.nms import Detections
+    from omnigen.detector.model.outputs import Detections
     from omnigen.detector.prediction.predict import snap_batch
 
     image = np.full((639, 640, 3), 30, np.uint8)

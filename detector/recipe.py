@@ -386,25 +386,25 @@ def recipe_json(recipe: Recipe) -> str:
 
 # -- TrainConfig ---------------------------------------------------------------------------------------
 
-def _slot(key: str) -> tuple[str, str | None] | None:
-    """Where TrainConfig keeps a recipe key: its `to` field (None), or a key of its augment or
-    crop_phase dict (the crop stage's second-phase keys); None for a key training does not read
-    (predict's, which `omnigen predict` and `eval` take as their options' defaults)."""
+NESTED = {"augment": "augment", "crop_stage": "crop_phase", "predict": "predict"}
+"""Recipe section -> the TrainConfig dict that keeps those of its keys no field of its own takes
+(augmentation, the crop stage's second phase, how the run's model predicts): a checkpoint and
+recipe.json record the whole recipe, predict's keys included, which `omnigen predict` and `eval`
+then take as their defaults."""
+
+
+def _slot(key: str) -> tuple[str, str | None]:
+    """Where TrainConfig keeps a recipe key: its `to` field (None), or a key of a NESTED dict."""
     to = knobs()[key].metadata["to"]
     section, name = key.split(".")
-    if to:
-        return to, None
-    return {"augment": ("augment", name), "crop_stage": ("crop_phase", name)}.get(section)
+    return (to, None) if to else (NESTED[section], name)
 
 
 def train_fields(recipe: Recipe) -> dict[str, Any]:
     """The TrainConfig fields of a recipe (each key at its `_slot`); data.window 0 is no window (None)."""
-    out: dict[str, Any] = {"augment": {}, "crop_phase": {}}
+    out: dict[str, Any] = {name: {} for name in NESTED.values()}
     for key, value in flat(recipe).items():
-        slot = _slot(key)
-        if slot is None:
-            continue
-        field_name, name = slot
+        field_name, name = _slot(key)
         if name is None:
             out[field_name] = value
         else:
@@ -415,14 +415,11 @@ def train_fields(recipe: Recipe) -> dict[str, Any]:
 
 def recipe_of(config: dict[str, Any]) -> Recipe:
     """The recipe of TrainConfig fields (`asdict(cfg)`), train_fields' inverse: what a run records as
-    RUN/recipe.json. Keys it lacks (and predict's, which TrainConfig does not keep) keep the default
-    recipe's values."""
+    RUN/recipe.json. Keys it lacks (a checkpoint written before predict's were kept) keep the
+    default recipe's values."""
     values = {}
     for key in knobs():
-        slot = _slot(key)
-        if slot is None:
-            continue
-        field_name, name = slot
+        field_name, name = _slot(key)
         part, name = (config, field_name) if name is None else (config.get(field_name, {}), name)
         if name in part:
             values[key] = tuple(part[name]) if isinstance(part[name], list) else part[name]  # hsv as JSON spells it

@@ -1,7 +1,9 @@
-"""Box arithmetic the assigner and the loss share: IoU, CIoU and the box <-> side-distance maps.
+"""Box arithmetic the model, the assigner and the loss share: area, IoU, CIoU and the box <->
+side-distance maps.
 
-All boxes are xyxy in pixels of the network input. Kept separate from the loss so that the assigner
-(which ranks anchors by IoU) and the box loss (which trains CIoU) measure overlap the same way.
+All boxes are xyxy in pixels of the network input. Kept apart from the loss so that the assigner
+(which ranks anchors by IoU) and the box loss (which trains CIoU) measure overlap the same way, and
+with the model, below training, because the head's decoding and the crop stage measure boxes too.
 """
 
 from __future__ import annotations
