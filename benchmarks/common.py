@@ -154,10 +154,19 @@ class Runner:
 
         atomic_write_json(self.path, self.log, indent=1)
 
-    def record(self, command: str, seconds: float) -> None:
-        """Log a finished command; one run again (its output deleted to redo it) replaces its record."""
+    def record(self, command: str, seconds: float, cpu_share: float | None = None) -> None:
+        """Log a finished command; one run again (its output deleted to redo it) replaces its record.
+
+        Beside its wall time: the 1-minute load average as it ended and, for a command run in this
+        process, the share of the usable cores' time it used (`cpu_share`). Why: on a 2-core machine
+        a training's two OpenMP threads slow 10-fold when a third job shares the cores, and the
+        wall times alone do not say whether a run had the machine to itself (a quiet training reads
+        a share near 1 and a load near 2)."""
         self.log = [c for c in self.log if c["command"] != command]
-        self.log.append({"command": command, "seconds": round(seconds, 1)})
+        entry = {"command": command, "seconds": round(seconds, 1), "load": round(os.getloadavg()[0], 2)}
+        if cpu_share is not None:
+            entry["cpu_share"] = round(cpu_share, 2)
+        self.log.append(entry)
         self.save()
 
     def seconds(self, prefix: str) -> float:
@@ -191,12 +200,12 @@ class Runner:
             return 0.0
         invoked = argv if resume_from is None else [*argv, "--resume"]
         print(f"[run] omnigen {shlex.join(invoked)}", flush=True)
-        t = time.perf_counter()
+        t, cpu = time.perf_counter(), time.process_time()
         rc = self.omnigen(invoked)
-        dt = time.perf_counter() - t
+        dt, used = time.perf_counter() - t, time.process_time() - cpu
         if rc != 0:
             raise SystemExit(f"{self.who}: 'omnigen {shlex.join(invoked)}' exited with {rc}")
-        self.record(cmd, (resume_from or 0.0) + dt)
+        self.record(cmd, (resume_from or 0.0) + dt, used / (dt * usable_cores()) if dt > 0 else None)
         return dt
 
 

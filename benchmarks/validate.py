@@ -668,8 +668,13 @@ def results_markdown(r: dict[str, Any]) -> str:
             lines.append(f"| {run['name']} | {c['matched']} | {c['unmatched']} | "
                          + " | ".join(share(n) for n in ("as labelled", "turned 180", "mirrored", "turned +90", "turned -90"))
                          + " |")
-    lines += ["", "## Commands and their wall times", "", "| command | seconds |", "|---|---|"]
-    lines += [f"| `{c['command']}` | {c['seconds']} |" for c in r["commands"]]
+    lines += ["", "## Commands and their wall times", "",
+              "The load is the 1-minute load average as the command ended; the CPU share, for a command run "
+              "in validate's own process, the share of the usable cores' time it used: a training that had "
+              "the machine to itself reads a share near 1 and a load near the cores' number.", "",
+              "| command | seconds | CPU share | load |", "|---|---|---|---|"]
+    lines += [f"| `{c['command']}` | {c['seconds']} | {c.get('cpu_share', '-')} | {c.get('load', '-')} |"
+              for c in r["commands"]]
     lines += [""]
     return "\n".join(lines)
 

@@ -10,6 +10,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import time  # noqa: E402
 import shutil  # noqa: E402
 
 import pytest  # noqa: E402
@@ -58,6 +59,28 @@ def test_a_command_run_again_replaces_its_record(tmp_path):
     run.record("omnigen train uov --out runs/n-p2", 60.0)
     run.record("omnigen eval p.json uov --out runs/n-p2/eval.json", 12.0)  # eval.json deleted, evaluated again
     assert [c["seconds"] for c in Runner(tmp_path).log] == [60.0, 12.0]
+
+
+def test_a_command_run_here_records_its_cpu_share_and_the_load(tmp_path, monkeypatch):
+    """A reader of RESULTS.md sees whether a stage had the machine to itself: an in-process command
+    that burns CPU for its whole wall time on one of two usable cores reads a share of at most 0.5."""
+    import benchmarks.common as common
+
+    def busy(argv):
+        end = time.process_time() + 0.3
+        while time.process_time() < end:
+            pass
+        return 0
+
+    monkeypatch.setattr(common, "usable_cores", lambda: 2)
+    monkeypatch.setattr(common.os, "getloadavg", lambda: (3.456, 0.0, 0.0))
+    run = Runner(tmp_path)
+    run.omnigen = busy
+    run(["eval", "p.json", "uov"])
+    entry = Runner(tmp_path).log[-1]
+    assert entry["load"] == 3.46 and 0 < entry["cpu_share"] <= 0.55  # one thread of two cores; less when shared
+    run.record("omnigen render --rig ego", 5.0)  # a subprocess's: the load alone
+    assert "cpu_share" not in Runner(tmp_path).log[-1] and Runner(tmp_path).log[-1]["load"] == 3.46
 
 
 class FakeTrain:
