@@ -3,10 +3,10 @@
 - `step`: seconds per training step in float32 and with bf16 autocast (`--amp bf16`). A step is
   what `omnigen train` does per batch: forward, DetectionLoss (always float32), backward, gradient
   clipping and an Adam step, on a real batch (a fake dataset's frames through the training loader).
-  `--loop` also times the training loop's own per-step work as `omnigen train` did it before issue
-  24 (EMA through two state_dict() walks, float32 images out of the loader) against what it does
-  now (detector/training/step.py: fused foreach EMA, uint8 batch converted where the step runs), in
-  float32 and with channels-last activations. `--overfit` also prints what bf16 costs in
+  `--loop` also times the training loop's whole per-step work as `omnigen train` runs it
+  (detector/training/step.py: the uint8 batch converted where the step runs, the step, the fused
+  EMA update, the loss parts summed) in float32, with contiguous and with channels-last
+  activations. `--overfit` also prints what bf16 costs in
   precision: the overfit check of the test suite (a tiny model, four raster frames of the tiny
   city at 256x192, 700 Adam steps on one thread) trained in each precision, with its final losses
   and OKS mAP50:95 on those frames.
@@ -30,7 +30,7 @@ What is compared is measured in turn, round by round (alternating_medians), so a
 each alike; each one's median and the ratio of the medians are printed.
 
     .venv/bin/python benchmarks/bench_train_speed.py step               # nano P2, batch 16, 320 px, 2 threads
-    .venv/bin/python benchmarks/bench_train_speed.py step --loop        # + the loop: before/after issue 24
+    .venv/bin/python benchmarks/bench_train_speed.py step --loop        # + the loop, channels-last or not
     .venv/bin/python benchmarks/bench_train_speed.py step --overfit     # + the precision cost (about 5 min)
     .venv/bin/python benchmarks/bench_train_speed.py throughput --device cpu --imgsz 320 --batch 8 --steps 12 --workers 1
     python benchmarks/bench_train_speed.py throughput --device cuda --imgsz 640 --batch 64 --workers 14 --dataset D
@@ -40,7 +40,6 @@ each alike; each one's median and the ratio of the medians are printed.
 from __future__ import annotations
 
 import argparse
-import copy
 import math
 import os
 import statistics
@@ -67,7 +66,7 @@ from omnigen.options import integer, number  # noqa: E402
 from omnigen.taxonomy import load_taxonomy  # noqa: E402
 
 MODES = ("off", "bf16")
-VARIANTS = ("before", "after", "after, channels-last")
+VARIANTS = ("contiguous", "channels-last")
 
 
 def alternating_medians(measures: dict[str, Callable[[int], float]], rounds: int) -> dict[str, float]:
@@ -153,64 +152,24 @@ def run_step(args: argparse.Namespace) -> None:
         overfit()
 
 
-class LegacyEMA:
-    """The EMA update as train.py did it before issue 24: two state_dict() walks a step."""
-
-    def __init__(self, model: torch.nn.Module, decay: float, tau: float):
-        self.ema, self.decay, self.tau, self.updates = copy.deepcopy(model).eval(), decay, tau, 0
-
-    @torch.no_grad()
-    def update(self, model: torch.nn.Module) -> None:
-        self.updates += 1
-        d = self.decay * (1 - math.exp(-self.updates / self.tau))
-        msd = model.state_dict()
-        for k, v in self.ema.state_dict().items():
-            if v.dtype.is_floating_point:
-                v.mul_(d).add_(msd[k].detach(), alpha=1 - d)
-            else:
-                v.copy_(msd[k])
-
-
-def legacy_step(model: torch.nn.Module, float_batch: tuple) -> Callable[[], None]:
-    """One step of the loop as it was before issue 24: float32 images out of the loader, the EMA's
-    two state_dict() walks, a float() per loss part."""
-    cfg = TrainConfig(dataset="", out="")
-    optimizer = make_optimizer(cfg, model)
-    criterion = DetectionLoss(model.cfg.num_classes)
-    ema = LegacyEMA(model, cfg.ema_decay, cfg.ema_tau)
-
-    def before() -> None:
-        images, targets = float_batch
-        loss, parts = criterion(model(images), targets)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-        optimizer.step()
-        ema.update(model)
-        sums = {k: float(v) for k, v in parts.items()}
-        assert sums
-    return before
-
-
-def current_step(model: torch.nn.Module, uint8_batch: tuple, channels_last: bool) -> Callable[[], None]:
-    """One step of the loop as detector/training/step.py runs it now."""
+def loop_step(model: torch.nn.Module, uint8_batch: tuple, channels_last: bool) -> Callable[[], None]:
+    """One step of the loop as `omnigen train` runs it (detector/training/step.py)."""
     step = train_step(model, None)
     sums = PartSums()
     return lambda: sums.add(step(*to_device(*uint8_batch, torch.device("cpu"), channels_last)))
 
 
 def loop(args: argparse.Namespace, cfg: DetectorConfig, samples: list) -> None:
-    """The loop's per-step work, before and after issue 24, float32, alternating step by step."""
-    float_batch, uint8_batch = collate(samples)[:2], collate_uint8(samples)[:2]
+    """The loop's per-step work in float32, contiguous and channels-last, alternating step by step."""
+    uint8_batch = collate_uint8(samples)[:2]
     steps: dict[str, Callable[[], None]] = {}
     for name in VARIANTS:
         torch.manual_seed(0)
         model = KeypointDetector(cfg)
-        if name == "after, channels-last":
+        if name == "channels-last":
             model = model.to(memory_format=torch.channels_last)
         model.train()
-        steps[name] = legacy_step(model, float_batch) if name == "before" else \
-            current_step(model, uint8_batch, name.endswith("channels-last"))
+        steps[name] = loop_step(model, uint8_batch, name == "channels-last")
     for name in VARIANTS:  # warm-up
         steps[name](), steps[name]()
 
@@ -222,12 +181,12 @@ def loop(args: argparse.Namespace, cfg: DetectorConfig, samples: list) -> None:
         return measure
 
     med = alternating_medians({name: timed(steps[name]) for name in VARIANTS}, args.steps)
-    print(f"training loop step (train_step.py) before/after issue 24, float32, batch {args.batch}, {args.imgsz} px, "
+    print(f"training loop step (detector/training/step.py), float32, batch {args.batch}, {args.imgsz} px, "
           f"{args.threads} threads; median of {args.steps} alternating steps")
-    print("| loop | s per step | images/s | / before |")
+    print("| activations | s per step | images/s | / contiguous |")
     print("|---|---|---|---|")
     for name in VARIANTS:
-        print(f"| {name} | {med[name]:.3f} | {args.batch / med[name]:.1f} | {med[name] / med['before']:.3f} |")
+        print(f"| {name} | {med[name]:.3f} | {args.batch / med[name]:.1f} | {med[name] / med['contiguous']:.3f} |")
 
 
 def overfit() -> None:
@@ -428,12 +387,11 @@ def profile(step: TrainStep, batch: tuple, device: torch.device, steps: int = 5)
 
 
 def epoch_seconds(data: KeypointDataset, epoch: int, workers: int, batch: int) -> float:
-    data.set_epoch(epoch)
-    loader = torch.utils.data.DataLoader(data, batch_size=batch, shuffle=True, num_workers=workers,
-                                         collate_fn=collate, generator=torch.Generator().manual_seed(epoch))
+    """One epoch of the training loader, as `omnigen train` makes it (make_loader), its workers started."""
+    batches = iter(make_loader(data, EpochBatches(len(data), batch, 0, start=epoch), workers, pin=False))
     start = time.perf_counter()
-    for _ in loader:
-        pass
+    for _ in range(math.ceil(len(data) / batch)):
+        next(batches)
     return time.perf_counter() - start
 
 
@@ -486,7 +444,7 @@ def build_parser() -> argparse.ArgumentParser:
     step.add_argument("--batch", type=integer(1, None), default=16)
     step.add_argument("--steps", type=integer(1, None), default=15, help="timed steps per precision")
     step.add_argument("--threads", type=integer(1, None), default=2)
-    step.add_argument("--loop", action="store_true", help="also time the loop's per-step work before/after issue 24")
+    step.add_argument("--loop", action="store_true", help="also time the loop's per-step work, contiguous and channels-last")
     step.add_argument("--overfit", action="store_true", help="also train the overfit check in both precisions")
     step.set_defaults(run=run_step)
 

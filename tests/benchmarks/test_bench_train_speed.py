@@ -73,6 +73,12 @@ def test_step_prints_both_precisions_and_their_ratio(capsys):
     assert re.fullmatch(r"bf16 / float32 step time: \d+\.\d\d", lines[-1]), lines[-1]
 
 
+def test_the_loop_times_the_trainings_own_step_contiguous_and_channels_last(capsys):
+    assert bench.main(["step", "--loop", "--imgsz", "64", "--batch", "2", "--steps", "1", "--threads", "1", *TINY]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(("| contiguous |", "| channels-last |"))]
+    assert len(rows) == 2 and rows[0].endswith("| 1.000 |") and float(rows[1].split("|")[2]) > 0
+
+
 def test_cache_times_the_loader_from_disk_and_from_memory(tmp_path, capsys):
     from omnigen.fakes import write_fake_dataset
 
