@@ -24,7 +24,7 @@ Python code, not the renderers: compare parts with each other, not with the plai
 a run of 16 frames or more does, so the parts are what the render process is left with.
 
     .venv/bin/python benchmarks/bench_render.py [--raster-frames 21] [--cycles-frames 21] [--size 640] [--no-cycles]
-        [--no-raster] [--memory-frames 200 [--memory-backend cycles] [--memory-size 96] [--memory-quality preview]]
+        [--no-raster] [--memory-frames 200 [--memory-backend raster,cycles] [--memory-size 96] [--memory-quality preview]]
     .venv/bin/python benchmarks/bench_render.py --profile [--profile-frames 4] [--size 640] [--quality fast] [--no-cycles]
         [--no-raster] [--profile-presets downtown,intersection,suburban] [--profile-clock wall|cpu] [--profile-ahead]
 """
@@ -42,6 +42,14 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def backends(text: str) -> list[str]:
+    """A comma-separated list of raster and cycles (--memory-backend)."""
+    names = [t.strip() for t in text.split(",") if t.strip()]
+    if not names or any(n not in ("raster", "cycles") for n in names):
+        raise argparse.ArgumentTypeError(f"{text!r}: raster, cycles or raster,cycles")
+    return names
 
 
 def rss_mb() -> float:
@@ -294,7 +302,8 @@ def main() -> int:
     ap.add_argument("--no-cycles", action="store_true")
     ap.add_argument("--no-raster", action="store_true")
     ap.add_argument("--memory-frames", type=int, default=0, help="also: a long run, RSS every 10 frames")
-    ap.add_argument("--memory-backend", default="raster", choices=("raster", "cycles"))
+    ap.add_argument("--memory-backend", default="raster", type=backends,
+                    help="raster, cycles or raster,cycles: each one's long run in turn")
     ap.add_argument("--memory-size", type=int, default=160, help="frame size of the memory run (square)")
     ap.add_argument("--memory-quality", default="preview")
     ap.add_argument("--profile", action="store_true", help="instead: where each stage's time goes, per backend and preset")
@@ -320,7 +329,8 @@ def main() -> int:
     if not args.no_cycles:
         report(bench("cycles", args.cycles_frames, args.size, args.quality, args.scene, args.seed))
     if args.memory_frames:
-        memory(args.memory_backend, args.memory_frames, args.memory_size, args.scene, args.seed, args.memory_quality)
+        for backend in args.memory_backend:
+            memory(backend, args.memory_frames, args.memory_size, args.scene, args.seed, args.memory_quality)
     return 0
 
 

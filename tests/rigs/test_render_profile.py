@@ -90,7 +90,7 @@ def test_profile_rows_name_the_parts_of_a_raster_frame():
     labels = [r[0].strip() for r in rows]
     for label, *_ in PROFILE_ROOTS:
         assert label in labels
-    assert "placement.place_agents" in labels and "stage scene (wall)" in labels
+    assert "placement.place_world" in labels and "stage scene (wall)" in labels
     assert all(len(r) == 2 for r in rows)
 
 
@@ -103,3 +103,18 @@ def test_profile_ahead_draws_the_scenes_in_the_second_process():
 
     assert drawn(profile_frames("raster", "tiny", 3, 48, "preview", clock="cpu")[0]) == 2
     assert drawn(profile_frames("raster", "tiny", 3, 48, "preview", clock="cpu", ahead=True)[0]) == 0
+
+
+def test_one_run_measures_memory_for_each_backend_named(monkeypatch):
+    """The issue's figures come from one run: --memory-backend raster,cycles runs each long run in turn."""
+    import sys
+
+    import benchmarks.bench_render as bench
+
+    ran = []
+    monkeypatch.setattr(bench, "memory", lambda backend, *rest, **kw: ran.append(backend))
+    monkeypatch.setattr(sys, "argv", ["bench_render.py", "--no-raster", "--no-cycles", "--memory-frames", "20",
+                                      "--memory-backend", "raster,cycles"])
+    assert bench.main() == 0 and ran == ["raster", "cycles"]
+    with pytest.raises(Exception):
+        bench.backends("raster,gl")
