@@ -9,8 +9,17 @@ from __future__ import annotations
 
 import numpy as np
 
-SCHEMA_VERSION = 1
-"""Version of the per-frame record layout; bumped on any incompatible change."""
+SCHEMA_VERSION = 2
+"""Version of the per-frame record layout that omnigen writes; bumped on any incompatible change.
+Schema 2 adds the sequence and cooperative fields (SCHEMA2_FRAME_FIELDS, SCHEMA2_OBJECT_FIELDS)."""
+
+READABLE_SCHEMA_VERSIONS: tuple[int, ...] = (1, 2)
+"""Versions a record may have and still be read: a schema-1 record reads with the schema-2 fields
+null, so datasets written before them stay usable (merged, exported, trained on) as they are."""
+
+SCHEMA2_FRAME_FIELDS: tuple[str, ...] = ("sequence", "timestamp", "pair", "camera_to_world")
+SCHEMA2_OBJECT_FIELDS: tuple[str, ...] = ("track_id", "velocity")
+"""The keys schema 2 added: required (each may be null) in a schema-2 record, absent from a schema-1 one."""
 
 # ---------------------------------------------------------------------------------------------
 # The eight keypoints

@@ -212,6 +212,7 @@ class Dataset:
         src, vis = t.bbox_source[j], t.bbox_visible[j]
         occ = t.occlusion[j]
         diff = int(t.difficulty[j])
+        track, velocity = int(t.track_id[j]), t.velocity[j]
         return ObjectRecord(
             category=FINE_CLASSES[t.category[j]], instance_id=int(t.instance_id[j]),
             box=Box3D(t.center[j], t.dims[j], t.rotation[j]), keypoints=t.keypoints[j].copy(),
@@ -222,12 +223,14 @@ class Dataset:
             bbox_visible=None if np.isnan(vis).any() else vis.copy(),
             difficulty=None if diff < 0 else DIFFICULTY_NAMES[diff],
             source_attributes=self.source_attributes[j] if self._attributes_blob else {},
+            track_id=None if track < 0 else track, velocity=None if np.isnan(velocity).any() else velocity.copy(),
         )
 
 
 def _frame_from_row(f: dict[str, Any], objects: list[ObjectRecord]) -> FrameRecord:
     gp = f["ground_plane"]
     syn = f["synthetic"]
+    pose = f["camera_to_world"]
     return FrameRecord(
         frame_id=f["frame_id"], source=f["source"], view=f["view"], image=f["image"], width=f["width"],
         height=f["height"], K=np.asarray(f["K"], dtype=np.float64), objects=objects,
@@ -235,6 +238,8 @@ def _frame_from_row(f: dict[str, Any], objects: list[ObjectRecord]) -> FrameReco
         ground_plane=None if gp is None else Plane(gp["normal"], gp["offset"]),
         camera_height=f["camera_height"], camera_pitch=f["camera_pitch"], group=f["group"],
         synthetic=None if syn is None else SyntheticInfo(**syn), schema_version=f["schema_version"],
+        sequence=f["sequence"], timestamp=f["timestamp"], pair=f["pair"],
+        camera_to_world=None if pose is None else np.asarray(pose, dtype=np.float64),
     )
 
 

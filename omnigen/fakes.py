@@ -8,13 +8,15 @@ any frame can be regenerated alone and a dataset is the same however it is produ
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from omnigen.conventions import FINE_CLASSES, SOURCES, VIEWS
-from omnigen.dataset import Dataset
+from omnigen.conventions import FINE_CLASSES, SCHEMA2_FRAME_FIELDS, SCHEMA2_OBJECT_FIELDS, SCHEMA_VERSION, SOURCES, VIEWS
+from omnigen.dataset import Dataset, record_path
+from omnigen.files import atomic_write_bytes, dumps_json
 from omnigen.camera import intrinsics_from_fov
 from omnigen.geometry import Box3D, plane_from_height_pitch, rot_x, rot_z
 from omnigen.progress import progress
@@ -36,8 +38,11 @@ VIEW_CAMERAS = {  # view: (height range m, pitch range degrees)
 
 
 def random_frame(seed: int, index: int, source: str = "synthetic", view: str = "ego", n_objects: int = 8,
-                 width: int = 320, height: int = 192) -> FrameRecord:
-    """One frame of upright objects on a flat ground seen by a pitched camera."""
+                 width: int = 320, height: int = 192, sequence: bool = False) -> FrameRecord:
+    """One frame of upright objects on a flat ground seen by a pitched camera.
+
+    `sequence`: also fill the schema-2 fields (with_sequence_fields); the frame is otherwise the same.
+    """
     rng = np.random.default_rng([seed, index])
     (h_lo, h_hi), (p_lo, p_hi) = VIEW_CAMERAS[view]
     cam_height = rng.uniform(h_lo, h_hi)
@@ -72,21 +77,57 @@ def random_frame(seed: int, index: int, source: str = "synthetic", view: str = "
                                   lighting={"sun_elevation": 0.6}, depth=f"depth/{frame_id}.exr",
                                   instance=f"instance/{frame_id}.png")
     ignore = [IgnoreRegion(np.array([1.0, 2.0, 30.0, 40.0]), "DontCare")] if index % 5 == 0 else []
-    return FrameRecord(frame_id=frame_id, source=source, view=view, image=f"images/{frame_id}.png", width=width,
-                       height=height, K=K, objects=objects, ignore_regions=ignore, ground_plane=plane,
-                       camera_height=plane.camera_height, camera_pitch=plane.camera_pitch,
-                       group=f"{source}-g{index // 10}", synthetic=synthetic)
+    rec = FrameRecord(frame_id=frame_id, source=source, view=view, image=f"images/{frame_id}.png", width=width,
+                      height=height, K=K, objects=objects, ignore_regions=ignore, ground_plane=plane,
+                      camera_height=plane.camera_height, camera_pitch=plane.camera_pitch,
+                      group=f"{source}-g{index // 10}", synthetic=synthetic)
+    return with_sequence_fields(rec, seed, index, world_to_cam, cam_height) if sequence else rec
+
+
+def with_sequence_fields(rec: FrameRecord, seed: int, index: int, world_to_cam: np.ndarray,
+                         cam_height: float) -> FrameRecord:
+    """`rec` as frame index % 10 of sequence index // 10 at 10 fps: sequence, timestamp, a pair id
+    (frames index and index ^ 1 as a cooperative pair), camera_to_world (world z up, origin on the ground under the camera), each object's track_id
+    (its instance id) and a world velocity. Drawn from a Generator of its own, so that the rest
+    of the frame is the frame random_frame gives without them."""
+    rng = np.random.default_rng([seed, index, 1])
+    sequence = f"{rec.source}-seq{index // 10:03d}"
+    pose = np.eye(4)
+    pose[:3, :3] = world_to_cam.T
+    pose[2, 3] = cam_height
+    objects = [replace(o, track_id=o.instance_id, velocity=np.array([*rng.uniform(-10, 10, 2), 0.0]))
+               for o in rec.objects]
+    return replace(rec, objects=objects, sequence=sequence, timestamp=(index % 10) / 10,
+                   pair=f"{sequence}-pair{index % 10 // 2:06d}", camera_to_world=pose)
+
+
+def schema1_bytes(record: FrameRecord) -> bytes:
+    """A record file as omnigen wrote it before schema 2 (no sequence, pair, pose or track
+    fields), for tests that older datasets still read."""
+    d = record.to_dict()
+    d["schema_version"] = 1
+    for key in SCHEMA2_FRAME_FIELDS:
+        del d[key]
+    for o in d["objects"]:
+        for key in SCHEMA2_OBJECT_FIELDS:
+            del o[key]
+    return dumps_json(d).encode()
 
 
 def write_fake_dataset(root: str | Path, n_frames: int, objects_per_frame: int = 8, seed: int = 0,
-                       source: str = "synthetic", images: bool = True, show_progress: bool = False) -> Dataset:
-    """A finalized fake dataset; images (and depth/instance placeholders) are tiny but real files."""
+                       source: str = "synthetic", images: bool = True, show_progress: bool = False,
+                       sequence: bool = False, schema: int = SCHEMA_VERSION) -> Dataset:
+    """A finalized fake dataset; images (and depth/instance placeholders) are tiny but real files.
+
+    `sequence`: frames carry the schema-2 sequence and track fields (random_frame); `schema` 1
+    writes the records as schema 1 instead (schema1_bytes), as an older omnigen did.
+    """
     assert source in SOURCES
     root = Path(root)
     writer = DatasetWriter(root)
     for i in progress(range(n_frames), desc="fake frames", disable=not show_progress):
         view = VIEWS[i % len(VIEWS)] if source == "synthetic" else ("ego" if source == "kitti" else "infrastructure")
-        rec = random_frame(seed, i, source, view, objects_per_frame)
+        rec = random_frame(seed, i, source, view, objects_per_frame, sequence=sequence)
         if images:
             (root / "images").mkdir(exist_ok=True)
             shade = (i % 251, (i // 251) % 251, seed % 251)  # distinct pixels per frame: no accidental duplicates
@@ -95,5 +136,8 @@ def write_fake_dataset(root: str | Path, n_frames: int, objects_per_frame: int =
                 for rel in (rec.synthetic.depth, rec.synthetic.instance):
                     (root / rel).parent.mkdir(exist_ok=True)
                     (root / rel).write_bytes(b"placeholder")
-        writer.write(rec)
+        if schema == 1:
+            atomic_write_bytes(record_path(root, rec.frame_id), schema1_bytes(rec), durable=False)
+        else:
+            writer.write(rec)
     return writer.finalize({"name": f"fake-{source}"}, show_progress=show_progress)

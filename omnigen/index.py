@@ -26,7 +26,9 @@ from omnigen.record import FrameRecord
 from omnigen.tables import FrameTable, ObjectTable
 
 INDEX_FILE = ".index.npz"
-INDEX_VERSION = 2
+INDEX_VERSION = 3
+"""Bumped whenever the columns change (3: the schema-2 sequence and track columns), so that an
+older cache is stale and rebuilt from records/ instead of read with columns missing."""
 
 
 def records_fingerprint(entries: list[os.DirEntry]) -> str:

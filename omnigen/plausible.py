@@ -73,6 +73,17 @@ largest focal length and principal point, lands at 1e5 * 1043 / 0.1 + 1e5, about
 times that is 1e10, whose square (1e20) stays far inside float32 and float64; 1e308 is not data."""
 
 
+MAX_WORLD_COORDINATE_M = 1e7
+"""Largest accepted |coordinate| of a camera's position in its sequence's world frame
+(camera_to_world's translation), metres. Not MAX_SENSOR_OFFSET_M: a world frame may be a map
+projection (DAIR-V2X-C's is UTM-like, millions of metres east and north), which 1e7 m holds
+(the Earth's circumference is 4e7 m), while 1e300 is not a place."""
+
+MAX_SPEED_M_S = 70.0
+"""Largest accepted |velocity|, m/s (252 km/h): above any road user in city traffic, whose
+fastest (a car on an urban motorway) stays under half of it."""
+
+
 def worst_keypoint_coordinate() -> float:
     """The farthest a keypoint can project for a record within the other bounds (see
     MAX_KEYPOINT_COORDINATE); a test keeps the bound above it if those change."""
@@ -127,6 +138,22 @@ def intrinsics_problem(K: np.ndarray) -> str | None:
     return None
 
 
+def world_position_problem(t: np.ndarray) -> str | None:
+    """A camera position (camera_to_world's translation) within MAX_WORLD_COORDINATE_M on every axis."""
+    if np.abs(t).max() > MAX_WORLD_COORDINATE_M:
+        return (f"camera position {np.asarray(t).tolist()} lies beyond {MAX_WORLD_COORDINATE_M:g} m "
+                "(MAX_WORLD_COORDINATE_M)")
+    return None
+
+
+def speed_problem(velocity: np.ndarray) -> str | None:
+    """A world velocity no faster than MAX_SPEED_M_S."""
+    speed = float(np.linalg.norm(velocity))
+    if speed > MAX_SPEED_M_S:
+        return f"speed {speed:g} m/s of {np.asarray(velocity).tolist()} exceeds {MAX_SPEED_M_S:g} m/s (MAX_SPEED_M_S)"
+    return None
+
+
 def offset_problem(t: np.ndarray, what: str) -> str | None:
     norm = float(np.linalg.norm(t))
     if not norm <= MAX_SENSOR_OFFSET_M:
@@ -138,8 +165,9 @@ def offset_problem(t: np.ndarray, what: str) -> str | None:
 # -- a whole record, as `omnigen validate` checks it ---------------------------------------------
 
 def record_problems(rec: "FrameRecord") -> list[tuple[str, str]]:
-    """(field, message) for every implausible value of a parsed record: K, the ground plane and
-    camera height, each object's box, keypoints and 2D boxes, each ignore region.
+    """(field, message) for every implausible value of a parsed record: K, the ground plane,
+    camera height and camera_to_world's position, each object's box, keypoints, 2D boxes and world
+    velocity, each ignore region.
 
     Objects are screened as stacked arrays (validate reads every record of a dataset) and only a
     suspect is checked field by field, where the message is written.
@@ -153,6 +181,8 @@ def record_problems(rec: "FrameRecord") -> list[tuple[str, str]]:
                                                                 "offset", height[2]))
     if rec.camera_height is not None:
         problems += _named("camera_height", range_problem(rec.camera_height, height[0], height[1], "height", height[2]))
+    if rec.camera_to_world is not None:
+        problems += _named("camera_to_world", world_position_problem(np.asarray(rec.camera_to_world)[:3, 3]))
     for i in _suspect_objects(rec.objects):
         problems += _object_problems(rec.objects[i], f"objects[{i}]")
     for i, region in enumerate(rec.ignore_regions):
@@ -173,15 +203,16 @@ def _suspect_objects(objects: "list[ObjectRecord]") -> np.ndarray:
     keypoints = np.nan_to_num(np.array([o.keypoints for o in objects]), nan=0.0).reshape(len(objects), -1)
     boxes = np.array([np.concatenate([o.bbox, _or_zeros(o.bbox_source), _or_zeros(o.bbox_visible)])
                       for o in objects])
+    speeds = np.linalg.norm([_or_zeros(o.velocity, 3) for o in objects], axis=1)
     suspect = ((dims.min(axis=1) < MIN_OBJECT_SIZE_M) | (dims.max(axis=1) > MAX_OBJECT_SIZE_M)
                | (np.abs(centers).max(axis=1) > MAX_OBJECT_DISTANCE_M)
                | (np.abs(keypoints).max(axis=1) > MAX_KEYPOINT_COORDINATE)
-               | (np.abs(boxes).max(axis=1) > MAX_PIXEL_COORDINATE))
+               | (np.abs(boxes).max(axis=1) > MAX_PIXEL_COORDINATE) | (speeds > MAX_SPEED_M_S))
     return np.flatnonzero(suspect)
 
 
-def _or_zeros(box: np.ndarray | None) -> np.ndarray:
-    return np.zeros(4) if box is None else np.asarray(box, dtype=np.float64)
+def _or_zeros(values: np.ndarray | None, size: int = 4) -> np.ndarray:
+    return np.zeros(size) if values is None else np.asarray(values, dtype=np.float64)
 
 
 def _object_problems(o: "ObjectRecord", path: str) -> list[tuple[str, str]]:
@@ -195,4 +226,6 @@ def _object_problems(o: "ObjectRecord", path: str) -> list[tuple[str, str]]:
         box = getattr(o, name)
         if box is not None:
             problems += _named(f"{path}.{name}", box2d_problem(box))
+    if o.velocity is not None:
+        problems += _named(f"{path}.velocity", speed_problem(o.velocity))
     return problems

@@ -22,6 +22,9 @@ from omnigen.conventions import (
     DIFFICULTIES,
     NUM_KEYPOINTS,
     OCCLUSION_UNKNOWN,
+    READABLE_SCHEMA_VERSIONS,
+    SCHEMA2_FRAME_FIELDS,
+    SCHEMA2_OBJECT_FIELDS,
     SCHEMA_VERSION,
     SOURCES,
     VIEWS,
@@ -64,6 +67,8 @@ class ObjectRecord:
     bbox_visible: np.ndarray | None = None
     difficulty: str | None = None  # KITTI's easy / moderate / hard, where the source defines it
     source_attributes: dict[str, Any] = field(default_factory=dict)
+    track_id: int | None = None  # the same physical object across views and instants of a sequence
+    velocity: np.ndarray | None = None  # (3,) m/s in the frame of the record's camera_to_world
 
     @classmethod
     def from_box(cls, category: str, instance_id: int, box: Box3D, K: np.ndarray, width: int, height: int,
@@ -93,11 +98,13 @@ class ObjectRecord:
         return {
             "category": self.category,
             "instance_id": int(self.instance_id),
+            "track_id": None if self.track_id is None else int(self.track_id),
             "box3d": {
                 "center": self.box.center.tolist(),
                 "dims": self.box.dims.tolist(),
                 "rotation": self.box.rotation.tolist(),
             },
+            "velocity": _opt_list(self.velocity),
             "keypoints": kp,
             "in_image": np.asarray(self.in_image, bool).tolist(),
             "behind_camera": behind,
@@ -159,11 +166,17 @@ class FrameRecord:
     camera_pitch: float | None = None
     group: str | None = None  # frames that must stay on one side of a split
     synthetic: SyntheticInfo | None = None
-    schema_version: int = SCHEMA_VERSION
+    schema_version: int = SCHEMA_VERSION  # as read; to_dict always writes SCHEMA_VERSION
+    sequence: str | None = None  # frames of one world run: one world frame and one clock
+    timestamp: float | None = None  # seconds from the sequence's first instant (needs `sequence`)
+    pair: str | None = None  # the two frames of a cooperative pair (DAIR-V2X-C vehicle + infrastructure)
+    camera_to_world: np.ndarray | None = None  # (4, 4): X_world = M [X_cam; 1], metres
 
     def to_dict(self) -> dict[str, Any]:
+        """The record in the layout of SCHEMA_VERSION: a schema-1 record read and written again
+        is upgraded, its schema-2 fields null."""
         return {
-            "schema_version": self.schema_version,
+            "schema_version": SCHEMA_VERSION,
             "frame_id": self.frame_id,
             "source": self.source,
             "view": self.view,
@@ -176,6 +189,10 @@ class FrameRecord:
             "camera_height": _opt_float(self.camera_height),
             "camera_pitch": _opt_float(self.camera_pitch),
             "group": self.group,
+            "sequence": self.sequence,
+            "timestamp": _opt_float(self.timestamp),
+            "pair": self.pair,
+            "camera_to_world": _opt_list(self.camera_to_world),
             "synthetic": None if self.synthetic is None else self.synthetic.to_dict(),
             "objects": [o.to_dict() for o in self.objects],
             "ignore_regions": [r.to_dict() for r in self.ignore_regions],
@@ -191,6 +208,10 @@ def _opt_float(v: float | None) -> float | None:
     return None if v is None else float(v)
 
 
+def _opt_list(a: np.ndarray | None) -> list | None:
+    return None if a is None else np.asarray(a, dtype=np.float64).tolist()
+
+
 # ---------------------------------------------------------------------------------------------
 # Validation
 # ---------------------------------------------------------------------------------------------
@@ -204,6 +225,10 @@ _ROTATION_TOL_AT_ONCE = 0.99e-4
 """The stacked check's rotation tolerance, a hair under the 1e-4 `object` uses, so that a
 rounding difference between the two ways of computing R^T R can never let through what
 `object` would refuse."""
+_TRACK_ID_MAX = 2**31 - 1
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+_LAST_ROW_TOL = 1e-9
+"""camera_to_world's last row is 0 0 0 1 up to float noise (a pose composed or inverted in float64)."""
 
 
 class _FrameParser:
@@ -213,6 +238,7 @@ class _FrameParser:
         self.d = d
         self.file = file
         self.frame_id: str | None = d.get("frame_id") if isinstance(d, dict) and isinstance(d.get("frame_id"), str) else None
+        self.version = SCHEMA_VERSION  # the record's, once parse has read it
 
     def fail(self, path: str, message: str) -> RecordError:
         return RecordError(self.frame_id, path, message, self.file)
@@ -248,6 +274,16 @@ class _FrameParser:
         if choices is not None and value not in choices:
             raise self.fail(path, f"{value!r} is not one of {', '.join(choices)}")
         return value
+
+    def identifier(self, value: Any, path: str) -> str:
+        """An id that may name a file or a line of a listing (frame, sequence, pair): a safe name."""
+        name = self.string(value, path)
+        if not FRAME_ID_PATTERN.match(name):
+            raise self.fail(path, f"{name!r} must be letters, digits, '.', '_' or '-'")
+        return name
+
+    def opt_identifier(self, value: Any, path: str) -> str | None:
+        return None if value is None else self.identifier(value, path)
 
     def relpath(self, value: Any, path: str) -> str:
         """A file path inside the dataset root: relative, '/'-separated, no '..'."""
@@ -323,11 +359,11 @@ class _FrameParser:
         if not isinstance(d, dict):
             raise self.fail("<record>", f"expected a JSON object, got {type(d).__name__}")
         version = self.integer(self.get(d, "schema_version", "schema_version"), "schema_version")
-        if version != SCHEMA_VERSION:
-            raise self.fail("schema_version", f"this omnigen reads schema {SCHEMA_VERSION}, file has {version}")
-        frame_id = self.string(self.get(d, "frame_id", "frame_id"), "frame_id")
-        if not FRAME_ID_PATTERN.match(frame_id):
-            raise self.fail("frame_id", f"{frame_id!r} must be letters, digits, '.', '_' or '-'")
+        if version not in READABLE_SCHEMA_VERSIONS:
+            readable = ", ".join(map(str, READABLE_SCHEMA_VERSIONS))
+            raise self.fail("schema_version", f"this omnigen reads schema {readable}, file has {version}")
+        self.version = version
+        frame_id = self.identifier(self.get(d, "frame_id", "frame_id"), "frame_id")
         source = self.string(self.get(d, "source", "source"), "source", SOURCES)
         view = self.string(self.get(d, "view", "view"), "view", VIEWS)
         image = self.relpath(self.get(d, "image", "image"), "image")
@@ -350,6 +386,7 @@ class _FrameParser:
         group = d.get("group")
         if group is not None:
             group = self.string(group, "group")
+        world = self.world_fields(d)
         synthetic = self.synthetic(self.get(d, "synthetic", "synthetic"), source)
         objects_raw = self.get(d, "objects", "objects")
         if not isinstance(objects_raw, list):
@@ -357,11 +394,8 @@ class _FrameParser:
         objects = self.objects_at_once(objects_raw)
         if objects is None:  # something is off: go object by object to name the field
             objects = [self.object(o, f"objects[{i}]") for i, o in enumerate(objects_raw)]
-        seen: set[int] = set()
-        for i, o in enumerate(objects):
-            if o.instance_id in seen:
-                raise self.fail(f"objects[{i}].instance_id", f"duplicate instance_id {o.instance_id}")
-            seen.add(o.instance_id)
+        self.unique(objects, "instance_id")
+        self.unique(objects, "track_id")
         ignore_raw = self.get(d, "ignore_regions", "ignore_regions")
         if not isinstance(ignore_raw, list):
             raise self.fail("ignore_regions", "expected a list")
@@ -373,7 +407,47 @@ class _FrameParser:
             ignore.append(IgnoreRegion(self.box2d(self.get(r, "bbox", path + ".bbox"), path + ".bbox"),
                                        self.string(self.get(r, "label", path + ".label"), path + ".label")))
         return FrameRecord(frame_id, source, view, image, width, height, K, objects, ignore, plane,
-                           camera_height, camera_pitch, group, synthetic, version)
+                           camera_height, camera_pitch, group, synthetic, version, **world)
+
+    def unique(self, objects: list[ObjectRecord], key: str) -> None:
+        """Each object's `key` (instance_id, track_id) differs from every other's in the frame; None is no value."""
+        seen: set[int] = set()
+        for i, o in enumerate(objects):
+            value = getattr(o, key)
+            if value in seen:
+                raise self.fail(f"objects[{i}].{key}", f"duplicate {key} {value}")
+            if value is not None:
+                seen.add(value)
+
+    def schema2_keys(self, d: dict, keys: tuple[str, ...], path: str) -> dict[str, Any]:
+        """The schema-2 keys of a frame or an object: each required (it may be null) in schema 2,
+        so that a writer cannot forget one silently; absent in schema 1, read as null."""
+        if self.version == 1:
+            for key in keys:
+                if key in d:
+                    raise self.fail(path + key, "not in schema 1 (a record with it has schema_version 2)")
+            return dict.fromkeys(keys)
+        return {key: self.get(d, key, path + key) for key in keys}
+
+    def world_fields(self, d: dict) -> dict[str, Any]:
+        """sequence, timestamp, pair and camera_to_world, checked (null where not known)."""
+        raw = self.schema2_keys(d, SCHEMA2_FRAME_FIELDS, "")
+        sequence = self.opt_identifier(raw["sequence"], "sequence")
+        timestamp = self.opt_number(raw["timestamp"], "timestamp", 0.0)
+        if timestamp is not None and sequence is None:
+            raise self.fail("timestamp", "a timestamp counts from its sequence's start, and 'sequence' is null")
+        pose = raw["camera_to_world"]
+        return {"sequence": sequence, "timestamp": timestamp, "pair": self.opt_identifier(raw["pair"], "pair"),
+                "camera_to_world": None if pose is None else self.pose(pose, "camera_to_world")}
+
+    def pose(self, value: Any, path: str) -> np.ndarray:
+        """A rigid 4x4 transform: a proper rotation (within 1e-4) and a translation, last row 0 0 0 1."""
+        m = self.array(value, path, (4, 4))
+        if np.abs(m[3] - _LAST_ROW).max() > _LAST_ROW_TOL:
+            raise self.fail(path, f"last row must be 0 0 0 1, got {m[3].tolist()}")
+        if not is_rotation(m[:3, :3], 1e-4):
+            raise self.fail(path, "rotation part not orthonormal with determinant +1 (within 1e-4)")
+        return m
 
     def synthetic(self, s: Any, source: str) -> SyntheticInfo | None:
         if s is None:
@@ -406,7 +480,8 @@ class _FrameParser:
         """
         if not raw:
             return []
-        numbers, kps, nulls, flags, boxes = [], [], [], [], []
+        numbers, kps, nulls, flags, boxes, velocities = [], [], [], [], [], []
+        schema1 = self.version == 1
         for o in raw:
             if type(o) is not dict:
                 return None
@@ -421,6 +496,14 @@ class _FrameParser:
             kp = g("keypoints")
             behind, in_image, occluded = g("behind_camera"), g("in_image"), g("occluded")
             diff = g("difficulty")
+            tid, vel = g("track_id", _MISSING), g("velocity", _MISSING)
+            if (tid is _MISSING) != schema1 or (vel is _MISSING) != schema1:  # required in 2, absent in 1
+                return None
+            if not schema1 and ((tid is not None and (type(tid) is not int or not 1 <= tid <= _TRACK_ID_MAX))
+                                or (vel is not None and (type(vel) is not list or len(vel) != 3))):
+                return None
+            if vel is not None and vel is not _MISSING:
+                velocities.append(vel)
             if (type(c) is not str or c not in _CLASS_SET or type(iid) is not int or not 1 <= iid <= 65535
                     or type(b) is not dict or type(bbox) is not list or len(bbox) != 4
                     or type(t) not in _PLAIN_NUMBERS or type(lvl) is not int or not 0 <= lvl <= 3
@@ -453,6 +536,7 @@ class _FrameParser:
             num = np.array(numbers, dtype=np.float64)
             kp_all = np.array(kps, dtype=np.float64)
             box_all = np.array(boxes, dtype=np.float64).reshape(-1, 4)
+            vel_all = np.array(velocities, dtype=np.float64).reshape(-1, 3)
         except (TypeError, ValueError):
             return None
         n = len(raw)
@@ -460,6 +544,7 @@ class _FrameParser:
         flag_all = np.array(flags, dtype=bool).reshape(n, 3, NUM_KEYPOINTS)
         behind_all, in_all, occl_all = flag_all[:, 0], flag_all[:, 1], flag_all[:, 2]
         if (kp_all.shape != (n, NUM_KEYPOINTS, 2) or not np.isfinite(num).all() or not np.isfinite(box_all).all()
+                or not np.isfinite(vel_all).all()
                 or not np.isfinite(kp_all[~null_all]).all() or not np.array_equal(null_all, behind_all)
                 or (in_all & behind_all).any()):
             return None
@@ -471,13 +556,15 @@ class _FrameParser:
                 or (box_all[:, 3] < box_all[:, 1]).any() or ((tr < 0) | (tr > 1) | (oc < 0) | (oc > 1)).any()):
             return None
         objects = []
-        k = 0
+        k = v = 0
         for i, o in enumerate(raw):
-            src, vis = o.get("bbox_source"), o.get("bbox_visible")
+            src, vis, vel = o.get("bbox_source"), o.get("bbox_visible"), o.get("velocity")
             if src is not None:
                 src, k = box_all[k], k + 1
             if vis is not None:
                 vis, k = box_all[k], k + 1
+            if vel is not None:
+                vel, v = vel_all[v], v + 1
             occ = o.get("occlusion")
             objects.append(ObjectRecord(
                 category=o["category"], instance_id=o["instance_id"],
@@ -486,6 +573,7 @@ class _FrameParser:
                 truncation=float(tr[i]), occlusion=None if occ is None else float(oc[i]),
                 occlusion_level=o["occlusion_level"], bbox_source=src, bbox_visible=vis,
                 difficulty=o.get("difficulty"), source_attributes=o.get("source_attributes", {}),
+                track_id=o.get("track_id"), velocity=vel,
             ))
         return objects
 
@@ -525,6 +613,8 @@ class _FrameParser:
         attrs = o.get("source_attributes", {})
         if not isinstance(attrs, dict):
             raise self.fail(p + "source_attributes", "expected an object")
+        track = self.schema2_keys(o, SCHEMA2_OBJECT_FIELDS, p)
+        track_id, velocity = track["track_id"], track["velocity"]
         return ObjectRecord(
             category=category, instance_id=instance_id, box=Box3D(center, dims, rotation),
             keypoints=keypoints, in_image=in_image, behind_camera=behind, occluded=occluded, bbox=bbox,
@@ -532,4 +622,6 @@ class _FrameParser:
             bbox_source=None if bbox_source is None else self.box2d(bbox_source, p + "bbox_source"),
             bbox_visible=None if bbox_visible is None else self.box2d(bbox_visible, p + "bbox_visible"),
             difficulty=difficulty, source_attributes=attrs,
+            track_id=None if track_id is None else self.integer(track_id, p + "track_id", 1, _TRACK_ID_MAX),
+            velocity=None if velocity is None else self.array(velocity, p + "velocity", (3,)),
         )

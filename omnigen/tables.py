@@ -36,6 +36,8 @@ _OBJECT_COLUMNS = {
     "occlusion": (np.float64, (), np.nan),
     "occlusion_level": (np.int8, (), 3),
     "difficulty": (np.int8, (), -1),
+    "track_id": (np.int64, (), -1),
+    "velocity": (np.float64, (3,), np.nan),
 }
 
 
@@ -43,8 +45,9 @@ _OBJECT_COLUMNS = {
 class ObjectTable:
     """Every object of a dataset as parallel arrays (one row per object), for fast statistics.
 
-    `frame` is the row's frame index; `category` indexes FINE_CLASSES; absent optional boxes
-    and occlusion are NaN; `difficulty` indexes DIFFICULTY_NAMES, -1 where undefined.
+    `frame` is the row's frame index; `category` indexes FINE_CLASSES; absent optional boxes,
+    occlusion and world velocities are NaN; `difficulty` indexes DIFFICULTY_NAMES, -1 where
+    undefined; `track_id` is -1 where the object has none.
     """
 
     frame: np.ndarray
@@ -64,6 +67,8 @@ class ObjectTable:
     occlusion: np.ndarray
     occlusion_level: np.ndarray
     difficulty: np.ndarray
+    track_id: np.ndarray
+    velocity: np.ndarray
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -76,6 +81,7 @@ class ObjectTable:
     def from_records(cls, records: Iterable[FrameRecord]) -> "ObjectTable":
         rows: dict[str, list] = {name: [] for name in _OBJECT_COLUMNS}
         no_box = np.full(4, np.nan)  # an absent bbox_source / bbox_visible: one shared row of NaN
+        no_velocity = np.full(3, np.nan)
         for f_index, rec in enumerate(records):
             for o in rec.objects:
                 rows["frame"].append(f_index)
@@ -95,6 +101,8 @@ class ObjectTable:
                 rows["occlusion"].append(np.nan if o.occlusion is None else o.occlusion)
                 rows["occlusion_level"].append(o.occlusion_level)
                 rows["difficulty"].append(-1 if o.difficulty is None else DIFFICULTY_NAMES.index(o.difficulty))
+                rows["track_id"].append(-1 if o.track_id is None else o.track_id)
+                rows["velocity"].append(no_velocity if o.velocity is None else o.velocity)
         columns = {}
         for name, (dtype, shape, fill) in _OBJECT_COLUMNS.items():
             values = rows[name]
@@ -124,15 +132,17 @@ class ObjectTable:
         return ObjectTable(**{name: getattr(self, name)[rows] for name in _OBJECT_COLUMNS})
 
 
-_FRAME_STRINGS = ("frame_id", "source", "view", "image", "group")
-_FRAME_ARRAYS = ("width", "height", "K", "ground_plane", "camera_height", "camera_pitch", "schema_version")
+_FRAME_STRINGS = ("frame_id", "source", "view", "image", "group", "sequence", "pair")
+_FRAME_ARRAYS = ("width", "height", "K", "ground_plane", "camera_height", "camera_pitch", "schema_version",
+                 "timestamp", "camera_to_world")
 
 
 @dataclass
 class FrameTable:
     """Every frame's own fields as columns: strings as lists, numbers as arrays.
 
-    Absent ground planes, camera heights and pitches are NaN. The nested, rarely needed fields
+    Absent ground planes, camera heights and pitches, timestamps and camera_to_world are NaN;
+    absent groups, sequences and pairs None. The nested, rarely needed fields
     (synthetic info, ignore regions) stay a JSON blob until first asked for.
     """
 
@@ -141,6 +151,8 @@ class FrameTable:
     view: list[str]
     image: list[str]
     group: list[str | None]
+    sequence: list[str | None]
+    pair: list[str | None]
     width: np.ndarray
     height: np.ndarray
     K: np.ndarray  # (F, 3, 3)
@@ -148,6 +160,8 @@ class FrameTable:
     camera_height: np.ndarray
     camera_pitch: np.ndarray
     schema_version: np.ndarray
+    timestamp: np.ndarray
+    camera_to_world: np.ndarray  # (F, 4, 4)
     extras_blob: bytes = b"[]"
     _extras: list[dict[str, Any]] | None = None
 
@@ -173,12 +187,16 @@ class FrameTable:
         return cls(
             frame_id=[r.frame_id for r in records], source=[r.source for r in records],
             view=[r.view for r in records], image=[r.image for r in records], group=[r.group for r in records],
+            sequence=[r.sequence for r in records], pair=[r.pair for r in records],
             width=np.array([r.width for r in records], dtype=np.int32),
             height=np.array([r.height for r in records], dtype=np.int32),
             K=np.array([r.K for r in records], dtype=np.float64).reshape(n, 3, 3), ground_plane=plane,
             camera_height=np.array([np.nan if r.camera_height is None else r.camera_height for r in records], dtype=np.float64),
             camera_pitch=np.array([np.nan if r.camera_pitch is None else r.camera_pitch for r in records], dtype=np.float64),
             schema_version=np.array([r.schema_version for r in records], dtype=np.int16),
+            timestamp=np.array([np.nan if r.timestamp is None else r.timestamp for r in records], dtype=np.float64),
+            camera_to_world=np.array([_NO_POSE if r.camera_to_world is None else r.camera_to_world for r in records],
+                                     dtype=np.float64).reshape(n, 4, 4),
             extras_blob=json.dumps(extras).encode(),
         )
 
@@ -220,9 +238,18 @@ class FrameTable:
             "K": self.K[i].tolist(),
             "ground_plane": None if np.isnan(gp).any() else {"normal": gp[:3].tolist(), "offset": float(gp[3])},
             "camera_height": _nan_to_none(self.camera_height[i]), "camera_pitch": _nan_to_none(self.camera_pitch[i]),
-            "group": self.group[i], **self.extras[i],
+            "group": self.group[i], "sequence": self.sequence[i], "timestamp": _nan_to_none(self.timestamp[i]),
+            "pair": self.pair[i], "camera_to_world": _nan_to_none_array(self.camera_to_world[i]),
+            **self.extras[i],
         }
+
+
+_NO_POSE = np.full((4, 4), np.nan)
 
 
 def _nan_to_none(v: float) -> float | None:
     return None if np.isnan(v) else float(v)
+
+
+def _nan_to_none_array(a: np.ndarray) -> list | None:
+    return None if np.isnan(a).any() else a.tolist()

@@ -344,3 +344,43 @@ def test_the_assembling_writer_refuses_a_misnamed_record_and_unseals_before_drop
     assert (root / MANIFEST).exists()
     assert writer.drop_records_except({first}) and not (root / MANIFEST).exists()
     assert [p.stem for p in (root / "records").glob("*.json")] == [first]
+
+
+def test_index_columns_and_old_index_rebuilt(tmp_path: Path):
+    """The schema-2 fields travel through the index's columns; an index of the previous version
+    (without those columns) is rebuilt from the records instead of read with them missing."""
+    ds = write_fake_dataset(tmp_path / "ds", n_frames=12, objects_per_frame=4, seed=3, sequence=True)
+    t = ds.table
+    assert t.sequence[:2] == ["synthetic-seq000"] * 2 and t.sequence[11] == "synthetic-seq001"
+    assert t.pair[3] == "synthetic-seq000-pair000001" and np.allclose(t.timestamp[:3], [0.0, 0.1, 0.2])
+    assert t.camera_to_world.shape == (12, 4, 4) and np.array_equal(t.camera_to_world[:, 3], np.tile([0, 0, 0, 1.0], (12, 1)))
+    assert ds.objects.track_id.dtype == np.int64 and (ds.objects.track_id >= 1).all()
+    assert ds.objects.velocity.shape == (len(ds.objects), 3) and np.isfinite(ds.objects.velocity).all()
+    for i in range(len(ds)):
+        assert ds[i].to_dict() == json.loads(record_path(ds.root, ds.frame_ids[i]).read_text())
+
+    with np.load(ds.root / INDEX_FILE) as z:  # the index as the previous version wrote it
+        old = {k: z[k] for k in z.files if k not in ("obj_track_id", "obj_velocity", "frm_timestamp",
+                                                      "frm_camera_to_world")}
+    header = json.loads(old["header"].tobytes())
+    old["header"] = np.frombuffer(json.dumps({**header, "version": 2}).encode(), dtype=np.uint8)
+    np.savez(ds.root / INDEX_FILE, **old)
+    again = Dataset.open(ds.root)
+    assert np.array_equal(again.objects.track_id, ds.objects.track_id)
+    assert np.array_equal(again.table.camera_to_world, ds.table.camera_to_world)
+    with np.load(ds.root / INDEX_FILE) as z:
+        assert json.loads(z["header"].tobytes())["version"] == 3 and "obj_track_id" in z.files
+
+
+def test_schema1_records_read_with_null_fields(tmp_path: Path):
+    """A dataset written before schema 2 opens, its new columns absent (NaN, -1, None), and each
+    record read back equals its file upgraded (the new keys null); validate accepts it."""
+    ds = write_fake_dataset(tmp_path / "old", n_frames=6, objects_per_frame=3, seed=4, sequence=True, schema=1)
+    assert set(ds.table.schema_version.tolist()) == {1}
+    assert ds.table.sequence == [None] * 6 and np.isnan(ds.table.timestamp).all()
+    assert np.isnan(ds.table.camera_to_world).all() and (ds.objects.track_id == -1).all()
+    assert np.isnan(ds.objects.velocity).all()
+    rec = ds[2]
+    assert rec.schema_version == 1 and rec.camera_to_world is None and rec.objects[0].track_id is None
+    n, problems = check_dataset(ds.root, show_progress=False)
+    assert n == 6 and not problems

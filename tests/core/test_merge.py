@@ -388,3 +388,30 @@ def test_a_second_merge_into_a_locked_folder_fails_and_touches_nothing(sources, 
     with pytest.raises(DatasetError):
         merge([tmp_path / "no-such-source"], tmp_path / "new")
     assert not (tmp_path / "new").exists()
+
+
+def test_merge_schema1_with_schema2(tmp_path):
+    """A dataset written before schema 2 merges with one that has sequences and tracks: each
+    record keeps its own schema (files are placed as they are), and the merged index, assembled
+    from the sources' columns, equals the one the records give when read again."""
+    old = write_fake_dataset(tmp_path / "old", n_frames=20, objects_per_frame=3, seed=1, schema=1).root
+    new = write_fake_dataset(tmp_path / "new", n_frames=20, objects_per_frame=3, seed=2, source="kitti",
+                             sequence=True).root
+    report = merge([old, new], tmp_path / "uov", seed=0)
+    assert report.frames == 40
+    n, problems = check_dataset(tmp_path / "uov", show_progress=False)
+    assert n == 40 and not problems
+    ds = Dataset.open(tmp_path / "uov")
+    again = Dataset.open(tmp_path / "uov", rebuild=True)
+    for name in ("timestamp", "camera_to_world", "schema_version"):
+        assert np.array_equal(getattr(ds.table, name), getattr(again.table, name), equal_nan=name != "schema_version")
+    assert ds.table.sequence == again.table.sequence and ds.table.pair == again.table.pair
+    assert np.array_equal(ds.objects.track_id, again.objects.track_id)
+    assert np.array_equal(ds.objects.velocity, again.objects.velocity, equal_nan=True)
+    by_source = {s: {int(v) for v, src in zip(ds.table.schema_version, ds.table.source) if src == s}
+                 for s in ("synthetic", "kitti")}
+    assert by_source == {"synthetic": {1}, "kitti": {2}}
+    kitti = [i for i, s in enumerate(ds.table.source) if s == "kitti"]
+    assert all(ds.table.sequence[i] for i in kitti) and not any(ds.table.sequence[i] for i in range(40) if i not in kitti)
+    assert (ds.objects.track_id[np.isin(ds.objects.frame, kitti)] >= 1).all()
+    assert (ds.objects.track_id[~np.isin(ds.objects.frame, kitti)] == -1).all()

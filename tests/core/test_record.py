@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from omnigen.conventions import NUM_KEYPOINTS, V_OCCLUDED, V_OUTSIDE, V_VISIBLE
-from omnigen.fakes import random_frame
+from omnigen.fakes import random_frame, schema1_bytes
 from omnigen.formats.kitti import kitti_rotation
 from omnigen.geometry import Box3D
 from omnigen.record import FrameRecord, ObjectRecord, RecordError
@@ -151,15 +151,36 @@ def _mutations(good: dict):
     d = copy.deepcopy(good)
     d["objects"][1] = "not an object"
     yield d
+    for key in ("track_id", "velocity"):  # required in schema 2, refused in schema 1
+        d = copy.deepcopy(good)
+        if key in d["objects"][1]:
+            del d["objects"][1][key]
+        else:
+            d["objects"][1][key] = None
+        yield d
 
 
-def test_objects_checked_at_once_agree_with_one_by_one(good):
+@pytest.fixture(params=["schema2", "sequence", "schema1"])
+def any_good(request, good) -> tuple[dict, int]:
+    """A valid record of each kind the stacked check reads: schema 2 with null or filled sequence
+    and track fields, and schema 1 (no such keys); with its schema version."""
+    if request.param == "schema2":
+        return good, 2
+    rec = random_frame(seed=7, index=3, source="synthetic", view="infrastructure", n_objects=4, sequence=True)
+    if request.param == "sequence":
+        return json.loads(json.dumps(rec.to_dict())), 2
+    return json.loads(schema1_bytes(rec)), 1
+
+
+def test_objects_checked_at_once_agree_with_one_by_one(any_good):
     """The stacked check never accepts what the per-object check refuses, and builds the same objects."""
     from omnigen.record import _FrameParser
 
+    good, version = any_good
     accepted = refused = 0
     for d in [good, *_mutations(good)]:
         parser = _FrameParser(d, None)
+        parser.version = version
         try:
             expected = [parser.object(o, f"objects[{i}]") for i, o in enumerate(d["objects"])]
         except RecordError:
@@ -176,3 +197,122 @@ def test_objects_checked_at_once_agree_with_one_by_one(good):
                 assert np.array_equal(a.keypoints, b.keypoints, equal_nan=True)
                 assert a.bbox_source is None and b.bbox_source is None or np.array_equal(a.bbox_source, b.bbox_source)
     assert accepted > 20 and refused > 100  # both branches really exercised
+
+
+# -- schema 2: sequences, pairs, poses and tracks ---------------------------------------------
+
+@pytest.fixture()
+def sequenced() -> dict:
+    rec = random_frame(seed=7, index=13, source="synthetic", view="ego", n_objects=4, sequence=True)
+    assert rec.sequence and rec.camera_to_world is not None and all(o.track_id for o in rec.objects)
+    return json.loads(json.dumps(rec.to_dict()))
+
+
+def test_schema2_round_trip(sequenced):
+    rec = FrameRecord.from_dict(sequenced)
+    assert rec.to_dict() == sequenced and rec.schema_version == 2
+    assert (rec.sequence, rec.timestamp, rec.pair) == ("synthetic-seq001", 0.3, "synthetic-seq001-pair000001")
+    assert np.array_equal(rec.camera_to_world, sequenced["camera_to_world"])
+    assert [o.track_id for o in rec.objects] == [1, 2, 3, 4]
+    assert np.array_equal(rec.objects[2].velocity, sequenced["objects"][2]["velocity"])
+
+
+def test_schema2_requires_its_keys_nullable(good, sequenced):
+    for key in ("sequence", "timestamp", "pair", "camera_to_world"):
+        assert good[key] is None
+        d = copy.deepcopy(sequenced)
+        del d[key]
+        _reject(d, key, "missing")
+    for key in ("track_id", "velocity"):
+        assert good["objects"][0][key] is None
+        d = copy.deepcopy(sequenced)
+        del d["objects"][3][key]
+        _reject(d, f"objects[3].{key}", "missing")
+
+
+def test_schema1_still_reads(sequenced):
+    d = json.loads(schema1_bytes(FrameRecord.from_dict(sequenced)))
+    assert d["schema_version"] == 1 and "sequence" not in d and "track_id" not in d["objects"][0]
+    rec = FrameRecord.from_dict(d)
+    assert rec.schema_version == 1 and rec.sequence is rec.timestamp is rec.pair is rec.camera_to_world is None
+    assert all(o.track_id is None and o.velocity is None for o in rec.objects)
+    upgraded = rec.to_dict()  # written again, a schema-1 record is schema 2 with the new fields null
+    assert upgraded["schema_version"] == 2 and upgraded["camera_to_world"] is None
+    assert FrameRecord.from_dict(upgraded).to_dict() == upgraded
+    d["objects"][1]["track_id"] = 5
+    _reject(d, "objects[1].track_id", "not in schema 1")
+    d = json.loads(schema1_bytes(rec))
+    d["sequence"] = "s"
+    _reject(d, "sequence", "not in schema 1")
+
+
+def test_camera_to_world_checked(sequenced):
+    def with_pose(change) -> dict:
+        d = copy.deepcopy(sequenced)
+        m = np.array(d["camera_to_world"])
+        change(m)
+        d["camera_to_world"] = m.tolist()
+        return d
+
+    _reject(with_pose(lambda m: m.__setitem__((0, 0), m[0, 0] * 1.001)), "camera_to_world", "rotation part not orthonormal")
+    _reject(with_pose(lambda m: m.__setitem__((slice(0, 3), 0), -m[:3, 0])), "camera_to_world", "determinant")
+    _reject(with_pose(lambda m: m.__setitem__((3, 0), 0.5)), "camera_to_world", "last row must be 0 0 0 1")
+    _reject(with_pose(lambda m: m.__setitem__((3, 3), 2.0)), "camera_to_world", "last row must be 0 0 0 1")
+    _reject(with_pose(lambda m: m.__setitem__((1, 3), float("nan"))), "camera_to_world", "NaN")
+    d = copy.deepcopy(sequenced)
+    d["camera_to_world"] = d["camera_to_world"][:3]
+    _reject(d, "camera_to_world", "shape")
+    ok = with_pose(lambda m: m.__setitem__((0, 3), 3.4e6))  # a map-projected world is fine here
+    assert FrameRecord.from_dict(ok).camera_to_world[0, 3] == 3.4e6
+
+
+def test_duplicate_track_id_named(sequenced):
+    d = copy.deepcopy(sequenced)
+    d["objects"][2]["track_id"] = d["objects"][0]["track_id"]
+    err = _reject(d, "objects[2].track_id", f"duplicate track_id {d['objects'][0]['track_id']}")
+    assert str(err).count("\n") == 0  # one line
+    d["objects"][0]["track_id"] = d["objects"][2]["track_id"] = None  # null is no track: two may be null
+    assert FrameRecord.from_dict(d).objects[0].track_id is None
+    for bad in (0, -3, 1.5, "7", True):
+        d = copy.deepcopy(sequenced)
+        d["objects"][1]["track_id"] = bad
+        _reject(d, "objects[1].track_id", "integer" if not isinstance(bad, int) or bad is True else "outside")
+
+
+def test_sequence_fields_checked(sequenced):
+    d = copy.deepcopy(sequenced)
+    d["sequence"] = None
+    _reject(d, "timestamp", "'sequence' is null")
+    d["timestamp"] = None
+    assert FrameRecord.from_dict(d).sequence is None  # no sequence, no clock: fine
+    for key, bad, words in (("timestamp", -0.1, "outside"), ("timestamp", "0.1", "expected a number"),
+                            ("sequence", "a b/c", "letters, digits"), ("pair", "", "non-empty string"),
+                            ("pair", 3, "non-empty string")):
+        d = copy.deepcopy(sequenced)
+        d[key] = bad
+        _reject(d, key, words)
+    d = copy.deepcopy(sequenced)
+    d["objects"][0]["velocity"] = [1.0, float("inf"), 0.0]
+    _reject(d, "objects[0].velocity", "NaN or infinity")
+
+
+def test_fast_parser_takes_track_fields(sequenced, monkeypatch):
+    """Records with tracks, velocities and null ones are read by the stacked check: falling back to
+    the per-object check for every such record would silently cost most of a read's time."""
+    from omnigen.record import _FrameParser
+
+    d = copy.deepcopy(sequenced)
+    d["objects"][1]["track_id"] = d["objects"][1]["velocity"] = None
+    parser = _FrameParser(d, None)
+    objects = parser.objects_at_once(d["objects"])
+    assert objects is not None
+    assert [o.track_id for o in objects] == [1, None, 3, 4]
+    assert objects[1].velocity is None
+    assert np.array_equal(objects[3].velocity, d["objects"][3]["velocity"])
+
+    def no_slow_path(self, o, path):
+        raise AssertionError(f"{path} read one by one")
+
+    monkeypatch.setattr(_FrameParser, "object", no_slow_path)
+    assert FrameRecord.from_dict(d).to_dict() == d
+    assert FrameRecord.from_dict(json.loads(schema1_bytes(FrameRecord.from_dict(d)))).objects[0].track_id is None

@@ -13,7 +13,7 @@ import pytest
 from omnigen.checks import check_dataset
 from omnigen.cli import main as cli
 from omnigen.dataset import MANIFEST, record_files
-from omnigen.fakes import write_fake_dataset
+from omnigen.fakes import random_frame, write_fake_dataset
 from omnigen.geometry import Box3D
 from omnigen.plausible import (MAX_KEYPOINT_COORDINATE, MAX_PIXEL_COORDINATE, record_problems,
                                worst_keypoint_coordinate)
@@ -97,6 +97,21 @@ def test_a_real_object_straddling_the_image_plane_is_plausible():
     assert record_problems(rec) == []
 
 
+def test_far_camera_positions_and_fast_objects_are_problems():
+    """camera_to_world may sit in a map projection (millions of metres) but not beyond
+    MAX_WORLD_COORDINATE_M; an object may move fast, not beyond MAX_SPEED_M_S."""
+    rec = random_frame(seed=5, index=2, n_objects=4, sequence=True)
+    rec.camera_to_world[:3, 3] = [3.39e6, 2.09e6, 20.0]  # DAIR-V2X-C's world: plausible
+    rec.objects[1].velocity = np.array([60.0, 0.0, 0.0])
+    assert record_problems(rec) == []
+    rec.camera_to_world[1, 3] = -2e7
+    rec.objects[1].velocity = np.array([60.0, 40.0, 0.0])
+    problems = record_problems(rec)
+    assert [field for field, _ in problems] == ["camera_to_world", "objects[1].velocity"]
+    assert "MAX_WORLD_COORDINATE_M" in problems[0][1]
+    assert "exceeds 70 m/s (MAX_SPEED_M_S)" in problems[1][1]
+
+
 def test_the_keypoint_bound_lies_beyond_what_any_record_within_the_other_bounds_projects():
     assert worst_keypoint_coordinate() < MAX_KEYPOINT_COORDINATE
     assert MAX_KEYPOINT_COORDINATE**2 < np.finfo(np.float32).max  # squared distances stay finite
@@ -104,7 +119,8 @@ def test_the_keypoint_bound_lies_beyond_what_any_record_within_the_other_bounds_
 
 def test_fake_datasets_pass_the_bounds(tmp_path):
     for source in ("synthetic", "kitti", "dair-v2x-i"):
-        root = write_fake_dataset(tmp_path / source, n_frames=12, objects_per_frame=8, seed=9, source=source).root
+        root = write_fake_dataset(tmp_path / source, n_frames=12, objects_per_frame=8, seed=9, source=source,
+                                  sequence=source == "kitti").root
         assert check_dataset(root, show_progress=False)[1] == []
 
 
