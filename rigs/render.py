@@ -8,7 +8,8 @@ Per frame i of a dataset with seed s (frame id `synthetic-<rig>-s<seed>-<i:06d>`
    `synthetic.scene`, the manifest and `.render-args.json` name); a run of AHEAD_MIN_FRAMES
    frames or more draws each next frame's scene in a second process while this one renders
    (scenes/generate.py FramesAhead: the same Scene);
-2. the camera: `omnigen.rigs.sampling.sample_camera` from the rig's own stream `rig_rng(s, i)`;
+2. the camera: `omnigen.rigs.sampling.sample_camera` from the rig's own stream `rig_rng(s, i)`
+   (drawn with the scene in that second process where there is one: `first_camera`);
 3. render (backend `raster` or `cycles`), annotate (rigs/annotate.py); if fewer than the rig's
    `min_objects` objects are annotated (buildings hid what the geometric estimate counted), the
    camera is redrawn from the same stream, up to the rig's max_tries in all;
@@ -41,6 +42,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +55,7 @@ from omnigen.options import SEED_MAX
 from omnigen.record import FrameRecord, SyntheticInfo
 from omnigen.rigs.annotate import annotate
 from omnigen.rigs.rig import RESOLUTION_RANGE, Rig, load_rig
-from omnigen.rigs.sampling import Obstacles, rig_rng, sample_camera
+from omnigen.rigs.sampling import DrawnCamera, Obstacles, rig_rng, sample_camera
 from omnigen.scenes.description import Scene, to_dict
 from omnigen.scenes.generate import FrameOverrides, FramesAhead
 from omnigen.untrusted import read_regular
@@ -496,6 +498,14 @@ class RenderSummary:
                                                                "renderer_core": 0.0})
 
 
+def first_camera(rig: Rig, width: int, height: int, scene: Scene) -> tuple[DrawnCamera, np.random.Generator]:
+    """A frame's first camera draw (sample_camera from the rig's own stream of the frame) and that
+    stream as the draw left it, which a redraw goes on with: a function of the scene alone, so a
+    FramesAhead worker makes it with the scene (its `then`) and this process need not."""
+    rng = rig_rng(scene.dataset_seed, scene.frame_index)
+    return sample_camera(rig, scene, rng, width, height, Obstacles(scene)), rng
+
+
 class Renderer:
     """Holds the city, the backend and the rig; renders frames by index. Build once per process."""
 
@@ -543,13 +553,13 @@ class Renderer:
         if self.ahead is not None and next_index is not None:
             self.ahead.ask(job.seed, next_index, job.overrides)
         t0 = time.perf_counter()
-        scene = (self.ahead or self.gen).frame(job.seed, index, job.overrides)
+        scene, drawn = self.ahead.frame_with(job.seed, index, job.overrides) if self.ahead is not None \
+            else (self.gen.frame(job.seed, index, job.overrides), None)
         tm["scene"] += time.perf_counter() - t0
-        # The first camera is drawn (pure Python) while the previous frame may still be shaded.
-        rng = rig_rng(job.seed, index)
+        # The first camera is drawn (pure Python) with the scene in the worker, else here while the
+        # previous frame may still be shaded; its stream goes on for a redraw.
         t1 = time.perf_counter()
-        obstacles = Obstacles(scene)
-        cam = sample_camera(self.rig, scene, rng, self.width, self.height, obstacles)
+        cam, rng = drawn if drawn is not None else first_camera(self.rig, self.width, self.height, scene)
         tm["camera"] += time.perf_counter() - t1
         self._finish_frame()  # the previous frame's image, shaded while this frame's scene and camera were drawn
         t1 = time.perf_counter()
@@ -572,7 +582,7 @@ class Renderer:
             if len(ann.objects) >= self.rig.min_objects or cam.tries >= self.rig.max_tries:
                 break
             self.summary.redraws += 1
-            cam = sample_camera(self.rig, scene, rng, self.width, self.height, obstacles, start_try=cam.tries)
+            cam = sample_camera(self.rig, scene, rng, self.width, self.height, Obstacles(scene), start_try=cam.tries)
             tm["camera"] += time.perf_counter() - t2
         if out.shade is not None:  # the kept camera's colour pass, shaded while the next scene and camera are drawn
             t = time.perf_counter()
@@ -611,7 +621,8 @@ class Renderer:
         cores or more may run it; whether frames are drawn ahead. Ray actors never do: each has
         its one CPU."""
         if self.ahead is None and self.job.ahead and frames >= AHEAD_MIN_FRAMES and len(os.sched_getaffinity(0)) >= 2:
-            self.ahead = FramesAhead(self.gen, meshes=self.job.backend == "cycles")  # Cycles builds every agent
+            self.ahead = FramesAhead(self.gen, meshes=self.job.backend == "cycles",  # Cycles builds every agent
+                                     then=partial(first_camera, self.rig, self.width, self.height))
         return self.ahead is not None
 
     def _write_frame(self, files: FrameFiles, record: FrameRecord) -> None:

@@ -17,6 +17,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Callable
 
 from omnigen.scenes.assets.build import adopt_agents, built_agents
 from omnigen.scenes.description import City, Scene, canonical
@@ -96,15 +97,22 @@ def build_scene(preset: str | Path | Preset = "downtown", seed: int = 0, overrid
 _WORKER_GEN: list[SceneGenerator] = []  # in a FramesAhead worker: the generator it draws with
 
 
-def _start_worker(gen: SceneGenerator) -> None:
+_WORKER_THEN: list[Callable[[Scene], Any] | None] = [None]  # and what it draws after each frame
+
+
+def _start_worker(gen: SceneGenerator, then: Callable[[Scene], Any] | None = None) -> None:
     _WORKER_GEN[:] = [gen]
+    _WORKER_THEN[:] = [then]
 
 
 def _worker_frame(dataset_seed: int, frame_index: int, overrides: FrameOverrides | None, meshes: bool = False) -> tuple:
     """A frame drawn in the worker, less the city (the caller has its own; it is the large part),
-    and with `meshes` its agents' meshes (assets.build.built_agents), else None."""
+    with `meshes` its agents' meshes (assets.build.built_agents), else None, and what the caller's
+    `then` makes of it (None without one)."""
     scene = _WORKER_GEN[0].frame(dataset_seed, frame_index, overrides)
-    return scene.agents, scene.weather, scene.lighting, built_agents(scene.agents) if meshes else None
+    then = _WORKER_THEN[0]
+    return (scene.agents, scene.weather, scene.lighting, built_agents(scene.agents) if meshes else None,
+            then(scene) if then is not None else None)
 
 
 class FramesAhead:
@@ -122,12 +130,16 @@ class FramesAhead:
     adopts them into its mesh cache, for a backend that builds every agent of a frame (Cycles'
     Blender scene: ~0.45 s a downtown frame, more than drawing the frame). Not for the raster,
     which builds only the agents in view, fewer than the worker would.
+
+    then: what else depends on the frame alone and is worth drawing ahead, a function of its Scene
+    run in the worker after it (the renderer's first camera draw: rigs/render.py first_camera);
+    frame_with hands back its result, picklable, as this process would have made it.
     """
 
-    def __init__(self, gen: SceneGenerator, meshes: bool = False) -> None:
+    def __init__(self, gen: SceneGenerator, meshes: bool = False, then: Callable[[Scene], Any] | None = None) -> None:
         self.gen, self.meshes = gen, meshes
         self._pool: ProcessPoolExecutor | None = ProcessPoolExecutor(
-            1, mp_context=multiprocessing.get_context("fork"), initializer=_start_worker, initargs=(gen,))
+            1, mp_context=multiprocessing.get_context("fork"), initializer=_start_worker, initargs=(gen, then))
         self._pool.submit(int)  # forks now (a fork pool starts its worker at the first task)
         self._asked: dict[tuple, Future] = {}
 
@@ -142,16 +154,22 @@ class FramesAhead:
 
     def frame(self, dataset_seed: int, frame_index: int, overrides: FrameOverrides | None = None) -> Scene:
         """SceneGenerator.frame: the worker's drawing if it was asked for (waiting for it), else drawn here."""
+        return self.frame_with(dataset_seed, frame_index, overrides)[0]
+
+    def frame_with(self, dataset_seed: int, frame_index: int, overrides: FrameOverrides | None = None
+                   ) -> tuple[Scene, Any]:
+        """frame's Scene and what `then` made of it in the worker; None for the latter where the
+        frame was drawn here (not asked for, or the worker died): the caller makes it itself."""
         asked = self._asked.pop((dataset_seed, frame_index, overrides), None)
         if asked is not None:
             try:
-                agents, weather, lighting, built = asked.result()
+                agents, weather, lighting, built, after = asked.result()
                 if built is not None:
                     adopt_agents(built)
-                return Scene(self.gen.city, agents, weather, lighting, int(dataset_seed), int(frame_index))
+                return Scene(self.gen.city, agents, weather, lighting, int(dataset_seed), int(frame_index)), after
             except BrokenProcessPool:
                 self.close()
-        return self.gen.frame(dataset_seed, frame_index, overrides)
+        return self.gen.frame(dataset_seed, frame_index, overrides), None
 
     def close(self) -> None:
         pool, self._pool = self._pool, None

@@ -85,3 +85,27 @@ def test_frames_are_drawn_ahead_only_where_it_pays(tmp_path, monkeypatch):
     assert r.draw_ahead(render.AHEAD_MIN_FRAMES) and r.ahead is not None
     r.close()
     assert r.ahead is None
+
+
+def test_a_camera_drawn_ahead_and_redrawn_equals_the_frame_alone(tmp_path, monkeypatch):
+    """The worker draws each frame's first camera with its scene (render.first_camera) and hands
+    back the rig's stream as the draw left it: a redraw (fewer objects annotated than the rig asks)
+    goes on with it exactly as a frame drawn here does."""
+    from dataclasses import replace
+
+    monkeypatch.setattr(render, "AHEAD_MIN_FRAMES", 1)
+    monkeypatch.setattr(render.os, "sched_getaffinity", lambda pid: {0, 1})
+    real, first_seen = render.annotate, set()
+
+    def first_look_finds_nothing(scene, cam, *rest):  # each frame's first camera is redrawn once
+        ann = real(scene, cam, *rest)
+        if (scene.dataset_seed, scene.frame_index) in first_seen:
+            return ann
+        first_seen.add((scene.dataset_seed, scene.frame_index))
+        return replace(ann, objects=[])
+    monkeypatch.setattr(render, "annotate", first_look_finds_nothing)
+    seq = Renderer(_job(tmp_path / "seq", "drone", "tiny", 0, len(FRAMES)))
+    seq.run(show_progress=False)
+    assert seq.summary.redraws == len(FRAMES)
+    first_seen.clear()
+    _same_as_alone(tmp_path, tmp_path / "seq", "drone", "tiny")

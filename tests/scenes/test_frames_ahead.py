@@ -69,3 +69,21 @@ def test_meshes_built_ahead_are_adopted_and_equal_a_build_here(monkeypatch):
         assert not build._CACHE
     finally:
         plain.close()
+
+
+def _made_in(scene):
+    return os.getpid(), len(scene.agents), scene.frame_index
+
+
+def test_what_then_makes_of_a_frame_comes_back_with_it():
+    """FramesAhead(then=f) runs f on each frame asked for in the worker (another process) and
+    frame_with hands back its result; a frame drawn here comes back with None (the caller makes it)."""
+    gen = SceneGenerator("tiny", 6)
+    ahead = FramesAhead(gen, then=_made_in)
+    try:
+        ahead.ask(6, 3)
+        scene, made = ahead.frame_with(6, 3)
+        assert made[0] != os.getpid() and made[1:] == (len(scene.agents), 3)
+        assert ahead.frame_with(6, 4)[1] is None
+    finally:
+        ahead.close()
