@@ -20,6 +20,8 @@ Rules (docs/rendering.md repeats them):
   since every mesh lies inside its cuboid, each object's pixels in its group's pass are exactly its
   silhouette alone. Cost: one instance-only pass per group (typically 2 to 6 per frame) instead of
   one per object. `occlusion_level` from `conventions.occlusion_level_from_fraction`.
+- `track_id` = the agent's instance id (in a sequence the same agent keeps it at every instant);
+  `velocity` = the agent's world velocity in m/s where the Scene has one (a sequence's instants).
 - Left out: objects with fewer than MIN_VISIBLE_PIXELS visible mask pixels (this includes objects
   entirely hidden, and cuboids whose projection reaches the image but whose mesh shows nowhere).
   Objects with 1 to MIN_VISIBLE_PIXELS - 1 visible pixels are kept as `ignore_regions` (their
@@ -128,7 +130,9 @@ def annotate(scene: Scene, cam: Camera, depth: np.ndarray, instance: np.ndarray,
     visible_count = {i: c for i, c in enumerate(counts.tolist()) if c}
     candidates: dict[int, ObjectRecord] = {}
     ignore: list[IgnoreRegion] = []
-    for a in scene.agents:
+    # Velocities are parallel to the agents in a sequence's Scene (world frame), absent otherwise.
+    velocities = scene.velocities or (None,) * len(scene.agents)
+    for a, velocity in zip(scene.agents, velocities):
         n = visible_count.get(a.instance_id, 0)
         if n == 0:
             continue
@@ -138,6 +142,8 @@ def annotate(scene: Scene, cam: Camera, depth: np.ndarray, instance: np.ndarray,
             ignore.append(IgnoreRegion(vis_box, f"small-{a.category}"))
             continue
         rec.bbox_visible = vis_box
+        rec.track_id = a.instance_id  # the agent's id is its track: stable across a sequence's instants
+        rec.velocity = None if velocity is None else np.asarray(velocity, dtype=np.float64)
         candidates[a.instance_id] = rec
     groups = _groups({i: r.bbox for i, r in candidates.items()})
     alone: dict[int, int] = {}

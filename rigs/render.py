@@ -54,6 +54,7 @@ from omnigen.index import INDEX_FILE
 from omnigen.options import SEED_MAX
 from omnigen.record import FrameRecord, SyntheticInfo
 from omnigen.rigs.annotate import annotate
+from omnigen.rigs.render_command import DEFAULT_FPS, FPS_RANGE, MAX_SEQUENCE_LENGTH
 from omnigen.rigs.rig import RESOLUTION_RANGE, Rig, load_rig
 from omnigen.rigs.sampling import DrawnCamera, Obstacles, rig_rng, sample_camera
 from omnigen.scenes.description import Scene, to_dict
@@ -73,6 +74,11 @@ MAX_FRAME_INDEX = SEED_MAX
 
 def frame_id_for(rig: str, seed: int, index: int) -> str:
     return f"synthetic-{rig}-s{seed}-{index:06d}"
+
+
+def sequence_id_for(scene: str, seed: int, sequence: int) -> str:
+    """A rendered sequence's id: letters, digits and '-', a record's identifier."""
+    return f"synthetic-{scene}-s{seed}-q{sequence:06d}"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -272,6 +278,13 @@ class RenderJob:
     labels: str = "auto"  # Cycles: depth, ids and silhouettes from GL (auto, gl) or Cycles' own passes
     device: str = "auto"  # Cycles' compute devices (scenes/cycles_devices.py): how frames render, not what
     ahead: bool = True  # run(): may draw each next frame's scene in a second process (Renderer.draw_ahead)
+    sequence_length: int = 1  # instants per sequence (1: independent frames, today's render)
+    fps: float = DEFAULT_FPS  # instants per second within a sequence
+
+    @property
+    def sequences(self) -> bool:
+        """Whether the run renders sequences (L > 1) rather than independent frames."""
+        return self.sequence_length > 1
 
     def __post_init__(self) -> None:
         """Refuse numbers the frames cannot be made from, before anything is written: a seed past
@@ -286,15 +299,24 @@ class RenderJob:
         for name in ("width", "height"):
             if getattr(self, name) is not None:
                 _within(name, getattr(self, name), *RESOLUTION_RANGE)
+        _within("sequence-length", self.sequence_length, 1, MAX_SEQUENCE_LENGTH)
+        if isinstance(self.fps, bool) or not isinstance(self.fps, numbers.Real) or not FPS_RANGE[0] <= self.fps <= FPS_RANGE[1]:
+            raise ValueError(f"--fps {self.fps!r} is outside [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}]")
+        L = self.sequence_length
+        if self.frames % L or self.start % L:
+            raise ValueError(f"--frames {self.frames} and --start {self.start} must be multiples of --sequence-length "
+                             f"{L} (a run renders whole sequences)")
 
     def indices(self) -> range:
         """Every frame index of the run (all shards)."""
         return range(self.start, self.start + self.frames)
 
     def shard_indices(self) -> list[int]:
-        """The frame indices this shard renders: index % N == K - 1 (round robin on the absolute index)."""
+        """The frame indices this shard renders: whole sequences, sequence q = index // L with
+        q % N == K - 1 (round robin on the absolute sequence; with L = 1, on the index), so no two
+        shards build the world of one sequence."""
         k, n = self.shard
-        return [i for i in self.indices() if i % n == k - 1]
+        return [i for i in self.indices() if (i // self.sequence_length) % n == k - 1]
 
 
 def _within(name: str, value: int, lo: int, hi: int) -> None:
@@ -333,6 +355,8 @@ def render_info(job: RenderJob, rig: Rig | None = None) -> dict:
             "height": int(job.height or rig.resolution[1])}
     if len(mix_names(job.scene)) > 1:
         info["scene_mix"] = str(job.scene)
+    if job.sequences:  # recorded only off the default, so folders rendered before sequences resume as before
+        info.update(sequence_length=int(job.sequence_length), fps=float(job.fps))
     return info
 
 
@@ -343,7 +367,7 @@ _FLAGS = {  # recorded key -> how the command line says it (for the refusal's me
     "scene_sha256": "the scene preset's definition (its TOML)", "seed": "--seed", "width": "--width",
     "height": "--height", "backend": "--backend", "quality": "--quality", "labels": "--labels",
     "weather": "--weather", "time_of_day": "--time-of-day", "fog_density": "--fog-density",
-    "precipitation": "--precipitation",
+    "precipitation": "--precipitation", "sequence_length": "--sequence-length", "fps": "--fps",
 }
 
 
@@ -506,6 +530,15 @@ def first_camera(rig: Rig, width: int, height: int, scene: Scene) -> tuple[Drawn
     return sample_camera(rig, scene, rng, width, height, Obstacles(scene)), rng
 
 
+def camera_to_world(cam: DrawnCamera) -> np.ndarray:
+    """The record's camera_to_world, [[R^T, position], [0 0 0 1]]: X_cam = R X_world + t with
+    t = -R position, so X_world = R^T X_cam + position, in the scene's world (z up, ground z = 0)."""
+    m = np.eye(4)
+    m[:3, :3] = cam.R.T
+    m[:3, 3] = cam.position
+    return m
+
+
 class Renderer:
     """Holds the city, the backend and the rig; renders frames by index. Build once per process."""
 
@@ -542,6 +575,7 @@ class Renderer:
         self._pool: ThreadPoolExecutor | None = None
         self._unfinished: tuple[Rendered, FrameRecord] | None = None  # a deferred frame, its image to read back
         self.ahead: FramesAhead | None = None  # run(): the next frame's scene drawn in a second process
+        self._sequence: tuple | None = None  # sequences: (q, World, camera) of the sequence rendered last
 
     def frame_id(self, index: int) -> str:
         return frame_id_for(self.rig.name, self.job.seed, index)
@@ -550,17 +584,20 @@ class Renderer:
         """Render, annotate and write frame `index`; returns its record. `next_index`: the frame
         rendered next, whose scene is drawn meanwhile when frames are drawn ahead (`self.ahead`)."""
         job, tm = self.job, self.summary.timings
-        if self.ahead is not None and next_index is not None:
-            self.ahead.ask(job.seed, next_index, job.overrides)
-        t0 = time.perf_counter()
-        scene, drawn = self.ahead.frame_with(job.seed, index, job.overrides) if self.ahead is not None \
-            else (self.gen.frame(job.seed, index, job.overrides), None)
-        tm["scene"] += time.perf_counter() - t0
-        # The first camera is drawn (pure Python) with the scene in the worker, else here while the
-        # previous frame may still be shaded; its stream goes on for a redraw.
-        t1 = time.perf_counter()
-        cam, rng = drawn if drawn is not None else first_camera(self.rig, self.width, self.height, scene)
-        tm["camera"] += time.perf_counter() - t1
+        if job.sequences:
+            scene, cam, rng = self._instant(index)
+        else:
+            if self.ahead is not None and next_index is not None:
+                self.ahead.ask(job.seed, next_index, job.overrides)
+            t0 = time.perf_counter()
+            scene, drawn = self.ahead.frame_with(job.seed, index, job.overrides) if self.ahead is not None \
+                else (self.gen.frame(job.seed, index, job.overrides), None)
+            tm["scene"] += time.perf_counter() - t0
+            # The first camera is drawn (pure Python) with the scene in the worker, else here while the
+            # previous frame may still be shaded; its stream goes on for a redraw.
+            t1 = time.perf_counter()
+            cam, rng = drawn if drawn is not None else first_camera(self.rig, self.width, self.height, scene)
+            tm["camera"] += time.perf_counter() - t1
         self._finish_frame()  # the previous frame's image, shaded while this frame's scene and camera were drawn
         t1 = time.perf_counter()
         if self.backend is None:
@@ -579,7 +616,7 @@ class Renderer:
             ann = annotate(scene, cam, out.depth, out.instance, lambda ids: self.backend.silhouettes(cam, ids))
             t2 = time.perf_counter()
             tm["annotate"] += t2 - t4
-            if len(ann.objects) >= self.rig.min_objects or cam.tries >= self.rig.max_tries:
+            if rng is None or len(ann.objects) >= self.rig.min_objects or cam.tries >= self.rig.max_tries:
                 break
             self.summary.redraws += 1
             cam = sample_camera(self.rig, scene, rng, self.width, self.height, Obstacles(scene), start_try=cam.tries)
@@ -596,7 +633,8 @@ class Renderer:
             frame_id=fid, source="synthetic", view=self.rig.view, image=image, width=self.width, height=self.height,
             K=cam.K, objects=ann.objects, ignore_regions=ann.ignore_regions, ground_plane=plane,
             camera_height=plane.camera_height, camera_pitch=plane.camera_pitch,
-            group=f"synthetic-{self.scene_name}-{job.seed}",
+            group=f"synthetic-{self.scene_name}-{job.seed}", camera_to_world=camera_to_world(cam),
+            **self._sequence_fields(index),
             synthetic=SyntheticInfo(seed=job.seed, scene=self.scene_name, rig=self.rig.name,
                                     weather=to_dict(scene.weather), lighting=to_dict(scene.lighting),
                                     depth=depth, instance=instance),
@@ -615,12 +653,46 @@ class Renderer:
         self.summary.objects += len(record.objects)
         return record
 
+    def _instant(self, index: int) -> tuple[Scene, DrawnCamera, None]:
+        """Instant k = index % L of sequence q = index // L: the sequence's World at time k / fps,
+        and its camera, drawn once at instant 0 (the rig's stream of frame q) and held for the
+        whole sequence. No stream is handed back: a sequence's camera is never redrawn after a
+        render, since a process resuming mid-sequence could not know of that redraw; it is kept on
+        sample_camera's geometric checks alone. Both are rebuilt for any sequence not held, so a
+        resumed run equals an uninterrupted one."""
+        from omnigen.scenes.world import World
+
+        job, tm = self.job, self.summary.timings
+        q, k = divmod(index, job.sequence_length)
+        t0 = time.perf_counter()
+        if self._sequence is None or self._sequence[0] != q:
+            world = World.build(self.gen.city, self.gen.preset, job.seed, q, job.overrides, self.gen.user_assets)
+            t1 = time.perf_counter()
+            tm["scene"] += t1 - t0
+            cam = first_camera(self.rig, self.width, self.height, world.scene0)[0]
+            t0 = time.perf_counter()
+            tm["camera"] += t0 - t1
+            self._sequence = (q, world, cam)
+        _, world, cam = self._sequence
+        scene = world.scene_at(k, job.fps)
+        tm["scene"] += time.perf_counter() - t0
+        return scene, cam, None
+
+    def _sequence_fields(self, index: int) -> dict:
+        """A record's `sequence` and `timestamp`: none for independent frames (L = 1)."""
+        job = self.job
+        if not job.sequences:
+            return {}
+        q, k = divmod(index, job.sequence_length)
+        return {"sequence": sequence_id_for(self.scene_name, job.seed, q), "timestamp": k / float(job.fps)}
+
     def draw_ahead(self, frames: int) -> bool:
         """Draw each next frame's scene in a second process (FramesAhead) from now on, if the job
         allows it, a run of `frames` frames repays the worker's start (AHEAD_MIN_FRAMES) and two
         cores or more may run it; whether frames are drawn ahead. Ray actors never do: each has
-        its one CPU."""
-        if self.ahead is None and self.job.ahead and frames >= AHEAD_MIN_FRAMES and len(os.sched_getaffinity(0)) >= 2:
+        its one CPU. Nor do sequences (L > 1): an instant's scene is the World's rollout, drawn
+        here, and a sequence's instant 0 is built once per L instants."""
+        if self.ahead is None and self.job.ahead and not self.job.sequences and frames >= AHEAD_MIN_FRAMES and len(os.sched_getaffinity(0)) >= 2:
             self.ahead = FramesAhead(self.gen, meshes=self.job.backend == "cycles",  # Cycles builds every agent
                                      then=partial(first_camera, self.rig, self.width, self.height))
         return self.ahead is not None

@@ -16,6 +16,11 @@ MAX_RAY_WORKERS = 10_000
 """Concurrent render actors at most: each is a process holding a city; more is a typo."""
 MAX_RETRIES = 100
 """A frame that fails this often fails for a reason a further try will not remove."""
+MAX_SEQUENCE_LENGTH = 100_000
+"""Instants of one sequence at most: its world rolls out from t = 0 for every resumed sequence."""
+DEFAULT_FPS = 10.0
+FPS_RANGE = (0.01, 1000.0)
+"""Instants per second: from one every 100 s to 1 ms steps (the motion steps at 50 ms and interpolates)."""
 CPUS_PER_WORKER = (0.0001, 1024.0)
 """Ray's smallest fraction of a CPU, and more CPUs than one node has: an actor asking for more
 would wait for ever for a node to place it on."""
@@ -51,6 +56,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="Cycles samples, denoising and bounces (raster ignores it)")
     p.add_argument("--start", type=integer(0, SEED_MAX), default=0,
                    help="index of the first frame (default %(default)s)")
+    p.add_argument("--sequence-length", type=integer(1, MAX_SEQUENCE_LENGTH), default=1,
+                   help="instants per sequence: L consecutive instants of one moving world, seen by a camera "
+                        "held still (--frames and --start multiples of it); 1, the default: independent frames")
+    p.add_argument("--fps", type=number(*FPS_RANGE), default=DEFAULT_FPS,
+                   help="instants per second within a sequence (default %(default)g)")
     p.add_argument("--weather", default=None, help="fix the weather (clear, overcast, rain, snow, fog); default: drawn per frame")
     p.add_argument("--time-of-day", default=None,
                    help="fix the time of day (dawn, morning, noon, afternoon, dusk, night); default: drawn per frame")
@@ -128,7 +138,11 @@ def run(args: argparse.Namespace) -> int:
     job = RenderJob(rig=args.rig, frames=args.frames, out=args.out, seed=args.seed, scene=args.scene,
                     width=args.width, height=args.height, backend=args.backend, quality=args.quality, start=args.start,
                     shard=shard, overrides=overrides, save_blend=args.save_blend, labels=args.labels,
-                    device=args.device)
+                    device=args.device, sequence_length=args.sequence_length, fps=args.fps)
+    if args.executor == "ray" and job.sequences:  # before anything is written
+        print("omnigen render: --executor ray renders independent frames only; run --sequence-length "
+              f"{job.sequence_length} locally (with --shard K/N for several processes)", file=sys.stderr)
+        return 2
     if args.fresh:
         if args.finalize_only or shard[1] > 1:
             print("omnigen render: --fresh deletes every shard's frames: run it once, without --shard or "

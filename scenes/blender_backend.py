@@ -57,7 +57,7 @@ from omnigen.scenes.description import Material, Scene
 from omnigen.scenes.materials import NOISE_SIZE, PATTERNS, SURFACE_WEIGHTS, Surface, noise_table, part_surface
 from omnigen.scenes.meshes import RenderObject, compile_scene, lamp_lights
 from omnigen.scenes.road_wear import WEAR_RUBBER, WEAR_STAIN, road_wear_map
-from omnigen.scenes.seeding import frame_streams
+from omnigen.scenes.seeding import instant_extra_rng
 
 
 @contextlib.contextmanager
@@ -1045,7 +1045,7 @@ class BlenderScene:
     def _precip_mesh(self, scene: Scene) -> None:
         """The precipitation's triangles for this frame, into the one precipitation mesh."""
         w = scene.weather
-        rng = frame_streams(scene.dataset_seed, scene.frame_index)["extra"]
+        rng = instant_extra_rng(scene.dataset_seed, scene.frame_index, scene.instant)  # frame_streams' "extra" at instant 0
         bx, by, bz = WEATHER_BOX
         rain = w.kind == "rain"
         n = int((6000 if rain else 8000) * w.precipitation)

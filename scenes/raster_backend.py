@@ -51,7 +51,7 @@ from omnigen.scenes.materials import PATTERNS, agent_surface, building_surface, 
 from omnigen.scenes.meshes import (compile_scene, frame_agent, frame_statics, lamp_lights, static_objects,  # noqa: E402
                            world_box)
 from omnigen.scenes.road_wear import road_wear_map  # noqa: E402
-from omnigen.scenes.seeding import frame_streams  # noqa: E402
+from omnigen.scenes.seeding import instant_extra_rng  # noqa: E402
 
 SKY_DISTANCE = 2000.0
 SKY_ZENITH, SKY_HORIZON = (0.15, 9.0 / 7.0), (0.6, 3.0 / 7.0)  # (clear: of the daylight, overcast: of the sky's light) (_sky_colors)
@@ -742,7 +742,7 @@ def _precipitation(rgb: np.ndarray, scene: Scene) -> np.ndarray:
     """Rain streaks or snow flakes over the image, from the frame's own generator."""
     from PIL import Image, ImageDraw
 
-    rng = frame_streams(scene.dataset_seed, scene.frame_index)["extra"]
+    rng = instant_extra_rng(scene.dataset_seed, scene.frame_index, scene.instant)  # frame_streams' "extra" at instant 0
     h, w = rgb.shape[:2]
     img = Image.fromarray(rgb)
     overlay = Image.new("RGBA", (w, h), (0, 0, 0, 0))

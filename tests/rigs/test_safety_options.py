@@ -118,7 +118,7 @@ def _parsers() -> dict[str, argparse.ArgumentParser]:
 
 NUMERIC = {
     "render": {"--frames", "--seed", "--width", "--height", "--start", "--fog-density", "--precipitation", "--shard",
-               "--ray-workers", "--cpus-per-worker", "--frames-per-worker", "--retries"},
+               "--sequence-length", "--fps", "--ray-workers", "--cpus-per-worker", "--frames-per-worker", "--retries"},
     "convert kitti": {"--limit", "--workers"},
     "convert dair": {"--limit", "--workers", "--group-gap"},
 }
