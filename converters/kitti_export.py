@@ -100,14 +100,19 @@ def export_kitti(ds: Dataset, out: str | Path, split: str | None = None, link: s
     return report
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
+def add_tree_arguments(p: argparse.ArgumentParser, gets: str, job: str) -> None:
+    """The options of an export into a KITTI-style tree (`export kitti`, `export kitti-tracking`):
+    the dataset, the output folder (which gets `gets`), a split, how images are placed."""
     p.add_argument("dataset", type=Path)
     p.add_argument("--out", type=Path, required=True,
-                   help="output folder (gets label_2/, calib/, image_2/, mapping.txt): new, empty or an earlier "
-                        "export kitti; outside the dataset")
+                   help=f"output folder (gets {gets}): new, empty or an earlier {job}; outside the dataset")
     p.add_argument("--split", default=None, help="only frames of this split (splits/<name>.txt)")
     p.add_argument("--link", choices=LINK_MODES, default="hardlink",
                    help="how images are placed: hardlink (falls back to symlink, then copy), symlink or copy")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_tree_arguments(p, "label_2/, calib/, image_2/, mapping.txt", "export kitti")
     p.add_argument("--derived", action="store_true",
                    help="write truncated, occluded, alpha and the 2D box derived from the records even where "
                         "they keep KITTI's own values")

@@ -12,6 +12,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from omnigen.cooperation import Sighting, disagreements, jumps, sightings
 from omnigen.dataset import (MANIFEST, MANIFEST_MAX_BYTES, RECORDS_DIR, RENDER_ARGS_FILE, ManifestError, parse_record,
                              read_manifest, read_record_bytes, record_files)
 from omnigen.images import ImageError, check_image
@@ -35,7 +36,9 @@ class Problem:
 def check_dataset(root: str | os.PathLike, show_progress: bool = True) -> tuple[int, list[Problem]]:
     """Return (frames checked, problems): the manifest's schema, schema and finite values of each
     record, plausible values (omnigen.plausible: whoever wrote the record), files present, unique
-    ids, images whole (decoded in full, omnigen.images.check_image) and of the record's size."""
+    ids, images whole (decoded in full, omnigen.images.check_image) and of the record's size; across
+    the frames of a sequence, views that disagree on a track and tracks that jump
+    (omnigen.cooperation)."""
     root = Path(root)
     if not (root / RECORDS_DIR).is_dir():
         return 0, [Problem(str(root), RECORDS_DIR, "missing: not an UrbanOmniView dataset")]
@@ -44,6 +47,8 @@ def check_dataset(root: str | os.PathLike, show_progress: bool = True) -> tuple[
     entries = record_files(root)
     render, render_source = _render_settings(root, manifest, problems)
     digest = hashlib.sha256()
+    seen: list[Sighting] = []
+    files: dict[str, str] = {}
     for e in progress(entries, desc="validating", unit="frame", disable=not show_progress):
         try:
             data = read_record_bytes(e.path)
@@ -53,10 +58,20 @@ def check_dataset(root: str | os.PathLike, show_progress: bool = True) -> tuple[
             problems.append(Problem(e.path, exc.field, exc.message))
             continue
         problems += _record_problems(root, e, rec, render, render_source)
+        seen += sightings(rec)
+        files[rec.frame_id] = e.path
+    problems += _sequence_problems(seen, files)
     if manifest is not None and manifest.get("records_sha256") != digest.hexdigest():
         problems.append(Problem(str(root / MANIFEST), "records_sha256",
                                 "does not match records/ (an interrupted or unfinished write?)"))
     return len(entries), problems
+
+
+def _sequence_problems(seen: list[Sighting], files: dict[str, str]) -> list[Problem]:
+    """One line per track that two views place apart at one instant, or that jumps between two
+    instants: named by the first frame's file, the message naming both frames and the track."""
+    found = [*disagreements(seen), *jumps(seen)]
+    return [Problem(files[f.frame_a], "objects.track_id", str(f)) for f in found]
 
 
 def _manifest(root: Path, problems: list[Problem]) -> dict | None:

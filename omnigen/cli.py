@@ -43,6 +43,7 @@ COMMANDS: dict[str, str] = {
 EXPORTERS: dict[str, str] = {
     # `omnigen export FORMAT` for the formats a part writes: module exposing add_arguments and run
     "kitti": "omnigen.converters.kitti_export",
+    "kitti-tracking": "omnigen.converters.kitti_tracking_export",
     "onnx": "omnigen.detector.prediction.export_onnx",
 }
 

@@ -17,7 +17,7 @@ from PIL import Image
 from omnigen.conventions import FINE_CLASSES, SCHEMA2_FRAME_FIELDS, SCHEMA2_OBJECT_FIELDS, SCHEMA_VERSION, SOURCES, VIEWS
 from omnigen.dataset import Dataset, record_path
 from omnigen.files import atomic_write_bytes, dumps_json
-from omnigen.camera import intrinsics_from_fov
+from omnigen.camera import intrinsics_from_fov, look_at
 from omnigen.geometry import Box3D, plane_from_height_pitch, rot_x, rot_z
 from omnigen.progress import progress
 from omnigen.record import FrameRecord, IgnoreRegion, ObjectRecord, SyntheticInfo
@@ -84,18 +84,25 @@ def random_frame(seed: int, index: int, source: str = "synthetic", view: str = "
     return with_sequence_fields(rec, seed, index, world_to_cam, cam_height) if sequence else rec
 
 
+TRACKS_PER_FRAME = 100
+"""Track ids a random sequenced frame may use (random_frame draws fewer objects than this)."""
+
+
 def with_sequence_fields(rec: FrameRecord, seed: int, index: int, world_to_cam: np.ndarray,
                          cam_height: float) -> FrameRecord:
     """`rec` as frame index % 10 of sequence index // 10 at 10 fps: sequence, timestamp, a pair id
-    (frames index and index ^ 1 as a cooperative pair), camera_to_world (world z up, origin on the ground under the camera), each object's track_id
-    (its instance id) and a world velocity. Drawn from a Generator of its own, so that the rest
-    of the frame is the frame random_frame gives without them."""
+    (frames index and index ^ 1 as a cooperative pair), camera_to_world (world z up, origin on the
+    ground under the camera), each object's track_id (TRACKS_PER_FRAME * (index % 10) + its
+    instance id: the frames' random objects are different objects, so no track spans two frames,
+    which the cooperation checks would rightly call a jump) and a world velocity. Drawn from a
+    Generator of its own, so that the rest of the frame is the frame random_frame gives without them."""
     rng = np.random.default_rng([seed, index, 1])
     sequence = f"{rec.source}-seq{index // 10:03d}"
     pose = np.eye(4)
     pose[:3, :3] = world_to_cam.T
     pose[2, 3] = cam_height
-    objects = [replace(o, track_id=o.instance_id, velocity=np.array([*rng.uniform(-10, 10, 2), 0.0]))
+    first = TRACKS_PER_FRAME * (index % 10)
+    objects = [replace(o, track_id=first + o.instance_id, velocity=np.array([*rng.uniform(-10, 10, 2), 0.0]))
                for o in rec.objects]
     return replace(rec, objects=objects, sequence=sequence, timestamp=(index % 10) / 10,
                    pair=f"{sequence}-pair{index % 10 // 2:06d}", camera_to_world=pose)
@@ -129,15 +136,95 @@ def write_fake_dataset(root: str | Path, n_frames: int, objects_per_frame: int =
         view = VIEWS[i % len(VIEWS)] if source == "synthetic" else ("ego" if source == "kitti" else "infrastructure")
         rec = random_frame(seed, i, source, view, objects_per_frame, sequence=sequence)
         if images:
-            (root / "images").mkdir(exist_ok=True)
-            shade = (i % 251, (i // 251) % 251, seed % 251)  # distinct pixels per frame: no accidental duplicates
-            Image.new("RGB", (rec.width, rec.height), shade).save(root / rec.image)
-            if rec.synthetic is not None:
-                for rel in (rec.synthetic.depth, rec.synthetic.instance):
-                    (root / rel).parent.mkdir(exist_ok=True)
-                    (root / rel).write_bytes(b"placeholder")
+            _write_files(root, rec, (i % 251, (i // 251) % 251, seed % 251))
         if schema == 1:
             atomic_write_bytes(record_path(root, rec.frame_id), schema1_bytes(rec), durable=False)
         else:
             writer.write(rec)
     return writer.finalize({"name": f"fake-{source}"}, show_progress=show_progress)
+
+
+def _write_files(root: Path, rec: FrameRecord, shade: tuple[int, int, int]) -> None:
+    """The frame's image, one flat colour (distinct per frame: no accidental duplicates), and
+    placeholders for a rendered frame's depth and instance files."""
+    (root / "images").mkdir(exist_ok=True)
+    Image.new("RGB", (rec.width, rec.height), shade).save(root / rec.image)
+    if rec.synthetic is not None:
+        for rel in (rec.synthetic.depth, rec.synthetic.instance):
+            (root / rel).parent.mkdir(exist_ok=True)
+            (root / rel).write_bytes(b"placeholder")
+
+
+COOPERATIVE_EYES = {  # view: camera position relative to the scene centre (x right, y forward, z up), metres
+    "ego": (0.0, -22.0, 1.6), "infrastructure": (-12.0, -6.0, 7.0), "aerial": (0.0, -6.0, 45.0),
+}
+COOPERATIVE_FPS = 10.0
+COOPERATIVE_CLASSES = ("car", "van", "pedestrian", "cyclist")
+
+
+def fake_cooperative_records(seed: int = 0, n_sequences: int = 2, n_instants: int = 4, n_objects: int = 5,
+                             views: tuple[str, ...] = ("ego", "infrastructure", "aerial"),
+                             width: int = 320, height: int = 192) -> list[FrameRecord]:
+    """Sequences of one small world seen by several static cameras at COOPERATIVE_FPS: each object
+    moves at a constant world velocity, and every view labels it by projecting the same world box
+    through its own pose, so the views agree to float precision (the cooperation checks' ground
+    truth). The ego and infrastructure frames of an instant form a cooperative `pair`. One
+    Generator per sequence (the world) and per view of it (its intrinsics, fixed over time as a
+    real camera's are)."""
+    records = []
+    for q in range(n_sequences):
+        world = _cooperative_world(np.random.default_rng([seed, q, 2]), n_objects)
+        sequence = f"synthetic-coop-s{seed}-q{q:06d}"
+        intrinsics = [intrinsics_from_fov(math.radians(np.random.default_rng([seed, q, v, 3]).uniform(70, 90)),
+                                          width, height) for v in range(len(views))]
+        for k in range(n_instants):
+            for view, K in zip(views, intrinsics):
+                records.append(_cooperative_frame(world, sequence, k, view, K, seed, width, height))
+    return records
+
+
+def _cooperative_world(rng: np.random.Generator, n_objects: int) -> list[tuple[str, np.ndarray, np.ndarray, float, np.ndarray]]:
+    """(category, dims, start centre, yaw, velocity) per object, on flat ground z = 0 near the origin."""
+    world = []
+    for _ in range(n_objects):
+        category = COOPERATIVE_CLASSES[int(rng.integers(len(COOPERATIVE_CLASSES)))]
+        dims = np.array(TYPICAL_DIMS[category]) * rng.uniform(0.9, 1.1, 3)
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        start = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), dims[2] / 2])
+        velocity = np.array([math.cos(yaw), math.sin(yaw), 0.0]) * rng.uniform(0.5, 8.0)
+        world.append((category, dims, start, yaw, velocity))
+    return world
+
+
+def _cooperative_frame(world: list, sequence: str, k: int, view: str, K: np.ndarray, seed: int,
+                       width: int, height: int) -> FrameRecord:
+    """One view of the world at instant k: world boxes mapped into this camera and projected."""
+    t = k / COOPERATIVE_FPS
+    R, trans = look_at(COOPERATIVE_EYES[view], (0.0, 0.0, 0.0))
+    objects = []
+    for track, (category, dims, start, yaw, velocity) in enumerate(world, start=1):
+        box = Box3D(start + velocity * t, dims, rot_z(yaw)).transformed(R, trans)
+        obj = ObjectRecord.from_box(category, track, box, K, width, height, track_id=track, velocity=velocity.copy())
+        if obj is not None:
+            objects.append(obj)
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = R.T, COOPERATIVE_EYES[view]
+    frame_id = f"{sequence}-{view}-t{k:03d}"
+    synthetic = SyntheticInfo(seed=seed, scene="fake-coop", rig=view, weather={"fog": 0.0},
+                              lighting={"sun_elevation": 0.6}, depth=f"depth/{frame_id}.exr",
+                              instance=f"instance/{frame_id}.png")
+    return FrameRecord(frame_id=frame_id, source="synthetic", view=view, image=f"images/{frame_id}.png",
+                       width=width, height=height, K=K.copy(), objects=objects, group=None, synthetic=synthetic,
+                       sequence=sequence, timestamp=t,
+                       pair=f"{sequence}-p{k:06d}" if view in ("ego", "infrastructure") else None,
+                       camera_to_world=pose)
+
+
+def write_cooperative_dataset(root: str | Path, records: list[FrameRecord] | None = None, **kwargs) -> Dataset:
+    """A finalized dataset of fake_cooperative_records(**kwargs) (or of `records`), with tiny images."""
+    root = Path(root)
+    writer = DatasetWriter(root)
+    for i, rec in enumerate(records if records is not None else fake_cooperative_records(**kwargs)):
+        _write_files(root, rec, (i % 251, (i // 251) % 251, 7))
+        writer.write(rec)
+    return writer.finalize({"name": "fake-cooperative"}, show_progress=False)

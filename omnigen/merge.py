@@ -8,6 +8,8 @@ What a merge guarantees:
   other's pixels, and which one is right is the user's call, not the merge's;
 - images are deduplicated by content (SHA-256): frames whose pixels are identical share one file,
   and are put in one split group so the same image can never be both trained and tested on;
+- the frames of one sequence (all its views) and the two frames of a cooperative pair are one
+  split group too, whatever groups their source drew;
 - the test split is deterministic for a seed, stratified by source and view, and keeps groups whole
   (omnigen.splits); split files given by the user, and an earlier merge's assignments under
   --update, are honoured;
@@ -197,6 +199,19 @@ def merge(
         return _merge(sources, out, taxonomy, test_fraction, seed, split_files, update, link)
 
 
+def _join_groups(groups: _Groups, frame_id: str, table, row: int) -> None:
+    """Put the frame in its source's split group, and in one group with every frame of its
+    sequence (all its views) and of its cooperative pair, whatever the source called a group: one
+    world seen at one moment, or over time, in train and test would leak the test labels.
+    Sequences and pairs are keyed without the source, so that a DAIR-V2X-C pair whose sides came
+    through different sources stays joined ("seq:"/"pair:" cannot be a frame id, which has no ':')."""
+    g = table.group[row]
+    groups.union(frame_id, f"{table.source[row]}:{g}" if g else frame_id)
+    for kind, key in (("seq", table.sequence[row]), ("pair", table.pair[row])):
+        if key is not None:
+            groups.union(frame_id, f"{kind}:{key}")
+
+
 def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fraction: float | None,
            seed: int | None, split_files: list[Path] | None, update: bool, link: str) -> MergeReport:
     start = time.perf_counter()
@@ -245,8 +260,7 @@ def _merge(sources: list[Path], out: Path, taxonomy: Taxonomy | None, test_fract
                 new = placement.claim(key, frame_id, syn[key], os.path.join(ds.root, syn[key]))
                 if new != syn[key]:
                     rewrites.setdefault(frame_id, {})[key] = new
-        g = ds.table.group[f.row]
-        groups.union(frame_id, f"{ds.table.source[f.row]}:{g}" if g else frame_id)
+        _join_groups(groups, frame_id, ds.table, f.row)
         groups.union(frame_id, owner)
     report.unique_images = len(owner_of_hash)
 

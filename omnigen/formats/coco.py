@@ -4,6 +4,8 @@ pycocotools and most pose tools read it unchanged: images, annotations with 24 k
 (x, y, v per corner; v = 0 corners written as 0 0 0), categories with keypoint names and a 1-based
 skeleton. omnigen adds fields COCO tools ignore: per image K, frame_id, source and view; per
 annotation the 3D box, truncation, occlusion level, instance id and the source's own 2D boxes.
+Where a frame has them, its image also carries sequence, timestamp, pair and camera_to_world, and
+its annotations track_id and velocity; a dataset without them exports as it did before schema 2.
 
 The file's first key is `"omnigen": "export coco"`: a rerun recognises its own file by its first
 bytes and replaces it; any other file at --out is refused (omnigen.outputs).
@@ -86,6 +88,8 @@ def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = N
     centers, dims, rotations = t.center.tolist(), t.dims.tolist(), t.rotation.tolist()
     trunc, occ_level, inst = t.truncation.tolist(), t.occlusion_level.tolist(), t.instance_id.tolist()
     fine = [FINE_CLASSES[c] for c in t.category.tolist()]
+    tracks, velocities = t.track_id.tolist(), t.velocity.tolist()
+    has_velocity = ~np.isnan(t.velocity).any(axis=1)
     images, annotations = [], []
     ft = ds.table
     for i, frame_id in enumerate(ft.frame_id):
@@ -103,6 +107,7 @@ def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = N
         if extras["synthetic"] is not None:
             image["depth_file"] = extras["synthetic"]["depth"]
             image["instance_file"] = extras["synthetic"]["instance"]
+        image.update(_sequence_fields(ft, i))
         images.append(image)
         for j in range(int(ds.offsets[i]), int(ds.offsets[i + 1])):
             if cid[j] < 0:
@@ -120,12 +125,31 @@ def to_coco(ds: Dataset, split: str | None = None, taxonomy: Taxonomy | None = N
                 ann["bbox_source"] = bbox_src[j]
             if has_vis[j]:
                 ann["bbox_visible"] = bbox_vis[j]
+            if tracks[j] >= 1:
+                ann["track_id"] = tracks[j]
+            if has_velocity[j]:
+                ann["velocity"] = velocities[j]
             annotations.append(ann)
     return {
         "info": {"description": DESCRIPTION, "taxonomy": taxonomy.name,
                  "split": split or "all", "dataset": ds.manifest.get("name", ds.root.name)},
         "images": images, "annotations": annotations, "categories": coco_categories(taxonomy),
     }
+
+
+def _sequence_fields(ft, i: int) -> dict[str, Any]:
+    """The frame's schema-2 fields that are set (absent ones are left out, not written null, so
+    that older datasets export byte for byte as before)."""
+    out: dict[str, Any] = {}
+    if ft.sequence[i] is not None:
+        out["sequence"] = ft.sequence[i]
+    if not np.isnan(ft.timestamp[i]):
+        out["timestamp"] = float(ft.timestamp[i])
+    if ft.pair[i] is not None:
+        out["pair"] = ft.pair[i]
+    if not np.isnan(ft.camera_to_world[i]).any():
+        out["camera_to_world"] = ft.camera_to_world[i].tolist()
+    return out
 
 
 def _kept_frames(ds: Dataset, keep: set[str] | None) -> np.ndarray:

@@ -34,6 +34,7 @@ from omnigen.priors import FAR_SIGMA
 from omnigen.stats.compute import OCCLUSION_LEVEL_NAMES, compute_stats, derive
 from omnigen.stats.gallery import GALLERY_MIN_SIDE, JOB, too_small, write_gallery
 from omnigen.stats.health import check_health
+from omnigen.stats.tracks import has_sequences, tracks_section
 from omnigen.stats.plots import CAMERA_LABELS, FIGURES, figures_for, plot_section
 
 TEMPLATES = Path(__file__).parent / "templates"
@@ -159,6 +160,8 @@ def write_report(ds: Dataset, out: str | Path, gallery: int = 6, check_images: b
     t = time.perf_counter()
     derived = derive(ds)
     stats = compute_stats(ds, derived)
+    if has_sequences(ds):  # absent otherwise: older datasets' stats.json is unchanged
+        stats["tracks"] = tracks_section(ds)
     health = check_health(ds, prior_sigma, check_images=False)
     timings["statistics"] = time.perf_counter() - t
 

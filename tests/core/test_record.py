@@ -213,7 +213,7 @@ def test_schema2_round_trip(sequenced):
     assert rec.to_dict() == sequenced and rec.schema_version == 2
     assert (rec.sequence, rec.timestamp, rec.pair) == ("synthetic-seq001", 0.3, "synthetic-seq001-pair000001")
     assert np.array_equal(rec.camera_to_world, sequenced["camera_to_world"])
-    assert [o.track_id for o in rec.objects] == [1, 2, 3, 4]
+    assert [o.track_id for o in rec.objects] == [301, 302, 303, 304]  # frame 3 of its sequence: 300 + instance id
     assert np.array_equal(rec.objects[2].velocity, sequenced["objects"][2]["velocity"])
 
 
@@ -306,7 +306,7 @@ def test_fast_parser_takes_track_fields(sequenced, monkeypatch):
     parser = _FrameParser(d, None)
     objects = parser.objects_at_once(d["objects"])
     assert objects is not None
-    assert [o.track_id for o in objects] == [1, None, 3, 4]
+    assert [o.track_id for o in objects] == [301, None, 303, 304]
     assert objects[1].velocity is None
     assert np.array_equal(objects[3].velocity, d["objects"][3]["velocity"])
 
