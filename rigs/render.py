@@ -286,6 +286,11 @@ class RenderJob:
         """Whether the run renders sequences (L > 1) rather than independent frames."""
         return self.sequence_length > 1
 
+    @property
+    def cooperative(self) -> bool:
+        """Whether several rigs see each instant (`--rig ego,pole,drone`, rigs/meeting.py)."""
+        return "," in str(self.rig)
+
     def __post_init__(self) -> None:
         """Refuse numbers the frames cannot be made from, before anything is written: a seed past
         int64 failed at the first record, after that frame's images were on disk, and a width of 0
@@ -349,6 +354,8 @@ def render_info(job: RenderJob, rig: Rig | None = None) -> dict:
     is the preset the city was drawn from; `scene_mix` the mix it was drawn out of, if any."""
     from omnigen.scenes.preset import mix_names
 
+    if job.cooperative:
+        return _cooperative_info(job)
     rig = rig or load_rig(job.rig)
     info = {"rig": rig.name, "scene": scene_name_of(job), "seed": job.seed, "backend": job.backend,
             "quality": job.quality, "width": int(job.width or rig.resolution[0]),
@@ -360,10 +367,26 @@ def render_info(job: RenderJob, rig: Rig | None = None) -> dict:
     return info
 
 
+def _cooperative_info(job: RenderJob) -> dict:
+    """render_info of several rigs: `rigs` the views' labels in the order given (not `rig`, which
+    every record's synthetic.rig must equal), the size only when the command line fixes it (else
+    each view has its rig's own), sequence_length and fps always."""
+    from omnigen.rigs.meeting import views_of
+    from omnigen.scenes.preset import mix_names
+
+    info = {"rigs": ",".join(v.label for v in views_of(job.rig)), "scene": scene_name_of(job), "seed": job.seed,
+            "backend": job.backend, "quality": job.quality}
+    info.update({k: int(v) for k, v in (("width", job.width), ("height", job.height)) if v is not None})
+    if len(mix_names(job.scene)) > 1:
+        info["scene_mix"] = str(job.scene)
+    info.update(sequence_length=int(job.sequence_length), fps=float(job.fps))
+    return info
+
+
 RENDER_ARGS = RENDER_ARGS_FILE
 RENDER_FOLDERS = ("records", "images", "depth", "instance")
 _FLAGS = {  # recorded key -> how the command line says it (for the refusal's message)
-    "rig": "--rig", "rig_sha256": "the rig's definition (its TOML)", "scene": "--scene",
+    "rig": "--rig", "rigs": "--rig", "rig_sha256": "the rig's definition (its TOML)", "scene": "--scene",
     "scene_sha256": "the scene preset's definition (its TOML)", "seed": "--seed", "width": "--width",
     "height": "--height", "backend": "--backend", "quality": "--quality", "labels": "--labels",
     "weather": "--weather", "time_of_day": "--time-of-day", "fog_density": "--fog-density",
@@ -386,10 +409,16 @@ def render_args(job: RenderJob, rig: Rig | None = None, preset=None) -> dict:
     from omnigen.scenes.description import to_dict
     from omnigen.scenes.preset import load_preset, preset_for_seed
 
-    rig = rig or load_rig(job.rig)
+    if job.cooperative:
+        from omnigen.rigs.meeting import views_of
+
+        rigs = [v.rig for v in views_of(job.rig)]
+    else:
+        rigs = [rig or load_rig(job.rig)]
     preset = preset if preset is not None else load_preset(preset_for_seed(job.scene, job.seed))
-    args = render_info(job, rig)
-    rig_fields = {k: v for k, v in asdict(rig).items() if k not in ("description", "source")}
+    args = render_info(job, rigs[0])
+    rig_fields = [{k: v for k, v in asdict(r).items() if k not in ("description", "source")} for r in rigs]
+    rig_fields = rig_fields if job.cooperative else rig_fields[0]
     scene_fields = {k: v for k, v in to_dict(preset).items() if k != "source"}  # where the file lies is no setting
     args.update(rig_sha256=_sha256_json(rig_fields), scene_sha256=_sha256_json(scene_fields))
     if job.backend == "cycles":
@@ -478,18 +507,28 @@ def start_over(out: str | Path) -> int:
     return len(records)
 
 
+def view_labels(job: RenderJob, rig: Rig | None = None) -> list[str]:
+    """The labels frame ids are made of: the rig's name, or each view's (rigs/meeting.py)."""
+    if job.cooperative:
+        from omnigen.rigs.meeting import views_of
+
+        return [v.label for v in views_of(job.rig)]
+    return [(rig or load_rig(job.rig)).name]
+
+
 def missing_frames(job: RenderJob, rig: Rig | None = None) -> list[int]:
-    """Indices of the run (all shards) whose record is not written yet."""
-    rig = rig or load_rig(job.rig)
+    """Indices (instants) of the run (all shards) of which some view's record is not written yet."""
+    labels = view_labels(job, rig)
     records = Path(job.out) / "records"
-    return [i for i in job.indices() if not (records / f"{frame_id_for(rig.name, job.seed, i)}.json").exists()]
+    return [i for i in job.indices()
+            if not all((records / f"{frame_id_for(label, job.seed, i)}.json").exists() for label in labels)]
 
 
 def finalize_run(job: RenderJob, show_progress: bool = True, writer: DatasetWriter | None = None) -> bool:
     """Build the index and manifest once every frame of the run has its record; False (nothing
     written) while any is missing. The manifest depends only on records/ and `render_info`, so
     shards that finalize at the same time write the same bytes, each atomically."""
-    rig = load_rig(job.rig)
+    rig = None if job.cooperative else load_rig(job.rig)
     if missing_frames(job, rig):
         return False
     claim_render_folder(job, render_args(job, rig))  # --finalize-only with other arguments is refused too
@@ -550,14 +589,17 @@ class Renderer:
         if job.quality not in QUALITIES:
             raise ValueError(f"unknown quality {job.quality!r}; choose from {', '.join(QUALITIES)}")
         self.job = job
-        self.rig: Rig = load_rig(job.rig)
+        from omnigen.rigs.meeting import views_of
+
+        self.views = views_of(job.rig) if job.cooperative else []  # several rigs: each instant from each
+        self.rig: Rig = self.views[0].rig if self.views else load_rig(job.rig)
         self.width = int(job.width or self.rig.resolution[0])
         self.height = int(job.height or self.rig.resolution[1])
         self.gen = SceneGenerator(job.scene, job.seed)  # a mix: the preset the seed draws
         self.scene_name = scene_name_of(job)
         self.backend = None
         self._blend_saved = False
-        claim_render_folder(job, render_args(job, self.rig, self.gen.preset))  # before any frame is written
+        claim_render_folder(job, render_args(job, None if self.views else self.rig, self.gen.preset))  # before any frame is written
         self.writer = DatasetWriter(job.out, durable=job.durable)
         self.summary = RenderSummary()
         # Write-behind (run() turns it on): a frame's files are encoded and written on a thread
@@ -598,6 +640,14 @@ class Renderer:
             t1 = time.perf_counter()
             cam, rng = drawn if drawn is not None else first_camera(self.rig, self.width, self.height, scene)
             tm["camera"] += time.perf_counter() - t1
+        return self._render_view(scene, cam, rng, self.rig, self.frame_id(index), index)
+
+    def _render_view(self, scene: Scene, cam: DrawnCamera, rng: np.random.Generator | None, rig: Rig, fid: str,
+                     index: int) -> FrameRecord:
+        """Render, annotate and write one view of a scene; `rng`: the stream a redraw goes on
+        with (None: the camera is kept whatever the render counts, as in sequences)."""
+        job, tm = self.job, self.summary.timings
+        width, height = cam.width, cam.height
         self._finish_frame()  # the previous frame's image, shaded while this frame's scene and camera were drawn
         t1 = time.perf_counter()
         if self.backend is None:
@@ -616,26 +666,25 @@ class Renderer:
             ann = annotate(scene, cam, out.depth, out.instance, lambda ids: self.backend.silhouettes(cam, ids))
             t2 = time.perf_counter()
             tm["annotate"] += t2 - t4
-            if rng is None or len(ann.objects) >= self.rig.min_objects or cam.tries >= self.rig.max_tries:
+            if rng is None or len(ann.objects) >= rig.min_objects or cam.tries >= rig.max_tries:
                 break
             self.summary.redraws += 1
-            cam = sample_camera(self.rig, scene, rng, self.width, self.height, Obstacles(scene), start_try=cam.tries)
+            cam = sample_camera(rig, scene, rng, width, height, Obstacles(scene), start_try=cam.tries)
             tm["camera"] += time.perf_counter() - t2
         if out.shade is not None:  # the kept camera's colour pass, shaded while the next scene and camera are drawn
             t = time.perf_counter()
             out.shade()
             self._charge(t, "render", "renderer_core")
         t5 = time.perf_counter()
-        fid = self.frame_id(index)
         image, depth, instance = f"images/{fid}.png", f"depth/{fid}.exr", f"instance/{fid}.png"
         plane = cam.ground_plane
         record = FrameRecord(
-            frame_id=fid, source="synthetic", view=self.rig.view, image=image, width=self.width, height=self.height,
+            frame_id=fid, source="synthetic", view=rig.view, image=image, width=width, height=height,
             K=cam.K, objects=ann.objects, ignore_regions=ann.ignore_regions, ground_plane=plane,
             camera_height=plane.camera_height, camera_pitch=plane.camera_pitch,
             group=f"synthetic-{self.scene_name}-{job.seed}", camera_to_world=camera_to_world(cam),
             **self._sequence_fields(index),
-            synthetic=SyntheticInfo(seed=job.seed, scene=self.scene_name, rig=self.rig.name,
+            synthetic=SyntheticInfo(seed=job.seed, scene=self.scene_name, rig=rig.name,
                                     weather=to_dict(scene.weather), lighting=to_dict(scene.lighting),
                                     depth=depth, instance=instance),
         )
@@ -660,6 +709,12 @@ class Renderer:
         render, since a process resuming mid-sequence could not know of that redraw; it is kept on
         sample_camera's geometric checks alone. Both are rebuilt for any sequence not held, so a
         resumed run equals an uninterrupted one."""
+        scene, cam = self._held(index, lambda scene0, q: first_camera(self.rig, self.width, self.height, scene0)[0])
+        return scene, cam, None
+
+    def _held(self, index: int, place: Callable) -> tuple[Scene, object]:
+        """The Scene of instant `index` of its sequence's World, and `place(scene0, q)` (the
+        sequence's cameras), both made once per sequence and held for its instants."""
         from omnigen.scenes.world import World
 
         job, tm = self.job, self.summary.timings
@@ -669,19 +724,40 @@ class Renderer:
             world = World.build(self.gen.city, self.gen.preset, job.seed, q, job.overrides, self.gen.user_assets)
             t1 = time.perf_counter()
             tm["scene"] += t1 - t0
-            cam = first_camera(self.rig, self.width, self.height, world.scene0)[0]
+            placed = place(world.scene0, q)
             t0 = time.perf_counter()
             tm["camera"] += t0 - t1
-            self._sequence = (q, world, cam)
-        _, world, cam = self._sequence
+            self._sequence = (q, world, placed)
+        _, world, placed = self._sequence
         scene = world.scene_at(k, job.fps)
         tm["scene"] += time.perf_counter() - t0
-        return scene, cam, None
+        return scene, placed
+
+    def render_instant(self, index: int) -> list[FrameRecord]:
+        """Several rigs: instant `index` (k = index % L of sequence q = index // L) from every view
+        whose record is not written yet, all from one Scene of the sequence's World; the views are
+        placed once per sequence around one junction (rigs/meeting.py) and held."""
+        scene, cams = self._held(index, self._place_views)
+        records = []
+        for v, cam in zip(self.views, cams):
+            fid = frame_id_for(v.label, self.job.seed, index)
+            if not self.writer.has(fid):  # a resumed instant: only its missing views
+                records.append(self._render_view(scene, cam, None, v.rig, fid, index))
+        return records
+
+    def _place_views(self, scene0: Scene, q: int) -> list[DrawnCamera]:
+        """Every view's camera of sequence q, around the junction the sequence draws."""
+        from omnigen.rigs.meeting import meeting_junction, place_view
+
+        job, junction, obstacles = self.job, meeting_junction(scene0), Obstacles(scene0)
+        return [place_view(v, scene0, junction, job.seed, q, int(job.width or v.rig.resolution[0]),
+                           int(job.height or v.rig.resolution[1]), obstacles) for v in self.views]
 
     def _sequence_fields(self, index: int) -> dict:
-        """A record's `sequence` and `timestamp`: none for independent frames (L = 1)."""
+        """A record's `sequence` and `timestamp`: none for independent frames of one rig (L = 1);
+        views of one instant of several rigs always share both."""
         job = self.job
-        if not job.sequences:
+        if not (job.sequences or job.cooperative):
             return {}
         q, k = divmod(index, job.sequence_length)
         return {"sequence": sequence_id_for(self.scene_name, job.seed, q), "timestamp": k / float(job.fps)}
@@ -749,13 +825,18 @@ class Renderer:
         start = time.perf_counter()
         job = self.job
         indices = job.shard_indices()
-        todo = [i for i in indices if not self.writer.has(self.frame_id(i))]
+        labels = [v.label for v in self.views] or [self.rig.name]
+        todo = [i for i in indices if not all(self.writer.has(frame_id_for(b, job.seed, i)) for b in labels)]
         self.summary.skipped = len(indices) - len(todo)
         self.write_behind = True
-        self.draw_ahead(len(todo))
+        if not self.views:
+            self.draw_ahead(len(todo))
         try:
-            for k, i in enumerate(progress(todo, desc=f"render {self.rig.name}", disable=not show_progress, unit="frame")):
-                self.render_frame(i, todo[k + 1] if k + 1 < len(todo) else None)
+            for k, i in enumerate(progress(todo, desc=f"render {job.rig if self.views else self.rig.name}", disable=not show_progress, unit="frame")):
+                if self.views:
+                    self.render_instant(i)
+                else:
+                    self.render_frame(i, todo[k + 1] if k + 1 < len(todo) else None)
         finally:
             self.close()
         # The last shard to finish finds every frame written and finalizes (see finalize_run).

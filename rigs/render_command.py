@@ -40,7 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from omnigen.scenes.weather import FOG_DENSITY_RANGE, PRECIPITATION_RANGE
 
     pixels = integer(*RESOLUTION_RANGE)
-    p.add_argument("--rig", required=True, help="ego, pole, drone or a rig TOML file")
+    p.add_argument("--rig", required=True,
+                   help="ego, pole, drone or a rig TOML file; or several, NAME,NAME,... (e.g. ego,pole,drone): "
+                        "each instant of one world seen by every rig, placed around one junction")
     p.add_argument("--frames", type=integer(1, MAX_FRAMES), required=True,
                    help="how many frames (indices start..start+N-1)")
     p.add_argument("--out", type=Path, required=True, help="output dataset folder (rerun to resume)")
@@ -139,9 +141,10 @@ def run(args: argparse.Namespace) -> int:
                     width=args.width, height=args.height, backend=args.backend, quality=args.quality, start=args.start,
                     shard=shard, overrides=overrides, save_blend=args.save_blend, labels=args.labels,
                     device=args.device, sequence_length=args.sequence_length, fps=args.fps)
-    if args.executor == "ray" and job.sequences:  # before anything is written
-        print("omnigen render: --executor ray renders independent frames only; run --sequence-length "
-              f"{job.sequence_length} locally (with --shard K/N for several processes)", file=sys.stderr)
+    if args.executor == "ray" and (job.sequences or job.cooperative):  # before anything is written
+        said = f"--rig {args.rig}" if job.cooperative else f"--sequence-length {job.sequence_length}"
+        print(f"omnigen render: --executor ray renders independent frames only, of one rig; run {said} "
+              "locally (with --shard K/N for several processes)", file=sys.stderr)
         return 2
     if args.fresh:
         if args.finalize_only or shard[1] > 1:

@@ -232,9 +232,12 @@ def _behind_leader(scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, 
     return p, float(lanes.heading[lane])
 
 
-def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, float, str]:
+def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator,
+                 junction=None) -> tuple[np.ndarray, float, str]:
     """(x, y), a base heading and the anchor kind used: `traffic` without a moving vehicle to
-    follow in the frame falls back to `lane` (a camera in an empty lane), and the record then says so."""
+    follow in the frame falls back to `lane` (a camera in an empty lane), and the record then says so.
+    `junction`: the intersection an `intersection` camera stands at (several rigs meeting at one,
+    rigs/meeting.py), else drawn."""
     city = scene.city
     if anchor == "traffic":
         follow = _behind_leader(scene, rng)
@@ -247,7 +250,7 @@ def _anchor_pose(rig: Rig, anchor: str, scene: Scene, rng: np.random.Generator) 
         p = _in_lane(lanes, k, rng.uniform(0.05, 0.95) * float(lanes.length[k]), 0.0, rng)
         return p, float(lanes.heading[k]), anchor
     if anchor == "intersection":
-        inter = city.intersections[int(rng.integers(len(city.intersections)))]
+        inter = junction if junction is not None else city.intersections[int(rng.integers(len(city.intersections)))]
         sx, sy = rng.choice([-1.0, 1.0], size=2)
         off = rng.uniform(1.0, 3.0, size=2)
         c = np.asarray(inter.center)
@@ -539,10 +542,23 @@ def draw_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, he
     kinds = list(rig.anchor)
     anchor = _weighted(rng, kinds, [rig.anchor[k] for k in kinds])
     xy, heading, anchor = _anchor_pose(rig, anchor, scene, rng)
+    return camera_at(rig, xy, heading, anchor, rng, width, height)
+
+
+def camera_at(rig: Rig, xy: np.ndarray, heading: float, anchor: str, rng: np.random.Generator, width: int,
+              height: int) -> DrawnCamera:
+    """A camera standing at `xy` facing `heading`: height, yaw jitter, pitch and field of view
+    drawn from the rig's ranges, in that order (every anchor's draws end so)."""
     z = rng.uniform(*rig.height)
     yaw = heading + math.radians(rng.uniform(*rig.yaw_jitter))
     pitch = math.radians(rng.uniform(*rig.pitch))
     hfov = math.radians(rng.uniform(*rig.hfov))
+    return make_camera(xy, z, yaw, pitch, hfov, anchor, width, height)
+
+
+def make_camera(xy, z: float, yaw: float, pitch: float, hfov: float, anchor: str, width: int,
+                height: int) -> DrawnCamera:
+    """The camera of a pose already drawn (radians; `xy` on the ground, `z` above it)."""
     R = camera_rotation(yaw, pitch)
     pos = np.array([xy[0], xy[1], z])
     K = intrinsics_from_fov(hfov, width, height)
@@ -568,24 +584,26 @@ def placement_problem(rig: Rig, scene: Scene, cam: DrawnCamera, obstacles: Obsta
 
 
 def sample_camera(rig: Rig, scene: Scene, rng: np.random.Generator, width: int, height: int,
-                  obstacles: Obstacles | None = None, start_try: int = 0) -> DrawnCamera:
+                  obstacles: Obstacles | None = None, start_try: int = 0, propose=None) -> DrawnCamera:
     """Draw until a pose passes the placement checks and expects at least rig.min_objects objects.
 
     After rig.max_tries the last pose that passed the placement checks is returned; while there
     is none, up to PLACEMENT_TRIES more draws look for one (then the first pose drawn is kept).
     `tries` says how many draws it took, counting from `start_try` (the renderer continues the
-    count when it redraws).
+    count when it redraws). `propose(rig, scene, rng, width, height)` draws each candidate
+    (default draw_camera: the rig's anchors; rigs/meeting.py: views aimed at one junction).
     """
     obstacles = obstacles or Obstacles(scene)
+    propose = propose or draw_camera
     placed = first = None
     tries = start_try
     while tries < rig.max_tries or (placed is None and tries < rig.max_tries + PLACEMENT_TRIES):
         tries += 1
-        cam = replace(draw_camera(rig, scene, rng, width, height), tries=tries)
+        cam = replace(propose(rig, scene, rng, width, height), tries=tries)
         first = first or cam
         if placement_problem(rig, scene, cam, obstacles):
             continue
         placed = cam
         if expected_objects(scene, cam) >= rig.min_objects:
             return cam
-    return replace(placed or first or draw_camera(rig, scene, rng, width, height), tries=tries)
+    return replace(placed or first or propose(rig, scene, rng, width, height), tries=tries)
