@@ -7,23 +7,27 @@ record's keypoints, not a re-projection, and a label error is visible rather tha
 
 Colours: top edges orange, bottom (ground-contact) edges cyan, verticals green; corner markers
 take their face's colour and carry the corner index (0-3 top, 4-7 bottom, docs/conventions.md);
-2D boxes are yellow, ignore regions red and hatched. In the BEV the camera sits at the bottom
+2D boxes are yellow, ignore regions red and hatched. `omnigen show --instant` passes an
+`object_color` (track_color) that paints a tracked object's whole cuboid and footprint in its
+track's colour, the same in every view of the instant. In the BEV the camera sits at the bottom
 looking up, footprints are the bottom corners 4-7 on the ground plane (filled in the class's
 colour, front edge white), and the grey wedge is the part of the ground the image sees.
 """
 
 from __future__ import annotations
 
+import colorsys
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from omnigen.conventions import BOTTOM_CORNERS, FINE_CLASSES, NEAR_PLANE, SKELETON, TOP_CORNERS
 from omnigen.images import MAX_IMAGE_PIXELS, load_rgb
-from omnigen.record import FrameRecord
+from omnigen.record import FrameRecord, ObjectRecord
 
 TOP_COLOR = (255, 150, 0)
 BOTTOM_COLOR = (0, 210, 255)
@@ -40,6 +44,26 @@ CLASS_COLORS = {  # tab20-like, one per fine class, in FINE_CLASSES order
 EDGE_COLORS = tuple(TOP_COLOR if i < 4 else BOTTOM_COLOR if i < 8 else VERTICAL_COLOR for i in range(len(SKELETON)))
 """Colour of each SKELETON edge: 0-3 the top face, 4-7 the bottom face, 8-11 the verticals."""
 TITLE_HEIGHT = 22
+PANEL_GAP = 6
+"""Background pixels between the panels of an instant, so that two images never read as one."""
+
+Color = tuple[int, int, int]
+ObjectColor = Callable[[ObjectRecord], "Color | None"]
+"""One colour for an object's whole cuboid (edges, corner markers, BEV footprint), or None for the
+default colours by face and class."""
+
+GOLDEN = (math.sqrt(5) - 1) / 2
+"""Hue step between consecutive track ids: the golden ratio spreads any run of ids over the hue
+circle, so neighbouring ids (often neighbouring objects) never get near-identical colours."""
+
+
+def track_color(obj: ObjectRecord) -> Color | None:
+    """The object's track colour: a function of track_id alone, so one track is one colour in every
+    view and at every instant; None (default colours) for an untracked object."""
+    if obj.track_id is None:
+        return None
+    r, g, b = colorsys.hsv_to_rgb((obj.track_id * GOLDEN) % 1.0, 0.8, 1.0)
+    return int(round(r * 255)), int(round(g * 255)), int(round(b * 255))
 
 
 def font(size: int) -> ImageFont.ImageFont:
@@ -155,12 +179,13 @@ class Panel:
 
 
 def draw_frame(rec: FrameRecord, image: Image.Image | None = None, scale: float = 1.0,
-               corner_labels: bool = True, margin: float = 0.0) -> Panel:
+               corner_labels: bool = True, margin: float = 0.0, object_color: ObjectColor | None = None) -> Panel:
     """The image with every object's cuboid, corner indices and 2D box, and the ignore regions.
 
     `margin` (a fraction of the image size on each side) shows what lies just outside the image:
     the contract keeps the raw projection of corners outside the image, and a truncated object's
     cuboid is easier to judge whole. Corners outside the image are drawn as hollow markers.
+    `object_color` (see ObjectColor) overrides the colours by face per object.
     """
     w, h, mx, my = panel_size(rec.width, rec.height, scale, margin)
     if image is None:  # made at the panel's size: a record may claim far more pixels than it has
@@ -201,17 +226,18 @@ def draw_frame(rec: FrameRecord, image: Image.Image | None = None, scale: float 
         draw.rectangle([x1, y1, x2, y2], outline=BOX2D_COLOR, width=1)
         corners = obj.box.corners()
         kp = panel.to_display(obj.keypoints)
+        one = object_color(obj) if object_color else None
         for edge in (8, 9, 10, 11, 4, 5, 6, 7, 0, 1, 2, 3):  # verticals, bottom, then top on top
             a, b = SKELETON[edge]
             seg = edge_segment(corners[a], corners[b], obj.keypoints[a], obj.keypoints[b], rec.K)
             seg = None if seg is None else clip_segment(panel.to_display(seg), lo, hi)
             if seg is not None:
-                draw.line([tuple(seg[0]), tuple(seg[1])], fill=EDGE_COLORS[edge], width=lw)
+                draw.line([tuple(seg[0]), tuple(seg[1])], fill=one or EDGE_COLORS[edge], width=lw)
         for j in range(len(kp)):
             x, y = kp[j]
             if obj.behind_camera[j] or not (-r <= x <= W + r and -r <= y <= H + r):
                 continue
-            color = TOP_COLOR if j in TOP_CORNERS else BOTTOM_COLOR
+            color = one or (TOP_COLOR if j in TOP_CORNERS else BOTTOM_COLOR)
             inside = bool(obj.in_image[j])
             draw.ellipse([x - r, y - r, x + r, y + r], fill=color if inside else None,
                          outline=(0, 0, 0) if inside else color, width=1 if inside else 2)
@@ -267,7 +293,7 @@ class BevPanel:
         return np.stack([self.center_x + rf[..., 0] * self.px_per_m, self.base_y - rf[..., 1] * self.px_per_m], axis=-1)
 
 
-def draw_bev(rec: FrameRecord, size: int = 480) -> BevPanel:
+def draw_bev(rec: FrameRecord, size: int = 480, object_color: ObjectColor | None = None) -> BevPanel:
     """Footprints of the frame's objects on the ground, the camera at the bottom looking up."""
     fp = footprints(rec)
     origin, right, forward, on_ground = ground_axes(rec)
@@ -293,7 +319,7 @@ def draw_bev(rec: FrameRecord, size: int = 480) -> BevPanel:
         poly = bev.to_display(fp[i])
         if not np.isfinite(poly).all():
             continue
-        color = CLASS_COLORS[obj.category]
+        color = (object_color(obj) if object_color else None) or CLASS_COLORS[obj.category]
         draw.polygon([tuple(p) for p in poly], fill=color + (150,), outline=color + (255,))
         draw.line([tuple(poly[0]), tuple(poly[1])], fill=(255, 255, 255, 255), width=2)  # front edge: 4-5
     cx, cy = bev.center_x, bev.base_y
@@ -365,12 +391,16 @@ LEGEND = (("top", TOP_COLOR), ("bottom", BOTTOM_COLOR), ("verticals", VERTICAL_C
           ("ignore", IGNORE_COLOR))
 
 
-def _legend_width(d: ImageDraw.ImageDraw, f) -> int:
-    return sum(int(d.textlength(label, font=f)) + 12 for label, _ in LEGEND)
+TRACK_LEGEND = (("cuboid: its track's colour", (235, 235, 235)),) + LEGEND
+"""The key where cuboids are coloured by track (untracked objects keep the colours by face)."""
+
+
+def _legend_width(d: ImageDraw.ImageDraw, f, legend=LEGEND) -> int:
+    return sum(int(d.textlength(label, font=f)) + 12 for label, _ in legend)
 
 
 def render_frame(rec: FrameRecord, image_path: str | Path | None, bev: bool = True, scale: float | None = None,
-                 bev_size: int | None = None, margin: float = 0.0) -> FrameView:
+                 bev_size: int | None = None, margin: float = 0.0, object_color: ObjectColor | None = None) -> FrameView:
     """The frame drawn (and its BEV beside it), with a title strip naming it and a colour key.
 
     The key is whole or not at all: where it does not fit beside the title (a 640 px frame without
@@ -384,15 +414,16 @@ def render_frame(rec: FrameRecord, image_path: str | Path | None, bev: bool = Tr
         image, error = None, "no image"
     else:
         image, error = load_image(image_path)
-    panel = draw_frame(rec, image, scale, margin=margin)
-    bev_panel = draw_bev(rec, side) if bev else None
+    panel = draw_frame(rec, image, scale, margin=margin, object_color=object_color)
+    bev_panel = draw_bev(rec, side, object_color) if bev else None
+    legend = TRACK_LEGEND if object_color else LEGEND
     width = panel.image.width + (bev_panel.image.width if bev_panel else 0)
     f = font(12)
     title = f"{rec.frame_id}  {rec.source} / {rec.view}  {rec.width}x{rec.height}  {len(rec.objects)} objects"
     if error:
         title += f"  [image: {error}]"
     probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
-    one_row = probe.textlength(title, font=f) + 12 + _legend_width(probe, f) <= width
+    one_row = probe.textlength(title, font=f) + 12 + _legend_width(probe, f, legend) <= width
     strip = TITLE_HEIGHT if one_row else 2 * TITLE_HEIGHT
     height = strip + max(panel.image.height, bev_panel.image.height if bev_panel else 0)
     out = Image.new("RGB", (width, height), BACKGROUND)
@@ -401,9 +432,40 @@ def render_frame(rec: FrameRecord, image_path: str | Path | None, bev: bool = Tr
         out.paste(bev_panel.image, (panel.image.width, strip))
     d = ImageDraw.Draw(out)
     d.text((4, 4), title, fill=(235, 235, 235), font=f)
-    x = width - _legend_width(d, f) + 8 if one_row else 4
+    x = width - _legend_width(d, f, legend) + 8 if one_row else 4
     y = 4 if one_row else 4 + TITLE_HEIGHT
-    for label, color in LEGEND:
+    for label, color in legend:
         d.text((x, y), label, fill=color, font=f)
         x += int(d.textlength(label, font=f)) + 12
     return FrameView(out, panel, bev_panel, error, strip)
+
+
+
+def render_instant(recs: list[FrameRecord], image_paths: list[str | Path | None], bev: bool = False,
+                   scale: float | None = None, margin: float = 0.0) -> tuple[Image.Image, list[FrameView]]:
+    """The frames of one instant in one row, in the order given, each drawn as render_frame draws it
+    with cuboids in their track's colour (track_color), so one object is one colour in every view.
+
+    Each frame gets its own scale so that the images share one height (the tallest at `scale`, or
+    at its default display scale): drawn at that scale rather than resized afterwards, every line
+    stays as sharp and its colour as exact as in a single frame's picture."""
+    height = max(r.height * (scale or display_scale(r.width, r.height)) for r in recs)
+    scales = [height / r.height for r in recs]
+    sizes = [panel_size(r.width, r.height, s, margin) for r, s in zip(recs, scales)]
+    width = sum(w + 2 * mx + (bev_side(h + 2 * my) if bev else 0) for w, h, mx, my in sizes)
+    tallest = max(max(h + 2 * my, bev_side(h + 2 * my) if bev else 0) for w, h, mx, my in sizes)
+    check_canvas(width + PANEL_GAP * (len(recs) - 1), 2 * TITLE_HEIGHT + tallest, f"the instant of {recs[0].frame_id}")
+    views = [render_frame(r, path, bev=bev, scale=s, margin=margin, object_color=track_color)
+             for r, path, s in zip(recs, image_paths, scales)]
+    return side_by_side([v.image for v in views]), views
+
+
+def side_by_side(pictures: list[Image.Image]) -> Image.Image:
+    """The pictures in one row, top-aligned, PANEL_GAP apart on the background colour."""
+    out = Image.new("RGB", (sum(p.width for p in pictures) + PANEL_GAP * (len(pictures) - 1),
+                            max(p.height for p in pictures)), BACKGROUND)
+    x = 0
+    for p in pictures:
+        out.paste(p, (x, 0))
+        x += p.width + PANEL_GAP
+    return out

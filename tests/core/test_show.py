@@ -1,8 +1,12 @@
 """`omnigen show`: the drawn pixels sit where the record's corners are, each edge in its colour,
-the ignore region shaded, and the BEV footprint where the object stands on the ground."""
+the ignore region shaded, and the BEV footprint where the object stands on the ground; with
+--instant, every view of one instant in one row, ego first, each tracked cuboid in its track's colour
+in every panel, a frame without a sequence refused in one line, and a single frame drawn as before."""
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
 
 import numpy as np
@@ -12,11 +16,14 @@ from PIL import Image
 from omnigen.cli import main
 from omnigen.conventions import NEAR_PLANE, SKELETON
 from omnigen.dataset import Dataset
-from omnigen.draw import (BACKGROUND, CLASS_COLORS, EDGE_COLORS, TITLE_HEIGHT, clip_segment, display_scale,
-                          edge_segment, footprints, render_frame)
+from omnigen.draw import (BACKGROUND, CLASS_COLORS, EDGE_COLORS, PANEL_GAP, TITLE_HEIGHT, clip_segment,
+                          display_scale, draw_frame, edge_segment, footprints, render_frame, render_instant,
+                          track_color)
+from omnigen.fakes import fake_cooperative_records, write_cooperative_dataset
 from omnigen.camera import intrinsics_from_fov
 from omnigen.geometry import Box3D, plane_from_height_pitch, rot_x, rot_z
 from omnigen.record import FrameRecord, IgnoreRegion, ObjectRecord
+from omnigen.show_command import instant_rows
 from omnigen.writer import DatasetWriter
 
 W, H = 320, 192
@@ -174,3 +181,122 @@ def test_the_colour_key_is_whole_at_any_width(bev):
     strip = np.asarray(view.image)[:view.strip].reshape(-1, 3)
     for label, colour in LEGEND:
         assert (np.abs(strip.astype(int) - colour).sum(axis=1) < 30).sum() > 5, label
+
+
+# ---------------------------------------------------------------------------------------------
+# --instant: the views of one cooperative instant
+# ---------------------------------------------------------------------------------------------
+
+SEQUENCE = "synthetic-coop-s0-q000000"
+EGO_T1 = f"{SEQUENCE}-ego-t001"
+
+
+@pytest.fixture(scope="module")
+def coop(tmp_path_factory):
+    root = tmp_path_factory.mktemp("coop") / "ds"
+    write_cooperative_dataset(root, n_sequences=1, n_instants=2, width=W, height=H)
+    return root
+
+
+def _instant(root):
+    ds = Dataset.open(root, show_progress=False)
+    recs = [ds[i] for i in instant_rows(ds, SEQUENCE, 0.1)]
+    return recs, [ds.path(r.image) for r in recs]
+
+
+def test_instant_draws_each_view_once_in_view_order(coop, tmp_path, capsys):
+    out = tmp_path / "instant.png"
+    assert main(["show", str(coop), EGO_T1, "--instant", "--out", str(out)]) == 0
+    line = capsys.readouterr().out
+    order = [f"{SEQUENCE}-{v}-t001" for v in ("ego", "infrastructure", "aerial")]
+    assert f"3 frames ({', '.join(order)})" in line, line  # the other instant's frames are not drawn
+    recs, images = _instant(coop)
+    assert [r.frame_id for r in recs] == order
+    picture, views = render_instant(recs, images)
+    panel_w = W * display_scale(W, H)
+    assert [v.image.width for v in views] == [panel_w] * 3
+    with Image.open(out) as im:
+        assert im.size == (3 * panel_w + 2 * PANEL_GAP, views[0].image.height)
+        assert np.array_equal(np.asarray(im.convert("RGB")), np.asarray(picture))
+
+    bev = tmp_path / "bev.png"  # --bev: each view with its own BEV beside it
+    assert main(["show", str(coop), EGO_T1, "--instant", "--bev", "--out", str(bev)]) == 0
+    with Image.open(bev) as im:
+        assert im.size == render_instant(recs, images, bev=True)[0].size and im.width > 3 * panel_w + 2 * PANEL_GAP
+    inside = coop / "instant.png"  # never into the dataset
+    assert main(["show", str(coop), EGO_T1, "--instant", "--out", str(inside)]) == 1 and not inside.exists()
+
+
+def test_one_track_is_one_colour_in_every_view(coop):
+    recs, images = _instant(coop)
+    picture, views = render_instant(recs, images)
+    pix = np.asarray(picture).astype(int)
+    seen_in: dict[int, int] = {}
+    x0 = 0
+    for rec, view in zip(recs, views):
+        panel = pix[view.strip:view.image.height, x0:x0 + view.image.width]
+        for edge_color in EDGE_COLORS:  # tracked cuboids never take the colours by face
+            assert not (panel == edge_color).all(axis=-1).any(), f"{rec.frame_id}: a face colour was drawn"
+        for obj in rec.objects:
+            if not obj.in_image.all():
+                continue
+            kp = view.frame.to_display(obj.keypoints) + [x0, view.strip]
+            color = track_color(obj)
+            hits = 0
+            for a, b in SKELETON:
+                x, y = np.round((kp[a] + kp[b]) / 2).astype(int)
+                hits += (pix[y - 1:y + 2, x - 1:x + 2] == color).all(axis=-1).any()
+            assert hits >= 4, f"{rec.frame_id}: track {obj.track_id} drawn in its colour on {hits} of 12 edges"
+            seen_in[obj.track_id] = seen_in.get(obj.track_id, 0) + 1
+        x0 += view.image.width + PANEL_GAP
+    assert max(seen_in.values()) >= 2, "no track checked in two views"
+
+
+def test_track_colours_are_stable_distinct_and_none_without_a_track():
+    car = _record().objects[0]
+    assert car.track_id is None and track_color(car) is None
+    colours = [track_color(dataclasses.replace(car, track_id=t)) for t in range(1, 21)]
+    assert len(set(colours)) == 20 and colours == [track_color(dataclasses.replace(car, track_id=t))
+                                                   for t in range(1, 21)]
+    assert all(c not in EDGE_COLORS for c in colours)
+
+
+def test_untracked_objects_keep_the_colours_by_face():
+    rec = _record()
+    plain, by_track = render_frame(rec, None, bev=True), render_frame(rec, None, bev=True, object_color=track_color)
+    below_title = slice(plain.strip, None)
+    assert np.array_equal(np.asarray(plain.image)[below_title], np.asarray(by_track.image)[below_title])
+
+
+# Pixel hashes of draw_frame (no corner labels: no font in them) as it drew before --instant existed,
+# for the legacy frame and a cooperative (tracked) one, without and with a margin.
+BEFORE = ["e13f2de1ec8376df", "5d39eb9f44f65dfc", "8b6eea2193d414e2", "79d351bfb2090a6b"]
+
+
+def test_a_single_frame_is_drawn_as_before():
+    coop_rec = fake_cooperative_records(n_sequences=1, n_instants=1)[0]
+    now = [hashlib.sha256(draw_frame(rec, None, 2, corner_labels=False, margin=m).image.tobytes()).hexdigest()[:16]
+           for rec in (_record(), coop_rec) for m in (0.0, 0.25)]
+    assert now == BEFORE
+
+
+def test_panels_share_one_image_height():
+    recs = (fake_cooperative_records(n_sequences=1, n_instants=1, views=("ego",), width=320, height=192)
+            + fake_cooperative_records(n_sequences=1, n_instants=1, views=("aerial",), width=200, height=150))
+    picture, views = render_instant(recs, [None, None])
+    heights = [v.frame.image.height for v in views]
+    assert heights[0] == heights[1] == max(192 * display_scale(320, 192), 150 * display_scale(200, 150))
+    assert picture.width == sum(v.image.width for v in views) + PANEL_GAP
+
+
+@pytest.mark.parametrize("field", ["sequence", "timestamp"])
+def test_a_frame_outside_any_instant_is_one_line(tmp_path, capsys, field):
+    rec = fake_cooperative_records(n_sequences=1, n_instants=1, views=("ego",))[0]
+    rec = dataclasses.replace(rec, timestamp=None, **({"sequence": None, "pair": None} if field == "sequence" else {}))
+    root = tmp_path / "ds"
+    write_cooperative_dataset(root, records=[rec])
+    out = tmp_path / "x.png"
+    assert main(["show", str(root), rec.frame_id, "--instant", "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"frame {rec.frame_id} has no {field}" in err and str(root) in err
+    assert not out.exists()
