@@ -2,7 +2,8 @@
 
 Usage: `omnigen convert dair SRC --out DIR`, where SRC is a DAIR-V2X-I folder
 (`single-infrastructure-side`), a DAIR-V2X-C `infrastructure-side` folder, or the DAIR-V2X-C root
-that holds `infrastructure-side/`. docs/converters-dair.md explains every decision; the short
+that holds `infrastructure-side/`. A root with `cooperative/data_info.json` also gives the vehicle
+side, paired and posed in the world (omnigen.converters.dair_cooperative; --side picks the sides). docs/converters-dair.md explains every decision; the short
 version of the ones that change numbers:
 
 - Boxes are built in the virtual-LiDAR frame (x forward, y left, z up; `3d_location` is the box
@@ -85,6 +86,32 @@ INTRINSIC_DIRS = ("calib/camera_intrinsic", "calib/camera")  # the README's DAIR
 EXTRINSIC_KEYS = ("calib_virtuallidar_to_camera_path",)
 EXTRINSIC_DIRS = ("calib/virtuallidar_to_camera",)
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+
+@dataclass(frozen=True)
+class DairSide:
+    """Where one camera's files are named: its view, frame-id tag, label and extrinsic keys and folders.
+
+    Why: DAIR-V2X-C's vehicle side has the infrastructure side's layout with other names
+    (label/lidar, calib/lidar_to_camera); one converter serves both with the names passed in.
+    """
+
+    view: str
+    tag: str  # between the source and the DAIR id in frame ids: "" (infrastructure) or "veh-"
+    label_keys: dict[str, tuple[str, ...]]
+    label_dirs: dict[str, tuple[str, ...]]
+    extrinsic_keys: tuple[str, ...]
+    extrinsic_dirs: tuple[str, ...]
+
+
+INFRASTRUCTURE = DairSide(VIEW, "", LABEL_KEYS, LABEL_DIRS, EXTRINSIC_KEYS, EXTRINSIC_DIRS)
+VEHICLE = DairSide(
+    "ego", "veh-",
+    # on the vehicle side "virtuallidar" names the point-cloud label set, label/lidar
+    {"camera": LABEL_KEYS["camera"], "virtuallidar": ("label_lidar_std_path", "label_lidar_path")},
+    {"camera": ("label/camera",), "virtuallidar": ("label/lidar",)},
+    ("calib_lidar_to_camera_path",), ("calib/lidar_to_camera",))
 
 C_MARKERS = ("batch_id", "batch_start_id", "batch_end_id", "valid_batch_splits", "calib_virtuallidar_to_world_path")
 """data_info fields only DAIR-V2X-C's infrastructure side carries; any of them means `dair-v2x-c`."""
@@ -698,8 +725,9 @@ class DairOptions:
 class DairConverter:
     """Turns DAIR frame ids into ConvertedFrames; the frame loop itself is omnigen.converters.common's."""
 
-    def __init__(self, src: Path, options: DairOptions = DairOptions()):
+    def __init__(self, src: Path, options: DairOptions = DairOptions(), side: DairSide = INFRASTRUCTURE):
         self.options = options
+        self.side = side
         self.tree = read_tree(src)
         self.root = self.tree.root
         self.source = detect_source(self.tree) if options.source == "auto" else options.source
@@ -720,20 +748,24 @@ class DairConverter:
         image, named = self.image_path(f)
         width, height = source_image_size(image, named)
         K = parse_intrinsics(*self._read(f, INTRINSIC_KEYS, INTRINSIC_DIRS))
-        ext = parse_extrinsics(*self._read(f, EXTRINSIC_KEYS, EXTRINSIC_DIRS))
+        ext = parse_extrinsics(*self._read(f, self.side.extrinsic_keys, self.side.extrinsic_dirs))
         label_file, label_set, named_by = self.label_path(f)
         label = parse_label(read_json(label_file, f"{named_by}, frame {f.key}"), label_file)
         objects = make_objects(label.objects, K, ext, width, height, label_set)
         estimate = estimate_ground(label.objects)
         plane, camera_height, camera_pitch = camera_pose(estimate, ext)
-        frame_id = f"{self.source}-{f.key}"
+        frame_id = self.frame_id(f.key)
         suffix = named.suffix.lower()
         record = FrameRecord(
-            frame_id=frame_id, source=self.source, view=VIEW, image=image_relpath(frame_id, suffix),
+            frame_id=frame_id, source=self.source, view=self.side.view, image=image_relpath(frame_id, suffix),
             width=width, height=height, K=K, objects=[o for o in objects if o is not None], ignore_regions=label.ignore_regions,
             ground_plane=plane, camera_height=camera_height, camera_pitch=camera_pitch, group=self.groups.get(f.key),
         )
         return ConvertedFrame(record, ImageSource(suffix, path=image), frame_stats(objects, estimate, label_set))
+
+    def frame_id(self, key: str) -> str:
+        """The record's frame id for a DAIR id: `<source>-<side tag><id>`."""
+        return f"{self.source}-{self.side.tag}{key}"
 
     # -- paths ------------------------------------------------------------------------------------
     # Every path a frame needs is resolved (links followed) and must stay inside SRC (--images DIR
@@ -755,9 +787,10 @@ class DairConverter:
         """The label file for the chosen set, or label/virtuallidar where allowed and needed; the
         set it belongs to; who named it."""
         wanted = self.options.label
-        path, named_by = self.resolve(f, LABEL_KEYS[wanted], LABEL_DIRS[wanted])
+        labels = self.side.label_keys, self.side.label_dirs
+        path, named_by = self.resolve(f, labels[0][wanted], labels[1][wanted])
         if wanted == "camera" and self.options.fallback_virtuallidar and not path.exists():
-            other, other_named_by = self.resolve(f, LABEL_KEYS["virtuallidar"], LABEL_DIRS["virtuallidar"])
+            other, other_named_by = self.resolve(f, labels[0]["virtuallidar"], labels[1]["virtuallidar"])
             if other.exists():
                 return other, "virtuallidar", other_named_by
         if not path.exists():
@@ -874,6 +907,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="folder to look for images in by file name when SRC/image_path does not exist")
     p.add_argument("--group-by", choices=GROUP_METHODS, default="batch",
                    help="first grouping to try: batch (DAIR-V2X-C batch_id), time (timestamp runs) or intersection")
+    p.add_argument("--side", choices=("both", "infrastructure", "vehicle"), default="both",
+                   help="on a DAIR-V2X-C cooperative root: both sides, paired (default), or one; "
+                        "infrastructure converts as without cooperative/")
     p.add_argument("--group-gap", type=number(*GROUP_GAP_RANGE_S), default=DEFAULT_GROUP_GAP_S, metavar="SECONDS",
                    help="largest timestamp gap inside one time run (default %(default)g)")
 
@@ -883,12 +919,25 @@ def options_from_args(args: argparse.Namespace) -> DairOptions:
                        images=args.images, group_by=args.group_by, group_gap_s=args.group_gap)
 
 
+def make_converter(args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
+    """The plain converter, or the cooperative one (omnigen.converters.dair_cooperative) on a
+    DAIR-V2X-C cooperative root unless --side infrastructure; and what the manifest adds for it."""
+    from omnigen.converters.dair_cooperative import CooperativeConverter, check_side, is_cooperative
+
+    side = getattr(args, "side", "both")
+    check_side(args.src, side)
+    if is_cooperative(args.src) and side != "infrastructure":
+        return CooperativeConverter(args.src, options_from_args(args), side), {"side": side}
+    return DairConverter(args.src, options_from_args(args)), {}
+
+
 def run(args: argparse.Namespace) -> int:
-    converter = DairConverter(args.src, options_from_args(args))
+    converter, extra = make_converter(args)
     keys = select_keys(converter.keys(), args.limit, converter.root)
     o = converter.options
     conversion = {"converter": "dair", "source": converter.source, "label": o.label,
-                  "fallback_virtuallidar": o.fallback_virtuallidar, "group_by": o.group_by, "group_gap_s": o.group_gap_s}
+                  "fallback_virtuallidar": o.fallback_virtuallidar, "group_by": o.group_by, "group_gap_s": o.group_gap_s,
+                  **extra}
     report = run_conversion(keys, converter.convert, args.out, link=args.link, strict=args.strict,
                             inputs=[args.src] + ([args.images] if args.images else []),
                             desc=f"dair {converter.source}", manifest_extra={"conversion": conversion},
@@ -899,4 +948,8 @@ def run(args: argparse.Namespace) -> int:
           f"{s['ground_plane_level']}, none (no objects) in {s['ground_plane_none']}; "
           f"objects with no part in the image (left out): {s['objects_outside_image']}; "
           f"frames labelled from label/virtuallidar: {s['frames_label_virtuallidar']}")
+    if extra:
+        print(f"  cooperative: frames without camera_to_world (a world calibration absent): "
+              f"{s['frames_camera_to_world_null']}; infrastructure frames also in a later pair (kept the first): "
+              f"{s['infrastructure_frames_in_a_later_pair']}")
     return code

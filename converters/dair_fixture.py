@@ -300,3 +300,157 @@ def _write_frame(root: Path, key: str, index: int, seed: int, variant: str, imag
               {"rotation": np.eye(3).tolist(), "translation": [[2600.0], [1700.0], [20.0]],
                "relative_error": {"delta_x": "", "delta_y": ""}})
     return cam
+
+
+# ---------------------------------------------------------------------------------------------
+# DAIR-V2X-C as a whole: vehicle side, world calibrations, cooperative pairs
+# ---------------------------------------------------------------------------------------------
+
+WORLD_ORIGIN = np.array([2600.0, 1700.0, 20.0])
+"""Where write_dair_tree's variant 'c' puts every infrastructure virtual LiDAR (identity rotation)."""
+VEHICLE_LIDAR_HEIGHT = 1.9  # the vehicle LiDAR above the ground, metres
+VEHICLE_ID0 = 10000  # vehicle DAIR ids start here, apart from the infrastructure ones
+VEHICLE_IMAGE_SIZE = (128, 72)  # not the infrastructure's: the vehicle camera has its own K
+VEHICLE_DELAY_US = 30_000  # the vehicle image is taken this long after its pair's infrastructure image
+
+
+@dataclass(frozen=True)
+class CooperativeFixture:
+    root: Path  # the cooperative root
+    infrastructure: DairFixture
+    vehicle_keys: list[str]  # vehicle_keys[i] pairs with infrastructure.keys[pair_infra[i]]
+    pair_infra: list[int]
+    offsets: list[tuple[float, float] | None]  # per pair; None where system_error_offset is ""
+
+
+def _rigid(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = rotation, translation
+    return m
+
+
+def _rt_json(m: np.ndarray) -> dict[str, Any]:
+    return {"rotation": m[:3, :3].tolist(), "translation": m[:3, 3].reshape(3, 1).tolist()}
+
+
+def _vehicle_camera(rng: np.random.Generator) -> FixtureCamera:
+    """A forward camera on the roof: 0.3 m below and 0.5 m ahead of the LiDAR, pitched 0-4 degrees down."""
+    w, h = VEHICLE_IMAGE_SIZE
+    pitch = math.radians(rng.uniform(0.0, 4.0))
+    f = (w / 2.0) / math.tan(math.radians(rng.uniform(55.0, 70.0)) / 2.0)
+    K = np.array([[f, 0.0, w / 2.0 - 0.5], [0.0, f, h / 2.0 - 0.5], [0.0, 0.0, 1.0]])
+    camera_to_lidar = LEVEL_CAMERA_TO_LIDAR @ _rot_x(-pitch)
+    position = np.array([0.5, 0.0, -0.3])
+    rotation = camera_to_lidar.T
+    return FixtureCamera(K, rotation, -rotation @ position, VEHICLE_LIDAR_HEIGHT - 0.3, pitch, -VEHICLE_LIDAR_HEIGHT)
+
+
+def _vehicle_pose(rng: np.random.Generator, infra: FixtureCamera) -> np.ndarray:
+    """Vehicle LiDAR to world: on the ground 6-10 m behind the pole's foot, heading where the pole looks."""
+    axis = infra.rotation.T[:, 2]  # the pole camera's optical axis in its virtual-LiDAR frame
+    heading = math.atan2(axis[1], axis[0]) + rng.uniform(-0.1, 0.1)
+    foot = infra.center[:2] - rng.uniform(6.0, 10.0) * np.array([math.cos(heading), math.sin(heading)])
+    z = infra.ground_z + VEHICLE_LIDAR_HEIGHT
+    return _rigid(_rot_z(heading), WORLD_ORIGIN + np.array([foot[0], foot[1], z]))
+
+
+def _label_to_vehicle(obj: dict[str, Any], world_from_infra: np.ndarray, vehicle_from_world: np.ndarray,
+                      cam: FixtureCamera, world_id: int) -> dict[str, Any] | None:
+    """An infrastructure label entry seen from the vehicle: same world box, its own 2D box; None if not in view."""
+    if "3d_location" not in obj:
+        return None
+    loc, dims = obj["3d_location"], obj["3d_dimensions"]
+    center_world = world_from_infra @ np.array([float(loc["x"]), float(loc["y"]), float(loc["z"]), 1.0])
+    center = (vehicle_from_world @ center_world)[:3]
+    m = vehicle_from_world @ world_from_infra
+    yaw = float(obj["rotation"]) + math.atan2(m[1, 0], m[0, 0])
+    lwh = np.array([float(dims["l"]), float(dims["w"]), float(dims["h"])])
+    box = _box2d(cam, box_corners_lidar(center, lwh, yaw), VEHICLE_IMAGE_SIZE)
+    if box is None:
+        return None
+    (x1, y1, x2, y2), truncated = box
+    return {"type": obj["type"], "truncated_state": "1" if truncated else "0", "occluded_state": obj["occluded_state"],
+            "alpha": "0", "2d_box": {"xmin": x1, "ymin": y1, "xmax": x2, "ymax": y2},
+            "3d_dimensions": {"h": lwh[2], "w": lwh[1], "l": lwh[0]},
+            "3d_location": {"x": center[0], "y": center[1], "z": center[2]}, "rotation": yaw,
+            "fixture_world_id": world_id}
+
+
+def write_cooperative_tree(root: str | Path, n_pairs: int, seed: int = 0, image_size: tuple[int, int] = (96, 54),
+                           objects: tuple[int, int] = (6, 14)) -> CooperativeFixture:
+    """A DAIR-V2X-C root: infrastructure-side/ (write_dair_tree variant 'c'), vehicle-side/, cooperative/.
+
+    Pair i joins infrastructure frame i and vehicle frame VEHICLE_ID0 + i; one more vehicle frame
+    pairs again with infrastructure frame 0 (an infrastructure frame in two pairs). Each pair is one
+    world: the vehicle labels are the infrastructure's world boxes seen from the vehicle (a
+    `fixture_world_id` field names the infrastructure label index), so shared objects agree in the
+    world. Every other pair has a system_error_offset; its infrastructure virtuallidar_to_world
+    file is then off by minus that offset, as the official transform's correction implies.
+    """
+    root = Path(root)
+    infra = write_dair_tree(root / "infrastructure-side", n_pairs, seed=seed, variant="c", image_size=image_size,
+                            objects=objects)
+    vroot = root / "vehicle-side"
+    for folder in ("image", "calib/camera_intrinsic", "calib/lidar_to_camera", "calib/lidar_to_novatel",
+                   "calib/novatel_to_world", "label/camera", "label/lidar"):
+        (vroot / folder).mkdir(parents=True, exist_ok=True)
+    (root / "cooperative").mkdir(parents=True, exist_ok=True)
+    pair_infra = list(range(n_pairs)) + ([0] if n_pairs else [])
+    vehicle_keys, offsets, vehicle_info, coop_info = [], [], [], []
+    for i, j in enumerate(pair_infra):
+        rng = np.random.default_rng([seed, 0xC0, i])
+        key = f"{VEHICLE_ID0 + i:06d}"
+        offset = (float(rng.uniform(0.3, 1.5)), float(rng.uniform(-1.5, -0.3))) if i % 2 else None
+        _write_vehicle_frame(vroot, root / "infrastructure-side", key, infra.keys[j], infra.cameras[j], rng, i)
+        if offset is not None and i < n_pairs:  # the repeated pair shares frame 0's file: no offset there
+            _dump(root / "infrastructure-side/calib/virtuallidar_to_world" / f"{infra.keys[j]}.json",
+                  {"rotation": np.eye(3).tolist(), "translation": (WORLD_ORIGIN - [*offset, 0.0]).reshape(3, 1).tolist(),
+                   "relative_error": {"delta_x": "", "delta_y": ""}})
+        elif i >= n_pairs:
+            offset = None
+        vehicle_keys.append(key)
+        offsets.append(offset)
+        vehicle_info.append(_vehicle_info_entry(key, j))
+        coop_info.append({"infrastructure_image_path": f"infrastructure-side/image/{infra.keys[j]}.jpg",
+                          "infrastructure_pointcloud_path": f"infrastructure-side/velodyne/{infra.keys[j]}.pcd",
+                          "vehicle_image_path": f"vehicle-side/image/{key}.jpg",
+                          "vehicle_pointcloud_path": f"vehicle-side/velodyne/{key}.pcd",
+                          "cooperative_label_path": f"cooperative/label_world/{key}.json",
+                          "system_error_offset": "" if offset is None else {"delta_x": offset[0], "delta_y": offset[1]}})
+    _dump(vroot / "data_info.json", vehicle_info)
+    _dump(root / "cooperative" / "data_info.json", coop_info)
+    return CooperativeFixture(root, infra, vehicle_keys, pair_infra, offsets)
+
+
+def _vehicle_info_entry(key: str, infra_index: int) -> dict[str, Any]:
+    batch = infra_index // C_BATCH
+    stamp = T0_US + batch * 600_000_000 + (infra_index % C_BATCH) * 100_000 + VEHICLE_DELAY_US
+    return {"image_path": f"image/{key}.jpg", "pointcloud_path": f"velodyne/{key}.pcd", "image_timestamp": str(stamp),
+            "pointcloud_timestamp": str(stamp - 40_000), "calib_camera_intrinsic_path": f"calib/camera_intrinsic/{key}.json",
+            "calib_lidar_to_camera_path": f"calib/lidar_to_camera/{key}.json",
+            "calib_lidar_to_novatel_path": f"calib/lidar_to_novatel/{key}.json",
+            "calib_novatel_to_world_path": f"calib/novatel_to_world/{key}.json",
+            "label_camera_std_path": f"label/camera/{key}.json", "label_lidar_std_path": f"label/lidar/{key}.json",
+            "batch_id": str(batch), "intersection_loc": LOCATIONS[batch % len(LOCATIONS)],
+            "batch_start_id": f"{batch * C_BATCH:06d}", "batch_end_id": f"{batch * C_BATCH + C_BATCH - 1:06d}"}
+
+
+def _write_vehicle_frame(vroot: Path, iroot: Path, key: str, infra_key: str, infra: FixtureCamera,
+                         rng: np.random.Generator, index: int) -> None:
+    """One vehicle frame: calibrations (lidar_to_novatel a small yaw and offset) and the pair's world boxes."""
+    cam = _vehicle_camera(rng)
+    world_from_vehicle = _vehicle_pose(rng, infra)
+    novatel_from_lidar = _rigid(_rot_z(rng.uniform(-0.05, 0.05)), np.array([rng.uniform(-1, 1), 0.2, -1.2]))
+    world_from_novatel = world_from_vehicle @ np.linalg.inv(novatel_from_lidar)
+    world_from_infra = _rigid(np.eye(3), WORLD_ORIGIN)  # the truth (the file may carry an offset error)
+    labels = json.loads((iroot / "label/camera" / f"{infra_key}.json").read_text())
+    seen = [_label_to_vehicle(o, world_from_infra, np.linalg.inv(world_from_vehicle), cam, n) for n, o in enumerate(labels)]
+    (vroot / "image" / f"{key}.jpg").write_bytes(tiny_jpeg(VEHICLE_IMAGE_SIZE, tag=VEHICLE_ID0 + index))
+    _dump(vroot / "calib/camera_intrinsic" / f"{key}.json", {"cam_D": [0.0] * 5, "cam_K": cam.K.reshape(-1).tolist()})
+    _dump(vroot / "calib/lidar_to_camera" / f"{key}.json",
+          {"rotation": cam.rotation.tolist(), "translation": cam.translation.reshape(3, 1).tolist()})
+    _dump(vroot / "calib/lidar_to_novatel" / f"{key}.json", {"transform": _rt_json(novatel_from_lidar)})
+    _dump(vroot / "calib/novatel_to_world" / f"{key}.json", _rt_json(world_from_novatel))
+    vehicle_labels = [o for o in seen if o is not None]
+    _dump(vroot / "label/camera" / f"{key}.json", vehicle_labels)
+    _dump(vroot / "label/lidar" / f"{key}.json", vehicle_labels)
