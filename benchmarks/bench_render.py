@@ -16,6 +16,14 @@ outside the renderer core; Cycles --quality fast <= 8 s a frame, at most 5% outs
 and a scene stage of at most 0.5 s; resident memory after frame 200 within 10% of frame 20's
 (`--memory-frames 200 --memory-backend raster,cycles`).
 
+`--coop N` instead renders N instants of a cooperative raster sequence (`--rig ego,pole,drone`,
+sequences of `--coop-length` instants, 10 fps) as `omnigen render` does, and in the same run, in
+alternating rounds, as many drone frames of the same size (3N independent frames): seconds per
+view-frame of each and their ratio (issue 46: at most 1.2), the cooperative stage split, the share
+of track-instants seen by two views or more, and each one's one-off build apart. With
+`--memory-instants M`, resident memory every `--memory-every` instants of a long cooperative run
+and its change from the first reading to the last (within 10% over 1,000 instants).
+
 `--profile` instead prints, per backend and per preset (PROFILE_PRESETS), where the time of the
 frames after frame 0 goes: the stage timers, and the parts of each stage root of PROFILE_ROOTS
 (drawing the frame's Scene, updating the backend, drawing the camera, building the raster's agent
@@ -27,6 +35,8 @@ a run of 16 frames or more does, so the parts are what the render process is lef
 
     .venv/bin/python benchmarks/bench_render.py [--raster-frames 21] [--cycles-frames 21] [--size 640] [--no-cycles]
         [--no-raster] [--memory-frames 200 [--memory-backend raster,cycles] [--memory-size 96] [--memory-quality preview]]
+    .venv/bin/python benchmarks/bench_render.py --coop 30 [--coop-length 10] [--coop-rounds 5] [--size 640] [--scene downtown]
+        [--memory-instants 1000 [--memory-size 96] [--memory-every 100]]
     .venv/bin/python benchmarks/bench_render.py --profile [--profile-frames 4] [--size 640] [--quality fast] [--no-cycles]
         [--no-raster] [--profile-presets downtown,intersection,suburban] [--profile-clock wall|cpu] [--profile-ahead]
 """
@@ -293,6 +303,152 @@ def memory(backend: str, frames: int, size: int, scene: str, seed: int, quality:
               f"{100 * (at[frames] / at[20] - 1):+.1f}% (target within 10%)")
 
 
+COOP_RIGS = "ego,pole,drone"
+COOP_STAGES = ("scene", "camera", "render", "annotate", "write")
+
+
+def coop_renderer(out: Path, instants: int, length: int, size: int, scene: str, seed: int, fps: float = 10.0,
+                  rigs: str = COOP_RIGS, start: int = 0):
+    """A Renderer of instants start..start+instants-1 of a cooperative raster sequence (every rig of
+    `rigs` at each instant, `length` instants a sequence) into `out`, writing as `omnigen render`
+    (Renderer.run) writes: each view's files on a thread while the next is drawn."""
+    from omnigen.rigs.render import RenderJob, Renderer
+
+    r = Renderer(RenderJob(rig=rigs, frames=instants, out=out, seed=seed, scene=scene, width=size, height=size,
+                           backend="raster", sequence_length=length, fps=fps, start=start, durable=False))
+    r.write_behind = True
+    return r
+
+
+def render_instants(r, indices: range, records: list | None = None) -> dict[str, float]:
+    """Render the instants `indices` from every view as Renderer.run does (render_instant) and wait
+    for their files; the seconds each stage of the summary's timings took over them. The records
+    made are added to `records` when given."""
+    base = dict(r.summary.timings)
+    for i in indices:
+        made = r.render_instant(i)
+        if records is not None:
+            records.extend(made)
+    r.flush()
+    return {k: v - base[k] for k, v in r.summary.timings.items()}
+
+
+def shared_share(records: list) -> tuple[float, int]:
+    """The share of track-instants (a track at one instant, seen by some view) seen by two views or
+    more, and how many track-instants there were: what makes the views cooperative."""
+    from collections import Counter
+
+    views = Counter()
+    for rec in records:
+        for track in {o.track_id for o in rec.objects if o.track_id is not None}:
+            views[(rec.sequence, rec.timestamp, track)] += 1
+    return (sum(n >= 2 for n in views.values()) / len(views) if views else 0.0), len(views)
+
+
+def _timed(run, into: dict[str, float]) -> float:
+    """Seconds `run()` took; each stage's seconds it returns are added to `into`."""
+    t0 = time.perf_counter()
+    stages = run()
+    took = time.perf_counter() - t0
+    for k, v in stages.items():
+        into[k] = into.get(k, 0.0) + v
+    return took
+
+
+def coop(instants: int, length: int, size: int, scene: str, seed: int, fps: float = 10.0, rounds: int = 5) -> dict:
+    """Per view-frame seconds of a cooperative raster sequence (COOP_RIGS) against a single-rig
+    (drone) render of the same size and as many view-frames, in one run and in alternating rounds
+    (so a machine's load falls on both alike). Each renderer first renders one unit untimed that
+    builds the city, the backend and its shaders (the one-off build, shown apart): the drone frame 0
+    and the cooperative instant 0 of a sequence before the timed ones, which therefore build each of
+    their sequence's World as a run does. The drone draws each next scene in a second process where
+    `omnigen render` would (a run of 16 frames or more)."""
+    if instants < 1 or length < 1 or instants % length:
+        raise ValueError(f"--coop {instants} must be a positive multiple of --coop-length {length}")
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        co = coop_renderer(Path(tmp) / "coop", length + instants, length, size, scene, seed, fps)
+        views = len(co.views)
+        render_instants(co, range(1))
+        co_build = (time.perf_counter() - t0, co.summary.timings["build"])
+        frames = views * instants
+        t0 = time.perf_counter()
+        solo = drone_renderer(Path(tmp) / "drone", "raster", frames + 1, size, "fast", scene, seed)
+        ahead = solo.draw_ahead(frames + 1)
+        render_frames(solo, range(1))
+        solo_build = (time.perf_counter() - t0, solo.summary.timings["build"])
+        co_tm: dict[str, float] = {}
+        solo_tm: dict[str, float] = {}
+        co_s = solo_s = 0.0
+        records: list = []
+        rounds = max(1, min(rounds, instants))
+        cuts = [length + instants * k // rounds for k in range(rounds + 1)]
+        for a, b in zip(cuts, cuts[1:]):  # alternate: a round of instants, then as many drone frames
+            co_s += _timed(lambda: render_instants(co, range(a, b), records), co_tm)
+            f0 = 1 + views * (a - length)
+            solo_s += _timed(lambda: render_frames(solo, range(f0, f0 + views * (b - a))), solo_tm)
+        co.close()
+        solo.close()
+    share, tracks = shared_share(records)
+    return {"instants": instants, "views": views, "view_frames": frames, "length": length, "rounds": rounds,
+            "coop_s": co_s / frames, "solo_s": solo_s / frames, "ratio": co_s / solo_s,
+            "stages": {k: co_tm.get(k, 0.0) / frames for k in COOP_STAGES},
+            "solo_stages": {k: solo_tm.get(k, 0.0) / frames for k in COOP_STAGES},
+            "coop_build": co_build, "solo_build": solo_build, "shared": share, "track_instants": tracks,
+            "ahead": ahead, "size": size}
+
+
+def coop_report(res: dict) -> None:
+    from omnigen.progress import print_table
+
+    rows = [["instants timed (after the warm-up instant)", res["instants"]],
+            ["views per instant", res["views"]],
+            ["view-frames timed, each", res["view_frames"]],
+            ["sequence length, rounds alternated", f"{res['length']}, {res['rounds']}"],
+            ["cooperative, s per view-frame", round(res["coop_s"], 4)],
+            ["single rig (drone), s per view-frame", round(res["solo_s"], 4)],
+            ["ratio cooperative / single (target <= 1.2)", round(res["ratio"], 3)],
+            ["track-instants seen", res["track_instants"]],
+            ["  share seen by 2+ views", f"{100 * res['shared']:.1f}%"],
+            ["cooperative one-off: warm-up instant, s", round(res["coop_build"][0], 2)],
+            ["  of it city + backend build, s", round(res["coop_build"][1], 2)],
+            ["single-rig one-off: frame 0, s", round(res["solo_build"][0], 2)],
+            ["  of it city + backend build, s", round(res["solo_build"][1], 2)],
+            ["single-rig scenes drawn ahead (second process)", "yes" if res["ahead"] else "no"]]
+    rows += [[f"  stage {k}, s per view-frame (coop / single)", f"{v:.4f} / {res['solo_stages'][k]:.4f}"]
+             for k, v in res["stages"].items()]
+    print_table(f"raster: cooperative {COOP_RIGS} against drone ({res['size']}x{res['size']})", ["measure", "value"],
+                rows)
+
+
+def coop_memory(instants: int, length: int, size: int, scene: str, seed: int, every: int = 100,
+                fps: float = 10.0) -> None:
+    """Resident memory every `every` instants of a long cooperative raster run (each instant from
+    every view of COOP_RIGS), and the change from instant `every` to the last (issue 46: within
+    10% over 1,000 instants), beside the raster's colour shader builds (kept, not a leak)."""
+    from omnigen.progress import print_table
+
+    if instants < 1 or length < 1 or instants % length:
+        raise ValueError(f"--memory-instants {instants} must be a positive multiple of the sequence length {length}")
+    rows, at = [], {}
+    with tempfile.TemporaryDirectory() as tmp:
+        r = coop_renderer(Path(tmp), instants, length, size, scene, seed, fps)
+        try:
+            for i in range(instants):
+                r.render_instant(i)
+                if (i + 1) % every == 0:
+                    r.flush()
+                    at[i + 1] = rss_mb()
+                    rows.append([i + 1, round(at[i + 1]), r.backend.rs.gl.color_builds])
+        finally:
+            r.close()
+    print_table(f"raster: resident MB by instant, cooperative {COOP_RIGS} ({size}x{size}, sequences of {length})",
+                ["instants", "resident MB", "colour shader builds"], rows)
+    if every in at and instants in at and instants > every:
+        print(f"raster cooperative: resident MB after instant {every} {at[every]:.0f}, after instant {instants} "
+              f"{at[instants]:.0f}: {100 * (at[instants] / at[every] - 1):+.1f}% (target within 10%)")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--raster-frames", type=int, default=21)
@@ -315,12 +471,34 @@ def main() -> int:
                     help="cpu: the rendering thread's CPU time (a loaded machine)")
     ap.add_argument("--profile-ahead", action="store_true",
                     help="draw each next scene in a second process, as a run of 16 frames or more does")
+    ap.add_argument("--coop", type=int, default=0,
+                    help="instead: N instants of a cooperative raster sequence (ego,pole,drone) "
+                         "against as many drone view-frames")
+    ap.add_argument("--coop-length", type=int, default=None,
+                    help="instants a cooperative sequence (default: one sequence of --coop, "
+                         "and of --memory-instants for the memory run)")
+    ap.add_argument("--coop-rounds", type=int, default=5, help="rounds the cooperative and drone renders alternate in")
+    ap.add_argument("--memory-instants", type=int, default=0,
+                    help="with --coop: a long cooperative run, RSS by instant")
+    ap.add_argument("--memory-every", type=int, default=100, help="instants between the memory run's readings")
     args = ap.parse_args()
     import os
 
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
           f"{args.size}x{args.size}, " + (f"scenes {args.profile_presets}" if args.profile else f"scene {args.scene}")
           + f" seed {args.seed}")
+    if args.coop:
+        for name in ("coop", "coop_length", "coop_rounds", "memory_instants", "memory_every"):
+            if getattr(args, name) is not None and getattr(args, name) < (0 if name == "memory_instants" else 1):
+                ap.error(f"--{name.replace('_', '-')} {getattr(args, name)}: must be at least 1")
+        length, mem_length = args.coop_length or args.coop, args.coop_length or args.memory_instants
+        if args.coop % length or (args.memory_instants and args.memory_instants % mem_length):
+            ap.error(f"--coop {args.coop} and --memory-instants {args.memory_instants} must be multiples of "
+                     f"--coop-length {args.coop_length} (a run renders whole sequences)")
+        coop_report(coop(args.coop, length, args.size, args.scene, args.seed, rounds=args.coop_rounds))
+        if args.memory_instants:
+            coop_memory(args.memory_instants, mem_length, args.memory_size, args.scene, args.seed, args.memory_every)
+        return 0
     if args.profile:
         for backend in [b for b, off in (("raster", args.no_raster), ("cycles", args.no_cycles)) if not off]:
             profile(backend, args.profile_frames, args.size, args.quality, args.profile_presets.split(","), args.seed,

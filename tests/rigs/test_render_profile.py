@@ -118,3 +118,60 @@ def test_one_run_measures_memory_for_each_backend_named(monkeypatch):
     assert bench.main() == 0 and ran == ["raster", "cycles"]
     with pytest.raises(Exception):
         bench.backends("raster,gl")
+
+
+@pytest.mark.usefixtures("headless_gl")
+def test_coop_prints_the_ratio_stages_share_and_memory(monkeypatch, capsys):
+    """--coop (issue 46): a cooperative raster sequence against as many drone frames in one run,
+    and with --memory-instants the long cooperative run's resident memory by instant."""
+    import re
+    import sys
+
+    import benchmarks.bench_render as bench
+
+    monkeypatch.setattr(sys, "argv", ["bench_render.py", "--coop", "2", "--size", "32", "--scene", "intersection",
+                                      "--memory-instants", "3", "--memory-every", "1", "--memory-size", "32"])
+    assert bench.main() == 0
+    out = capsys.readouterr().out
+    assert "ego,pole,drone" in out
+    assert re.search(r"view-frames timed, each\s*│\s*6 ", out)  # 2 instants x 3 views, and 6 drone frames
+    for row in ("cooperative, s per view-frame", "single rig (drone), s per view-frame",
+                "ratio cooperative / single (target <= 1.2)", "share seen by 2+ views", "city + backend build, s"):
+        assert row in out, row
+    for stage in bench.COOP_STAGES:
+        assert f"stage {stage}, s per view-frame (coop / single)" in out
+    ratio = float(re.search(r"ratio cooperative / single \(target <= 1\.2\)\s*│\s*([\d.]+)", out).group(1))
+    assert ratio > 0
+    readings = re.findall(r"^\s*(\d+)\s*│\s*\d+\s*│\s*\d+\s*$", out.split("resident MB by instant")[1], re.M)
+    assert readings == ["1", "2", "3"]
+    assert re.search(r"after instant 1 \d+, after instant 3 \d+: [+-]\d+\.\d% \(target within 10%\)", out)
+
+
+def test_shared_share_counts_a_track_once_per_view_and_instant():
+    from types import SimpleNamespace as NS
+
+    from benchmarks.bench_render import shared_share
+
+    def rec(t, *tracks):
+        return NS(sequence="q", timestamp=t, objects=[NS(track_id=k) for k in tracks])
+
+    # instant 0: track 1 in two views, 2 in one (twice in one view: still one), None never counted; instant 0.1: 1 alone
+    records = [rec(0.0, 1, 2, 2, None), rec(0.0, 1), rec(0.1, 1)]
+    assert shared_share(records) == (pytest.approx(1 / 3), 3)
+    assert shared_share([]) == (0.0, 0)
+
+
+@pytest.mark.parametrize("argv", [["--coop", "3", "--coop-length", "2"], ["--coop", "2", "--coop-length", "0"],
+                                  ["--coop", "2", "--coop-length", "2", "--memory-instants", "3"],
+                                  ["--coop", "2", "--memory-every", "0"]])
+def test_coop_refuses_bad_counts_in_one_line(monkeypatch, capsys, argv):
+    import sys
+
+    import benchmarks.bench_render as bench
+
+    monkeypatch.setattr(sys, "argv", ["bench_render.py", *argv])
+    for ran in ("coop", "bench", "memory"):
+        monkeypatch.setattr(bench, ran, lambda *a, **k: pytest.fail("ran despite bad counts"))
+    with pytest.raises(SystemExit):
+        bench.main()
+    assert len([line for line in capsys.readouterr().err.splitlines() if "error" in line]) == 1
