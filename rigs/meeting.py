@@ -10,9 +10,14 @@ from the sequence's "meeting" stream) and every view is placed around it:
   back h / tan(pitch) so that its optical axis meets the junction's centre; where that is more
   than AERIAL_REACH metres the pitch is raised until it is not (still within the rig's range:
   the preset's steepest pitch is 90 degrees);
-- ego: in a driving lane that runs through the junction, EGO_BEFORE metres before its box,
-  looking along the lane towards it (the `lane` anchor's checks hold it to the lane). The camera
-  is held for the sequence: it does not ride a car yet.
+- ego: mounted on a car of the world that drives towards the junction (`ego_host`: a moving car
+  or van EGO_BEFORE metres before its box in a lane through it, present for the whole sequence,
+  the nearest such): the camera stands EGO_MOUNT metres ahead of the car's front, at the centre
+  of its width, with the rig's height, pitch, yaw jitter and fov drawn once per sequence, and
+  rides the car (`Ride.at`: the car's pose at each instant composed with that fixed mount). The
+  car is no obstacle to its own camera and is dropped from its own view's objects (it stands
+  behind the camera); the other views see it. Without such a car the ego camera is held in a
+  driving lane through the junction, EGO_BEFORE metres before its box, looking along the lane.
 A view whose rig has none of these kinds, or a junction without an approach lane for the ego view,
 uses the rig's own anchors. Each view is drawn once per sequence from its own stream `view_rng`
 (seed, sequence, rig name, occurrence of that name), so the list's order changes no view, and
@@ -24,7 +29,7 @@ from __future__ import annotations
 
 import math
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -32,7 +37,7 @@ import numpy as np
 from omnigen.rigs.rig import Rig, load_rig
 from omnigen.rigs.sampling import (EGO_LANE_END, DrawnCamera, Obstacles, _anchor_pose, _in_lane, camera_at,
                                    draw_camera, driving_lanes, make_camera, sample_camera)
-from omnigen.scenes.description import Scene
+from omnigen.scenes.description import Agent, Scene
 from omnigen.scenes.seeding import sequence_streams
 
 _VIEW_SPAWN_KEY = 0x0416
@@ -42,7 +47,12 @@ AERIAL_CEILING = 60.0
 """Metres a meeting drone flies at most (the rig's range cut there): higher, the junction's cars
 are a few pixels at the sizes a cooperative run renders, and few objects are shared with it."""
 EGO_BEFORE = (8.0, 50.0)
-"""Metres from an ego camera to the junction's box along its lane."""
+"""Metres from a held ego camera to the junction's box along its lane."""
+EGO_HOST_BEFORE = (8.0, 60.0)
+"""Metres from the front of the car an ego camera rides to the junction's box, at instant 0."""
+EGO_MOUNT = 0.1
+"""Metres from the front of the ego camera's car to the camera, along the car's heading."""
+EGO_CATEGORIES = ("car", "van")
 
 
 @dataclass(frozen=True)
@@ -140,3 +150,73 @@ def place_view(view: View, scene0: Scene, junction, seed: int, sequence: int, wi
     propose = partial(kind, junction) if kind is not None else None
     return sample_camera(view.rig, scene0, rng, width, height, obstacles, propose=propose)
 
+
+
+def ego_host(scene0: Scene, last: Scene, junction) -> Agent | None:
+    """The car an ego camera rides through a sequence (instant 0 `scene0` to its last instant
+    `last`): among the moving cars and vans whose front is EGO_HOST_BEFORE metres before the
+    junction's box, in a lane that runs through it and heading along that lane, and still in the
+    world at the last instant, the nearest to the box; None when there is none. No draw: the
+    choice changes no stream, so nothing else of the sequence changes with it."""
+    if junction is None:
+        return None
+    ways = dict(approaches(scene0.city, junction))
+    present = {a.instance_id for a in last.agents}
+    cars = [a for a in scene0.agents
+            if a.state == "moving" and a.category in EGO_CATEGORIES and a.instance_id in present]
+    if not ways or not cars:
+        return None
+    lanes = driving_lanes(scene0.city)
+    xy = np.array([a.center[:2] for a in cars], dtype=np.float64)
+    lane = lanes.under(xy, np.array([a.yaw for a in cars]), math.radians(20.0))
+    car_along, _ = lanes.coordinates(xy)
+    box_along, _ = lanes.coordinates(np.asarray(junction.center, dtype=np.float64))
+    best = None
+    for i, (a, k) in enumerate(zip(cars, lane)):
+        if int(k) not in ways:
+            continue
+        gap = float(box_along[0, k]) - max(junction.size) / 2 - float(car_along[i, k]) - a.dims[0] / 2
+        if EGO_HOST_BEFORE[0] <= gap <= EGO_HOST_BEFORE[1] and (best is None or gap < best[0]):
+            best = (gap, a)
+    return None if best is None else best[1]
+
+
+def mount_point(car: Agent) -> np.ndarray:
+    """Where an ego camera stands on `car` (x, y): EGO_MOUNT metres ahead of its front, on its axis."""
+    ahead = car.dims[0] / 2 + EGO_MOUNT
+    return np.array([car.center[0] + ahead * math.cos(car.yaw), car.center[1] + ahead * math.sin(car.yaw)])
+
+
+def _riding(car: Agent, rig: Rig, scene: Scene, rng: np.random.Generator, width: int, height: int) -> DrawnCamera:
+    return camera_at(rig, mount_point(car), car.yaw, "vehicle", rng, width, height)
+
+
+@dataclass(frozen=True)
+class Ride:
+    """An ego camera riding car `track` for a sequence: its pose at instant 0 (`cam0`, drawn on
+    the car's pose there) fixes the mount (height, pitch, fov, the yaw relative to the car); each
+    instant's camera is the car's pose then composed with that mount."""
+
+    cam0: DrawnCamera
+    track: int
+    yaw: float  # the camera's heading relative to the car's, radians
+
+    def at(self, scene: Scene) -> DrawnCamera:
+        """The camera at `scene`'s instant (the car is present all sequence: `ego_host`)."""
+        car = next(a for a in scene.agents if a.instance_id == self.track)
+        c = self.cam0
+        cam = make_camera(mount_point(car), c.camera_height, car.yaw + self.yaw, c.pitch, c.hfov, c.anchor,
+                          c.width, c.height)
+        return replace(cam, tries=c.tries)
+
+
+def place_ego_ride(view: View, scene0: Scene, last: Scene, junction, seed: int, sequence: int, width: int,
+                   height: int) -> Ride | None:
+    """The ego view's ride for a sequence, or None without a car to ride (the camera is then held)."""
+    car = ego_host(scene0, last, junction)
+    if car is None:
+        return None
+    rng = view_rng(seed, sequence, view.rig.name, view.occurrence)
+    cam = sample_camera(view.rig, scene0, rng, width, height, Obstacles(scene0, skip=frozenset({car.instance_id})),
+                        propose=partial(_riding, car))
+    return Ride(cam, car.instance_id, math.remainder(cam.yaw - car.yaw, 2 * math.pi))

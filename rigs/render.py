@@ -56,6 +56,7 @@ from omnigen.record import FrameRecord, SyntheticInfo
 from omnigen.rigs.annotate import annotate
 from omnigen.rigs.render_command import DEFAULT_FPS, FPS_RANGE, MAX_SEQUENCE_LENGTH
 from omnigen.rigs.rig import RESOLUTION_RANGE, Rig, load_rig
+from omnigen.rigs.meeting import Ride
 from omnigen.rigs.sampling import DrawnCamera, Obstacles, rig_rng, sample_camera
 from omnigen.scenes.description import Scene, to_dict
 from omnigen.scenes.generate import FrameOverrides, FramesAhead
@@ -569,6 +570,14 @@ def first_camera(rig: Rig, width: int, height: int, scene: Scene) -> tuple[Drawn
     return sample_camera(rig, scene, rng, width, height, Obstacles(scene)), rng
 
 
+def _at(placed: DrawnCamera | Ride, scene: Scene) -> tuple[DrawnCamera, int | None]:
+    """A sequence view's camera at `scene`'s instant and the track of the car it rides (None
+    for a held camera)."""
+    if isinstance(placed, Ride):
+        return placed.at(scene), placed.track
+    return placed, None
+
+
 def camera_to_world(cam: DrawnCamera) -> np.ndarray:
     """The record's camera_to_world, [[R^T, position], [0 0 0 1]]: X_cam = R X_world + t with
     t = -R position, so X_world = R^T X_cam + position, in the scene's world (z up, ground z = 0)."""
@@ -628,6 +637,8 @@ class Renderer:
         job, tm = self.job, self.summary.timings
         if job.sequences:
             scene, cam, rng = self._instant(index)
+            cam, own = _at(cam, scene)
+            return self._render_view(scene, cam, rng, self.rig, self.frame_id(index), index, own)
         else:
             if self.ahead is not None and next_index is not None:
                 self.ahead.ask(job.seed, next_index, job.overrides)
@@ -643,9 +654,11 @@ class Renderer:
         return self._render_view(scene, cam, rng, self.rig, self.frame_id(index), index)
 
     def _render_view(self, scene: Scene, cam: DrawnCamera, rng: np.random.Generator | None, rig: Rig, fid: str,
-                     index: int) -> FrameRecord:
+                     index: int, own: int | None = None) -> FrameRecord:
         """Render, annotate and write one view of a scene; `rng`: the stream a redraw goes on
-        with (None: the camera is kept whatever the render counts, as in sequences)."""
+        with (None: the camera is kept whatever the render counts, as in sequences); `own`: the
+        track of the car the camera rides, never an object of its own view (it stands behind
+        the camera: a guard against a sliver past the near plane)."""
         job, tm = self.job, self.summary.timings
         width, height = cam.width, cam.height
         self._finish_frame()  # the previous frame's image, shaded while this frame's scene and camera were drawn
@@ -680,7 +693,8 @@ class Renderer:
         plane = cam.ground_plane
         record = FrameRecord(
             frame_id=fid, source="synthetic", view=rig.view, image=image, width=width, height=height,
-            K=cam.K, objects=ann.objects, ignore_regions=ann.ignore_regions, ground_plane=plane,
+            K=cam.K, objects=[o for o in ann.objects if own is None or o.track_id != own],
+            ignore_regions=ann.ignore_regions, ground_plane=plane,
             camera_height=plane.camera_height, camera_pitch=plane.camera_pitch,
             group=f"synthetic-{self.scene_name}-{job.seed}", camera_to_world=camera_to_world(cam),
             **self._sequence_fields(index),
@@ -702,18 +716,34 @@ class Renderer:
         self.summary.objects += len(record.objects)
         return record
 
-    def _instant(self, index: int) -> tuple[Scene, DrawnCamera, None]:
+    def _instant(self, index: int) -> tuple[Scene, DrawnCamera | Ride, None]:
         """Instant k = index % L of sequence q = index // L: the sequence's World at time k / fps,
         and its camera, drawn once at instant 0 (the rig's stream of frame q) and held for the
-        whole sequence. No stream is handed back: a sequence's camera is never redrawn after a
-        render, since a process resuming mid-sequence could not know of that redraw; it is kept on
-        sample_camera's geometric checks alone. Both are rebuilt for any sequence not held, so a
-        resumed run equals an uninterrupted one."""
-        scene, cam = self._held(index, lambda scene0, q: first_camera(self.rig, self.width, self.height, scene0)[0])
+        whole sequence, or for an ego rig the car it rides (`_ride_or`). No stream is handed back: a
+        sequence's camera is never redrawn after a render, since a process resuming mid-sequence
+        could not know of that redraw; it is kept on sample_camera's geometric checks alone. Both
+        are rebuilt for any sequence not held, so a resumed run equals an uninterrupted one."""
+        from omnigen.rigs.meeting import View
+
+        view = View(self.rig.name, self.rig, 1)
+        scene, cam = self._held(index, lambda world, q: self._ride_or(
+            view, world, q, self.width, self.height, lambda: first_camera(self.rig, self.width, self.height,
+                                                                          world.scene0)[0]))
         return scene, cam, None
 
+    def _ride_or(self, view, world, q: int, width: int, height: int, held: Callable):
+        """An ego view's Ride on the car approaching the sequence's junction, else `held()`: the
+        view's camera held for the sequence (every other kind of view)."""
+        from omnigen.rigs.meeting import meeting_junction, place_ego_ride
+
+        if view.rig.view != "ego":
+            return held()
+        last = world.scene_at(self.job.sequence_length - 1, self.job.fps)
+        ride = place_ego_ride(view, world.scene0, last, meeting_junction(world.scene0), self.job.seed, q, width, height)
+        return ride if ride is not None else held()
+
     def _held(self, index: int, place: Callable) -> tuple[Scene, object]:
-        """The Scene of instant `index` of its sequence's World, and `place(scene0, q)` (the
+        """The Scene of instant `index` of its sequence's World, and `place(world, q)` (the
         sequence's cameras), both made once per sequence and held for its instants."""
         from omnigen.scenes.world import World
 
@@ -724,7 +754,7 @@ class Renderer:
             world = World.build(self.gen.city, self.gen.preset, job.seed, q, job.overrides, self.gen.user_assets)
             t1 = time.perf_counter()
             tm["scene"] += t1 - t0
-            placed = place(world.scene0, q)
+            placed = place(world, q)
             t0 = time.perf_counter()
             tm["camera"] += t0 - t1
             self._sequence = (q, world, placed)
@@ -739,19 +769,27 @@ class Renderer:
         placed once per sequence around one junction (rigs/meeting.py) and held."""
         scene, cams = self._held(index, self._place_views)
         records = []
-        for v, cam in zip(self.views, cams):
+        for v, placed in zip(self.views, cams):
             fid = frame_id_for(v.label, self.job.seed, index)
             if not self.writer.has(fid):  # a resumed instant: only its missing views
-                records.append(self._render_view(scene, cam, None, v.rig, fid, index))
+                cam, own = _at(placed, scene)
+                records.append(self._render_view(scene, cam, None, v.rig, fid, index, own))
         return records
 
-    def _place_views(self, scene0: Scene, q: int) -> list[DrawnCamera]:
-        """Every view's camera of sequence q, around the junction the sequence draws."""
+    def _place_views(self, world, q: int) -> list[DrawnCamera | Ride]:
+        """Every view's camera of sequence q, around the junction the sequence draws; an ego
+        view rides its car where there is one."""
         from omnigen.rigs.meeting import meeting_junction, place_view
 
-        job, junction, obstacles = self.job, meeting_junction(scene0), Obstacles(scene0)
-        return [place_view(v, scene0, junction, job.seed, q, int(job.width or v.rig.resolution[0]),
-                           int(job.height or v.rig.resolution[1]), obstacles) for v in self.views]
+        job, scene0 = self.job, world.scene0
+        junction, obstacles = meeting_junction(scene0), Obstacles(scene0)
+        placed = []
+        for v in self.views:
+            w, h = int(job.width or v.rig.resolution[0]), int(job.height or v.rig.resolution[1])
+            placed.append(self._ride_or(v, world, q, w, h,
+                                        lambda v=v, w=w, h=h: place_view(v, scene0, junction, job.seed, q, w, h,
+                                                                         obstacles)))
+        return placed
 
     def _sequence_fields(self, index: int) -> dict:
         """A record's `sequence` and `timestamp`: none for independent frames of one rig (L = 1);

@@ -371,10 +371,12 @@ class Obstacles:
     """What a camera may not stand in: buildings, agents' cuboids, furniture; built per scene.
 
     Two layers, each with its STRtree: the static city's (shared by every frame of the city) and
-    this frame's agents'. A pose is blocked when anything in either layer blocks it."""
+    this frame's agents'. A pose is blocked when anything in either layer blocks it. `skip`: ids
+    of agents that are no obstacle (the car an ego camera rides on, rigs/meeting.py)."""
 
-    def __init__(self, scene: Scene) -> None:
-        self.layers = (_city_layer(scene.city), _agent_layer(scene.agents))
+    def __init__(self, scene: Scene, skip: frozenset[int] = frozenset()) -> None:
+        agents = [a for a in scene.agents if a.instance_id not in skip] if skip else scene.agents
+        self.layers = (_city_layer(scene.city), _agent_layer(agents))
 
     def blocked(self, position: np.ndarray) -> bool:
         pt = Point(position[:2])

@@ -93,19 +93,110 @@ def test_changed_rig_list_refused_on_resume(co, tmp_path, capsys):
 
 
 def test_views_of_an_instant_share_it(co):
-    """Each instant: one record per view, all with the same sequence and timestamp; each view's
-    camera held for its sequence and different between views."""
+    """Each instant: one record per view, all with the same sequence and timestamp; the pole's
+    and the drone's cameras held for their sequence (the ego camera rides its car:
+    test_ego_camera_rides_its_car) and every view's different from the others'."""
     by = _instants(co)
     assert len(by) == FRAMES
     for rs in by.values():
         assert sorted(r.synthetic.rig for r in rs) == sorted(RIGS)
         poses = [r.camera_to_world for r in rs]
         assert all(not np.allclose(a, b) for i, a in enumerate(poses) for b in poses[i + 1:])
-    for rig in RIGS:
+    for rig in ("pole", "drone"):
         mine = [r for r in _records(co) if r.synthetic.rig == rig]
         for r in mine:
             held = next(m for m in mine if m.sequence == r.sequence)
             assert np.array_equal(r.camera_to_world, held.camera_to_world)
+
+
+def _ego_rides(q: int):
+    """Sequence q's World as the render builds it and the car its ego camera rides (None: held)."""
+    from omnigen.rigs.meeting import ego_host, meeting_junction
+    from omnigen.scenes.generate import SceneGenerator
+    from omnigen.scenes.world import World
+
+    gen = SceneGenerator("intersection", SEED)
+    world = World.build(gen.city, gen.preset, SEED, q, None, gen.user_assets)
+    return world, ego_host(world.scene0, world.scene_at(L - 1, FPS), meeting_junction(world.scene0))
+
+
+def _velocity(scene, track: int) -> np.ndarray:
+    return np.array(scene.velocities[[a.instance_id for a in scene.agents].index(track)])
+
+
+def test_ego_camera_rides_its_car(co):
+    """Each sequence's ego camera stands on its car at every instant (0.1 m ahead of its front, on
+    its axis), moves at the car's speed (0.5 m/s), looks along the car's heading with the car
+    behind it, and keeps its height, pitch and fov."""
+    ego = defaultdict(dict)
+    for r in _records(co):
+        if r.synthetic.rig == "ego":
+            ego[r.sequence][round(r.timestamp * FPS)] = r
+    assert len(ego) == FRAMES // L
+    moved = 0.0
+    for q, seq in enumerate(sorted(ego)):
+        world, car = _ego_rides(q)
+        assert car is not None, seq  # the intersection preset has traffic before its junctions
+        for k, r in ego[seq].items():
+            scene = world.scene_at(k, FPS)
+            a = next(x for x in scene.agents if x.instance_id == car.instance_id)
+            heading = np.array([np.cos(a.yaw), np.sin(a.yaw)])
+            pos = r.camera_to_world[:3, 3]
+            assert np.abs(pos[:2] - (np.array(a.center[:2]) + (a.dims[0] / 2 + 0.1) * heading)).max() < 1e-9
+            forward = r.camera_to_world[:3, 2]  # the optical axis in the world
+            assert forward[:2] @ heading > 0.9 * np.linalg.norm(forward[:2])
+            centre_cam = r.camera_to_world[:3, :3].T @ (np.array(a.center) - pos)
+            assert centre_cam[2] < 0  # the car is behind its camera
+            assert pos[2] == pytest.approx(ego[seq][0].camera_to_world[2, 3])
+            assert np.array_equal(r.K, ego[seq][0].K)
+        for k in range(L - 1):
+            a, b = ego[seq][k].camera_to_world[:3, 3], ego[seq][k + 1].camera_to_world[:3, 3]
+            speed = float(np.linalg.norm(b - a)) * FPS
+            v = [_velocity(world.scene_at(i, FPS), car.instance_id) for i in (k, k + 1)]
+            assert abs(speed - float(np.linalg.norm(v[0] + v[1])) / 2) <= 0.5, (seq, k, speed, v)
+            moved = max(moved, speed)
+    assert moved > 1.0  # some ego car drives: the check above compares motion, not two still cameras
+
+
+def test_ego_car_is_no_obstacle_to_its_own_camera():
+    """The mount point stands within the placement clearance of its own car: only skipping the
+    car lets the ego camera pass the placement checks there (else every draw would be refused)."""
+    from omnigen.rigs.meeting import mount_point
+    from omnigen.rigs.sampling import Obstacles
+
+    world, car = _ego_rides(0)
+    at = np.r_[mount_point(car), 1.5]
+    assert Obstacles(world.scene0).blocked(at)
+    assert not Obstacles(world.scene0, skip=frozenset({car.instance_id})).blocked(at)
+
+
+def test_one_ego_rig_rides_as_in_a_cooperative_run(co, tmp_path):
+    """`--rig ego` alone with --sequence-length rides the same car with the same mount as the ego
+    view of `--rig ego,pole,drone` (its junction and its stream are the sequence's and the view's)."""
+    assert _render(tmp_path / "e", rig="ego", frames=L) == 0
+    alone = {r.frame_id: r for r in _records(tmp_path / "e")}
+    assert len(alone) == L
+    for r in _records(co):
+        if r.frame_id in alone:
+            assert np.array_equal(alone[r.frame_id].camera_to_world, r.camera_to_world)
+            assert [o.track_id for o in alone[r.frame_id].objects] == [o.track_id for o in r.objects]
+
+
+def test_ego_car_annotated_by_the_others_not_by_its_own_view(co):
+    """The car the ego camera rides is never an object of the ego view; the pole or the drone
+    annotates it (as a roadside camera sees the vehicle)."""
+    cars = {}
+    for r in _records(co):
+        if r.sequence not in cars:
+            cars[r.sequence] = _ego_rides(int(r.sequence[-6:]))[1].instance_id
+    seen_by_others = 0
+    for r in _records(co):
+        tracks = {o.track_id for o in r.objects}
+        if r.synthetic.rig == "ego":
+            assert cars[r.sequence] not in tracks
+        else:
+            seen_by_others += cars[r.sequence] in tracks
+    assert seen_by_others > 0
 
 
 def test_a_track_is_one_world_box_in_every_view(co):
