@@ -154,16 +154,21 @@ class Runner:
 
         atomic_write_json(self.path, self.log, indent=1)
 
-    def record(self, command: str, seconds: float, cpu_share: float | None = None) -> None:
+    def record(self, command: str, seconds: float, cpu_share: float | None = None, now: bool = True) -> None:
         """Log a finished command; one run again (its output deleted to redo it) replaces its record.
 
         Beside its wall time: the 1-minute load average as it ended and, for a command run in this
         process, the share of the usable cores' time it used (`cpu_share`). Why: on a 2-core machine
         a training's two OpenMP threads slow 10-fold when a third job shares the cores, and the
         wall times alone do not say whether a run had the machine to itself (a quiet training reads
-        a share near 1 and a load near 2)."""
+        a share near 1 and a load near 2). The share counts this process's threads, not a loader's
+        worker processes, and for a resumed training the last invocation only. `now=False`: a command
+        that did not just end (a training recovered from its results.csv) gets no load, which would be
+        this moment's."""
         self.log = [c for c in self.log if c["command"] != command]
-        entry = {"command": command, "seconds": round(seconds, 1), "load": round(os.getloadavg()[0], 2)}
+        entry: dict[str, Any] = {"command": command, "seconds": round(seconds, 1)}
+        if now:
+            entry["load"] = round(os.getloadavg()[0], 2)
         if cpu_share is not None:
             entry["cpu_share"] = round(cpu_share, 2)
         self.log.append(entry)
@@ -254,7 +259,7 @@ def train_stage(run: Runner, train_cmd: list[str], out: Path) -> float:
         run.forget_trainings(out, but=cmd)
         seconds = trained_seconds(out)
         if seconds and not run.seconds(cmd):
-            run.record(cmd, seconds)
+            run.record(cmd, seconds, now=False)
     else:
         resumable = (out / "last.pt").exists() and started.exists() and not stale(started, stamp)
         if resumable:

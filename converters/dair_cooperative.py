@@ -44,20 +44,19 @@ from omnigen.converters.dair import (
     parse_extrinsics,
     read_json,
 )
+from omnigen.plausible import MAX_WORLD_COORDINATE_M
 
 VEHICLE_SIDE = "vehicle-side"
 COOPERATIVE_INFO = Path("cooperative") / DATA_INFO
-SIDES = ("both", "infrastructure", "vehicle")
 
-WORLD_TRANSLATION_MAX_M = 1e7
+WORLD_TRANSLATION_MAX_M = MAX_WORLD_COORDINATE_M
 """Largest world translation accepted: DAIR-V2X's world is a map projection (kilometres from its
-origin), so the 100 m bound of camera extrinsics does not apply; beyond this it is not a pose."""
+origin), so the 100 m bound of camera extrinsics does not apply; the one bound `omnigen validate`
+holds a camera position to (omnigen.plausible), so the two cannot drift apart."""
 
 INFRA_WORLD = (("calib_virtuallidar_to_world_path",), ("calib/virtuallidar_to_world",))
 VEHICLE_TO_NOVATEL = (("calib_lidar_to_novatel_path",), ("calib/lidar_to_novatel",))
 NOVATEL_TO_WORLD = (("calib_novatel_to_world_path",), ("calib/novatel_to_world",))
-
-STAT_KEYS = ("frames_camera_to_world_null", "infrastructure_frames_in_a_later_pair")
 
 
 def is_cooperative(src: Path) -> bool:
@@ -256,7 +255,8 @@ def _batch_clock(converters: dict[str, DairConverter]) -> dict[str, tuple[str, f
 
 
 def check_side(src: Path, side: str) -> None:
-    """--side other than both needs a cooperative root (the vehicle side is found only there)."""
+    """--side vehicle needs a cooperative root (the vehicle side is found only there); --side
+    infrastructure converts any DAIR root as if it had no cooperative/."""
     if side == "vehicle" and not is_cooperative(src):
         raise SourceError(Path(src) / COOPERATIVE_INFO, "", "missing: --side vehicle needs a DAIR-V2X-C cooperative root")
 

@@ -82,8 +82,8 @@ def triple(part: Callable[[str], float]) -> Callable[[str], tuple[float, float, 
 
 def knob(default: Any, check: Callable[[str], Any], help: str, to: str | None = None) -> Any:
     """A recipe field: its default, the parser of a command-line value (omnigen.options' types,
-    which name the range), a line of help, and the TrainConfig field it fills (`to`; none for the
-    crop stage's training, whose fields fill TrainConfig.crop_phase)."""
+    which name the range), a line of help, and the TrainConfig field it fills (`to`; none for a key
+    that a TrainConfig dict keeps by its name: augment's, the crop stage's training, predict's, NESTED)."""
     return field(default=default, metadata={"check": check, "help": help, "to": to})
 
 

@@ -25,6 +25,12 @@ INSTANT_DECIMALS = 6
 """Timestamps of one instant agree to 1e-6 s (the contract); rounding to it keys an instant."""
 MIN_DT_S = 1e-6
 """Two sightings closer in time than this are one instant (a disagreement, never a jump)."""
+MAX_DISAGREEMENT_M = 0.01
+"""Largest distance between corresponding world corners of one track seen by two views at one
+instant: views labelled from one world box (a render) agree far closer, a wrong pose or a track id
+given to two objects differ by far more."""
+MAX_JUMP_SPEED_M_S = 40.0
+"""Largest speed of a track's box centre between consecutive instants of one view."""
 
 
 @dataclass(frozen=True)
@@ -108,8 +114,9 @@ def _as_sightings(items: Iterable[FrameRecord | Sighting]) -> list[Sighting]:
     return out
 
 
-def disagreements(records: Iterable[FrameRecord | Sighting], tol: float = 0.01) -> list[Disagreement]:
-    """Every pair of frames of one instant whose world boxes of one track differ by more than `tol` m."""
+def disagreements(records: Iterable[FrameRecord | Sighting]) -> list[Disagreement]:
+    """Every pair of frames of one instant whose world boxes of one track differ by more than
+    MAX_DISAGREEMENT_M."""
     by_track: dict[tuple, list[Sighting]] = defaultdict(list)
     for s in _as_sightings(records):
         if s.instant is not None:
@@ -118,13 +125,13 @@ def disagreements(records: Iterable[FrameRecord | Sighting], tol: float = 0.01) 
     for (sequence, timestamp, track), seen in sorted(by_track.items()):
         for a, b in combinations(seen, 2):
             distance = float(np.linalg.norm(a.corners - b.corners, axis=1).max())
-            if distance > tol:
+            if distance > MAX_DISAGREEMENT_M:
                 found.append(Disagreement(a.frame_id, b.frame_id, sequence, timestamp, track, distance))
     return found
 
 
-def jumps(records: Iterable[FrameRecord | Sighting], max_speed: float = 40.0) -> list[Jump]:
-    """Every step of a track, within one view of its sequence, faster than `max_speed` m/s."""
+def jumps(records: Iterable[FrameRecord | Sighting]) -> list[Jump]:
+    """Every step of a track, within one view of its sequence, faster than MAX_JUMP_SPEED_M_S."""
     by_track: dict[tuple, list[Sighting]] = defaultdict(list)
     for s in _as_sightings(records):
         if s.timestamp is not None:
@@ -137,7 +144,7 @@ def jumps(records: Iterable[FrameRecord | Sighting], max_speed: float = 40.0) ->
             if dt < MIN_DT_S:
                 continue
             speed = float(np.linalg.norm(b.corners.mean(axis=0) - a.corners.mean(axis=0))) / dt
-            if speed > max_speed:
+            if speed > MAX_JUMP_SPEED_M_S:
                 found.append(Jump(a.frame_id, b.frame_id, sequence, view, track, speed))
     return found
 

@@ -106,13 +106,12 @@ def _show_instant(args: argparse.Namespace, ds: "Dataset", rec: "FrameRecord") -
 
 def instant_rows(ds: "Dataset", sequence: str, timestamp: float) -> list[int]:
     """Rows of the frames of one instant (omnigen.cooperation.instant_key), from the index's columns
-    without building any record, ordered by view (ego, infrastructure, aerial, then others by
-    name) and frame id."""
+    without building any record, ordered by view (in VIEWS' order: ego, infrastructure, aerial)
+    and frame id."""
     from omnigen.cooperation import instant_key
 
     key = instant_key(sequence, timestamp)
     t = ds.table
     rows = [i for i, (q, ts) in enumerate(zip(t.sequence, t.timestamp))
             if q == sequence and not math.isnan(ts) and instant_key(q, ts) == key]
-    rank = {v: k for k, v in enumerate(VIEWS)}
-    return sorted(rows, key=lambda i: (rank.get(t.view[i], len(VIEWS)), t.view[i], t.frame_id[i]))
+    return sorted(rows, key=lambda i: (VIEWS.index(t.view[i]), t.frame_id[i]))

@@ -635,22 +635,21 @@ class Renderer:
         """Render, annotate and write frame `index`; returns its record. `next_index`: the frame
         rendered next, whose scene is drawn meanwhile when frames are drawn ahead (`self.ahead`)."""
         job, tm = self.job, self.summary.timings
-        if job.sequences:
-            scene, cam, rng = self._instant(index)
-            cam, own = _at(cam, scene)
-            return self._render_view(scene, cam, rng, self.rig, self.frame_id(index), index, own)
-        else:
-            if self.ahead is not None and next_index is not None:
-                self.ahead.ask(job.seed, next_index, job.overrides)
-            t0 = time.perf_counter()
-            scene, drawn = self.ahead.frame_with(job.seed, index, job.overrides) if self.ahead is not None \
-                else (self.gen.frame(job.seed, index, job.overrides), None)
-            tm["scene"] += time.perf_counter() - t0
-            # The first camera is drawn (pure Python) with the scene in the worker, else here while the
-            # previous frame may still be shaded; its stream goes on for a redraw.
-            t1 = time.perf_counter()
-            cam, rng = drawn if drawn is not None else first_camera(self.rig, self.width, self.height, scene)
-            tm["camera"] += time.perf_counter() - t1
+        if job.sequences:  # no stream: a sequence's camera is never redrawn (_instant)
+            scene, placed = self._instant(index)
+            cam, own = _at(placed, scene)
+            return self._render_view(scene, cam, None, self.rig, self.frame_id(index), index, own)
+        if self.ahead is not None and next_index is not None:
+            self.ahead.ask(job.seed, next_index, job.overrides)
+        t0 = time.perf_counter()
+        scene, drawn = self.ahead.frame_with(job.seed, index, job.overrides) if self.ahead is not None \
+            else (self.gen.frame(job.seed, index, job.overrides), None)
+        tm["scene"] += time.perf_counter() - t0
+        # The first camera is drawn (pure Python) with the scene in the worker, else here while the
+        # previous frame may still be shaded; its stream goes on for a redraw.
+        t1 = time.perf_counter()
+        cam, rng = drawn if drawn is not None else first_camera(self.rig, self.width, self.height, scene)
+        tm["camera"] += time.perf_counter() - t1
         return self._render_view(scene, cam, rng, self.rig, self.frame_id(index), index)
 
     def _render_view(self, scene: Scene, cam: DrawnCamera, rng: np.random.Generator | None, rig: Rig, fid: str,
@@ -670,6 +669,7 @@ class Renderer:
             self.backend.update(scene)
             tm["scene"] += time.perf_counter() - t1
         defer = self.write_behind and isinstance(self.backend, RasterBackend)
+        obstacles = None  # a redraw's, built at the first one
         while True:
             t3 = time.perf_counter()
             out = self.backend.render(cam, defer=True) if defer else self.backend.render(cam)
@@ -682,7 +682,8 @@ class Renderer:
             if rng is None or len(ann.objects) >= rig.min_objects or cam.tries >= rig.max_tries:
                 break
             self.summary.redraws += 1
-            cam = sample_camera(rig, scene, rng, width, height, Obstacles(scene), start_try=cam.tries)
+            obstacles = obstacles or Obstacles(scene)
+            cam = sample_camera(rig, scene, rng, width, height, obstacles, start_try=cam.tries)
             tm["camera"] += time.perf_counter() - t2
         if out.shade is not None:  # the kept camera's colour pass, shaded while the next scene and camera are drawn
             t = time.perf_counter()
@@ -716,20 +717,19 @@ class Renderer:
         self.summary.objects += len(record.objects)
         return record
 
-    def _instant(self, index: int) -> tuple[Scene, DrawnCamera | Ride, None]:
+    def _instant(self, index: int) -> tuple[Scene, DrawnCamera | Ride]:
         """Instant k = index % L of sequence q = index // L: the sequence's World at time k / fps,
         and its camera, drawn once at instant 0 (the rig's stream of frame q) and held for the
-        whole sequence, or for an ego rig the car it rides (`_ride_or`). No stream is handed back: a
+        whole sequence, or for an ego rig the car it rides (`_ride_or`). No stream goes with it: a
         sequence's camera is never redrawn after a render, since a process resuming mid-sequence
         could not know of that redraw; it is kept on sample_camera's geometric checks alone. Both
         are rebuilt for any sequence not held, so a resumed run equals an uninterrupted one."""
         from omnigen.rigs.meeting import View
 
         view = View(self.rig.name, self.rig, 1)
-        scene, cam = self._held(index, lambda world, q: self._ride_or(
+        return self._held(index, lambda world, q: self._ride_or(
             view, world, q, self.width, self.height, lambda: first_camera(self.rig, self.width, self.height,
                                                                           world.scene0)[0]))
-        return scene, cam, None
 
     def _ride_or(self, view, world, q: int, width: int, height: int, held: Callable):
         """An ego view's Ride on the car approaching the sequence's junction, else `held()`: the

@@ -120,6 +120,8 @@ class Motion:
         self.xy0 = np.array([a.center[:2] for a in agents], dtype=np.float64).reshape(n, 2)
         self.yaw_still = np.array([a.yaw for a in agents], dtype=np.float64)
         self.half = np.array([(a.dims[0] / 2, a.dims[1] / 2) for a in agents], dtype=np.float64).reshape(n, 2)
+        self.walker = np.zeros(n, dtype=bool)  # which agents are walkers (_right_of_way, every step)
+        self.walker[walk.index] = True
         self.initial = initial
         self._cursor = _copy(initial)
 
@@ -139,7 +141,7 @@ class Motion:
         if abs(n - k) < 1e-9:
             return self.poses(self.state_at(k), k * DT)
         k = int(math.floor(n))
-        a = self.poses(_copy(self.state_at(k)), k * DT)
+        a = self.poses(self.state_at(k), k * DT)  # posed before the cursor moves on (a step makes new arrays)
         b = self.poses(self.state_at(k + 1), (k + 1) * DT)
         f = n - k
         dyaw = np.arctan2(np.sin(b.yaw - a.yaw), np.cos(b.yaw - a.yaw))
@@ -153,7 +155,7 @@ class Motion:
         present = np.ones(len(self.agents), dtype=bool)
         L, W = self.lane, self.walk
         if len(L.index):
-            px, py, pyaw = _path_poses(L, st.s)
+            px, py, pyaw = _path_poses(L.paths, L.path_of, st.s)
             decay = np.exp(-(st.s - self.initial.s) / KEEP_M)
             off = L.offset0 * np.where(L.keeps_edge, 1.0, decay)
             nx, ny = -np.sin(pyaw), np.cos(pyaw)
@@ -235,11 +237,11 @@ def _copy(st: MotionState) -> MotionState:
     return MotionState(st.step, st.s.copy(), st.v.copy(), st.gone.copy(), st.u.copy(), st.d.copy(), st.pace.copy())
 
 
-def _path_poses(L: LaneTracks, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """pose_at for every lane track, one call per distinct path."""
+def _path_poses(paths: tuple[Path, ...], path_of: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """pose_at for every lane track (track i at s[i] on paths[path_of[i]]), one call per distinct path."""
     x, y, yaw = np.empty_like(s), np.empty_like(s), np.empty_like(s)
-    for k, path in enumerate(L.paths):
-        m = L.path_of == k
+    for k, path in enumerate(paths):
+        m = path_of == k
         if m.any():
             x[m], y[m], yaw[m] = path.pose_at(s[m])
     return x, y, yaw
@@ -295,8 +297,6 @@ def _right_of_way(motion: Motion, pose: Poses, i: np.ndarray, j: np.ndarray, c: 
     track crossing i's heading when it reaches the crossing of their headings no later than i
     (time to it at its speed, 0.5 m/s at least; ties to the lower index); following traffic never
     (car following handles it)."""
-    walker = np.zeros(len(motion.agents), dtype=bool)
-    walker[motion.walk.index] = True
     cj, sj = np.cos(pose.yaw[j]), np.sin(pose.yaw[j])
     cross = c * sj - s * cj  # sin of the heading difference
     crossing = np.abs(c * cj + s * sj) < CROSSING_COS
@@ -306,7 +306,7 @@ def _right_of_way(motion: Motion, pose: Poses, i: np.ndarray, j: np.ndarray, c: 
     tj = (d[:, 0] * s - d[:, 1] * c) / safe  # along j's heading to it
     speed = np.maximum(np.hypot(pose.vel[:, 0], pose.vel[:, 1]), 0.5)
     first = (tj / speed[j] < ti / speed[i]) | ((tj / speed[j] == ti / speed[i]) & (j < i))
-    return walker[j] | (crossing & (ti > 0) & (tj > -motion.half[j, 0]) & first)
+    return motion.walker[j] | (crossing & (ti > 0) & (tj > -motion.half[j, 0]) & first)
 
 
 def _corners(xy: np.ndarray, yaw: np.ndarray, half: np.ndarray) -> np.ndarray:
@@ -405,10 +405,7 @@ def draw_motion(agents: tuple[Agent, ...], city: City, plans: dict[str, SignalPl
     v0 = lo_hi[:, 0] + uu[:, 0] * (lo_hi[:, 1] - lo_hi[:, 0])
     s0 = np.array([r[3] for r in lane_rows], dtype=np.float64)
     path_of_a = np.array(path_of, dtype=np.int64)
-    px, py, pyaw = np.zeros(len(idx)), np.zeros(len(idx)), np.zeros(len(idx))
-    for k, path in enumerate(paths):
-        m = path_of_a == k
-        px[m], py[m], pyaw[m] = path.pose_at(s0[m])
+    px, py, pyaw = _path_poses(paths, path_of_a, s0)
     cx = np.array([agents[i].center[0] for i in idx]) - px
     cy = np.array([agents[i].center[1] for i in idx]) - py
     yaw = np.array([agents[i].yaw for i in idx])
@@ -427,11 +424,9 @@ def draw_motion(agents: tuple[Agent, ...], city: City, plans: dict[str, SignalPl
         np.array([agents[i].category in RIDERS for i in idx], dtype=bool),
         stop_s, stop_sig, np.array([r[4] is not None for r in lane_rows], dtype=bool))
     walk_tracks = _walk_tracks(agents, walkers, walk_speed, city)
-    empty = np.zeros(0)
     first = MotionState(0, s0, np.zeros(len(idx)), np.zeros(len(idx), dtype=bool), walk_tracks[1],
                         walk_tracks[2], walk_tracks[0].speed.copy())
-    motion = Motion(agents, lane_tracks, walk_tracks[0], plan_list, first if len(idx) or walkers else
-                    MotionState(0, empty, empty, empty.astype(bool), empty, empty, empty))
+    motion = Motion(agents, lane_tracks, walk_tracks[0], plan_list, first)
     # Initial speeds: a fraction of v0, no more than the gap ahead allows at the track's headway.
     if len(idx):
         # Twice: the second pass sees where crossing tracks are going at the first pass's speeds.

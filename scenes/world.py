@@ -46,10 +46,9 @@ class World:
     def scene_at(self, k: int, fps: float) -> Scene:
         """Instant k seen at `fps` frames a second: time k / fps. Instant 0 is scene0 itself."""
         t = k / float(fps)
-        if t == 0.0:
-            _, vel = posed_agents(self.motion, self.motion.poses_at(0.0))
-            return replace(self.scene0, instant=int(k), velocities=canonical_velocities(vel))
         agents, vel = posed_agents(self.motion, self.motion.poses_at(t))
+        if t == 0.0:  # scene0's agents as placed, to the byte (no agent has left yet)
+            return replace(self.scene0, instant=int(k), velocities=canonical_velocities(vel))
         return replace(self.scene0, agents=tuple(canonical(a) for a in agents), instant=int(k), time=float(t),
                        velocities=canonical_velocities(vel))
 

@@ -367,9 +367,8 @@ def resumed_config(cfg: TrainConfig, state: dict[str, Any], path: Path) -> Train
     # a checkpoint of schema 1 was read with the fields it lacks filled in (checkpoint.upgraded)
     recorded = checked_fields(path, "train_config", state["train_config"], TrainConfig)
     checked_fields(path, "train_config.augment", recorded.augment, Augment)
-    for section in ("crop_stage", "predict"):
-        kept = NESTED[section]
-        from_dict({section: getattr(recorded, kept)}, f"{path}: train_config.{kept}")
+    # train_config.predict was checked as the checkpoint loaded (checkpoint.check_state), for every reader
+    from_dict({"crop_stage": recorded.crop_phase}, f"{path}: train_config.crop_phase")
     differ = [f.name for f in fields(TrainConfig) if f.name not in RESUMABLE
               and not _same_setting(f.name, getattr(recorded, f.name), getattr(cfg, f.name))]
     if differ:

@@ -59,9 +59,14 @@ def _cached(key: str, make):
         return hit
     value = make()
     _CACHE[key] = value
+    _trim()
+    return value
+
+
+def _trim() -> None:
+    """Evict the least recently used entries beyond the cache's size (hold_agents)."""
     while len(_CACHE) > _cache_size[0]:
         _CACHE.popitem(last=False)
-    return value
 
 
 def _agent_key(asset: AssetSpec, dims) -> str:
@@ -85,8 +90,7 @@ def adopt_agents(built: list[tuple[str, tuple]]) -> None:
             _CACHE.move_to_end(key)
         else:
             _CACHE[key] = value
-    while len(_CACHE) > _cache_size[0]:
-        _CACHE.popitem(last=False)
+    _trim()
 
 
 def agent_parts(asset: AssetSpec, dims) -> tuple[dict[str, trimesh.Trimesh], np.ndarray]:

@@ -81,6 +81,8 @@ def test_a_command_run_here_records_its_cpu_share_and_the_load(tmp_path, monkeyp
     assert entry["load"] == 3.46 and 0 < entry["cpu_share"] <= 0.55  # one thread of two cores; less when shared
     run.record("omnigen render --rig ego", 5.0)  # a subprocess's: the load alone
     assert "cpu_share" not in Runner(tmp_path).log[-1] and Runner(tmp_path).log[-1]["load"] == 3.46
+    run.record("omnigen train uov --out runs/n-p2", 600.0, now=False)  # recovered from its results.csv
+    assert "load" not in Runner(tmp_path).log[-1]
 
 
 class FakeTrain:

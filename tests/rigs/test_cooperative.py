@@ -22,13 +22,13 @@ from omnigen.cli import main
 from omnigen.geometry import silhouette
 from omnigen.record import FrameRecord
 from omnigen.rigs.render import read_instance_png
+from rendered_dataset import SUBS, read_records, same_files
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 W, H = 128, 96
 SEED, FPS, L, FRAMES = 7, 10.0, 3, 6
 RIGS = ("ego", "pole", "drone")
-SUBS = ("records", "images", "depth", "instance")
 
 
 def _render(out: Path, *extra: str, rig: str = "ego,pole,drone", frames: int = FRAMES) -> int:
@@ -44,13 +44,9 @@ def co(tmp_path_factory, headless_gl) -> Path:
     return out
 
 
-def _records(root: Path) -> list[FrameRecord]:
-    return [FrameRecord.from_dict(json.loads(p.read_text())) for p in sorted((root / "records").glob("*.json"))]
-
-
 def _instants(root: Path) -> dict[tuple, list[FrameRecord]]:
     by = defaultdict(list)
-    for r in _records(root):
+    for r in read_records(root):
         by[(r.sequence, r.timestamp)].append(r)
     return by
 
@@ -64,14 +60,8 @@ def _view_files(root: Path, label: str) -> dict[str, bytes]:
             if p.name.startswith(f"synthetic-{label}-")}
 
 
-def _same_files(a: Path, b: Path) -> None:
-    assert (a / "manifest.json").read_bytes() == (b / "manifest.json").read_bytes()
-    for label in RIGS:
-        assert _view_files(a, label) == _view_files(b, label), label
-
-
 def test_one_record_per_view_and_instant(co):
-    recs = _records(co)
+    recs = read_records(co)
     ids = sorted(r.frame_id for r in recs)
     assert ids == sorted(f"synthetic-{rig}-s{SEED}-{i:06d}" for rig in RIGS for i in range(FRAMES))
     for r in recs:
@@ -103,7 +93,7 @@ def test_views_of_an_instant_share_it(co):
         poses = [r.camera_to_world for r in rs]
         assert all(not np.allclose(a, b) for i, a in enumerate(poses) for b in poses[i + 1:])
     for rig in ("pole", "drone"):
-        mine = [r for r in _records(co) if r.synthetic.rig == rig]
+        mine = [r for r in read_records(co) if r.synthetic.rig == rig]
         for r in mine:
             held = next(m for m in mine if m.sequence == r.sequence)
             assert np.array_equal(r.camera_to_world, held.camera_to_world)
@@ -129,7 +119,7 @@ def test_ego_camera_rides_its_car(co):
     its axis), moves at the car's speed (0.5 m/s), looks along the car's heading with the car
     behind it, and keeps its height, pitch and fov."""
     ego = defaultdict(dict)
-    for r in _records(co):
+    for r in read_records(co):
         if r.synthetic.rig == "ego":
             ego[r.sequence][round(r.timestamp * FPS)] = r
     assert len(ego) == FRAMES // L
@@ -174,9 +164,9 @@ def test_one_ego_rig_rides_as_in_a_cooperative_run(co, tmp_path):
     """`--rig ego` alone with --sequence-length rides the same car with the same mount as the ego
     view of `--rig ego,pole,drone` (its junction and its stream are the sequence's and the view's)."""
     assert _render(tmp_path / "e", rig="ego", frames=L) == 0
-    alone = {r.frame_id: r for r in _records(tmp_path / "e")}
+    alone = {r.frame_id: r for r in read_records(tmp_path / "e")}
     assert len(alone) == L
-    for r in _records(co):
+    for r in read_records(co):
         if r.frame_id in alone:
             assert np.array_equal(alone[r.frame_id].camera_to_world, r.camera_to_world)
             assert [o.track_id for o in alone[r.frame_id].objects] == [o.track_id for o in r.objects]
@@ -186,11 +176,11 @@ def test_ego_car_annotated_by_the_others_not_by_its_own_view(co):
     """The car the ego camera rides is never an object of the ego view; the pole or the drone
     annotates it (as a roadside camera sees the vehicle)."""
     cars = {}
-    for r in _records(co):
+    for r in read_records(co):
         if r.sequence not in cars:
             cars[r.sequence] = _ego_rides(int(r.sequence[-6:]))[1].instance_id
     seen_by_others = 0
-    for r in _records(co):
+    for r in read_records(co):
         tracks = {o.track_id for o in r.objects}
         if r.synthetic.rig == "ego":
             assert cars[r.sequence] not in tracks
@@ -221,7 +211,7 @@ def test_a_track_is_one_world_box_in_every_view(co):
 def test_masks_inside_projected_cuboids(co):
     """test_render.py's rule in every view: >= 99% of each mask inside its cuboid's hull + 1 px."""
     checked = 0
-    for rec in _records(co):
+    for rec in read_records(co):
         inst = read_instance_png(co / rec.synthetic.instance)
         v, u = np.mgrid[0:rec.height, 0:rec.width]
         for o in rec.objects:
@@ -236,7 +226,7 @@ def test_masks_inside_projected_cuboids(co):
 def test_tracks_move_plausibly(co):
     """Between consecutive instants of a sequence, in any view: something moves, nothing faster than 40 m/s."""
     where = defaultdict(dict)  # (sequence, track) -> timestamp -> world centre
-    for r in _records(co):
+    for r in read_records(co):
         for o in r.objects:
             where[(r.sequence, o.track_id)][r.timestamp] = _world(r, o.box.center[None])[0]
     moved = 0.0
@@ -251,7 +241,7 @@ def test_tracks_move_plausibly(co):
 
 def test_rerun_is_byte_identical(co, tmp_path):
     assert _render(tmp_path / "again") == 0
-    _same_files(co, tmp_path / "again")
+    same_files(co, tmp_path / "again")
 
 
 def test_rig_order_changes_no_view(tmp_path, headless_gl):
@@ -268,7 +258,7 @@ def test_shards_render_whole_sequences(co, tmp_path):
     assert sorted(int(p.stem[-6:]) for p in (out / "records").glob("*.json")) == sorted([3, 4, 5] * 3)
     assert not (out / "manifest.json").exists()
     assert _render(out, "--shard", "1/2") == 0
-    _same_files(co, out)
+    same_files(co, out)
 
 
 def test_resume_renders_only_missing_views(co, tmp_path):
@@ -281,13 +271,13 @@ def test_resume_renders_only_missing_views(co, tmp_path):
         if int(p.stem[-6:]) >= 5:
             p.unlink()
     assert _render(out) == 0
-    _same_files(co, out)
+    same_files(co, out)
 
 
 def test_repeated_rig_gets_its_own_label_and_view(tmp_path, headless_gl):
     out = tmp_path / "pp"
     assert _render(out, rig="pole,pole", frames=L) == 0
-    recs = _records(out)
+    recs = read_records(out)
     assert sorted({r.frame_id.split("-")[1] for r in recs}) == ["pole", "pole.2"]
     first = {r.frame_id.split("-")[1]: r.camera_to_world for r in recs}
     assert not np.allclose(first["pole"], first["pole.2"])

@@ -24,6 +24,7 @@ from omnigen.record import FrameRecord
 from omnigen.rigs.rig import load_rig, rig_from_dict
 from omnigen.rigs.sampling import Obstacles, camera_rotation, rig_rng, sample_camera
 from omnigen.scenes.generate import SceneGenerator
+from rendered_dataset import read_records
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 pytest.importorskip("pyrender", reason="pyrender not installed")  # the external dependencies; our module must import
@@ -48,10 +49,6 @@ def datasets(tmp_path_factory, headless_gl):
         assert _render(root / rig, rig) == 0
         out[rig] = root / rig
     return out
-
-
-def _records(root: Path) -> list[FrameRecord]:
-    return [FrameRecord.from_dict(json.loads(p.read_text())) for p in sorted((root / "records").glob("*.json"))]
 
 
 def _instance(root: Path, rec: FrameRecord) -> np.ndarray:
@@ -147,7 +144,7 @@ def test_masks_inside_projected_cuboids(datasets, rig):
     root = datasets[rig]
     v, u = np.mgrid[0:H, 0:W]
     checked = 0
-    for rec in _records(root):
+    for rec in read_records(root):
         inst = _instance(root, rec)
         assert rec.objects, rec.frame_id
         for o in rec.objects:
@@ -174,7 +171,7 @@ def test_visible_untruncated_boxes_match_masks(datasets):
     n = 0
     for rig in RIGS:
         root = datasets[rig]
-        for rec in _records(root):
+        for rec in read_records(root):
             inst = _instance(root, rec)
             for o in rec.objects:
                 if o.truncation > 0 or o.occlusion_level != 0:
@@ -199,7 +196,7 @@ def test_visible_untruncated_boxes_match_masks(datasets):
 def test_occlusion_fields_are_consistent(datasets):
     levels = set()
     for rig in RIGS:
-        for rec in _records(datasets[rig]):
+        for rec in read_records(datasets[rig]):
             for o in rec.objects:
                 assert 0.0 <= o.occlusion <= 1.0
                 levels.add(o.occlusion_level)
@@ -218,7 +215,7 @@ def test_depth_exr_round_trips_and_is_camera_z(datasets):
     from omnigen.rigs.render import read_depth_exr
 
     root = datasets["pole"]
-    for rec in _records(root):
+    for rec in read_records(root):
         depth = read_depth_exr(root / rec.synthetic.depth)
         assert depth.dtype == np.float32 and depth.shape == (H, W)
         inst = _instance(root, rec)
@@ -244,7 +241,7 @@ def test_records_validate(datasets):
         n, problems = check_dataset(datasets[rig])
         assert n == FRAMES and problems == [], problems
         assert main(["validate", str(datasets[rig])]) == 0
-        rec = _records(datasets[rig])[0]
+        rec = read_records(datasets[rig])[0]
         assert rec.view == load_rig(rig).view and rec.synthetic.rig == rig and rec.synthetic.scene == "tiny"
         assert rec.group == f"synthetic-tiny-{SEED}" and rec.frame_id == f"synthetic-{rig}-s{SEED}-000000"
 

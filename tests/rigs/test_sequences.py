@@ -23,6 +23,7 @@ from omnigen.cli import main
 from omnigen.geometry import silhouette
 from omnigen.record import FrameRecord
 from omnigen.scenes.generate import SceneGenerator
+from rendered_dataset import read_records, same_files
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 pytest.importorskip("pyrender", reason="pyrender not installed")
@@ -30,7 +31,6 @@ pytest.importorskip("OpenGL", reason="PyOpenGL not installed")
 
 W, H = 96, 64
 SEED, FPS, L, FRAMES = 7, 10.0, 3, 6
-SUBS = ("records", "images", "depth", "instance")
 
 
 def _render(out: Path, *extra: str, frames: int = FRAMES, length: int = L) -> int:
@@ -46,26 +46,12 @@ def seq(tmp_path_factory, headless_gl) -> Path:
     return out
 
 
-def _records(root: Path) -> list[FrameRecord]:
-    return [FrameRecord.from_dict(json.loads(p.read_text())) for p in sorted((root / "records").glob("*.json"))]
-
-
 def _world_centre(rec: FrameRecord, o) -> np.ndarray:
     return (rec.camera_to_world @ np.r_[o.box.center, 1.0])[:3]
 
 
-def _same_files(a: Path, b: Path) -> None:
-    """Every frame's files and the manifest (the index holds file times) byte for byte."""
-    assert (a / "manifest.json").read_bytes() == (b / "manifest.json").read_bytes()
-    for sub in SUBS:
-        names = sorted(p.name for p in (a / sub).iterdir())
-        assert names == sorted(p.name for p in (b / sub).iterdir()), sub
-        for name in names:
-            assert (a / sub / name).read_bytes() == (b / sub / name).read_bytes(), (sub, name)
-
-
 def test_records_carry_sequence_fields(seq):
-    recs = _records(seq)
+    recs = read_records(seq)
     assert [r.frame_id for r in recs] == [f"synthetic-drone-s{SEED}-{i:06d}" for i in range(FRAMES)]
     assert [r.sequence for r in recs] == [f"synthetic-tiny-s{SEED}-q{q:06d}" for q in (0, 0, 0, 1, 1, 1)]
     assert [r.timestamp for r in recs] == pytest.approx([0.0, 0.1, 0.2] * 2)
@@ -84,7 +70,7 @@ def test_tracks_keep_ids_move_and_agree_with_velocity(seq):
     """World centres (camera_to_world @ box centre) of one track across a sequence's instants:
     something moves, nothing faster than 40 m/s, and the record's velocity matches the finite
     difference within 1 m/s for moving tracks (the motion is smooth over 0.1 s)."""
-    recs = _records(seq)
+    recs = read_records(seq)
     by_seq: dict[str, dict[int, list]] = defaultdict(lambda: defaultdict(list))
     for r in recs:
         for o in r.objects:
@@ -112,7 +98,7 @@ def test_masks_inside_projected_cuboids_every_instant(seq):
     from omnigen.rigs.render import read_instance_png
 
     checked = 0
-    for rec in _records(seq):
+    for rec in read_records(seq):
         inst = read_instance_png(seq / rec.synthetic.instance)
         for o in rec.objects:
             mask = inst == o.instance_id
@@ -125,13 +111,13 @@ def test_masks_inside_projected_cuboids_every_instant(seq):
 
 def test_rerun_and_shards_equal_one_run(seq, tmp_path):
     assert _render(tmp_path / "again") == 0
-    _same_files(seq, tmp_path / "again")
+    same_files(seq, tmp_path / "again")
     sharded = tmp_path / "sharded"
     assert _render(sharded, "--shard", "1/2") == 0
     # shard 1 of 2 renders sequence 0 whole: instants 0-2
     assert sorted(p.name[-11:-5] for p in (sharded / "records").iterdir()) == ["000000", "000001", "000002"]
     assert _render(sharded, "--shard", "2/2") == 0
-    _same_files(seq, sharded)
+    same_files(seq, sharded)
 
 
 def test_resume_mid_sequence_identical(seq, tmp_path):
@@ -141,7 +127,7 @@ def test_resume_mid_sequence_identical(seq, tmp_path):
         (copy / "records" / f"synthetic-drone-s{SEED}-{i:06d}.json").unlink()
     (copy / "manifest.json").unlink()
     assert _render(copy) == 0
-    _same_files(seq, copy)
+    same_files(seq, copy)
 
 
 @pytest.mark.parametrize("args, says", [
@@ -182,7 +168,7 @@ def test_independent_frames_fill_pose_and_track_only(tmp_path, headless_gl):
     args = json.loads((out / ".render-args.json").read_text())
     assert "sequence_length" not in args and "fps" not in args
     gen = SceneGenerator("tiny", SEED)
-    for i, rec in enumerate(_records(out)):
+    for i, rec in enumerate(read_records(out)):
         assert rec.sequence is None and rec.timestamp is None
         agents = {a.instance_id: a for a in gen.frame(SEED, i).agents}
         for o in rec.objects:
