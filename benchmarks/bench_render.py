@@ -11,7 +11,7 @@ written as `omnigen render` writes them: each frame's files on a thread while th
 and each next frame's scene drawn in a second process where `omnigen render` would (the "scene"
 stage is then the wait for it and the backend's update).
 
-What it is held to (docs/rendering.md): raster >= 3 annotated frames/s with at most 25% of the frame
+What it is held to (docs/rendering-speed.md): raster >= 3 annotated frames/s with at most 25% of the frame
 outside the renderer core; Cycles --quality fast <= 8 s a frame, at most 5% outside the path tracer
 and a scene stage of at most 0.5 s; resident memory after frame 200 within 10% of frame 20's
 (`--memory-frames 200 --memory-backend raster,cycles`).

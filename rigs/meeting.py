@@ -133,7 +133,7 @@ def _ego(junction, rig: Rig, scene: Scene, rng: np.random.Generator, width: int,
         return draw_camera(rig, scene, rng, width, height)
     k, room = ways[int(rng.integers(len(ways)))]
     lanes = driving_lanes(scene.city)
-    along, across = lanes.coordinates(np.asarray(junction.center, dtype=np.float64))
+    along, _ = lanes.coordinates(np.asarray(junction.center, dtype=np.float64))
     before = rng.uniform(EGO_BEFORE[0], min(EGO_BEFORE[1], room))
     xy = _in_lane(lanes, k, float(along[0, k]) - max(junction.size) / 2 - before, 0.0, rng)
     return camera_at(rig, xy, float(lanes.heading[k]), "lane", rng, width, height)

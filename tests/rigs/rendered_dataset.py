@@ -23,3 +23,25 @@ def same_files(a: Path, b: Path) -> None:
         assert names == sorted(p.name for p in (b / sub).iterdir()), sub
         for name in names:
             assert (a / sub / name).read_bytes() == (b / sub / name).read_bytes(), (sub, name)
+
+
+def masks_inside_cuboids(root: Path) -> int:
+    """tests/rigs/test_render.py's rule over every record of a folder: >= 99% of each object's
+    instance mask lies inside its cuboid's projected hull grown by 1 px; the objects checked."""
+    import numpy as np
+    import shapely
+
+    from omnigen.geometry import silhouette
+    from omnigen.rigs.render import read_instance_png
+
+    checked = 0
+    for rec in read_records(root):
+        inst = read_instance_png(root / rec.synthetic.instance)
+        v, u = np.mgrid[0:rec.height, 0:rec.width]
+        for o in rec.objects:
+            mask = inst == o.instance_id
+            hull = silhouette(o.box.corners(), rec.K).buffer(1.0)
+            pts = shapely.points(np.column_stack([u[mask], v[mask]]).astype(float))
+            assert shapely.contains(hull, pts).mean() >= 0.99, (rec.frame_id, o.instance_id)
+            checked += 1
+    return checked

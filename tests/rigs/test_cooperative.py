@@ -16,13 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import shapely
 
 from omnigen.cli import main
-from omnigen.geometry import silhouette
 from omnigen.record import FrameRecord
-from omnigen.rigs.render import read_instance_png
-from rendered_dataset import SUBS, read_records, same_files
+from rendered_dataset import SUBS, masks_inside_cuboids, read_records, same_files
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -210,17 +207,7 @@ def test_a_track_is_one_world_box_in_every_view(co):
 
 def test_masks_inside_projected_cuboids(co):
     """test_render.py's rule in every view: >= 99% of each mask inside its cuboid's hull + 1 px."""
-    checked = 0
-    for rec in read_records(co):
-        inst = read_instance_png(co / rec.synthetic.instance)
-        v, u = np.mgrid[0:rec.height, 0:rec.width]
-        for o in rec.objects:
-            mask = inst == o.instance_id
-            hull = silhouette(o.box.corners(), rec.K).buffer(1.0)
-            pts = shapely.points(np.column_stack([u[mask], v[mask]]).astype(float))
-            assert shapely.contains(hull, pts).mean() >= 0.99, (rec.frame_id, o.instance_id)
-            checked += 1
-    assert checked >= FRAMES * len(RIGS)
+    assert masks_inside_cuboids(co) >= FRAMES * len(RIGS)
 
 
 def test_tracks_move_plausibly(co):
