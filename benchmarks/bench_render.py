@@ -28,7 +28,9 @@ and its change from the first reading to the last (within 10% over 1,000 instant
 frames after frame 0 goes: the stage timers, and the parts of each stage root of PROFILE_ROOTS
 (drawing the frame's Scene, updating the backend, drawing the camera, building the raster's agent
 buffers, annotating) split by the functions they call, from cProfile's call graph (which slows
-Python code, not the renderers: compare parts with each other, not with the plain stage rows).
+Python code, not the renderers: compare parts with each other, not with the plain stage rows). A
+Cycles frame's GL labels and annotation run on their own thread beside the path tracer, which
+this thread's profile does not see.
 `--profile-clock cpu` times the parts by the rendering thread's CPU time, for a loaded machine;
 `--profile-ahead` draws each next scene (and for Cycles its agent meshes) in a second process, as
 a run of 16 frames or more does, so the parts are what the render process is left with.
@@ -101,17 +103,21 @@ def bench(backend: str, frames: int, size: int, quality: str, scene: str, seed: 
         first = time.perf_counter() - t0
         rss_first = rss_mb()
         build = r.summary.timings["build"]
+        pool = getattr(getattr(r.backend, "bs", None), "_agent_meshes", None)  # Cycles' agent meshes
+        before = (pool.built, pool.moved) if pool is not None else None
         t1 = time.perf_counter()
         tm = render_frames(r, range(1, frames))
         loop = time.perf_counter() - t1
         rss_last = rss_mb()
+        meshes = (pool.built - before[0], pool.moved - before[1]) if pool is not None else None
         r.close()
     n = frames - 1
     core = tm["renderer_core"]
     return {"backend": backend, "frames": n, "s_per_frame": loop / n, "fps": n / loop, "first_frame_s": first,
             "build_s": build, "core_s_per_frame": core / n, "overhead_share": 1 - core / loop,
             "stages": {k: v / n for k, v in tm.items() if k not in ("build",)}, "rss_first": rss_first,
-            "rss_last": rss_last, "objects": r.summary.objects, "redraws": r.summary.redraws, "ahead": ahead}
+            "rss_last": rss_last, "objects": r.summary.objects, "redraws": r.summary.redraws, "ahead": ahead,
+            "agent_meshes": meshes}
 
 
 def report(res: dict) -> None:
@@ -129,6 +135,9 @@ def report(res: dict) -> None:
             ["scenes drawn ahead (second process)", "yes" if res["ahead"] else "no"],
             ["resident MB after frame 0", round(res["rss_first"])],
             ["resident MB after last frame", round(res["rss_last"])]]
+    if res["agent_meshes"] is not None:
+        built, moved = res["agent_meshes"]
+        rows.append(["agent meshes moved / built, per frame", f"{moved / res['frames']:.1f} / {built / res['frames']:.1f}"])
     rows += [[f"  stage {k}, s per frame", round(v, 3)] for k, v in res["stages"].items()]
     print_table(f"{res['backend']}: drone rig", ["measure", "value"], rows)
 
@@ -138,7 +147,7 @@ PROFILE_ROOTS = (  # (row label, file name, function, levels of callees shown)
     ("scene: SceneGenerator.frame", "generate.py", "randomize_frame", 2),
     ("scene: backend.update", "render.py", "update", 3),  # RasterBackend.update or CyclesBackend.update
     ("camera: sample_camera", "sampling.py", "sample_camera", 1),
-    ("render: raster agent buffers", "raster_backend.py", "_prepare_agents", 1),  # Cycles: the GL labels'
+    ("render: raster agent buffers", "raster_backend.py", "_prepare_agents", 1),  # raster only (Cycles: see below)
     ("annotate", "annotate.py", "annotate", 1),
 )
 PROFILE_MIN_SHARE = 0.02  # a callee under this share of its stage root's time is folded into "other"

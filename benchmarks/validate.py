@@ -517,12 +517,17 @@ def floor_table(r: dict[str, Any]) -> list[str]:
 
 
 def command_line(a: dict[str, Any]) -> str:
-    """The validate command that `a` (results.json's arguments) stand for."""
+    """The validate command that `a` (results.json's arguments) stand for: the options whose value
+    is not the script's default (results.json keeps every value)."""
+    defaults = vars(build_parser().parse_args([]))
+
     def opt(k: str, v: Any) -> str:
         flag = f"--{k.replace('_', '-')}"
         return flag if v is True else f"{flag} {' '.join(map(str, v))}" if isinstance(v, list) else f"{flag} {v}"
 
     def said(k: str, v: Any) -> bool:  # identity, not equality: 0 and 0.0 are values to print (0 == False)
+        if k in defaults and (v == defaults[k] and type(v) is type(defaults[k])):
+            return False
         return k != "fresh" and v is not None and not (isinstance(v, list) and not v) and v is not False
 
     return "python benchmarks/validate.py " + " ".join(opt(k, v) for k, v in a.items() if said(k, v))
@@ -579,7 +584,7 @@ def results_markdown(r: dict[str, Any]) -> str:
         "Written by `benchmarks/validate.py` (`make validate`); every number here is in `docs/results.json`,",
         "which the same run wrote. Rerun it to reproduce; the script's docstring says how to scale it up.",
         "",
-        f"- command: `{cmd}`",
+        f"- command: `{cmd}` (every other option at its default; results.json lists them all)",
         f"- machine: {r['machine']}",
         f"- date: {r['date']}; {r['wall_seconds'] / 60:.1f} min of stage time (the sum of the stages below; "
         f"renders run {a['jobs']} at a time, so less elapsed)",

@@ -40,7 +40,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
@@ -145,6 +145,8 @@ class Rendered:
     render_seconds: float = 0.0  # the renderer's own work: Cycles' beauty path tracing; pyrender's whole render
     finish: Callable[[], np.ndarray] | None = None  # a deferred render's image (RasterScene.render(defer=True))
     shade: Callable[[], None] | None = None  # a deferred render: start its colour pass (RasterScene.render)
+    develop: Callable[[], np.ndarray] | None = None  # a Cycles render: its image from the linear radiance, made by the writer
+    labelled: object | None = None  # what CyclesBackend.render's `then` made of the labels (the annotation)
 
 
 class RasterBackend:
@@ -190,6 +192,12 @@ class CyclesBackend:
     exact edges (tests/rigs/test_render_cycles.py checks the two against each other). The GL passes
     cost milliseconds where each Cycles pass costs a render session; "auto" uses GL when a
     headless context can be made, else Cycles.
+
+    The GL labels' scene lives on a thread of its own (a GL context is current on one thread), and
+    a frame's label passes and what `render`'s `then` makes of them (the annotation) run there
+    while Cycles path-traces: Cycles lets go of Python's lock while it renders, so they cost the
+    frame only the CPU they take from the path tracer. The image itself is left to be developed
+    from the linear radiance (Rendered.develop) by whoever writes it.
     """
 
     name = "cycles"
@@ -202,34 +210,56 @@ class CyclesBackend:
         self.bs = BlenderScene(scene, device=device)
         self.bs.set_quality(quality)
         self.rs = None
+        self._gl: ThreadPoolExecutor | None = None
         if labels != "cycles":
+            gl = ThreadPoolExecutor(max_workers=1, thread_name_prefix="omnigen-gl")
             try:
                 from omnigen.scenes.raster_backend import RasterScene
 
-                self.rs = RasterScene(scene)
+                self.rs = gl.submit(RasterScene, scene).result()
+                self._gl = gl
             except Exception as exc:  # no headless GL here (EGL, PyOpenGL): Cycles draws the labels
+                gl.shutdown()
                 if labels == "gl":
                     raise RuntimeError(f"--labels gl: no headless OpenGL context ({exc})") from exc
         self.labels = "cycles" if self.rs is None else "gl"
         self._first = True
 
     def update(self, scene: Scene) -> None:
+        """The Blender scene now; the GL labels' scene at the next render, on its thread."""
         if self._first and scene is self.bs.scene:
             return
         self._first = False
         self.bs.update(scene)
-        if self.rs is not None:
-            self.rs.update(scene)
 
-    def render(self, cam: Camera) -> Rendered:
-        out = self.bs.render(cam, labels=self.rs is None)
-        if self.rs is not None:
-            out["depth"], out["instance"] = self.rs.labels(cam)
-        return Rendered(out["rgb"], out["depth"], out["instance"], out["seconds"])
+    def render(self, cam: Camera, then: Callable | None = None) -> Rendered:
+        """The frame at `cam`, its image left to Rendered.develop; `then(depth, instance,
+        silhouettes)`, given, runs on the labels as soon as they are drawn (beside the path
+        tracer with GL labels) and its result is Rendered.labelled."""
+        if self.rs is None:
+            out = self.bs.render(cam, labels=True, develop=False)
+            labelled = then(out["depth"], out["instance"], partial(self.bs.render_instances, cam)) if then else None
+            return Rendered(None, out["depth"], out["instance"], out["seconds"], develop=_image(out["develop"]),
+                            labelled=labelled)
+        job = self._gl.submit(self._label, self.bs.scene, cam, then)
+        try:
+            out = self.bs.render(cam, labels=False, develop=False)
+        finally:
+            wait([job])  # never leave the labels running into the next frame's update
+        depth, instance, labelled = job.result()
+        return Rendered(None, depth, instance, out["seconds"], develop=_image(out["develop"]), labelled=labelled)
+
+    def _label(self, scene: Scene, cam: Camera, then: Callable | None) -> tuple:
+        """On the GL thread: the labels of `scene` at `cam`, and `then` of them."""
+        if self.rs.scene is not scene:
+            self.rs.update(scene)
+        depth, instance = self.rs.labels(cam)
+        labelled = then(depth, instance, partial(self.rs.render_instances, cam)) if then else None
+        return depth, instance, labelled
 
     def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
         if self.rs is not None:
-            return self.rs.render_instances(cam, ids)
+            return self._gl.submit(self.rs.render_instances, cam, ids).result()
         return self.bs.render_instances(cam, ids)
 
     def save_blend(self, path: Path) -> Path:
@@ -240,11 +270,17 @@ class CyclesBackend:
         import shutil
 
         if self.rs is not None:
-            self.rs.close()
-            self.rs = None
+            self._gl.submit(self.rs.close).result()
+            self._gl.shutdown()
+            self.rs, self._gl = None, None
         tmp = getattr(self.bs, "_tmp", None)
         if tmp:
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _image(develop: Callable[[], tuple[np.ndarray, float]]) -> Callable[[], np.ndarray]:
+    """BlenderScene.render's develop (image and gain) as the image alone."""
+    return lambda: develop()[0]
 
 
 def make_backend(name: str, scene: Scene, quality: str, labels: str = "auto", device: str = "auto"):
@@ -538,13 +574,14 @@ def finalize_run(job: RenderJob, show_progress: bool = True, writer: DatasetWrit
     return True
 
 
-FrameFiles = tuple[tuple[str, np.ndarray], tuple[str, np.ndarray], tuple[str, np.ndarray]]
+FrameFiles = tuple[tuple[str, "np.ndarray | Callable[[], np.ndarray]"], tuple[str, np.ndarray], tuple[str, np.ndarray]]
 
 
-def _frame_files(record: FrameRecord, rgb: np.ndarray, out: Rendered) -> FrameFiles:
+def _frame_files(record: FrameRecord, rgb: np.ndarray | Callable[[], np.ndarray], out: Rendered) -> FrameFiles:
     """A frame's files as the writer takes them: (path under the render folder, array) for the
     image, depth and instance mask, the paths as its record names them. `rgb` apart from `out`:
-    a deferred render's image is read back later (Rendered.finish)."""
+    a deferred render's image is read back later (Rendered.finish), and a Cycles image is
+    developed by the writer (a function, Rendered.develop)."""
     return ((record.image, rgb), (record.synthetic.depth, out.depth), (record.synthetic.instance, out.instance))
 
 
@@ -672,11 +709,17 @@ class Renderer:
         obstacles = None  # a redraw's, built at the first one
         while True:
             t3 = time.perf_counter()
-            out = self.backend.render(cam, defer=True) if defer else self.backend.render(cam)
+            if defer:
+                out = self.backend.render(cam, defer=True)
+            elif isinstance(self.backend, CyclesBackend):  # annotated beside the path tracer (CyclesBackend)
+                out = self.backend.render(cam, then=partial(annotate, scene, cam))
+            else:
+                out = self.backend.render(cam)
             t4 = time.perf_counter()
             tm["render"] += t4 - t3
             tm["renderer_core"] += out.render_seconds
-            ann = annotate(scene, cam, out.depth, out.instance, lambda ids: self.backend.silhouettes(cam, ids))
+            ann = out.labelled if out.labelled is not None else \
+                annotate(scene, cam, out.depth, out.instance, lambda ids: self.backend.silhouettes(cam, ids))
             t2 = time.perf_counter()
             tm["annotate"] += t2 - t4
             if rng is None or len(ann.objects) >= rig.min_objects or cam.tries >= rig.max_tries:
@@ -706,9 +749,9 @@ class Renderer:
         if out.finish is not None:
             self._unfinished = (out, record)
         elif self.write_behind:
-            self._submit(_frame_files(record, out.rgb, out), record)
+            self._submit(_frame_files(record, out.develop or out.rgb, out), record)
         else:
-            self._write_frame(_frame_files(record, out.rgb, out), record)
+            self._write_frame(_frame_files(record, out.develop or out.rgb, out), record)
         if job.save_blend is not None and not self._blend_saved:
             self.backend.save_blend(job.save_blend)
             self._blend_saved = True
@@ -816,6 +859,8 @@ class Renderer:
         frame whose record exists is complete)."""
         root, durable = Path(self.job.out), self.job.durable
         (image, rgb), (depth, z), (instance, ids) = files
+        if callable(rgb):  # a Cycles image, developed here: on the writer's thread with write-behind
+            rgb = rgb()
         atomic_write_bytes(root / image, png_bytes(rgb), durable=durable)
         write_depth_exr(root / depth, z)
         atomic_write_bytes(root / instance, png_bytes(ids), durable=durable)

@@ -45,6 +45,7 @@ import os
 import sys
 import time
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import bpy
@@ -292,6 +293,12 @@ def encode(linear: np.ndarray) -> np.ndarray:
     return np.round(255.0 * v).astype(np.uint8)
 
 
+def develop_frame(linear: np.ndarray, beauty_depth: np.ndarray, camera: Camera, scene: Scene) -> tuple[np.ndarray, float]:
+    """A Cycles frame's image and gain from its beauty render's linear RGB and depth: exposed on
+    its road pixels (road_pixels) and encoded (expose)."""
+    return expose(linear, scene, road_pixels(camera, beauty_depth))
+
+
 def expose(linear: np.ndarray, scene: Scene, road: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """A Cycles frame (linear RGB) as the camera records it: uint8 RGB and the total gain applied
     (the daylight exposure times the automatic one, metered on the `road` pixels when given,
@@ -365,6 +372,8 @@ class _Painted:
         self.roles = tuple(role for role, _ in order)
         self.face_role = np.repeat(np.arange(len(order), dtype=np.int32), [count for _, count in order])
         self.written: dict[str, tuple] = {}  # attribute -> the per-role values it holds
+        self.shape: tuple | None = None  # an agent mesh's shape (_shape), what another agent's must equal to take it
+        self.parts: dict | None = None  # the parts whose vertices it holds (an agent mesh)
 
     def paint(self, materials: dict[str, Material]) -> bool:
         """Write the faces' attributes for `materials` (role -> Material); False when nothing changed."""
@@ -395,13 +404,97 @@ def _paint_mesh(mesh: bpy.types.Mesh, parts: dict, surfaces: dict[str, Surface])
     (pbr_surface: pattern, scale, variant, spacing), written with the triangles: a part's pattern
     follows its shape, not the frame. Faces of a patterned role use their pattern's surface
     material, the rest omnigen_pbr, so plain parts (most of an agent) pay nothing for the patterns."""
-    v, f, order = _stack_parts(parts)
+    return _build_mesh(mesh, *_stack_parts(parts), surfaces)
+
+
+def _build_mesh(mesh: bpy.types.Mesh, v: np.ndarray, f: np.ndarray, order: list[tuple[str, int]],
+                surfaces: dict[str, Surface]) -> _Painted:
+    """_paint_mesh from parts already stacked (_stack_parts)."""
     _set_triangles(mesh, v, f)
     for attr in PBR_ATTRIBUTES:
         mesh.attributes.new(attr, "FLOAT_VECTOR", "FACE")
     painted = _Painted(mesh, order)
     _write_surfaces(painted, surfaces)
     return painted
+
+
+def _set_positions(mesh: bpy.types.Mesh, v: np.ndarray) -> None:
+    """Move the vertices of `mesh` to `v` (float32, as many as it has), its triangles kept: what
+    _set_triangles with the same triangles makes, without rebuilding the triangles, edges and
+    face attributes. mesh.update() marks the normals, bounds and evaluated copy stale."""
+    mesh.attributes["position"].data.foreach_set("vector", v.ravel())
+    mesh.update()
+
+
+def _shape(v: np.ndarray, f: np.ndarray, order: list[tuple[str, int]], surfaces: dict[str, Surface]) -> tuple:
+    """What an agent mesh holds besides its vertex positions: its vertex count, its parts' roles
+    and triangle counts, its triangles, and each role's surface (pattern and numbers, hence its
+    material slots). Two agents of one shape differ in positions alone (an asset fitted to other
+    dims)."""
+    return (len(v), tuple(order), tuple((role, surfaces[role].pattern, surfaces[role].row()) for role, _ in order),
+            f.tobytes())
+
+
+POOL_SHARE = 1.5  # agent meshes kept, as a multiple of the most agents a frame has had (_AgentMeshes)
+
+
+class _AgentMeshes:
+    """The agents' meshes, kept by shape from frame to frame and lent to the frame's agents.
+
+    Why: an agent's mesh is new every frame (its dims are drawn anew) but its shape (_shape) is
+    its asset's, and a frame's agents come in far fewer shapes than agents, so most find a mesh of
+    their shape that the last frames left (bench_render.py prints how many a frame are moved and
+    built), and take only their vertex positions (_set_positions), where
+    a mesh rebuilt for another shape pays for its triangles, edges, face offsets and attributes
+    (bench_render.py --profile: _place_agents). A mesh so moved holds exactly what a new one
+    would (tests/scenes/test_blender_reuse.py). At most POOL_SHARE times the most agents a frame
+    has had are kept, so memory has a bound; past it, a mesh no agent of the frame takes is
+    rebuilt for another shape. Nothing is ever deleted (a datablock removal scans all of them)."""
+
+    def __init__(self) -> None:
+        self.meshes: list[_Painted] = []
+        self.most = 0
+        self._spare: list[_Painted] = []  # this frame's meshes no agent took (lend)
+        self.built = 0  # meshes built or rebuilt (new shapes), a count for tests and profiles
+        self.moved = 0  # meshes that took another agent's positions
+
+    def lend(self, shapes: list[tuple], held: list[_Painted | None]) -> list[_Painted | None]:
+        """A kept mesh of each agent's shape, else None (`fresh` makes one); `held[j]`, the mesh
+        slot j showed last frame, is preferred, sparing the object a new mesh."""
+        self.most = max(self.most, len(shapes))
+        free: dict[tuple, list[_Painted]] = {}
+        for m in self.meshes:
+            free.setdefault(m.shape, []).append(m)
+        used: set[int] = set()
+        out: list[_Painted | None] = [None] * len(shapes)
+        for j, shape in enumerate(shapes):
+            m = held[j] if j < len(held) else None
+            if m is not None and m.shape == shape:
+                out[j] = m
+                used.add(id(m))
+        for j, shape in enumerate(shapes):
+            if out[j] is None:
+                kept = free.get(shape, [])
+                while kept and id(kept[-1]) in used:
+                    kept.pop()
+                if kept:
+                    out[j] = kept.pop()
+                    used.add(id(out[j]))
+        self._spare = [m for m in self.meshes if id(m) not in used]
+        return out
+
+    def fresh(self, name: str) -> bpy.types.Mesh:
+        """A mesh to build another shape into: a new one while the pool is under its bound, else
+        one no agent of this frame took (lend must have run for the frame)."""
+        self.built += 1
+        if len(self.meshes) < math.ceil(POOL_SHARE * self.most) or not self._spare:
+            return bpy.data.meshes.new(name)
+        painted = self._spare.pop()
+        self.meshes.remove(painted)
+        return painted.mesh
+
+    def keep(self, painted: _Painted) -> None:
+        self.meshes.append(painted)
 
 
 PLAIN_PATTERNS = frozenset({"plain", "car_paint"})  # drawn by omnigen_pbr (car paint: its coat)
@@ -842,7 +935,10 @@ class BlenderScene:
         self.scene = scene
         self._buildings = {b.building_id: b for b in scene.city.buildings}
         self._static: dict[str, _Painted] = {}
-        self._slots: list[tuple[bpy.types.Object, _Painted, dict]] = []  # (object, its mesh, the parts it holds)
+        self._slots: list[bpy.types.Object] = []  # slot j shows the frame's j-th agent
+        self._held: list[_Painted | None] = []  # the mesh each slot shows (None: hidden, the empty mesh)
+        self._agent_meshes = _AgentMeshes()
+        self._no_agent: bpy.types.Mesh | None = None  # the empty mesh a hidden slot shows
         for name in (STATIC, AGENTS, WEATHER):  # link order is render order: made first, in this order
             _collection(name)
         _surface_images(scene.city)
@@ -871,20 +967,37 @@ class BlenderScene:
         self._static[obj.name] = painted
 
     def _place_agents(self, agents: list[RenderObject]) -> None:
-        """Slot j takes agent j: its triangles when its parts differ from what the slot holds
-        (the asset cache returns the same parts for the same asset and dims), its colours where
-        they differ, its transform, ids and name; slots past the last agent are hidden."""
+        """Slot j takes agent j: a mesh of its shape (_AgentMeshes), moved to its vertices when it
+        holds other parts (the asset cache returns the same parts for the same asset and dims), its
+        colours where they differ, its transform, ids and name; slots past the last agent are
+        hidden and show the empty mesh."""
+        stacked = [None if j < len(self._held) and self._held[j] is not None and self._held[j].parts is obj.parts
+                   else _stack_parts(obj.parts) for j, obj in enumerate(agents)]
+        surfaces = [self._surfaces(obj) for obj in agents]
+        shapes = [self._held[j].shape if st is None else _shape(*st, surfaces[j])
+                  for j, st in enumerate(stacked)]
+        lent = self._agent_meshes.lend(shapes, self._held)
         for j, obj in enumerate(agents):
             if j == len(self._slots):
-                mesh = bpy.data.meshes.new(_slot_name(j))
-                bobj = bpy.data.objects.new(_slot_name(j), mesh)
+                bobj = bpy.data.objects.new(_slot_name(j), self._empty_mesh())
                 _collection(AGENTS).objects.link(bobj)
-                self._slots.append((bobj, None, None))
-            bobj, painted, parts = self._slots[j]
-            if parts is not obj.parts:
-                painted = _paint_mesh(bobj.data, obj.parts, self._surfaces(obj))
-                self._slots[j] = (bobj, painted, obj.parts)
+                self._slots.append(bobj)
+                self._held.append(None)
+            bobj, painted = self._slots[j], lent[j]
+            if painted is None:
+                v, f, order = stacked[j] if stacked[j] is not None else _stack_parts(obj.parts)
+                painted = _build_mesh(self._agent_meshes.fresh(_slot_name(j)), v, f, order, surfaces[j])
+                painted.shape, painted.parts = shapes[j], obj.parts
+                self._agent_meshes.keep(painted)
+            elif painted.parts is not obj.parts:
+                v = stacked[j][0] if stacked[j] is not None else _stack_parts(obj.parts)[0]
+                _set_positions(painted.mesh, v)
+                painted.parts = obj.parts
+                self._agent_meshes.moved += 1
             painted.paint(obj.materials)
+            if bobj.data != painted.mesh:
+                bobj.data = painted.mesh
+            self._held[j] = painted
             bobj.matrix_world = _matrix(obj.matrix_world)
             bobj.pass_index = int(obj.instance_id)
             bobj["omnigen_instance_id"] = int(obj.instance_id)
@@ -892,22 +1005,31 @@ class BlenderScene:
             bobj["omnigen_dims"] = [float(d) for d in obj.dims]
             bobj["omnigen_kind"] = obj.kind
             _show(bobj, True)
-        for bobj, _, _ in self._slots[len(agents):]:
+        for j in range(len(agents), len(self._slots)):
+            bobj = self._slots[j]
             _show(bobj, False)
+            if self._held[j] is not None:
+                bobj.data = self._empty_mesh()
+                self._held[j] = None
             bobj.pass_index = 0
             bobj["omnigen_instance_id"] = 0
         self._name_slots([obj.name for obj in agents])
+
+    def _empty_mesh(self) -> bpy.types.Mesh:
+        if self._no_agent is None:
+            self._no_agent = bpy.data.meshes.new("omnigen_agent_none")
+        return self._no_agent
 
     def _name_slots(self, names: list[str]) -> None:
         """Each used slot named as its agent (Cycles seeds an object's random number from its
         name), the others by their index; a slot renamed goes through its own index name first,
         so no agent's name is ever taken by another slot (Blender would add a suffix)."""
         wanted = names + [_slot_name(j) for j in range(len(names), len(self._slots))]
-        moved = [j for j, (bobj, _, _) in enumerate(self._slots) if bobj.name != wanted[j]]
+        moved = [j for j, bobj in enumerate(self._slots) if bobj.name != wanted[j]]
         for j in moved:
-            self._slots[j][0].name = _slot_name(j)
+            self._slots[j].name = _slot_name(j)
         for j in moved:
-            self._slots[j][0].name = wanted[j]
+            self._slots[j].name = wanted[j]
 
     def update(self, scene: Scene) -> None:
         """Next frame over the same city: the agents, the static city's colours, the environment."""
@@ -1166,11 +1288,14 @@ class BlenderScene:
         with _quiet_native_output():
             bpy.ops.render.render(write_still=False)
 
-    def render(self, camera: Camera, labels: bool = True) -> dict:
+    def render(self, camera: Camera, labels: bool = True, develop: bool = True) -> dict:
         """Cycles RGB (uint8, exposed and encoded as the raster's camera does: expose) plus the label
         pass's depth (camera z, inf where nothing was hit) and instance ids (None with
         labels=False: the caller draws them another way); `seconds` is the beauty render's time,
-        `gain` the exposure applied to Cycles' linear radiance."""
+        `gain` the exposure applied to Cycles' linear radiance. With develop=False, "rgb" and
+        "gain" are None and "develop" makes them (a function of the beauty render's arrays
+        alone): the caller develops the image where it costs least (rigs/render.py, on the
+        writer's thread while the next frame is set up)."""
         self._set_camera(camera)
         self.place_weather(tuple(float(v) for v in camera.center))
         self._apply_quality()
@@ -1182,9 +1307,9 @@ class BlenderScene:
         try:
             self._run(self._beauty_tree)
             seconds = time.perf_counter() - t0
-            road = road_pixels(camera, _read_exr_channel(self._single("beauty_", "depth")))
-            rgb, gain = expose(_read_exr_rgb(self._single("beauty_", "rgb")), self.scene, road)
-            self.bscene.view_settings.exposure = float(math.log2(gain))
+            film = partial(develop_frame, _read_exr_rgb(self._single("beauty_", "rgb")),
+                           _read_exr_channel(self._single("beauty_", "depth")), camera, self.scene)
+            self._film = film
             # The label pass runs before the fog comes back: with the same objects visible as in
             # the beauty render, Cycles (persistent data) reuses the beauty render's BVH instead
             # of building the city's again (about 2 s at 640 x 640 on the 2-core machine).
@@ -1192,7 +1317,10 @@ class BlenderScene:
         finally:
             if skip_fog:
                 fog.hide_render = False
-        return {"rgb": rgb, "depth": depth, "instance": instance, "seconds": seconds, "gain": gain}
+        rgb, gain = film() if develop else (None, None)
+        if develop:
+            self.bscene.view_settings.exposure = float(math.log2(gain))
+        return {"rgb": rgb, "depth": depth, "instance": instance, "seconds": seconds, "gain": gain, "develop": film}
 
     def _apply_quality(self) -> None:
         c, q = self.bscene.cycles, self.quality
@@ -1288,7 +1416,11 @@ class BlenderScene:
                 "materials": len(bpy.data.materials), "images": len(bpy.data.images)}
 
     def save_blend(self, path: str | Path) -> Path:
-        """Write the scene as a .blend a user opens in Blender (relative paths, compressed)."""
+        """Write the scene as a .blend a user opens in Blender (relative paths, compressed), at the
+        exposure of the last rendered frame (developed here if its caller has not yet)."""
+        film = getattr(self, "_film", None)
+        if film is not None:
+            self.bscene.view_settings.exposure = float(math.log2(film()[1]))
         path = Path(path).resolve()
         path.parent.mkdir(parents=True, exist_ok=True)
         bpy.ops.wm.save_as_mainfile(filepath=str(path), check_existing=False, compress=True, copy=True)

@@ -1,12 +1,16 @@
-"""Issue 48: BlenderScene.update changes what changes and makes no datablock.
+"""Issue 48: BlenderScene.update changes what changes and makes no datablock beyond its bounds.
 
 Frames over the tiny city through rain at night, snow, fog and a clear noon: once the agent pool
-has grown to the most agents a frame had, every further update keeps the very same meshes,
-objects, materials, lights, images, node groups and worlds (no per-frame creation, nothing
-removed) and shows exactly the frame's agents, lamps and weather.
+has grown to the most agents a frame had, every further update keeps the very same objects,
+materials, lights, images, node groups and worlds, and meshes but for agent meshes of new shapes
+up to the mesh pool's bound (no per-frame creation, nothing removed), and shows exactly the
+frame's agents, lamps and weather. An agent mesh lent to an agent of its shape and moved to its
+vertices holds what a mesh built new for that agent holds, normals included.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
@@ -38,9 +42,13 @@ def test_updates_reuse_every_datablock_and_show_only_the_frame(frames):
     for scene in frames[1:]:  # the pool grows to the most agents a frame has
         bs.update(scene)
     made = _datablocks()
+    pool = bs._agent_meshes
     for scene in frames:
         bs.update(scene)
-        assert _datablocks() == made
+        now = _datablocks()
+        assert {k: v for k, v in now.items() if k != "meshes"} == {k: v for k, v in made.items() if k != "meshes"}
+        assert made["meshes"] <= now["meshes"]  # none removed; new ones are agent meshes within the bound
+        assert len(now["meshes"] - made["meshes"]) <= len(pool.meshes) <= math.ceil(blender.POOL_SHARE * pool.most)
         shown = bs.objects_summary()
         assert sorted(o["name"] for o in shown if o["instance_id"]) == sorted(a.name for a in scene.agents)
         assert {o["instance_id"] for o in shown if o["instance_id"]} == {a.instance_id for a in scene.agents}
@@ -76,7 +84,7 @@ def test_a_mesh_is_repainted_only_where_a_material_changed(frames):
 
 
 _ATTRIBUTE_KINDS = {"FLOAT_VECTOR": ("vector", 3, np.float32), "BOOLEAN": ("value", 1, bool), "INT": ("value", 1, np.int32),
-                    "INT32_2D": ("value", 2, np.int32), "FLOAT": ("value", 1, np.float32)}
+                    "INT32_2D": ("value", 2, np.int32), "FLOAT": ("value", 1, np.float32), "FLOAT_COLOR": ("color", 4, np.float32)}
 
 
 def _mesh_bytes(mesh) -> dict:
@@ -134,3 +142,67 @@ def test_stacked_parts_are_the_parts_converted_and_stacked(frames):
         assert v.tobytes() == np.vstack([np.asarray(p.vertices, dtype=np.float32) for p in parts]).tobytes()
         assert f.tobytes() == np.vstack([np.asarray(p.faces, dtype=np.int32) + o for p, o in zip(parts, offsets)]).tobytes()
         assert order == [(role, len(p.faces)) for role, p in obj.parts.items()]
+
+
+def _normals(mesh) -> dict[str, bytes]:
+    out = {}
+    for name in ("vertex_normals", "polygon_normals", "corner_normals"):
+        items = getattr(mesh, name)
+        values = np.zeros(3 * len(items), np.float32)
+        items.foreach_get("vector", values)
+        out[name] = values.tobytes()
+    return out
+
+
+def _same_shape_pairs(frames):
+    """(agent of one frame, agent of another) pairs of one shape and other vertex positions."""
+    seen, pairs = {}, []
+    for scene in frames:
+        for obj in blender.compile_scene(scene):
+            if obj.kind != "agent":
+                continue
+            v, f, order = blender._stack_parts(obj.parts)
+            key = blender._shape(v, f, order, {role: blender.part_surface("agent", role, scene.city) for role in obj.parts})
+            first = seen.setdefault(key, obj)
+            if first is not obj and not np.array_equal(blender._stack_parts(first.parts)[0], v):
+                pairs.append((first, obj))
+    return pairs
+
+
+def test_a_mesh_moved_to_an_agent_of_its_shape_equals_one_built_for_it(frames):
+    import bpy
+
+    pairs = _same_shape_pairs(frames)
+    assert len(pairs) >= 3
+    made = []
+    try:
+        for first, other in pairs[:8]:
+            surfaces = {role: blender.Surface() for role in first.parts}
+            moved, new = bpy.data.meshes.new("omnigen_test_moved"), bpy.data.meshes.new("omnigen_test_new")
+            made += [moved, new]
+            blender._paint_mesh(moved, first.parts, surfaces)
+            _normals(moved)  # computed for the first positions: moving the vertices must make them stale
+            blender._set_positions(moved, blender._stack_parts(other.parts)[0])
+            blender._paint_mesh(new, other.parts, surfaces)
+            assert _mesh_bytes(moved) == _mesh_bytes(new), other.name
+            assert _normals(moved) == _normals(new), other.name
+    finally:
+        for mesh in made:
+            bpy.data.meshes.remove(mesh)
+
+
+def test_agents_take_kept_meshes_of_their_shape(frames):
+    """The pool lends kept meshes: over frames whose agents share shapes, most agents after the
+    first frame take a mesh moved to their vertices, and each shown slot holds its agent's
+    vertices."""
+    bs = blender.BlenderScene(frames[0])
+    pool = bs._agent_meshes
+    for scene in frames[1:] + frames[:2]:
+        bs.update(scene)
+    assert pool.moved > 0 and pool.built < sum(len(s.agents) for s in frames[1:] + frames[:2])
+    agents = [o for o in blender.compile_scene(frames[1]) if o.kind == "agent"]
+    for bobj, obj in zip(bs._slots, agents):
+        v = np.zeros(3 * len(bobj.data.vertices), np.float32)
+        bobj.data.attributes["position"].data.foreach_get("vector", v)
+        assert v.tobytes() == blender._stack_parts(obj.parts)[0].tobytes(), obj.name
+    assert all(bobj.data.name == "omnigen_agent_none" for bobj in bs._slots[len(agents):])
