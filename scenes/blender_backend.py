@@ -971,6 +971,7 @@ class BlenderScene:
         holds other parts (the asset cache returns the same parts for the same asset and dims), its
         colours where they differ, its transform, ids and name; slots past the last agent are
         hidden and show the empty mesh."""
+        # None: the slot's mesh holds these very parts (the same asset and dims), lent back to it unchanged
         stacked = [None if j < len(self._held) and self._held[j] is not None and self._held[j].parts is obj.parts
                    else _stack_parts(obj.parts) for j, obj in enumerate(agents)]
         surfaces = [self._surfaces(obj) for obj in agents]
@@ -984,14 +985,12 @@ class BlenderScene:
                 self._slots.append(bobj)
                 self._held.append(None)
             bobj, painted = self._slots[j], lent[j]
-            if painted is None:
-                v, f, order = stacked[j] if stacked[j] is not None else _stack_parts(obj.parts)
-                painted = _build_mesh(self._agent_meshes.fresh(_slot_name(j)), v, f, order, surfaces[j])
+            if painted is None:  # a shape no kept mesh is free for (never a slot lent back its own parts)
+                painted = _build_mesh(self._agent_meshes.fresh(_slot_name(j)), *stacked[j], surfaces[j])
                 painted.shape, painted.parts = shapes[j], obj.parts
                 self._agent_meshes.keep(painted)
             elif painted.parts is not obj.parts:
-                v = stacked[j][0] if stacked[j] is not None else _stack_parts(obj.parts)[0]
-                _set_positions(painted.mesh, v)
+                _set_positions(painted.mesh, stacked[j][0])
                 painted.parts = obj.parts
                 self._agent_meshes.moved += 1
             painted.paint(obj.materials)
