@@ -37,6 +37,8 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from omnigen.detector.recipe import RUN  # noqa: E402
+
 FIELDS = ("oks_map50_95", "ap_oks50", "ground_adherence_deg", "corner_error_px", "corner_error_rel", "corner_spread",
           "layout_error_rel",
           "corner_objects")
@@ -55,7 +57,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="precision of the steps (bf16: make validate's on a CPU that runs it natively)")
     ap.add_argument("--width", type=float, default=None, help="override the scale's width (tiny test models)")
     ap.add_argument("--depth", type=float, default=None)
-    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--workers", type=int, default=RUN.workers, help="loader processes (default: train's)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--single-label", action="store_true",

@@ -103,13 +103,14 @@ def bench(backend: str, frames: int, size: int, quality: str, scene: str, seed: 
         first = time.perf_counter() - t0
         rss_first = rss_mb()
         build = r.summary.timings["build"]
-        pool = getattr(getattr(r.backend, "bs", None), "_agent_meshes", None)  # Cycles' agent meshes
-        before = (pool.built, pool.moved) if pool is not None else None
+        bs = getattr(r.backend, "bs", None)  # Cycles' Blender scene
+        before = bs.agent_mesh_counts() if bs is not None else None
         t1 = time.perf_counter()
         tm = render_frames(r, range(1, frames))
         loop = time.perf_counter() - t1
         rss_last = rss_mb()
-        meshes = (pool.built - before[0], pool.moved - before[1]) if pool is not None else None
+        after = bs.agent_mesh_counts() if bs is not None else None
+        meshes = (after["built"] - before["built"], after["moved"] - before["moved"]) if bs is not None else None
         r.close()
     n = frames - 1
     core = tm["renderer_core"]

@@ -18,7 +18,9 @@
   loader. On CUDA it also prints the top operators of a torch.profiler trace of a few steps.
   Without --dataset it writes a small fake dataset whose images are textured (a smooth random
   pattern, 960x540 PNG unless --fake-size says otherwise), so decoding costs what a render's does.
-  The last line is `end-to-end: X img/s`.
+  Its last line is `end-to-end: X img/s`, unless `--compare-workers 0,1` follows: end to end with each
+  loader-worker count in alternating rounds: on a 2-core CPU, the loader in the step's own process
+  against one worker process, the choice `omnigen train` makes by default (loader.loader_workers).
 - `cache`: what `omnigen train --cache` saves: the training loader's seconds per epoch with the
   images read from disk against decoded once into memory, timed alone (no model) as `omnigen train`
   runs it (the train split, letterboxed, random --crop windows, the default augmentation). On a
@@ -33,6 +35,8 @@ each alike; each one's median and the ratio of the medians are printed.
     .venv/bin/python benchmarks/bench_train_speed.py step --loop        # + the loop, channels-last or not
     .venv/bin/python benchmarks/bench_train_speed.py step --overfit     # + the precision cost (about 5 min)
     .venv/bin/python benchmarks/bench_train_speed.py throughput --device cpu --imgsz 320 --batch 8 --steps 12 --workers 1
+    .venv/bin/python benchmarks/bench_train_speed.py throughput --device cpu --imgsz 640 --crop 320 --batch 16 \
+        --amp bf16 --fake-size 640x640 --frames 64 --steps 16 --compare-workers 0,1   # make validate's step
     python benchmarks/bench_train_speed.py throughput --device cuda --imgsz 640 --batch 64 --workers 14 --dataset D
     .venv/bin/python benchmarks/bench_train_speed.py cache runs/validate/uov   # make validate's data
 """
@@ -58,7 +62,9 @@ from omnigen.detector.data.samples import Augment, KeypointDataset, collate, spl
 from omnigen.detector.training.ema import ModelEMA  # noqa: E402
 from omnigen.detector.training.loss import DetectionLoss  # noqa: E402
 from omnigen.detector.model.network import DetectorConfig, KeypointDetector  # noqa: E402
-from omnigen.detector.training.train import TrainConfig, autocast_dtype, fast_bf16, make_optimizer  # noqa: E402
+from omnigen.detector.recipe import RECIPE, train_fields  # noqa: E402
+from omnigen.detector.training.train import (TrainConfig, autocast_dtype, detection_loss, fast_bf16,  # noqa: E402
+                                             make_optimizer)
 from omnigen.detector.data.loader import PREFETCH, EpochBatches, collate_uint8, make_loader  # noqa: E402
 from omnigen.detector.training.step import PartSums, TrainStep, to_device, use_channels_last  # noqa: E402
 from omnigen.options import integer, number  # noqa: E402
@@ -88,13 +94,14 @@ def precision_name(amp: str) -> str:
     return "float32" if amp == "off" else amp
 
 
-def train_step(model: KeypointDetector, amp_dtype: torch.dtype | None) -> TrainStep:
+def train_step(model: KeypointDetector, amp_dtype: torch.dtype | None, cfg: TrainConfig | None = None) -> TrainStep:
     """A TrainStep as `omnigen train` builds it, on `model` where it is: the recipe's optimiser and
-    EMA (TrainConfig's defaults), a gradient scaler for fp16 only, but the design's loss gains
-    (LossGains(), not the recipe's loss.* keys), as these timings always had."""
-    cfg = TrainConfig(dataset="", out="")
+    EMA (TrainConfig's defaults), a gradient scaler for fp16 only; the loss is `cfg`'s (the
+    recipe's gains, `--recipe`), else the design's gains (LossGains()), as the step timings always had."""
+    loss = detection_loss(cfg, model) if cfg is not None else DetectionLoss(model.cfg.num_classes)
+    cfg = cfg or TrainConfig(dataset="", out="")
     device = next(model.parameters()).device
-    return TrainStep(model, model, DetectionLoss(model.cfg.num_classes), make_optimizer(cfg, model),
+    return TrainStep(model, model, loss, make_optimizer(cfg, model),
                      torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16),
                      ModelEMA(model, cfg.ema_decay, cfg.ema_tau), amp_dtype)
 
@@ -272,6 +279,17 @@ def image_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def worker_counts(text: str) -> list[int]:
+    """'0,1' -> [0, 1]: two or more distinct counts of loader processes."""
+    try:
+        counts = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected worker counts such as 0,1") from None
+    if len(counts) < 2 or len(set(counts)) != len(counts) or min(counts) < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: give two or more distinct counts, each 0 or more")
+    return counts
+
+
 def run_throughput(args: argparse.Namespace) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -288,8 +306,15 @@ def run_throughput(args: argparse.Namespace) -> None:
 
 
 def throughput(args: argparse.Namespace, device: torch.device, root: str | Path) -> None:
-    taxonomy = load_taxonomy("fine")
-    data = KeypointDataset(root, taxonomy, args.imgsz, split_frames(root, "train"), Augment(), crop=args.crop)
+    if args.recipe:  # the model, loss, batch and data `omnigen train` builds from the recipe
+        cfg = TrainConfig(dataset=str(root), out="", **train_fields(RECIPE))
+        args.imgsz, args.batch, args.crop = cfg.imgsz, cfg.batch, cfg.window()
+        taxonomy = load_taxonomy(cfg.taxonomy)
+        data = KeypointDataset(root, taxonomy, cfg.imgsz, split_frames(root, "train"), Augment(**cfg.augment),
+                               cfg.out_of_image, cfg.seed, crop=cfg.window(), crop_focus=cfg.focus())
+    else:
+        taxonomy = load_taxonomy("fine")
+        data = KeypointDataset(root, taxonomy, args.imgsz, split_frames(root, "train"), Augment(), crop=args.crop)
     if args.cache:
         data.cache_images()
     print(f"{len(data)} training frames at {args.imgsz} px{f', {args.crop} px crops' if args.crop else ''}, "
@@ -312,12 +337,13 @@ def throughput(args: argparse.Namespace, device: torch.device, root: str | Path)
     del stream  # its workers end: none decodes while the step alone is timed
 
     channels_last = use_channels_last(args.channels_last, device)
-    model = detector(args, len(taxonomy.classes))
+    model = KeypointDetector(cfg.model_config(len(taxonomy.classes))) if args.recipe \
+        else detector(args, len(taxonomy.classes))
     model = model.to(device, memory_format=torch.channels_last if channels_last else torch.preserve_format)
     if device.type == "cuda":
         torch.backends.cudnn.benchmark = True
     model.train()
-    step = train_step(model, autocast_dtype(args.amp, device))
+    step = train_step(model, autocast_dtype(args.amp, device), cfg if args.recipe else None)
 
     on_device = to_device(images, targets, device, channels_last)
     for _ in range(3):  # warm-up: kernel selection (cudnn autotuning, oneDNN primitives)
@@ -347,6 +373,34 @@ def throughput(args: argparse.Namespace, device: torch.device, root: str | Path)
     print(f"each loader measurement discarded its first {prefetched} batches (prefetched before timing), "
           f"then timed {args.steps}")
     print(f"end-to-end: {end_to_end:.1f} img/s")
+    if args.compare_workers:
+        compare_workers(args, data, device, step, channels_last)
+
+
+def compare_workers(args: argparse.Namespace, data: KeypointDataset, device: torch.device, step: Callable,
+                    channels_last: bool) -> None:
+    """End to end with each loader-worker count of --compare-workers, a fresh loader each round and
+    the counts in turn round by round (what `omnigen train --workers` chooses between)."""
+    counts = args.compare_workers
+
+    def end_to_end(workers: int) -> float:
+        stream = iter(make_loader(data, EpochBatches(len(data), args.batch, 0), workers, pin=device.type == "cuda"))
+        rate = timed_rate(stream, PREFETCH * workers, args.steps, device,
+                          lambda images, targets: step(*to_device(images, targets, device, channels_last)))
+        del stream
+        return rate
+
+    rates: dict[int, list[float]] = {n: [] for n in counts}
+    for _ in range(args.rounds):
+        for n in counts:
+            rates[n].append(end_to_end(n))
+    print(f"end to end by loader workers, median of {args.rounds} alternating rounds of {args.steps} steps")
+    print("| workers | img/s | against the first |")
+    print("|---|---|---|")
+    first = statistics.median(rates[counts[0]])
+    for n in counts:
+        rate = statistics.median(rates[n])
+        print(f"| {n} | {rate:.1f} | {rate / first:.2f} |")
 
 
 def timed_rate(stream: Iterator, skip: int, steps: int, device: torch.device,
@@ -464,9 +518,15 @@ def build_parser() -> argparse.ArgumentParser:
     tp.add_argument("--crop", type=integer(1, None), default=None,
                     help="training windows of this size (the recipe's data.window)")
     tp.add_argument("--cache", action="store_true", help="letterboxed images in memory, as train --cache")
+    tp.add_argument("--recipe", action="store_true",
+                    help="the model, loss, input, windows, batch and augmentation of the recipe (detector/recipe.py) "
+                         "as omnigen train builds them, instead of --model, --imgsz, --crop and --batch")
     tp.add_argument("--amp", default="auto", choices=["auto", "bf16", "fp16", "off"])
     tp.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None)
     tp.add_argument("--threads", type=integer(1, None), default=None, help="torch threads of the main process")
+    tp.add_argument("--compare-workers", type=worker_counts, default=None, metavar="N,M",
+                    help="also time end to end with each of these loader-worker counts, in alternating rounds")
+    tp.add_argument("--rounds", type=integer(1, None), default=3, help="rounds of --compare-workers")
     tp.set_defaults(run=run_throughput)
 
     cache = sub.add_parser("cache", help="the loader's seconds per epoch from disk against in memory (train --cache)")

@@ -21,8 +21,10 @@ is time-boxed (`--minutes 125`, train --time): the detector's schedule is planne
 that fit in 100 minutes, at most `--epochs`, and the crop phase has the rest; the whole run stays
 within 2 hours on 2 cores that run bfloat16 (RESULTS.md lists each stage's time). On a CPU that runs
 bfloat16 natively the steps run in bf16 (`--amp`, about 0.65 of a float32 step by
-benchmarks/bench_train_speed.py; the crop phase's too). `--cache` keeps the decoded images in memory (565 MiB here; a few
-seconds of CPU an epoch by benchmarks/bench_train_speed.py cache); it trains the same weights, so runs done
+benchmarks/bench_train_speed.py; the crop phase's too). The images are decoded once and kept in memory (train --cache,
+565 MiB here; `--no-cache` reads them every epoch): on 2 cores train loads in the step's own process,
+where one process decoded 70.6 training images a second from disk and 461.8 from memory
+(benchmarks/bench_train_speed.py throughput --recipe). It trains the same weights, so runs done
 without it are kept. Scaling up: more frames per rig (`--frames`), whole images
 (`--set data.window=0`), more epochs, Cycles instead of the raster preview (`--backend cycles`),
 the ablations of the design's Table 8 (`--ablations`: without synthetic data, without P2, a 1.5x
@@ -147,8 +149,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="training's wall-clock budget per model, both phases (train --time): the detector's schedule "
                          "is fitted to the epochs that fit in its 100 minutes, the crop stage's to the rest, so the "
                          "whole default run stays within 2 hours on 2 cores; 0: none")
-    ap.add_argument("--workers", type=int, default=1)
-    ap.add_argument("--cache", action="store_true", help="train with the images decoded once, in memory (train --cache)")
+    ap.add_argument("--workers", type=int, default=RUN.workers,
+                    help="loader processes (default: train's, none on a CPU of 2 cores or fewer)")
+    ap.add_argument("--cache", action=argparse.BooleanOptionalAction, default=True,
+                    help="train with the images decoded once, in memory (train --cache)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--recipe", type=Path, default=None,
                     help="train this recipe file instead of the validated one (omnigen train --recipe)")
@@ -215,7 +219,7 @@ def train_command(args: argparse.Namespace, dataset: Path, out: Path, keys: list
     takes from detector/recipe.py."""
     recipe = ["--recipe", str(args.recipe)] if args.recipe else []
     return ["train", str(dataset), *args.set, *keys, "--out", str(out), *recipe, "--epochs", str(args.epochs),
-            "--workers", str(args.workers), "--seed", str(args.seed), "--val-every", str(args.val_every),
+            *(["--workers", str(args.workers)] if args.workers is not None else []), "--seed", str(args.seed), "--val-every", str(args.val_every),
             "--amp", args.amp, *time_box(args), *(["--device", args.device] if args.device else []),
             *(["--cache"] if args.cache else []), *options]
 
@@ -523,14 +527,18 @@ def command_line(a: dict[str, Any]) -> str:
 
     def opt(k: str, v: Any) -> str:
         flag = f"--{k.replace('_', '-')}"
-        return flag if v is True else f"{flag} {' '.join(map(str, v))}" if isinstance(v, list) else f"{flag} {v}"
+        if isinstance(v, bool):
+            return flag if v else f"--no-{k.replace('_', '-')}"
+        return f"{flag} {' '.join(map(str, v))}" if isinstance(v, list) else f"{flag} {v}"
 
     def said(k: str, v: Any) -> bool:  # identity, not equality: 0 and 0.0 are values to print (0 == False)
         if k in defaults and (v == defaults[k] and type(v) is type(defaults[k])):
             return False
-        return k != "fresh" and v is not None and not (isinstance(v, list) and not v) and v is not False
+        if v is False:  # a switch turned off: said where it is on by default (--no-cache)
+            return defaults.get(k) is True
+        return k != "fresh" and v is not None and not (isinstance(v, list) and not v)
 
-    return "python benchmarks/validate.py " + " ".join(opt(k, v) for k, v in a.items() if said(k, v))
+    return " ".join(["python benchmarks/validate.py", *(opt(k, v) for k, v in a.items() if said(k, v))])
 
 
 def detection_cap_counts(preds: list[dict[str, Any]], frames: int, cap: int) -> dict[str, int]:

@@ -230,7 +230,7 @@ class RunSettings:
     epochs: int = 150
     time_minutes: float | None = None
     val_every: int = 10
-    workers: int = 2
+    workers: int | None = None  # None: none on a CPU of 2 cores or fewer, else 2 (data/loader.py loader_workers)
     device: str | None = None
     amp: str = "auto"
     cache: bool = False

@@ -66,7 +66,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--val-every", type=integer(0, 100_000), default=RUN.val_every,
                    help="validate every N epochs (and after the last); 0: never")
     p.add_argument("--device", default=RUN.device, help="cpu, cuda, cuda:1 (default: cuda when present)")
-    p.add_argument("--workers", type=integer(0, 256), default=RUN.workers, help="data loader processes")
+    p.add_argument("--workers", type=integer(0, 256), default=RUN.workers,
+                   help="data loader processes (default: none on a CPU of 2 cores or fewer, whose step needs them "
+                        "all; else 2)")
     p.add_argument("--amp", default=RUN.amp, choices=["auto", "bf16", "fp16", "off"],
                    help="mixed precision of the forward pass (auto: fp16 on CUDA, off on the CPU; bf16 on CPUs "
                         "that run it natively is faster, a little less precise); the crop stage follows bf16")

@@ -426,13 +426,18 @@ def _set_positions(mesh: bpy.types.Mesh, v: np.ndarray) -> None:
     mesh.update()
 
 
-def _shape(v: np.ndarray, f: np.ndarray, order: list[tuple[str, int]], surfaces: dict[str, Surface]) -> tuple:
+def _shape(v: np.ndarray, f: np.ndarray, order: list[tuple[str, int]], surfaces: dict[str, Surface],
+           looks: tuple | None = None) -> tuple:
     """What an agent mesh holds besides its vertex positions: its vertex count, its parts' roles
     and triangle counts, its triangles, and each role's surface (pattern and numbers, hence its
-    material slots). Two agents of one shape differ in positions alone (an asset fitted to other
-    dims)."""
-    return (len(v), tuple(order), tuple((role, surfaces[role].pattern, surfaces[role].row()) for role, _ in order),
-            f.tobytes())
+    material slots; `looks`: _looks of them, where known). Two agents of one shape differ in
+    positions alone (an asset fitted to other dims)."""
+    return (len(v), tuple(order), _looks(surfaces) if looks is None else looks, f.tobytes())
+
+
+def _looks(surfaces: dict[str, Surface]) -> tuple:
+    """Each role's surface, pattern and numbers, in the roles' order (the parts' order)."""
+    return tuple((role, surface.pattern, surface.row()) for role, surface in surfaces.items())
 
 
 POOL_SHARE = 1.5  # agent meshes kept, as a multiple of the most agents a frame has had (_AgentMeshes)
@@ -877,10 +882,16 @@ def _collection(name: str) -> bpy.types.Collection:
     return col
 
 
+TRIM_EVERY = 10
+"""Frame updates between two _trim_heap calls (BlenderScene.update)."""
+
+
 def _trim_heap() -> None:
-    """Hand freed heap pages back to the system (glibc's malloc_trim), once per frame update. The
-    datablock counts stay flat across frames; in a 200-frame run at 96 x 96 resident memory was
-    614 MB after frame 20 and 700 after frame 200 without it, 595 and 670 with it (rendering.md)."""
+    """Hand freed heap pages back to the system (glibc's malloc_trim), every TRIM_EVERY frame
+    updates rather than every one: a trim took 37 ms of a downtown frame's update
+    (bench_render.py --profile), and with a trim every tenth update resident memory still holds
+    flat over a long run (+3.2% from frame 20 to 200: bench_render.py --memory-frames 200,
+    rendering-speed.md)."""
     import ctypes
 
     try:
@@ -939,6 +950,9 @@ class BlenderScene:
         self._held: list[_Painted | None] = []  # the mesh each slot shows (None: hidden, the empty mesh)
         self._agent_meshes = _AgentMeshes()
         self._no_agent: bpy.types.Mesh | None = None  # the empty mesh a hidden slot shows
+        self._updates = 0  # frame updates so far (TRIM_EVERY)
+        self._agent_looks: dict[tuple[str, ...], tuple] = {}  # roles -> surfaces and their _looks (_agent_surfaces)
+        self._slot_labels: dict[int, tuple] = {}  # slot -> (instance id, category, dims) as written (_label_slot)
         for name in (STATIC, AGENTS, WEATHER):  # link order is render order: made first, in this order
             _collection(name)
         _surface_images(scene.city)
@@ -957,6 +971,17 @@ class BlenderScene:
         building = self._buildings.get(obj.name) if obj.kind == "building" else None
         return {role: part_surface(obj.kind, role, self.scene.city, building) for role in obj.parts}
 
+    def _agent_surfaces(self, obj: RenderObject) -> tuple[dict[str, Surface], tuple]:
+        """An agent's surfaces and their _looks, which follow its roles alone
+        (materials.agent_surface): made once per set of roles, not for each of a frame's hundreds
+        of agents (read, never changed)."""
+        roles = tuple(obj.parts)
+        kept = self._agent_looks.get(roles)
+        if kept is None:
+            surfaces = self._surfaces(obj)
+            kept = self._agent_looks[roles] = (surfaces, _looks(surfaces))
+        return kept
+
     def _add_static(self, obj: RenderObject) -> None:
         painted = _paint_mesh(bpy.data.meshes.new(obj.name), obj.parts, self._surfaces(obj))
         painted.paint(obj.materials)
@@ -974,8 +999,9 @@ class BlenderScene:
         # None: the slot's mesh holds these very parts (the same asset and dims), lent back to it unchanged
         stacked = [None if j < len(self._held) and self._held[j] is not None and self._held[j].parts is obj.parts
                    else _stack_parts(obj.parts) for j, obj in enumerate(agents)]
-        surfaces = [self._surfaces(obj) for obj in agents]
-        shapes = [self._held[j].shape if st is None else _shape(*st, surfaces[j])
+        looks = [self._agent_surfaces(obj) for obj in agents]
+        surfaces = [surface for surface, _ in looks]
+        shapes = [self._held[j].shape if st is None else _shape(*st, *looks[j])
                   for j, st in enumerate(stacked)]
         lent = self._agent_meshes.lend(shapes, self._held)
         for j, obj in enumerate(agents):
@@ -994,15 +1020,11 @@ class BlenderScene:
                 painted.parts = obj.parts
                 self._agent_meshes.moved += 1
             painted.paint(obj.materials)
-            if bobj.data != painted.mesh:
+            if self._held[j] is not painted:  # else the slot shows this mesh already
                 bobj.data = painted.mesh
             self._held[j] = painted
             bobj.matrix_world = _matrix(obj.matrix_world)
-            bobj.pass_index = int(obj.instance_id)
-            bobj["omnigen_instance_id"] = int(obj.instance_id)
-            bobj["omnigen_category"] = obj.category
-            bobj["omnigen_dims"] = [float(d) for d in obj.dims]
-            bobj["omnigen_kind"] = obj.kind
+            self._label_slot(j, int(obj.instance_id), obj.category, tuple(float(d) for d in obj.dims))
             _show(bobj, True)
         for j in range(len(agents), len(self._slots)):
             bobj = self._slots[j]
@@ -1010,9 +1032,28 @@ class BlenderScene:
             if self._held[j] is not None:
                 bobj.data = self._empty_mesh()
                 self._held[j] = None
-            bobj.pass_index = 0
-            bobj["omnigen_instance_id"] = 0
+            self._label_slot(j, 0)
         self._name_slots([obj.name for obj in agents])
+
+    def _label_slot(self, j: int, instance_id: int, category: str | None = None,
+                    dims: tuple[float, ...] | None = None) -> None:
+        """Slot j's object index (the label pass reads it) and the properties a saved .blend
+        shows (instance id, category, dims, kind), each written only when it changed: a slot
+        keeps its index from frame to frame (agent j has instance id j + 1) and often its category,
+        and each write is a property lookup in Blender (None: left as it is, a hidden slot's)."""
+        bobj, last = self._slots[j], self._slot_labels.get(j)
+        if last is None:
+            bobj["omnigen_kind"] = "agent"
+            last = (None, None, None)
+        if instance_id != last[0]:
+            bobj.pass_index = instance_id
+            bobj["omnigen_instance_id"] = instance_id
+        if category is not None and category != last[1]:
+            bobj["omnigen_category"] = category
+        if dims is not None and dims != last[2]:
+            bobj["omnigen_dims"] = list(dims)
+        self._slot_labels[j] = (instance_id, last[1] if category is None else category,
+                                last[2] if dims is None else dims)
 
     def _empty_mesh(self) -> bpy.types.Mesh:
         if self._no_agent is None:
@@ -1043,7 +1084,9 @@ class BlenderScene:
         self.objects = {obj.name: obj for obj in objects}
         self._environment(scene)
         self._fresh_session()
-        _trim_heap()
+        self._updates += 1
+        if self._updates % TRIM_EVERY == 0:
+            _trim_heap()
 
     def _fresh_session(self) -> None:
         """Free Cycles' persistent session (switching persistent data off frees it), so the frame's
@@ -1408,6 +1451,10 @@ class BlenderScene:
             role = "lamp" if obj.get("omnigen_lamp") else obj.get("omnigen_weather", "sun" if obj.name == "omnigen_sun" else "")
             out.append({"name": obj.name, "role": role, "location": tuple(obj.location)})
         return out
+
+    def agent_mesh_counts(self) -> dict[str, int]:
+        """Agent meshes built (new shapes) and moved (another agent's vertices in a kept mesh) so far."""
+        return {"built": self._agent_meshes.built, "moved": self._agent_meshes.moved}
 
     def datablock_counts(self) -> dict[str, int]:
         """How many meshes, objects, lights and materials exist: flat across frames, or a leak."""

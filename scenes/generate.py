@@ -165,7 +165,7 @@ class FramesAhead:
             try:
                 agents, weather, lighting, built, after = asked.result()
                 if built is not None:
-                    adopt_agents(built)
+                    adopt_agents(built, agents)
                 return Scene(self.gen.city, agents, weather, lighting, int(dataset_seed), int(frame_index)), after
             except BrokenProcessPool:
                 self.close()

@@ -20,6 +20,7 @@ cheap kernel on the device (train_step.to_device).
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import replace
 from typing import Iterator
 
@@ -160,6 +161,35 @@ def quiet_worker(worker_id: int) -> None:
 
 PREFETCH = 4
 """Batches each loader worker keeps in flight (DataLoader's prefetch_factor)."""
+
+FEW_CORES = 2
+"""A CPU with at most this many usable cores trains with the loader in the step's own process."""
+
+GPU_WORKERS = 2
+"""Loader processes of a run on a GPU, or on a CPU with more cores, unless --workers says."""
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity, which a cluster's job sets), not the machine's."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity on this platform
+        return os.cpu_count() or 1
+
+
+def loader_workers(setting: int | None, device: torch.device) -> int:
+    """The loader processes of a run: `setting` when given; otherwise none on a CPU of FEW_CORES
+    or fewer, GPU_WORKERS elsewhere.
+
+    Why none there: the step's threads use every core, and a loader process that takes one of them
+    in turn stalls all of the step's threads until it yields. On 2 cores the recipe's step on make
+    validate's data ran 11.2 images a second with the loader in the step's process against 7.7
+    with one loader process (benchmarks/bench_train_speed.py throughput --recipe --compare-workers
+    0,1; detector-training.md): loading in turn costs less than the stalls. Each sample is seeded
+    by (seed, epoch, frame) either way, so the same run is trained."""
+    if setting is not None:
+        return setting
+    return 0 if device.type == "cpu" and usable_cores() <= FEW_CORES else GPU_WORKERS
 
 
 def make_loader(data: KeypointDataset, batches: EpochBatches, workers: int, pin: bool,

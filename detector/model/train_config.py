@@ -74,7 +74,7 @@ class TrainConfig:
     # how the run's model predicts (recipe.Predict): not read by training, recorded so that `omnigen
     # predict` and `eval` of its checkpoints take the run's recipe (predict.vertical=off) as theirs
     predict: dict[str, Any] = field(default_factory=lambda: dict(_TRAIN["predict"]))
-    workers: int = RUN.workers
+    workers: int | None = RUN.workers  # None: loader.loader_workers decides by the device and its cores
     seed: int = RUN.seed
     val_every: int = RUN.val_every  # validate every N epochs and after the last; 0: never
     save_interval: float = 60.0  # seconds between last.pt writes (also written after validation and at the end)

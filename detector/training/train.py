@@ -72,7 +72,7 @@ from omnigen.detector.recipe import NESTED, RECIPE_FILE, field_key, from_dict, r
 from omnigen.detector.prediction.predict import EVAL_CONF, EVAL_MAX_DET, EVAL_MULTI_LABEL, PredictOptions, predict_frames
 from omnigen.detector.training import time_budget
 from omnigen.detector.training.time_budget import TimeBudget
-from omnigen.detector.data.loader import EpochBatches, collate_uint8, make_loader
+from omnigen.detector.data.loader import EpochBatches, collate_uint8, loader_workers, make_loader
 from omnigen.detector.training.step import FiniteWatch, PartSums, TrainStep, finite_weights, to_device, use_channels_last
 from omnigen.files import TMP_PREFIX, atomic_write_bytes, atomic_write_text, dumps_json
 from omnigen.outputs import json_made_by, read_prefix, same_file
@@ -92,6 +92,12 @@ def param_groups(model: torch.nn.Module, weight_decay: float) -> list[dict[str, 
 
 
 OPTIMIZERS = {"adam": torch.optim.Adam, "adamw": torch.optim.AdamW}
+
+
+def detection_loss(cfg: TrainConfig, model: KeypointDetector) -> DetectionLoss:
+    """The run's loss: the recipe's gains on `model`'s classes."""
+    return DetectionLoss(model.cfg.num_classes, gains=LossGains(kpt_l1=cfg.kpt_l1, kpt_labelled=cfg.kpt_labelled,
+                                                                heading=cfg.heading_gain))
 
 
 def make_optimizer(cfg: TrainConfig, model: torch.nn.Module) -> torch.optim.Optimizer:
@@ -478,8 +484,7 @@ def _train(cfg: TrainConfig, resume: bool, fresh: bool, on_epoch: Callable[[int,
         ema.updates = int(state["ema_updates"])
         load_part(path, "optimizer", lambda: optimizer.load_state_dict(state["optimizer"]))
         start_epoch, best, history = int(state["epoch"]) + 1, float(state["best_fitness"]), list(state["history"])
-    criterion = DetectionLoss(model.cfg.num_classes, gains=LossGains(kpt_l1=cfg.kpt_l1, kpt_labelled=cfg.kpt_labelled,
-                                                                        heading=cfg.heading_gain))
+    criterion = detection_loss(cfg, model)
     amp_dtype = autocast_dtype(cfg.amp, device)
     # fp16 gradients underflow without scaling; bf16 has float32's range and needs none
     scaler = torch.amp.GradScaler(device.type, enabled=amp_dtype == torch.float16)
@@ -496,7 +501,8 @@ def _train(cfg: TrainConfig, resume: bool, fresh: bool, on_epoch: Callable[[int,
     if repeat is not None and rank == 0:
         print(f"note: {describe_repeat(repeat)}", file=sys.stderr, flush=True)
     sampler = EpochBatches(len(data), per_step, cfg.seed, start_epoch, shard, repeat)
-    batches = iter(make_loader(data, sampler, cfg.workers, pin=device.type == "cuda", collate_fn=collate_uint8))
+    batches = iter(make_loader(data, sampler, loader_workers(cfg.workers, device), pin=device.type == "cuda",
+                               collate_fn=collate_uint8))
     if rank == 0:
         if fresh and state is None:  # now that the dataset, the sizes and --weights have loaded
             delete_run(out)

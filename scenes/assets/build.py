@@ -69,7 +69,17 @@ def _trim() -> None:
         _CACHE.popitem(last=False)
 
 
+_ADOPTED: dict[int, tuple[AssetSpec, tuple, str]] = {}
+"""id(asset) -> (asset, dims, key) of the agents the last adopt_agents brought: the keys their
+worker made, so that agent_parts does not make each agent's JSON key again (what most of
+compiling a Cycles frame's agents cost: bench_render.py --profile). The asset is held, so its id
+stays its own."""
+
+
 def _agent_key(asset: AssetSpec, dims) -> str:
+    known = _ADOPTED.get(id(asset))
+    if known is not None and known[0] is asset and known[1] == tuple(dims):
+        return known[2]
     return json.dumps([to_dict(asset), to_dict(tuple(dims))], sort_keys=True)
 
 
@@ -81,10 +91,15 @@ def built_agents(agents) -> list[tuple[str, tuple]]:
     return [(_agent_key(a.asset, a.dims), agent_parts(a.asset, a.dims)) for a in agents]
 
 
-def adopt_agents(built: list[tuple[str, tuple]]) -> None:
+def adopt_agents(built: list[tuple[str, tuple]], agents=None) -> None:
     """Put built_agents' meshes in this process's cache, so agent_parts finds them (the same
-    arrays, to the byte: a mesh is a pure function of its key); a key already held is kept."""
+    arrays, to the byte: a mesh is a pure function of its key); a key already held is kept.
+    `agents`, those built_agents was given (as this process holds them), have their keys known
+    from then on (_ADOPTED), until the next adoption."""
     hold_agents(len(built))
+    _ADOPTED.clear()
+    if agents is not None:
+        _ADOPTED.update({id(a.asset): (a.asset, tuple(a.dims), key) for a, (key, _) in zip(agents, built, strict=True)})
     for key, value in built:
         if key in _CACHE:
             _CACHE.move_to_end(key)

@@ -34,6 +34,28 @@ def test_throughput_prints_each_stage_and_ends_with_end_to_end():
     assert any(line.startswith("each loader measurement discarded its first 4 batches") for line in lines), out.stdout
 
 
+def test_compare_workers_times_each_count_and_sets_them_against_the_first():
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_train_speed.py"), "throughput", "--device", "cpu", "--imgsz", "64",
+         "--batch", "2", "--workers", "0", "--steps", "2", *TINY, "--frames", "4", "--fake-size", "160x96", "--threads", "1",
+         "--compare-workers", "0,1", "--rounds", "1"],
+        capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = {m.group(1): (float(m.group(2)), float(m.group(3)))
+            for m in re.finditer(r"^\| (\d+) \| (\d+\.\d) \| (\d+\.\d\d) \|$", out.stdout, re.M)}
+    assert set(rows) == {"0", "1"} and rows["0"][1] == 1.0 and all(rate > 0 for rate, _ in rows.values()), out.stdout
+    assert round(rows["1"][0] / rows["0"][0], 2) == pytest.approx(rows["1"][1], abs=0.011)
+
+
+@pytest.mark.parametrize("text", ["0", "0,0", "1,-1", "a,b"])
+def test_compare_workers_wants_two_distinct_counts(text):
+    import argparse
+
+    with pytest.raises(argparse.ArgumentTypeError):
+        bench.worker_counts(text)
+    assert bench.worker_counts("0,1,2") == [0, 1, 2]
+
+
 def test_a_loader_measurement_times_only_batches_decoded_after_its_clock_started(monkeypatch):
     # Iterating a loader queues PREFETCH batches per worker at once; the timed batches must be the
     # ones after those, and the rate counts only them.

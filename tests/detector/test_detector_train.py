@@ -615,3 +615,27 @@ def test_a_wrong_recipe_key_or_value_is_one_line_naming_it_before_anything_is_wr
     assert main(["train", str(fake), *argv, "--out", str(tmp_path / "run")]) == 1
     err = capsys.readouterr().err.strip()
     assert said in err and "\n" not in err and not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("cores, device, want", [(2, "cpu", 0), (1, "cpu", 0), (8, "cpu", 2), (2, "cuda", 2)])
+def test_the_loader_runs_in_the_step_process_on_a_cpu_of_two_cores_unless_told(monkeypatch, cores, device, want):
+    # the step's threads take every core of a small CPU; a loader process would stall them
+    from omnigen.detector.data import loader
+
+    assert 1 <= loader.usable_cores() <= (os.cpu_count() or 1)
+    monkeypatch.setattr(loader, "usable_cores", lambda: cores)
+    assert loader.loader_workers(None, torch.device(device)) == want
+    assert loader.loader_workers(3, torch.device(device)) == 3  # --workers wins
+
+
+def test_train_asks_the_loader_for_the_default_workers_when_none_are_given(fake, tmp_path, monkeypatch):
+    from omnigen.detector.data import loader
+    from omnigen.detector.training import train as train_module
+
+    seen = []
+    make = train_module.make_loader
+    monkeypatch.setattr(loader, "usable_cores", lambda: 2)
+    monkeypatch.setattr(train_module, "make_loader", lambda data, batches, workers, **kw:
+                        seen.append(workers) or make(data, batches, workers, **kw))
+    train(_cfg(fake, tmp_path / "run", epochs=1, workers=None, device="cpu", val_every=0))
+    assert seen == [0]

@@ -36,7 +36,7 @@ def _render(out: Path, start: int, frames: int, labels: str = "cycles") -> tuple
         for i in range(start, start + frames):
             r.render_frame(i)
         r.flush()
-        moved = r.backend.bs._agent_meshes.moved
+        moved = r.backend.bs.agent_mesh_counts()["moved"]
     finally:
         r.close()
     return out, moved

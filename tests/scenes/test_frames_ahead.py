@@ -6,6 +6,8 @@ from __future__ import annotations
 import os
 import signal
 
+import pytest
+
 from omnigen.scenes.description import to_json
 from omnigen.scenes.generate import FrameOverrides, FramesAhead, SceneGenerator
 
@@ -36,10 +38,9 @@ def test_a_frame_drawn_ahead_is_the_frame_drawn_here():
         ahead.close()
 
 
-def test_meshes_built_ahead_are_adopted_and_equal_a_build_here(monkeypatch):
-    """With meshes=True the worker builds the frame's agent meshes and this process adopts them:
-    agent_parts then builds nothing (no builder is reachable) and gives the very arrays a build
-    here gives. Without it the worker's meshes are not sent (the raster builds only agents in view)."""
+def _drawn_ahead_with_meshes(monkeypatch) -> tuple[SceneGenerator, object]:
+    """Frame 2 of the tiny city drawn by a FramesAhead worker that builds its meshes, adopted
+    into an empty mesh cache."""
     from omnigen.scenes.assets import build
 
     monkeypatch.setattr(build, "_CACHE", type(build._CACHE)())
@@ -50,6 +51,16 @@ def test_meshes_built_ahead_are_adopted_and_equal_a_build_here(monkeypatch):
         scene = ahead.frame(6, 2)
     finally:
         ahead.close()
+    return gen, scene
+
+
+def test_meshes_built_ahead_are_adopted_and_equal_a_build_here(monkeypatch):
+    """With meshes=True the worker builds the frame's agent meshes and this process adopts them:
+    agent_parts then builds nothing (no builder is reachable) and gives the very arrays a build
+    here gives. Without it the worker's meshes are not sent (the raster builds only agents in view)."""
+    from omnigen.scenes.assets import build
+
+    gen, scene = _drawn_ahead_with_meshes(monkeypatch)
     assert len(build._CACHE) == len({build._agent_key(a.asset, a.dims) for a in scene.agents}) > 0
     with monkeypatch.context() as m:
         m.setattr(build, "AGENT_BUILDERS", {})
@@ -69,6 +80,30 @@ def test_meshes_built_ahead_are_adopted_and_equal_a_build_here(monkeypatch):
         assert not build._CACHE
     finally:
         plain.close()
+
+
+def test_the_keys_of_adopted_meshes_are_the_workers_and_equal_those_made_here(monkeypatch):
+    """The worker's keys of a frame's agents are known to this process after adoption: agent_parts
+    makes no JSON key for them, and each equals the key made here; an asset that was not adopted
+    (another object, even an equal one) has its key made."""
+    import copy
+    import json
+
+    from omnigen.scenes.assets import build
+
+    _, scene = _drawn_ahead_with_meshes(monkeypatch)
+    with monkeypatch.context() as m:
+        m.setattr(build, "json", None)  # no key can be made: each must be known
+        known = [build._agent_key(a.asset, a.dims) for a in scene.agents]
+        parts = [build.agent_parts(a.asset, a.dims) for a in scene.agents]
+    assert known and known == [json.dumps([build.to_dict(a.asset), build.to_dict(tuple(a.dims))], sort_keys=True)
+                               for a in scene.agents]
+    assert all(p is build._CACHE[k] for p, k in zip(parts, known))
+    other = copy.deepcopy(scene.agents[0].asset)
+    with monkeypatch.context() as m, pytest.raises(AttributeError):
+        m.setattr(build, "json", None)
+        build._agent_key(other, scene.agents[0].dims)
+    assert build._agent_key(other, scene.agents[0].dims) == known[0]
 
 
 def _made_in(scene):
