@@ -416,7 +416,8 @@ def size_table(r: dict[str, Any]) -> list[str]:
     bins = r.get("size_bins_px") or {}
     rows = {run["name"]: {g["group"][5:]: g for g in run.get("report_rows", []) if g["group"].startswith("size=")}
             for run in r["runs"]}
-    names = [b for b in bins if any(b in by for by in rows.values())]
+    # smallest first, whatever order results.json keeps the bins in (JSON written with sorted keys)
+    names = sorted((b for b in bins if any(b in by for by in rows.values())), key=lambda b: tuple(bins[b]))
     if not names:
         return []
     label = {b: f"< {hi:g}" if lo == 0 else f">= {lo:g}" if hi >= 1e4 else f"{lo:g}-{hi:g}"

@@ -254,6 +254,8 @@ def test_results_markdown_compares_every_run_by_object_size():
     assert "| n-no-p2 | 0.050 / 0.100 | 0.400 / 0.800 |" in lines
     assert "| n-p2-no-synthetic | - | - |" in lines
     assert size_table({"runs": runs}) == []  # results.json from before the size rows
+    # read back from results.json, whose keys are sorted (large before tiny): still smallest first
+    assert size_table({"size_bins_px": dict(sorted(bins.items())), "runs": runs}) == lines
 
 
 def test_results_markdown_says_a_larger_input_is_upsampled_and_its_training_windows_hold_less():
