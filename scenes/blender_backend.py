@@ -1039,8 +1039,9 @@ class BlenderScene:
                     dims: tuple[float, ...] | None = None) -> None:
         """Slot j's object index (the label pass reads it) and the properties a saved .blend
         shows (instance id, category, dims, kind), each written only when it changed: a slot
-        keeps its index from frame to frame (agent j has instance id j + 1) and often its category,
-        and each write is a property lookup in Blender (None: left as it is, a hidden slot's)."""
+        keeps its index from frame to frame (in a frame drawn alone, agent j has instance id
+        j + 1) and often its category, and each write is a property lookup in Blender (None: left
+        as it is, a hidden slot's)."""
         bobj, last = self._slots[j], self._slot_labels.get(j)
         if last is None:
             bobj["omnigen_kind"] = "agent"

@@ -206,3 +206,18 @@ def test_agents_take_kept_meshes_of_their_shape(frames):
         bobj.data.attributes["position"].data.foreach_get("vector", v)
         assert v.tobytes() == blender._stack_parts(obj.parts)[0].tobytes(), obj.name
     assert all(bobj.data.name == "omnigen_agent_none" for bobj in bs._slots[len(agents):])
+
+
+def test_each_slot_is_labelled_as_its_agent_after_any_frames(frames):
+    """A slot's index and properties are written only when they change: after frames in any order
+    each shown slot still names its own agent (pass index, instance id, category, dims, kind), and
+    each hidden one index 0."""
+    bs = blender.BlenderScene(frames[0])
+    for scene in frames[1:] + frames[::-1]:
+        bs.update(scene)
+        agents = [o for o in blender.compile_scene(scene) if o.kind == "agent"]
+        for bobj, obj in zip(bs._slots, agents):
+            assert (bobj.pass_index, bobj["omnigen_instance_id"], bobj["omnigen_category"], bobj["omnigen_kind"]) == \
+                (obj.instance_id, obj.instance_id, obj.category, "agent"), obj.name
+            assert list(bobj["omnigen_dims"]) == [float(d) for d in obj.dims], obj.name
+        assert all(bobj.pass_index == 0 and bobj["omnigen_instance_id"] == 0 for bobj in bs._slots[len(agents):])
