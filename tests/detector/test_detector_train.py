@@ -637,5 +637,7 @@ def test_train_asks_the_loader_for_the_default_workers_when_none_are_given(fake,
     monkeypatch.setattr(loader, "usable_cores", lambda: 2)
     monkeypatch.setattr(train_module, "make_loader", lambda data, batches, workers, **kw:
                         seen.append(workers) or make(data, batches, workers, **kw))
-    train(_cfg(fake, tmp_path / "run", epochs=1, workers=None, device="cpu", val_every=0))
+    cfg = _cfg(fake, tmp_path / "run", epochs=1, workers=None, device="cpu", val_every=0)
+    train(cfg)
     assert seen == [0]
+    train(cfg, resume=True)  # the checkpoint's recorded workers (None) read back as a setting
