@@ -104,13 +104,12 @@ def bench(backend: str, frames: int, size: int, quality: str, scene: str, seed: 
         rss_first = rss_mb()
         build = r.summary.timings["build"]
         bs = getattr(r.backend, "bs", None)  # Cycles' Blender scene
-        before = bs.agent_mesh_counts() if bs is not None else None
+        before = bs.agent_mesh_counts() if bs is not None else {}
         t1 = time.perf_counter()
         tm = render_frames(r, range(1, frames))
         loop = time.perf_counter() - t1
         rss_last = rss_mb()
-        after = bs.agent_mesh_counts() if bs is not None else None
-        meshes = (after["built"] - before["built"], after["moved"] - before["moved"]) if bs is not None else None
+        meshes = {k: n - before[k] for k, n in bs.agent_mesh_counts().items()} if bs is not None else None
         r.close()
     n = frames - 1
     core = tm["renderer_core"]
@@ -137,8 +136,8 @@ def report(res: dict) -> None:
             ["resident MB after frame 0", round(res["rss_first"])],
             ["resident MB after last frame", round(res["rss_last"])]]
     if res["agent_meshes"] is not None:
-        built, moved = res["agent_meshes"]
-        rows.append(["agent meshes moved / built, per frame", f"{moved / res['frames']:.1f} / {built / res['frames']:.1f}"])
+        per = {k: n / res["frames"] for k, n in res["agent_meshes"].items()}
+        rows.append(["agent meshes moved / built, per frame", f"{per['moved']:.1f} / {per['built']:.1f}"])
     rows += [[f"  stage {k}, s per frame", round(v, 3)] for k, v in res["stages"].items()]
     print_table(f"{res['backend']}: drone rig", ["measure", "value"], rows)
 

@@ -35,8 +35,8 @@ each alike; each one's median and the ratio of the medians are printed.
     .venv/bin/python benchmarks/bench_train_speed.py step --loop        # + the loop, channels-last or not
     .venv/bin/python benchmarks/bench_train_speed.py step --overfit     # + the precision cost (about 5 min)
     .venv/bin/python benchmarks/bench_train_speed.py throughput --device cpu --imgsz 320 --batch 8 --steps 12 --workers 1
-    .venv/bin/python benchmarks/bench_train_speed.py throughput --device cpu --imgsz 640 --crop 320 --batch 16 \
-        --amp bf16 --fake-size 640x640 --frames 64 --steps 16 --compare-workers 0,1   # make validate's step
+    .venv/bin/python benchmarks/bench_train_speed.py throughput --device cpu --dataset runs/validate/uov --recipe \
+        --amp bf16 --steps 12 --workers 1 --compare-workers 0,1 [--cache]   # make validate's step and data
     python benchmarks/bench_train_speed.py throughput --device cuda --imgsz 640 --batch 64 --workers 14 --dataset D
     .venv/bin/python benchmarks/bench_train_speed.py cache runs/validate/uov   # make validate's data
 """
@@ -64,7 +64,7 @@ from omnigen.detector.training.loss import DetectionLoss  # noqa: E402
 from omnigen.detector.model.network import DetectorConfig, KeypointDetector  # noqa: E402
 from omnigen.detector.recipe import RECIPE, train_fields  # noqa: E402
 from omnigen.detector.training.train import (TrainConfig, autocast_dtype, detection_loss, fast_bf16,  # noqa: E402
-                                             make_optimizer)
+                                             make_optimizer, training_data)
 from omnigen.detector.data.loader import PREFETCH, EpochBatches, collate_uint8, make_loader  # noqa: E402
 from omnigen.detector.training.step import PartSums, TrainStep, to_device, use_channels_last  # noqa: E402
 from omnigen.options import integer, number  # noqa: E402
@@ -306,12 +306,12 @@ def run_throughput(args: argparse.Namespace) -> None:
 
 
 def throughput(args: argparse.Namespace, device: torch.device, root: str | Path) -> None:
-    if args.recipe:  # the model, loss, batch and data `omnigen train` builds from the recipe
-        cfg = TrainConfig(dataset=str(root), out="", **train_fields(RECIPE))
+    # --recipe: the model, loss, batch and data `omnigen train` builds from the recipe
+    cfg = TrainConfig(dataset=str(root), out="", **train_fields(RECIPE)) if args.recipe else None
+    if cfg is not None:
         args.imgsz, args.batch, args.crop = cfg.imgsz, cfg.batch, cfg.window()
         taxonomy = load_taxonomy(cfg.taxonomy)
-        data = KeypointDataset(root, taxonomy, cfg.imgsz, split_frames(root, "train"), Augment(**cfg.augment),
-                               cfg.out_of_image, cfg.seed, crop=cfg.window(), crop_focus=cfg.focus())
+        data = training_data(cfg, taxonomy)
     else:
         taxonomy = load_taxonomy("fine")
         data = KeypointDataset(root, taxonomy, args.imgsz, split_frames(root, "train"), Augment(), crop=args.crop)
@@ -327,23 +327,20 @@ def throughput(args: argparse.Namespace, device: torch.device, root: str | Path)
         data[i]
     one = n_one / (time.perf_counter() - start)
 
-    def loader() -> Iterator:
-        return iter(make_loader(data, EpochBatches(len(data), args.batch, 0), args.workers, pin=device.type == "cuda"))
-
     prefetched = PREFETCH * args.workers
-    stream = loader()
+    stream = loader(data, args.batch, args.workers, device)
     loader_rate = timed_rate(stream, prefetched, args.steps, device)
     images, targets, _ = next(stream)  # the step alone's batch
     del stream  # its workers end: none decodes while the step alone is timed
 
     channels_last = use_channels_last(args.channels_last, device)
-    model = KeypointDetector(cfg.model_config(len(taxonomy.classes))) if args.recipe \
+    model = KeypointDetector(cfg.model_config(len(taxonomy.classes))) if cfg is not None \
         else detector(args, len(taxonomy.classes))
     model = model.to(device, memory_format=torch.channels_last if channels_last else torch.preserve_format)
     if device.type == "cuda":
         torch.backends.cudnn.benchmark = True
     model.train()
-    step = train_step(model, autocast_dtype(args.amp, device), cfg if args.recipe else None)
+    step = train_step(model, autocast_dtype(args.amp, device), cfg)
 
     on_device = to_device(images, targets, device, channels_last)
     for _ in range(3):  # warm-up: kernel selection (cudnn autotuning, oneDNN primitives)
@@ -357,8 +354,7 @@ def throughput(args: argparse.Namespace, device: torch.device, root: str | Path)
         times.append(time.perf_counter() - start)
     step_rate = len(images) / statistics.median(times)
 
-    end_to_end = timed_rate(loader(), prefetched, args.steps, device,
-                            lambda images, targets: step(*to_device(images, targets, device, channels_last)))
+    end_to_end = end_to_end_rate(data, args, args.workers, device, step, channels_last)
 
     if device.type == "cuda":
         profile(step, on_device, device)
@@ -377,23 +373,27 @@ def throughput(args: argparse.Namespace, device: torch.device, root: str | Path)
         compare_workers(args, data, device, step, channels_last)
 
 
+def loader(data: KeypointDataset, batch: int, workers: int, device: torch.device) -> Iterator:
+    """A fresh training loader's batches (detector/data/loader.py), as `omnigen train` iterates them."""
+    return iter(make_loader(data, EpochBatches(len(data), batch, 0), workers, pin=device.type == "cuda"))
+
+
+def end_to_end_rate(data: KeypointDataset, args: argparse.Namespace, workers: int, device: torch.device,
+                    step: Callable, channels_last: bool) -> float:
+    """Images/s of a fresh loader with `workers` processes feeding the step, --steps batches timed."""
+    return timed_rate(loader(data, args.batch, workers, device), PREFETCH * workers, args.steps, device,
+                      lambda images, targets: step(*to_device(images, targets, device, channels_last)))
+
+
 def compare_workers(args: argparse.Namespace, data: KeypointDataset, device: torch.device, step: Callable,
                     channels_last: bool) -> None:
     """End to end with each loader-worker count of --compare-workers, a fresh loader each round and
     the counts in turn round by round (what `omnigen train --workers` chooses between)."""
     counts = args.compare_workers
-
-    def end_to_end(workers: int) -> float:
-        stream = iter(make_loader(data, EpochBatches(len(data), args.batch, 0), workers, pin=device.type == "cuda"))
-        rate = timed_rate(stream, PREFETCH * workers, args.steps, device,
-                          lambda images, targets: step(*to_device(images, targets, device, channels_last)))
-        del stream
-        return rate
-
     rates: dict[int, list[float]] = {n: [] for n in counts}
     for _ in range(args.rounds):
         for n in counts:
-            rates[n].append(end_to_end(n))
+            rates[n].append(end_to_end_rate(data, args, n, device, step, channels_last))
     print(f"end to end by loader workers, median of {args.rounds} alternating rounds of {args.steps} steps")
     print("| workers | img/s | against the first |")
     print("|---|---|---|")

@@ -218,8 +218,9 @@ def train_command(args: argparse.Namespace, dataset: Path, out: Path, keys: list
     and validate's budget and machine settings; nothing of the recipe's own values, which train
     takes from detector/recipe.py."""
     recipe = ["--recipe", str(args.recipe)] if args.recipe else []
+    workers = ["--workers", str(args.workers)] if args.workers is not None else []  # else train's own choice
     return ["train", str(dataset), *args.set, *keys, "--out", str(out), *recipe, "--epochs", str(args.epochs),
-            *(["--workers", str(args.workers)] if args.workers is not None else []), "--seed", str(args.seed), "--val-every", str(args.val_every),
+            *workers, "--seed", str(args.seed), "--val-every", str(args.val_every),
             "--amp", args.amp, *time_box(args), *(["--device", args.device] if args.device else []),
             *(["--cache"] if args.cache else []), *options]
 

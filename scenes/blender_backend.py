@@ -426,13 +426,12 @@ def _set_positions(mesh: bpy.types.Mesh, v: np.ndarray) -> None:
     mesh.update()
 
 
-def _shape(v: np.ndarray, f: np.ndarray, order: list[tuple[str, int]], surfaces: dict[str, Surface],
-           looks: tuple | None = None) -> tuple:
+def _shape(v: np.ndarray, f: np.ndarray, order: list[tuple[str, int]], looks: tuple) -> tuple:
     """What an agent mesh holds besides its vertex positions: its vertex count, its parts' roles
-    and triangle counts, its triangles, and each role's surface (pattern and numbers, hence its
-    material slots; `looks`: _looks of them, where known). Two agents of one shape differ in
-    positions alone (an asset fitted to other dims)."""
-    return (len(v), tuple(order), _looks(surfaces) if looks is None else looks, f.tobytes())
+    and triangle counts, its triangles, and each role's surface (`looks`, _looks of them: pattern
+    and numbers, hence its material slots). Two agents of one shape differ in positions alone (an
+    asset fitted to other dims)."""
+    return (len(v), tuple(order), looks, f.tobytes())
 
 
 def _looks(surfaces: dict[str, Surface]) -> tuple:
@@ -950,6 +949,7 @@ class BlenderScene:
         self._held: list[_Painted | None] = []  # the mesh each slot shows (None: hidden, the empty mesh)
         self._agent_meshes = _AgentMeshes()
         self._no_agent: bpy.types.Mesh | None = None  # the empty mesh a hidden slot shows
+        self._film = None  # the last beauty render's develop (render), for save_blend's exposure
         self._updates = 0  # frame updates so far (TRIM_EVERY)
         self._agent_looks: dict[tuple[str, ...], tuple] = {}  # roles -> surfaces and their _looks (_agent_surfaces)
         self._slot_labels: dict[int, tuple] = {}  # slot -> (instance id, category, dims) as written (_label_slot)
@@ -999,10 +999,8 @@ class BlenderScene:
         # None: the slot's mesh holds these very parts (the same asset and dims), lent back to it unchanged
         stacked = [None if j < len(self._held) and self._held[j] is not None and self._held[j].parts is obj.parts
                    else _stack_parts(obj.parts) for j, obj in enumerate(agents)]
-        looks = [self._agent_surfaces(obj) for obj in agents]
-        surfaces = [surface for surface, _ in looks]
-        shapes = [self._held[j].shape if st is None else _shape(*st, *looks[j])
-                  for j, st in enumerate(stacked)]
+        surfaces, looks = zip(*(self._agent_surfaces(obj) for obj in agents)) if agents else ((), ())
+        shapes = [self._held[j].shape if st is None else _shape(*st, looks[j]) for j, st in enumerate(stacked)]
         lent = self._agent_meshes.lend(shapes, self._held)
         for j, obj in enumerate(agents):
             if j == len(self._slots):
@@ -1360,8 +1358,9 @@ class BlenderScene:
         finally:
             if skip_fog:
                 fog.hide_render = False
-        rgb, gain = film() if develop else (None, None)
+        rgb = gain = None
         if develop:
+            rgb, gain = film()
             self.bscene.view_settings.exposure = float(math.log2(gain))
         return {"rgb": rgb, "depth": depth, "instance": instance, "seconds": seconds, "gain": gain, "develop": film}
 
@@ -1465,9 +1464,8 @@ class BlenderScene:
     def save_blend(self, path: str | Path) -> Path:
         """Write the scene as a .blend a user opens in Blender (relative paths, compressed), at the
         exposure of the last rendered frame (developed here if its caller has not yet)."""
-        film = getattr(self, "_film", None)
-        if film is not None:
-            self.bscene.view_settings.exposure = float(math.log2(film()[1]))
+        if self._film is not None:
+            self.bscene.view_settings.exposure = float(math.log2(self._film()[1]))
         path = Path(path).resolve()
         path.parent.mkdir(parents=True, exist_ok=True)
         bpy.ops.wm.save_as_mainfile(filepath=str(path), check_existing=False, compress=True, copy=True)

@@ -94,6 +94,13 @@ def param_groups(model: torch.nn.Module, weight_decay: float) -> list[dict[str, 
 OPTIMIZERS = {"adam": torch.optim.Adam, "adamw": torch.optim.AdamW}
 
 
+def training_data(cfg: TrainConfig, taxonomy) -> KeypointDataset:
+    """The frames of the run's training split as it trains on them: its input size, augmentation,
+    windows and seed."""
+    return KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, split_frames(cfg.dataset, cfg.train_split),
+                           Augment(**cfg.augment), cfg.out_of_image, cfg.seed, crop=cfg.window(), crop_focus=cfg.focus())
+
+
 def detection_loss(cfg: TrainConfig, model: KeypointDetector) -> DetectionLoss:
     """The run's loss: the recipe's gains on `model`'s classes."""
     return DetectionLoss(model.cfg.num_classes, gains=LossGains(kpt_l1=cfg.kpt_l1, kpt_labelled=cfg.kpt_labelled,
@@ -452,10 +459,8 @@ def _train(cfg: TrainConfig, resume: bool, fresh: bool, on_epoch: Callable[[int,
             if state["history"] else {}
     torch.manual_seed(cfg.seed)
 
-    train_ids = split_frames(cfg.dataset, cfg.train_split)
     val_name = resolve_val_split(cfg.dataset, cfg.val_split)
-    data = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, train_ids, Augment(**cfg.augment),
-                           cfg.out_of_image, cfg.seed, crop=cfg.window(), crop_focus=cfg.focus())
+    data = training_data(cfg, taxonomy)
     if len(data) == 0:
         raise ValueError(f"{cfg.dataset}: split {cfg.train_split!r} has no frames")
     val = KeypointDataset(cfg.dataset, taxonomy, cfg.imgsz, split_frames(cfg.dataset, val_name))
