@@ -364,6 +364,13 @@ def _timed(run, into: dict[str, float]) -> float:
     return took
 
 
+def whole_sequences(flag: str, instants: int, length: int) -> None:
+    """A cooperative run renders whole sequences: `instants` a positive multiple of `length`."""
+    if instants < 1 or length < 1 or instants % length:
+        raise ValueError(f"{flag} {instants} must be a positive multiple of the sequence length "
+                         f"(--coop-length) {length}: a run renders whole sequences")
+
+
 def coop(instants: int, length: int, size: int, scene: str, seed: int, fps: float = 10.0, rounds: int = 5) -> dict:
     """Per view-frame seconds of a cooperative raster sequence (COOP_RIGS) against a single-rig
     (drone) render of the same size and as many view-frames, in one run and in alternating rounds
@@ -372,8 +379,7 @@ def coop(instants: int, length: int, size: int, scene: str, seed: int, fps: floa
     and the cooperative instant 0 of a sequence before the timed ones, which therefore build each of
     their sequence's World as a run does. The drone draws each next scene in a second process where
     `omnigen render` would (a run of 16 frames or more)."""
-    if instants < 1 or length < 1 or instants % length:
-        raise ValueError(f"--coop {instants} must be a positive multiple of --coop-length {length}")
+    whole_sequences("--coop", instants, length)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         co = coop_renderer(Path(tmp) / "coop", length + instants, length, size, scene, seed, fps)
@@ -437,8 +443,7 @@ def coop_memory(instants: int, length: int, size: int, scene: str, seed: int, ev
     10% over 1,000 instants), beside the raster's colour shader builds (kept, not a leak)."""
     from omnigen.progress import print_table
 
-    if instants < 1 or length < 1 or instants % length:
-        raise ValueError(f"--memory-instants {instants} must be a positive multiple of the sequence length {length}")
+    whole_sequences("--memory-instants", instants, length)
     rows, at = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         r = coop_renderer(Path(tmp), instants, length, size, scene, seed, fps)
@@ -501,9 +506,12 @@ def main() -> int:
             if getattr(args, name) is not None and getattr(args, name) < (0 if name == "memory_instants" else 1):
                 ap.error(f"--{name.replace('_', '-')} {getattr(args, name)}: must be at least 1")
         length, mem_length = args.coop_length or args.coop, args.coop_length or args.memory_instants
-        if args.coop % length or (args.memory_instants and args.memory_instants % mem_length):
-            ap.error(f"--coop {args.coop} and --memory-instants {args.memory_instants} must be multiples of "
-                     f"--coop-length {args.coop_length} (a run renders whole sequences)")
+        try:  # both before the first render, not the memory run's after the timed one
+            whole_sequences("--coop", args.coop, length)
+            if args.memory_instants:
+                whole_sequences("--memory-instants", args.memory_instants, mem_length)
+        except ValueError as exc:
+            ap.error(str(exc))
         coop_report(coop(args.coop, length, args.size, args.scene, args.seed, rounds=args.coop_rounds))
         if args.memory_instants:
             coop_memory(args.memory_instants, mem_length, args.memory_size, args.scene, args.seed, args.memory_every)

@@ -742,13 +742,20 @@ class DairConverter:
 
     def convert(self, key: str) -> ConvertedFrame:
         """One frame; holds no open files, so it is safe to call in forked workers."""
+        return self.convert_posed(key)[0]
+
+    def convert_posed(self, key: str) -> tuple[ConvertedFrame, Extrinsics, Path]:
+        """One frame, and the extrinsics its boxes were projected with and their file: read once,
+        so that a caller placing the camera in the world from them (dair_cooperative) uses the
+        very values the labels were made with."""
         if key in self.errors:
             raise self.errors[key]
         f = self.frames[key]
         image, named = self.image_path(f)
         width, height = source_image_size(image, named)
         K = parse_intrinsics(*self._read(f, INTRINSIC_KEYS, INTRINSIC_DIRS))
-        ext = parse_extrinsics(*self._read(f, self.side.extrinsic_keys, self.side.extrinsic_dirs))
+        ext_data, ext_path = self._read(f, self.side.extrinsic_keys, self.side.extrinsic_dirs)
+        ext = parse_extrinsics(ext_data, ext_path)
         label_file, label_set, named_by = self.label_path(f)
         label = parse_label(read_json(label_file, f"{named_by}, frame {f.key}"), label_file)
         objects = make_objects(label.objects, K, ext, width, height, label_set)
@@ -761,7 +768,8 @@ class DairConverter:
             width=width, height=height, K=K, objects=[o for o in objects if o is not None], ignore_regions=label.ignore_regions,
             ground_plane=plane, camera_height=camera_height, camera_pitch=camera_pitch, group=self.groups.get(f.key),
         )
-        return ConvertedFrame(record, ImageSource(suffix, path=image), frame_stats(objects, estimate, label_set))
+        return ConvertedFrame(record, ImageSource(suffix, path=image), frame_stats(objects, estimate, label_set)), \
+            ext, ext_path
 
     def frame_id(self, key: str) -> str:
         """The record's frame id for a DAIR id: `<source>-<side tag><id>`."""

@@ -34,6 +34,7 @@ from omnigen.converters.dair import (
     VEHICLE,
     DairConverter,
     DairOptions,
+    Extrinsics,
     FrameInfo,
     _short,
     _text,
@@ -41,7 +42,6 @@ from omnigen.converters.dair import (
     as_matrix,
     as_number,
     nearest_rotation,
-    parse_extrinsics,
     read_json,
 )
 from omnigen.plausible import MAX_WORLD_COORDINATE_M
@@ -194,29 +194,30 @@ class CooperativeConverter:
         if key in self.pairs.errors:
             raise self.pairs.errors[key]
         side, dair_id = key.split("/", 1)
-        converted = self.converters[side].convert(dair_id)
-        fields = self._fields(side, dair_id)
+        converted, ext, ext_path = self.converters[side].convert_posed(dair_id)
+        fields = self._fields(side, dair_id, ext, ext_path)
         stats = dict(converted.stats, frames_camera_to_world_null=int(fields["camera_to_world"] is None),
                      infrastructure_frames_in_a_later_pair=int(side == "infrastructure"
                                                                and dair_id in self.pairs.repeated_infrastructure))
         return dataclasses.replace(converted, record=dataclasses.replace(converted.record, **fields), stats=stats)
 
-    def _fields(self, side: str, dair_id: str) -> dict[str, Any]:
+    def _fields(self, side: str, dair_id: str, ext: Extrinsics, ext_path: Path) -> dict[str, Any]:
         converter = self.converters[side]
         f = converter.frames[dair_id]
         by_side = self.pairs.by_infrastructure if side == "infrastructure" else self.pairs.by_vehicle
         pair = by_side.get(dair_id)
         sequence, timestamp = self.clock.get(f"{side}/{dair_id}", (None, None))
         fields: dict[str, Any] = {"pair": None if pair is None else pair.pair_id, "sequence": sequence,
-                                  "timestamp": timestamp, "camera_to_world": self._pose(side, converter, f, pair)}
+                                  "timestamp": timestamp,
+                                  "camera_to_world": self._pose(side, converter, f, pair, ext, ext_path)}
         if side == "vehicle" and dair_id in self.vehicle_groups:
             fields["group"] = self.vehicle_groups[dair_id]
         return fields
 
-    def _pose(self, side: str, converter: DairConverter, f: FrameInfo, pair: Pair | None) -> np.ndarray | None:
-        """camera_to_world from the side's world files; None when one of them is absent."""
-        ext_path, _ = converter.resolve(f, converter.side.extrinsic_keys, converter.side.extrinsic_dirs)
-        ext = parse_extrinsics(read_json(ext_path), ext_path)
+    def _pose(self, side: str, converter: DairConverter, f: FrameInfo, pair: Pair | None, ext: Extrinsics,
+              ext_path: Path) -> np.ndarray | None:
+        """camera_to_world from the frame's extrinsics (`ext`, read from `ext_path` when it was
+        converted) and the side's world files; None when one of them is absent."""
         lidar_to_camera = pose(ext.rotation, ext.translation)
         chain = [INFRA_WORLD] if side == "infrastructure" else [NOVATEL_TO_WORLD, VEHICLE_TO_NOVATEL]
         to_world = np.eye(4)

@@ -19,6 +19,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from omnigen.dataset import Dataset
 from omnigen.files import LINK_MODES, atomic_write_bytes, atomic_write_text, link_file
@@ -52,6 +53,42 @@ def _exported_by_us(folder: Path) -> bool:
     return re.fullmatch(r"\d{6} \S+", first) is not None
 
 
+@dataclass(frozen=True)
+class KittiTree:
+    """An export into a KITTI-style folder (`export kitti`, `export kitti-tracking`), and the order
+    both keep so a refused export leaves the folder as it was and an interrupted one is never
+    mistaken for a whole one: check the folder (`frames`), make every text, then `clear` the
+    folder's own subfolders and `finish` with mapping.txt, written last."""
+
+    out: Path
+    job: str
+    folders: tuple[str, ...]
+    ours: Callable[[Path], bool]  # an unmarked folder that an export from before the .omnigen-job marker wrote
+
+    def frames(self, ds: Dataset, split: str | None) -> list[int]:
+        """The dataset's frames to export (those of `split`, all for None), once the folder is
+        known to be one this job may write (outside the dataset, new, empty or its own); a bad
+        split fails here, before anything is deleted."""
+        keep = None if split is None else set(read_split(ds.root, split))
+        refuse_inputs(self.out, [ds.root], self.job)
+        claim_output(self.out, self.job, self.ours, mark=False)
+        return [i for i, f in enumerate(ds.frame_ids) if keep is None or f in keep]
+
+    def clear(self) -> None:
+        """Mark the folder as this job's and remove mapping.txt (first: a folder without it is
+        unfinished) and the subfolders an export writes; nothing else in it is touched."""
+        claim_output(self.out, self.job, self.ours)
+        (self.out / MAPPING_FILE).unlink(missing_ok=True)
+        for folder in self.folders:
+            shutil.rmtree(self.out / folder, ignore_errors=True)
+
+    def finish(self, mapping: str) -> None:
+        """Flush the files written (not fsynced one by one: that dominates on a busy disk), then
+        mapping.txt, atomically: its presence says the export is whole."""
+        os.sync()
+        atomic_write_text(self.out / MAPPING_FILE, mapping)
+
+
 def _frame_files(ds: Dataset, i: int, derived: bool) -> tuple[str, str]:
     """A frame's label and calib text, a non-finite value refused naming its record file."""
     record = ds[i]
@@ -69,33 +106,24 @@ def export_kitti(ds: Dataset, out: str | Path, split: str | None = None, link: s
     is not finite) leaves the folder as it was.
     """
     start = time.perf_counter()
-    out = Path(out)
-    keep = None if split is None else set(read_split(ds.root, split))  # a bad --split fails before any deletion
-    refuse_inputs(out, [ds.root], JOB)
-    claim_output(out, JOB, _exported_by_us, mark=False)
+    tree = KittiTree(Path(out), JOB, ("label_2", "calib", "image_2"), _exported_by_us)
+    indices = tree.frames(ds, split)
     frame_ids = ds.frame_ids
-    indices = [i for i, f in enumerate(frame_ids) if keep is None or f in keep]
     names = kitti_file_names([frame_ids[i] for i in indices])
     texts = {i: _frame_files(ds, i, derived) for i in progress(indices, desc="export kitti: labels", unit="frame")}
-    claim_output(out, JOB, _exported_by_us)
-    (out / MAPPING_FILE).unlink(missing_ok=True)
-    for folder in ("label_2", "calib", "image_2"):
-        shutil.rmtree(out / folder, ignore_errors=True)
+    tree.clear()
     report = ExportReport()
     for i in progress(indices, desc="export kitti", unit="frame"):
         number = names[frame_ids[i]]
         label, calib = texts.pop(i)
-        # not fsynced one by one (that dominates on a busy disk): one flush before mapping.txt
-        atomic_write_bytes(out / "label_2" / f"{number}.txt", label.encode(), durable=False)
-        atomic_write_bytes(out / "calib" / f"{number}.txt", calib.encode(), durable=False)
+        atomic_write_bytes(tree.out / "label_2" / f"{number}.txt", label.encode(), durable=False)
+        atomic_write_bytes(tree.out / "calib" / f"{number}.txt", calib.encode(), durable=False)
         image = ds.table.image[i]
-        report.link_modes[link_file(ds.path(image), out / "image_2" / f"{number}{Path(image).suffix}", link)] += 1
+        report.link_modes[link_file(ds.path(image), tree.out / "image_2" / f"{number}{Path(image).suffix}", link)] += 1
         report.frames += 1
         report.objects += int(ds.offsets[i + 1] - ds.offsets[i])
         report.dont_care += len(ds.table.extras[i]["ignore_regions"])
-    os.sync()
-    mapping = sorted((number, frame_id) for frame_id, number in names.items())
-    atomic_write_text(out / MAPPING_FILE, "".join(f"{n} {f}\n" for n, f in mapping))
+    tree.finish("".join(f"{n} {f}\n" for n, f in sorted((number, frame_id) for frame_id, number in names.items())))
     report.seconds = time.perf_counter() - start
     return report
 

@@ -12,8 +12,6 @@ sequence are skipped and counted. Box conventions: converters/kitti_export.py.
 from __future__ import annotations
 
 import argparse
-import os
-import shutil
 import time
 from collections import defaultdict
 from dataclasses import dataclass
@@ -21,18 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from omnigen.converters.kitti_export import add_tree_arguments
+from omnigen.converters.kitti_export import KittiTree, add_tree_arguments
 from omnigen.dataset import Dataset, record_path
-from omnigen.files import atomic_write_bytes, atomic_write_text, link_file
+from omnigen.files import atomic_write_bytes, link_file
 from omnigen.formats.checks import naming_frame
 from omnigen.formats.kitti import calib_text, dont_care_line, kitti_number, label_line
-from omnigen.outputs import refuse_inputs
-from omnigen.ownership import claim_output
 from omnigen.progress import print_table
-from omnigen.splits import read_split
 
 JOB = "export kitti-tracking"
-MAPPING_FILE = "mapping.txt"
 FOLDERS = ("label_02", "calib", "image_02", "pose")
 NO_TRACK = -1
 
@@ -94,31 +88,24 @@ def export_kitti_tracking(ds: Dataset, out: str | Path, split: str | None = None
     """Write the tree (mapping.txt last); every text is made before anything is deleted, so a
     refused export leaves the folder as it was."""
     start = time.perf_counter()
-    out = Path(out)
-    keep = None if split is None else set(read_split(ds.root, split))
-    refuse_inputs(out, [ds.root], JOB)
-    claim_output(out, JOB, _never_before_the_marker, mark=False)
-    indices = [i for i, f in enumerate(ds.frame_ids) if keep is None or f in keep]
+    tree = KittiTree(Path(out), JOB, FOLDERS, _never_before_the_marker)
+    indices = tree.frames(ds, split)
     sequences = kitti_sequences(ds, indices)
     texts = [sequence_texts(ds, frames) for frames in sequences.values()]
-    claim_output(out, JOB, _never_before_the_marker)
-    (out / MAPPING_FILE).unlink(missing_ok=True)
-    for folder in FOLDERS:
-        shutil.rmtree(out / folder, ignore_errors=True)
+    tree.clear()
     report = TrackingReport(sequences=len(sequences))
     for s, (frames, (label, calib, pose)) in enumerate(zip(sequences.values(), texts)):
-        atomic_write_bytes(out / "label_02" / f"{s:04d}.txt", label.encode(), durable=False)
-        atomic_write_bytes(out / "calib" / f"{s:04d}.txt", calib.encode(), durable=False)
+        atomic_write_bytes(tree.out / "label_02" / f"{s:04d}.txt", label.encode(), durable=False)
+        atomic_write_bytes(tree.out / "calib" / f"{s:04d}.txt", calib.encode(), durable=False)
         if pose is not None:
-            atomic_write_bytes(out / "pose" / f"{s:04d}.txt", pose.encode(), durable=False)
+            atomic_write_bytes(tree.out / "pose" / f"{s:04d}.txt", pose.encode(), durable=False)
         for n, i in enumerate(frames):
             image = ds.table.image[i]
-            link_file(ds.path(image), out / "image_02" / f"{s:04d}" / f"{n:06d}{Path(image).suffix}", link)
+            link_file(ds.path(image), tree.out / "image_02" / f"{s:04d}" / f"{n:06d}{Path(image).suffix}", link)
             report.objects += int(ds.offsets[i + 1] - ds.offsets[i])
         report.frames += len(frames)
     report.skipped = len(indices) - report.frames
-    os.sync()
-    atomic_write_text(out / MAPPING_FILE, "".join(f"{s:04d} {seq} {view}\n" for s, (seq, view) in enumerate(sequences)))
+    tree.finish("".join(f"{s:04d} {seq} {view}\n" for s, (seq, view) in enumerate(sequences)))
     report.seconds = time.perf_counter() - start
     return report
 

@@ -146,7 +146,8 @@ class Rendered:
     finish: Callable[[], np.ndarray] | None = None  # a deferred render's image (RasterScene.render(defer=True))
     shade: Callable[[], None] | None = None  # a deferred render: start its colour pass (RasterScene.render)
     develop: Callable[[], np.ndarray] | None = None  # a Cycles render: its image from the linear radiance, made by the writer
-    labelled: object | None = None  # what CyclesBackend.render's `then` made of the labels (the annotation)
+    labelled: object | None = None  # what render's `then` made of the labels (the annotation)
+    then_seconds: float = 0.0  # the time `then` took on the rendering thread (not beside the renderer)
 
 
 class RasterBackend:
@@ -163,15 +164,16 @@ class RasterBackend:
         if scene is not self.rs.scene:
             self.rs.update(scene)
 
-    def render(self, cam: Camera, defer: bool = False) -> Rendered:
-        """defer: masks and depth only; `shade` starts the colour pass on llvmpipe's threads and
-        `finish` gives the image."""
+    def render(self, cam: Camera, then: Callable | None = None, defer: bool = False) -> Rendered:
+        """The frame at `cam`; `then(depth, instance, silhouettes)`, given, runs on its labels
+        right after the draw (Rendered.labelled, its time Rendered.then_seconds). defer: masks and
+        depth only; `shade` starts the colour pass on llvmpipe's threads and `finish` gives the image."""
         t0 = time.perf_counter()
         f = self.rs.render(cam, defer=defer)
-        return Rendered(f.rgb, f.depth, f.instance, time.perf_counter() - t0, f.finish, f.shade)
-
-    def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
-        return self.rs.render_instances(cam, ids)
+        t1 = time.perf_counter()
+        labelled = then(f.depth, f.instance, partial(self.rs.render_instances, cam)) if then else None
+        return Rendered(f.rgb, f.depth, f.instance, t1 - t0, f.finish, f.shade, labelled=labelled,
+                        then_seconds=time.perf_counter() - t1)
 
     def save_blend(self, path: Path) -> Path:
         raise ValueError("--save-blend needs --backend cycles (the raster preview has no Blender scene)")
@@ -232,15 +234,17 @@ class CyclesBackend:
         self._first = False
         self.bs.update(scene)
 
-    def render(self, cam: Camera, then: Callable | None = None) -> Rendered:
-        """The frame at `cam`, its image left to Rendered.develop; `then(depth, instance,
-        silhouettes)`, given, runs on the labels as soon as they are drawn (beside the path
-        tracer with GL labels) and its result is Rendered.labelled."""
+    def render(self, cam: Camera, then: Callable | None = None, defer: bool = False) -> Rendered:
+        """The frame at `cam`, its image always left to Rendered.develop (so `defer` changes
+        nothing); `then(depth, instance, silhouettes)`, given, runs on the labels as soon as they
+        are drawn and its result is Rendered.labelled: with GL labels beside the path tracer
+        (then_seconds 0: it costs the frame no time of its own), with Cycles' after it."""
         if self.rs is None:
             out = self.bs.render(cam, labels=True, develop=False)
+            t1 = time.perf_counter()
             labelled = then(out["depth"], out["instance"], partial(self.bs.render_instances, cam)) if then else None
             return Rendered(None, out["depth"], out["instance"], out["seconds"], develop=_image(out["develop"]),
-                            labelled=labelled)
+                            labelled=labelled, then_seconds=time.perf_counter() - t1)
         job = self._gl.submit(self._label, self.bs.scene, cam, then)
         try:
             out = self.bs.render(cam, labels=False, develop=False)
@@ -256,11 +260,6 @@ class CyclesBackend:
         depth, instance = self.rs.labels(cam)
         labelled = then(depth, instance, partial(self.rs.render_instances, cam)) if then else None
         return depth, instance, labelled
-
-    def silhouettes(self, cam: Camera, ids: list[int]) -> np.ndarray:
-        if self.rs is not None:
-            return self._gl.submit(self.rs.render_instances, cam, ids).result()
-        return self.bs.render_instances(cam, ids)
 
     def save_blend(self, path: Path) -> Path:
         """The current frame's Blender scene, camera included, as a .blend a user opens in Blender."""
@@ -705,23 +704,15 @@ class Renderer:
         else:
             self.backend.update(scene)
             tm["scene"] += time.perf_counter() - t1
-        defer = self.write_behind and isinstance(self.backend, RasterBackend)
         obstacles = None  # a redraw's, built at the first one
         while True:
             t3 = time.perf_counter()
-            if defer:
-                out = self.backend.render(cam, defer=True)
-            elif isinstance(self.backend, CyclesBackend):  # annotated beside the path tracer (CyclesBackend)
-                out = self.backend.render(cam, then=partial(annotate, scene, cam))
-            else:
-                out = self.backend.render(cam)
-            t4 = time.perf_counter()
-            tm["render"] += t4 - t3
-            tm["renderer_core"] += out.render_seconds
-            ann = out.labelled if out.labelled is not None else \
-                annotate(scene, cam, out.depth, out.instance, lambda ids: self.backend.silhouettes(cam, ids))
+            out = self.backend.render(cam, then=partial(annotate, scene, cam), defer=self.write_behind)
             t2 = time.perf_counter()
-            tm["annotate"] += t2 - t4
+            tm["render"] += t2 - t3 - out.then_seconds
+            tm["renderer_core"] += out.render_seconds
+            tm["annotate"] += out.then_seconds
+            ann = out.labelled
             if rng is None or len(ann.objects) >= rig.min_objects or cam.tries >= rig.max_tries:
                 break
             self.summary.redraws += 1
@@ -776,7 +767,10 @@ class Renderer:
 
     def _ride_or(self, view, world, q: int, width: int, height: int, held: Callable):
         """An ego view's Ride on the car approaching the sequence's junction, else `held()`: the
-        view's camera held for the sequence (every other kind of view)."""
+        view's camera held for the sequence (every other kind of view). Choosing the car reads the
+        sequence's last instant, so its motion is stepped to the end here and again instant by
+        instant as the views render: a second pass of the motion, cheap beside the renders, where
+        keeping every step's state would make a sequence's memory grow with its length."""
         from omnigen.rigs.meeting import meeting_junction, place_ego_ride
 
         if view.rig.view != "ego":

@@ -1348,8 +1348,8 @@ class BlenderScene:
         try:
             self._run(self._beauty_tree)
             seconds = time.perf_counter() - t0
-            film = partial(develop_frame, _read_exr_rgb(self._single("beauty_", "rgb")),
-                           _read_exr_channel(self._single("beauty_", "depth")), camera, self.scene)
+            film = _once(partial(develop_frame, _read_exr_rgb(self._single("beauty_", "rgb")),
+                                 _read_exr_channel(self._single("beauty_", "depth")), camera, self.scene))
             self._film = film
             # The label pass runs before the fog comes back: with the same objects visible as in
             # the beauty render, Cycles (persistent data) reuses the beauty render's BVH instead
@@ -1463,13 +1463,29 @@ class BlenderScene:
 
     def save_blend(self, path: str | Path) -> Path:
         """Write the scene as a .blend a user opens in Blender (relative paths, compressed), at the
-        exposure of the last rendered frame (developed here if its caller has not yet)."""
+        exposure of the last rendered frame (its develop, run here only if its writer has not yet)."""
         if self._film is not None:
             self.bscene.view_settings.exposure = float(math.log2(self._film()[1]))
         path = Path(path).resolve()
         path.parent.mkdir(parents=True, exist_ok=True)
         bpy.ops.wm.save_as_mainfile(filepath=str(path), check_existing=False, compress=True, copy=True)
         return path
+
+
+def _once(make):
+    """`make()` run once, by whichever thread asks first (the writer, or save_blend for the
+    exposure); every later call returns that result."""
+    import threading
+
+    lock, made = threading.Lock(), []
+
+    def get():
+        with lock:
+            if not made:
+                made.append(make())
+            return made[0]
+
+    return get
 
 
 def _read_exr_rgb(path: str) -> np.ndarray:

@@ -18,9 +18,9 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 import torch
 
-from omnigen.detector.prediction.nms import box_iou
 from omnigen.conventions import FLIP_IDX, TURN_IDX
 from omnigen.dataset import Dataset
+from omnigen.detector.model.boxes import box_iou_pairwise
 from omnigen.splits import read_split
 
 ORDERS: dict[str, tuple[int, ...]] = {
@@ -66,7 +66,7 @@ def box_matches(ds: Dataset, predictions: Sequence[dict[str, Any]], frames: Sequ
             continue
         scores = np.array([p["score"] for p in preds])
         boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in (p["bbox"] for p in preds)], dtype=np.float64)
-        iou = box_iou(torch.from_numpy(o.bbox[rows].reshape(-1, 4)), torch.from_numpy(boxes)).numpy()  # (objects, preds)
+        iou = box_iou_pairwise(torch.from_numpy(o.bbox[rows].reshape(-1, 4)), torch.from_numpy(boxes)).numpy()  # (objects, preds)
         for n, r in enumerate(rows):
             ok = np.flatnonzero(iou[n] >= min_iou)
             yield r, (preds[int(ok[np.argmax(scores[ok])])] if len(ok) else None)

@@ -13,17 +13,8 @@ import numpy as np
 import torch
 
 from omnigen.conventions import NUM_KEYPOINTS
+from omnigen.detector.model.boxes import box_iou_pairwise
 from omnigen.detector.model.outputs import Detections
-
-
-def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Pairwise IoU of xyxy boxes (n, 4) x (m, 4) -> (n, m)."""
-    lt = torch.maximum(a[:, None, :2], b[None, :, :2])
-    rb = torch.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = (rb - lt).clamp(min=0).prod(-1)
-    area_a = (a[:, 2:] - a[:, :2]).clamp(min=0).prod(-1)
-    area_b = (b[:, 2:] - b[:, :2]).clamp(min=0).prod(-1)
-    return inter / (area_a[:, None] + area_b[None] - inter + 1e-9)
 
 
 def greedy_survivors(over: torch.Tensor) -> torch.Tensor:
@@ -49,8 +40,8 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> torc
     order = scores.argsort(descending=True)
     boxes = boxes[order]
     if boxes.is_cuda:
-        return order[greedy_survivors(box_iou(boxes, boxes) > iou_threshold)]
-    over = (box_iou(boxes, boxes) > iou_threshold).cpu().numpy()
+        return order[greedy_survivors(box_iou_pairwise(boxes, boxes) > iou_threshold)]
+    over = (box_iou_pairwise(boxes, boxes) > iou_threshold).cpu().numpy()
     suppressed = np.zeros(len(order), dtype=bool)
     keep = []
     for i in range(len(order)):

@@ -10,7 +10,8 @@ pytest.importorskip("cv2", reason="opencv-python-headless is part of the train e
 
 from omnigen.detector.data.samples import (Augment, KeypointDataset, Sample, clip_to_canvas, collate, flip_horizontal, letterbox,
                            random_affine, random_crop)
-from omnigen.detector.prediction.nms import box_iou, nms, postprocess
+from omnigen.detector.model.boxes import box_iou_pairwise as box_iou
+from omnigen.detector.prediction.nms import nms, postprocess
 from omnigen.conventions import FLIP_IDX, NUM_KEYPOINTS
 from omnigen.fakes import write_fake_dataset
 from omnigen.taxonomy import load_taxonomy

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from omnigen.detector.prediction.nms import box_iou, greedy_survivors, nms
+from omnigen.detector.model.boxes import box_iou_pairwise as box_iou
+from omnigen.detector.prediction.nms import greedy_survivors, nms
 
 
 def test_matrix_nms_keeps_what_the_greedy_loop_keeps():

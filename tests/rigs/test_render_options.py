@@ -39,8 +39,13 @@ def test_bad_options_are_refused(tmp_path, capsys):
     assert "--save-blend needs --backend cycles" in capsys.readouterr().err
 
 
-def test_save_blend_writes_a_blend_file(tmp_path):
+def test_save_blend_writes_a_blend_file(tmp_path, monkeypatch):
     _needs_bpy()
+    import omnigen.scenes.blender_backend as bb
+
+    calls = []
+    real = bb.develop_frame
+    monkeypatch.setattr(bb, "develop_frame", lambda *a, **k: calls.append(1) or real(*a, **k))
     blend = tmp_path / "scene.blend"
     assert main(["render", "--rig", "pole", "--frames", "1", "--scene", "tiny", "--quality", "preview",
                  "--width", "48", "--height", "32", "--save-blend", str(blend), "--out", str(tmp_path / "ds")]) == 0
@@ -48,6 +53,7 @@ def test_save_blend_writes_a_blend_file(tmp_path):
     # Blender writes either a plain .blend ("BLENDER") or a zstd-compressed one.
     assert head == b"BLENDER" or head[:4] == b"\x28\xb5\x2f\xfd"
     assert blend.stat().st_size > 10_000
+    assert len(calls) == 1  # the frame's image is developed once, for the writer and the .blend's exposure alike
 
 
 # --- issue 27: a render folder records its arguments ------------------------------------------

@@ -176,3 +176,32 @@ def test_coop_refuses_bad_counts_in_one_line(monkeypatch, capsys, argv):
     with pytest.raises(SystemExit):
         bench.main()
     assert len([line for line in capsys.readouterr().err.splitlines() if "error" in line]) == 1
+
+
+@pytest.mark.parametrize("argv, flag", [(["--coop", "5", "--coop-length", "2"], "--coop 5"),
+                                        (["--coop", "4", "--coop-length", "2", "--memory-instants", "3"],
+                                         "--memory-instants 3")])
+def test_a_cooperative_run_of_part_sequences_is_refused_before_any_render(monkeypatch, capsys, argv, flag):
+    import sys
+
+    import benchmarks.bench_render as bench
+
+    def never(*a, **k):
+        raise AssertionError("rendered before the arguments were checked")
+
+    monkeypatch.setattr(bench, "coop", never)
+    monkeypatch.setattr(bench, "coop_memory", never)
+    monkeypatch.setattr(sys, "argv", ["bench_render.py", *argv])
+    with pytest.raises(SystemExit):
+        bench.main()
+    err = capsys.readouterr().err
+    assert flag in err and "multiple of the sequence length" in err
+
+
+def test_whole_sequences_is_the_functions_own_check_too():
+    from benchmarks.bench_render import coop, coop_memory
+
+    with pytest.raises(ValueError, match="--coop 3 must be a positive multiple"):
+        coop(3, 2, 32, "tiny", 0)
+    with pytest.raises(ValueError, match="--memory-instants 0 must be a positive multiple"):
+        coop_memory(0, 1, 32, "tiny", 0)
