@@ -16,10 +16,10 @@ train's). Its defaults fit a 2-core CPU: 600 raster frames at 640 x 640, trainin
 320 x 320 windows of the 640-pixel input (data.window: a step costs what a 320-pixel input costs
 while every object keeps the scale it has when the model predicts on the whole image), then the
 crop stage (each detection's corners, front and class from its own crop) trained again apart on
-clean crops for 7000 steps, the run's second phase (about 16 minutes on 2 cores in bf16). Training
+clean crops for 7000 steps, the run's second phase (RESULTS.md gives its seconds). Training
 is time-boxed (`--minutes 125`, train --time): the detector's schedule is planned over the epochs
-that fit in 100 minutes, at most `--epochs`, and the crop phase has the rest; the whole run stays
-within 2 hours on 2 cores that run bfloat16 (RESULTS.md lists each stage's time). On a CPU that runs
+that fit in 100 minutes, at most `--epochs`, and the crop phase has the rest; rendering before it
+and predicting, evaluating and the BEV head after it add minutes (RESULTS.md lists each stage's time). On a CPU that runs
 bfloat16 natively the steps run in bf16 (`--amp`, about 0.65 of a float32 step by
 benchmarks/bench_train_speed.py; the crop phase's too). The images are decoded once and kept in memory (train --cache,
 565 MiB here; `--no-cache` reads them every epoch): on 2 cores train loads in the step's own process,
@@ -147,8 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--epochs", type=int, default=RUN.epochs, help="epochs at most (--minutes may plan fewer)")
     ap.add_argument("--minutes", type=float, default=125.0,
                     help="training's wall-clock budget per model, both phases (train --time): the detector's schedule "
-                         "is fitted to the epochs that fit in its 100 minutes, the crop stage's to the rest, so the "
-                         "whole default run stays within 2 hours on 2 cores; 0: none")
+                         "is fitted to the epochs that fit in its 100 minutes, the crop stage's to the rest; 0: none")
     ap.add_argument("--workers", type=int, default=RUN.workers,
                     help="loader processes (default: train's, none on a CPU of 2 cores or fewer)")
     ap.add_argument("--cache", action=argparse.BooleanOptionalAction, default=True,

@@ -1519,7 +1519,7 @@ def sun_rotation_for_azimuth(azimuth_deg: float) -> float:
 def _matrix(m: np.ndarray) -> mathutils.Matrix:
     """A 4x4 numpy matrix (rows) as Blender's Matrix. Assigning nested lists to matrix_world
     would be read column by column, i.e. transposed."""
-    return mathutils.Matrix([[float(v) for v in row] for row in np.asarray(m)])
+    return mathutils.Matrix(np.asarray(m, dtype=np.float64).tolist())  # tolist: the same Python floats, made in C
 
 
 def _look_along(direction) -> np.ndarray:
