@@ -117,8 +117,9 @@ def run(args: argparse.Namespace) -> int:
         parts = " ".join(f"{k}={row[k]:.4f}" for k in ("box", "dfl", "cls", "kpt", "kvis", "oks_map50_95") if k in row)
         print(f"epoch {epoch + 1}: {parts} ({row['seconds']:.1f} s)", file=sys.stderr, flush=True)
         seconds.append(row["seconds"])
-        if len(seconds) == 1 and cfg.time_minutes is None:
-            note = long_run_note(row["seconds"], cfg.epochs - epoch - 1, cfg.val_every)
+        if len(seconds) == 1:
+            note = long_run_note(row["seconds"], cfg.epochs - epoch - 1, cfg.val_every) if cfg.time_minutes is None \
+                else short_plan_note(cfg.time_minutes, row["seconds"], int(row["planned_epochs"]), cfg.epochs)
             if note:
                 print(f"note: {note}", file=sys.stderr, flush=True)
 
@@ -139,6 +140,16 @@ def long_run_note(epoch_seconds: float, epochs_left: int, val_every: int) -> str
     return (f"an epoch took {epoch_seconds:.0f} s: the {epochs_left} epochs left take about {left / 3600:.1f} h "
             f"(without validations, every {val_every}), then the crop stage; --time MINUTES fits the run into a "
             "budget (or fewer --epochs)")
+
+
+def short_plan_note(minutes: float, epoch_seconds: float, planned: int, epochs: int) -> str | None:
+    """What a user is told after the first epoch of a time-boxed run whose plan fits fewer epochs
+    than --epochs: the schedule then ends sooner than the recipe's, and so do its scores."""
+    if planned >= epochs:
+        return None
+    return (f"--time {minutes:g}: an epoch took {epoch_seconds:.0f} s, so about {planned} of the {epochs} epochs "
+            "fit (planned again after every epoch): a shorter schedule than the recipe's, which scores below a "
+            "whole run; a larger --time or a faster machine trains them all")
 
 
 METRICS = {"oks_map50_95": "OKS mAP50:95", "ap_oks50": "AP at OKS 0.50", "precision": "precision",

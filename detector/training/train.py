@@ -589,8 +589,8 @@ def _train(cfg: TrainConfig, resume: bool, fresh: bool, on_epoch: Callable[[int,
             fitness = row.get("oks_map50_95", -1.0)
             last = epoch + 1 == end or epoch + 1 == stop_after
             due = validated or last or time.perf_counter() - last_save >= cfg.save_interval
-            if on_epoch is not None:
-                on_epoch(epoch, row)
+            if on_epoch is not None:  # with the plan after this epoch (history's rows keep results.csv's columns)
+                on_epoch(epoch, {**row, "planned_epochs": end})
             if due:
                 last_save = time.perf_counter()
                 ckpt = {"schema": SCHEMA, "config": model.cfg.to_dict(), "classes": taxonomy.classes,

@@ -437,8 +437,13 @@ def step_clock(monkeypatch):
 
 
 def test_a_time_budget_fits_the_schedule_and_validations_to_the_epochs_that_fit(fake, tmp_path, step_clock):
-    last = train(_cfg(fake, tmp_path / "run", epochs=1000, time_minutes=10 / 60, lr0=1e-2, lrf=0.01))
+    plans = []
+    last = train(_cfg(fake, tmp_path / "run", epochs=1000, time_minutes=10 / 60, lr0=1e-2, lrf=0.01),
+                 on_epoch=lambda epoch, row: plans.append(row["planned_epochs"]))
     history = load_checkpoint(tmp_path / "run" / "last.pt")["history"]
+    # the hook is told each epoch's plan (omnigen train's note after the first, made before any
+    # validation was timed, hence more epochs); results.csv is not
+    assert plans == [10, 5, 5, 5, 5] and not any("planned_epochs" in r for r in history)
     # epoch 1 (1 s) and its validation (2 s); then with 10 - 3 s left, 2 s kept for the final validation
     # and validations stretched to every 20 epochs (10% of the time): 4 epochs of 1.1 s fit, 5 in all
     assert len(history) == 5 and step_clock[0] == 3.0 + 4 * 1.0 + 2.0 <= 10.0

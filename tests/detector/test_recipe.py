@@ -28,7 +28,7 @@ from omnigen.detector.prediction.predict import trained_vertical  # noqa: E402
 from omnigen.detector.model.checkpoint import SCHEMA, load_checkpoint, load_model, save_checkpoint  # noqa: E402
 from omnigen.detector.recipe import RECIPE, read_recipe, recipe_of, train_fields, with_overrides  # noqa: E402
 from omnigen.detector.training.train import TrainConfig, train  # noqa: E402
-from omnigen.detector.train_command import long_run_note, summary_rows  # noqa: E402
+from omnigen.detector.train_command import long_run_note, short_plan_note, summary_rows  # noqa: E402
 from omnigen.outputs import json_made_by  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -333,5 +333,11 @@ def test_a_long_run_is_told_after_its_first_epoch_and_pointed_at_time():
     note = long_run_note(36.0, 149, 10)
     assert "1.5 h" in note and "--time MINUTES" in note
     assert long_run_note(2.0, 149, 10) is None
+
+
+def test_a_time_box_that_fits_fewer_epochs_than_asked_says_so_after_the_first():
+    note = short_plan_note(125.0, 48.4, 116, 150)
+    assert note.startswith("--time 125: an epoch took 48 s, so about 116 of the 150 epochs fit") and "shorter" in note
+    assert short_plan_note(125.0, 35.8, 150, 150) is None
 
 
